@@ -1,0 +1,442 @@
+"""Batched, implicit FE solver of the layered specimen with Anand solder.
+
+One solve advances ``B`` parameter sets together. The mesh, the elastic bars and their
+condensation (:mod:`solderpyro.fem.assembly`) are shared by the whole batch; per member only the
+solder layer is nonlinear, and its retained system is solved with a batched dense Cholesky.
+
+Time stepping: a deterministic grid (:func:`~solderpyro.fem.loading.time_grid`) shared by the
+batch; a member whose Newton iteration fails, or whose inelastic strain increment exceeds
+``dep_max``, is sub-stepped on its own (recursive halving), so a result never depends on the
+other members of the batch. A member that fails at the deepest level is reported (flag + reason)
+and its outputs after the failure are NaN; the others are unaffected.
+
+Differentiability: the Newton iterations run without autograd; at each step the converged
+solution is corrected by one Newton step with the graph attached (implicit-function theorem),
+so outputs are differentiable with respect to the Anand constants.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from ..materials.elastic import IP, ZZ, condense_zz
+from ..materials.integrate import (
+    PointState,
+    _full_strain,
+    ezz_predictor,
+    initial_state,
+    return_map_3d,
+)
+from ..params import ANAND_NAMES
+from .assembly import condense, linear_system
+from .elements import bbar, edofs, q4_kinematics
+from .loading import time_grid
+from .mesh import build_mesh, locate
+from .problem import Problem
+
+KELVIN = 273.15
+
+
+@dataclass
+class SolveResult:
+    """Outputs of a batched solve.
+
+    Attributes:
+        times: ``(n_time,)`` output times, s.
+        names: ``n_out`` output labels (e.g. ``"A", "B"``, grid labels).
+        V: ``(B, n_time, n_out)`` vertical displacement relative to O, um.
+        ok: ``(B,)`` bool, False for members that failed to converge.
+        reasons: ``B`` strings, empty for converged members.
+        n_steps: number of grid steps; ``n_substeps``: extra sub-steps taken, summed over members.
+    """
+
+    times: torch.Tensor
+    names: list
+    V: torch.Tensor
+    ok: torch.Tensor
+    reasons: list
+    n_steps: int = 0
+    n_substeps: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+class SpecimenSolver:
+    """FE model of a :class:`~solderpyro.fem.problem.Problem`, set up once, solved for batches.
+
+    Args:
+        problem: geometry, materials, loading and outputs.
+        field_points: optional ``(labels, (n_pt, 2) array)`` extra points reported as V (mm).
+        dtype, device: torch dtype/device of the solve (float64 recommended).
+    """
+
+    def __init__(self, problem: Problem, field_points=None, dtype=torch.float64,
+                 device="cpu") -> None:
+        self.problem = problem
+        self.tkw = dict(dtype=dtype, device=torch.device(device))
+        self.mesh = mesh = build_mesh(problem.layers, problem.half_length, problem.mesh)
+        nonlin = np.array([problem.materials[lay.material].nonlinear for lay in mesh.layers])
+        el_nl = np.nonzero(nonlin[mesh.region])[0]
+        el_lin = np.nonzero(~nonlin[mesh.region])[0]
+        if len(el_nl) == 0:
+            raise ValueError("problem has no nonlinear (solder) region")
+        keys = {mesh.layers[mesh.region[e]].material for e in el_nl}
+        if len(keys) != 1:
+            raise ValueError("exactly one nonlinear material is supported")
+        self.solder_key = keys.pop()
+        self.solder = problem.materials[self.solder_key]
+        fixed = self._dirichlet()
+        n_dof = 2 * mesh.n_node
+        free = np.setdiff1d(np.arange(n_dof), fixed)
+        nl_dofs = np.unique(edofs(mesh.elems[el_nl]))
+        r = np.intersect1d(free, nl_dofs)
+        c = np.setdiff1d(free, r)
+        self.n_r = len(r)
+        # observation operator: V(P) - V(O)
+        names, pts = list(problem.points), np.array(list(problem.points.values()), float)
+        if field_points is not None:
+            names += list(field_points[0])
+            pts = np.concatenate([pts, np.asarray(field_points[1], float)])
+        self.names = names
+        Hobs = self._observation(pts)
+        K, loads = linear_system(mesh, problem, el_lin)
+        cond = condense(K, loads, Hobs, r, c)
+        t = lambda a: torch.as_tensor(np.ascontiguousarray(a), **self.tkw)  # noqa: E731
+        self.S = t(cond.S)
+        self.alpha = {k: problem.materials[k].alpha for k in cond.g}
+        self.G = torch.stack([t(cond.g[k]) for k in cond.g])  # (n_mat, n_r)
+        self.Hobs = t(cond.H)  # (n_out, n_r)
+        self.hobs = torch.stack([t(cond.h[k]) for k in cond.h])  # (n_mat, n_out)
+        self.alphas = torch.tensor([self.alpha[k] for k in cond.g], **self.tkw)
+        # solder element data on the retained dofs; a fixed dof points at dof 0 with a zero
+        # B-matrix column, so it contributes nothing to strains, forces or tangents
+        gmap = np.full(n_dof, -1)
+        gmap[r] = np.arange(self.n_r)
+        ed = gmap[edofs(mesh.elems[el_nl])]
+        B, wdet = q4_kinematics(mesh.nodes[mesh.elems[el_nl]])
+        if problem.plane == "strain":
+            B = bbar(B, wdet)
+        B = B * (ed >= 0)[:, None, None, :]
+        self.edof = torch.as_tensor(np.maximum(ed, 0), device=self.tkw["device"])
+        self.B, self.wdet = t(B), t(wdet)  # (n_e, n_qp, 3, 8), (n_e, n_qp)
+        self.Bw = self.B * self.wdet[..., None, None]
+        self.kidx = (self.edof[:, :, None] * self.n_r + self.edof[:, None, :]).reshape(-1)
+        self.el_solder = el_nl
+        self.stats = {"factor": 0, "iter": 0}
+
+    # ------------------------------------------------------------------ set-up helpers
+    def _dirichlet(self) -> np.ndarray:
+        mesh, (x0, y0) = self.mesh, self.problem.origin
+        on_axis = np.nonzero(np.abs(mesh.nodes[:, 0] - x0) < 1e-9)[0]
+        d = np.hypot(mesh.nodes[:, 0] - x0, mesh.nodes[:, 1] - y0)
+        o = int(np.argmin(d))
+        if d[o] > 1e-9:
+            raise ValueError(f"origin O={self.problem.origin} is not a mesh node")
+        self.node_O = o
+        return np.unique(np.concatenate([2 * on_axis, [2 * o + 1]]))
+
+    def _observation(self, pts: np.ndarray) -> sp.csr_matrix:
+        mesh = self.mesh
+        q = pts.copy()
+        if self.problem.mesh.half:
+            q[:, 0] = np.abs(q[:, 0])  # V is even in x about the symmetry line
+        el, w = locate(mesh, q)
+        rows = np.repeat(np.arange(len(q)), 4)
+        cols = (2 * mesh.elems[el] + 1).ravel()
+        H = sp.csr_matrix((w.ravel(), (rows, cols)), shape=(len(q), 2 * mesh.n_node))
+        Ho = sp.csr_matrix(([1.0] * len(q), (np.arange(len(q)), [2 * self.node_O + 1] * len(q))),
+                           shape=H.shape)
+        return (H - Ho).tocsr()
+
+    # ------------------------------------------------------------------ physics per step
+    def _eps_th(self, T_C):
+        return T_C - self.problem.T_ref_C
+
+    def _f_ext(self, T_C):
+        """Condensed thermal force ``(n_r,)`` of the elastic regions at temperature T (degC)."""
+        return (self.alphas * self._eps_th(T_C)) @ self.G
+
+    def _strain(self, u):
+        ue = u[:, self.edof]  # (b, n_e, 8)
+        return (self.B @ ue[:, :, None, :, None]).squeeze(-1)  # (b, n_e, n_qp, 3)
+
+    def _material(self, u, ezz, st, p, T_C, dt, tangent=True, guess=None, C3_fixed=None):
+        """Solder update at all Gauss points for displacements ``u`` and out-of-plane ``ezz``.
+
+        Returns ``(sigma_ip, C_ip, sigma_zz, C3, new_state, dep, x)``: in plane stress the
+        in-plane stress and tangent are condensed on eps_zz (the residual of sigma_zz = 0 is
+        eliminated with the Newton update of eps_zz, so the global iteration drives it to zero).
+        """
+        eps = self._strain(u)
+        if ezz is None:
+            ezz = torch.zeros_like(eps[..., 0])
+        sol = self.solder
+        sig, st1, C3, dep, x = return_map_3d(
+            _full_strain(eps, ezz), st, p[:, None, None, :], T_C + KELVIN, dt,
+            sol.alpha * self._eps_th(T_C), sol.E, sol.nu, guess=guess, tangent=tangent)
+        sig_ip, szz = sig[..., IP], sig[..., ZZ]
+        C3 = C3 if C3_fixed is None else C3_fixed
+        C = None
+        if self.problem.plane == "stress":
+            cz = C3[..., IP, ZZ] / C3[..., ZZ, ZZ, None]
+            sig_ip = sig_ip - cz * szz[..., None]
+            C = condense_zz(C3, "stress") if tangent else None
+        elif tangent:
+            C = condense_zz(C3, "strain")
+        return sig_ip, C, szz, C3, st1, dep, x
+
+    def _residual(self, u, sigma, fext):
+        fe = (self.Bw.transpose(-1, -2) @ sigma.unsqueeze(-1)).squeeze(-1).sum(2)  # (b, n_e, 8)
+        f = (u @ self.S - fext).index_add(1, self.edof.reshape(-1), fe.reshape(u.shape[0], -1))
+        return f
+
+    def _tangent(self, C):
+        b = C.shape[0]
+        CB = C @ self.B  # (b, n_e, n_qp, 3, 8)
+        Ke = (self.Bw.transpose(-1, -2) @ CB).sum(2)  # (b, n_e, 8, 8)
+        n = self.n_r
+        K = self.S.reshape(1, n * n).repeat(b, 1).index_add_(1, self.kidx, Ke.reshape(b, -1))
+        return K.view(b, n, n)
+
+    def step(self, u, st: PointState, p, T1, dt, max_iter=30, rtol=1e-10, du0=None):
+        """One backward-Euler step for a batch.
+
+        Args:
+            u: ``(b, n_r)`` start-of-step retained displacements, mm.
+            st: start-of-step Gauss-point state, leading shape ``(b, n_e, n_qp)``.
+            p: ``(b, 9)`` Anand constants; T1: end-of-step temperature, degC; dt: step, s.
+            du0: optional ``(b, n_r)`` predicted displacement increment (Newton's start).
+        Returns:
+            ``(u1, st1, ok (b,), dep_max (b,))``.
+        """
+        needs_grad = torch.is_grad_enabled() and (p.requires_grad or u.requires_grad
+                                                  or st.s.requires_grad)
+        fext = self._f_ext(T1).expand(u.shape[0], -1)
+        ok = torch.zeros(u.shape[0], dtype=torch.bool, device=u.device)
+        ps = self.problem.plane == "stress"
+        sol = self.solder
+        with torch.no_grad():
+            uk, p0, st0 = u.detach().clone(), p.detach(), st.detach()
+            if du0 is not None:
+                uk = uk + du0.detach()
+            ezz = None
+            if ps:
+                ezz = ezz_predictor(self._strain(uk), st0, sol.alpha * self._eps_th(T1),
+                                    sol.E, sol.nu)
+            fref = fext.abs().amax(1) + 1e-12
+            x, L, info, rprev = None, None, None, None
+            ev = self._eval(uk, ezz, st0, p0, T1, dt, None, fext, fref)
+            for _ in range(max_iter):
+                sig, C, szz, C3, st1, dep, x, R, rn = ev
+                conv = rn <= rtol
+                if ps:
+                    conv &= szz.abs().amax((1, 2)) <= 1e-9 * (1.0 + sig.abs().amax((1, 2, 3)))
+                ok = conv & torch.isfinite(R).all(1)
+                if bool(ok.all()):
+                    break
+                # modified Newton: a member refactors only when its own contraction is poor
+                need = ~conv if L is None else (rn > 0.1 * rprev) & ~conv
+                if L is None:
+                    L = torch.zeros(uk.shape[0], self.n_r, self.n_r, **self.tkw)
+                    info = torch.zeros(uk.shape[0], dtype=torch.int32, device=uk.device)
+                    rprev = torch.full_like(rn, float("inf"))
+                ni = torch.nonzero(need).squeeze(1)
+                if len(ni):
+                    Li, ii = torch.linalg.cholesky_ex(self._tangent(C[ni]))
+                    L[ni], info[ni] = Li, ii
+                    self.stats["factor"] += len(ni)
+                self.stats["iter"] += 1
+                rprev = torch.where(conv, rprev, rn)
+                du = _chol_solve(L, -R)
+                bad = (info != 0) | ~torch.isfinite(du).all(1)
+                du = torch.where((conv | bad)[:, None], torch.zeros_like(du), du)
+                dz = self._dezz(du, szz, C3) if ps else None
+                uk, ezz, ev = self._line_search(uk, ezz, du, dz, ev, st0, p0, T1, dt, fext,
+                                                fref, conv | bad)
+                if bool(bad.all()):
+                    break
+            dep_max = dep.amax((1, 2))
+            Kt = self._tangent(C) if needs_grad else None  # (b, n_r, n_r)
+        if needs_grad:  # one Newton step with the graph attached: exact first derivatives
+            sig, _, szz, _, _, _, _ = self._material(uk, ezz, st, p, T1, dt, tangent=False,
+                                                     guess=x, C3_fixed=C3)
+            R = self._residual(uk, sig, fext)
+            du = -_chol_solve(torch.linalg.cholesky(Kt), R)
+            uk = uk + du
+            if ps:
+                ezz = ezz + self._dezz(du, szz, C3)
+            *_, st1, _, _ = self._material(uk, ezz, st, p, T1, dt, tangent=False, guess=x,
+                                           C3_fixed=C3)
+        return uk, st1, ok, dep_max
+
+    def _eval(self, u, ezz, st, p, T1, dt, guess, fext, fref):
+        sig, C, szz, C3, st1, dep, x = self._material(u, ezz, st, p, T1, dt, guess=guess)
+        R = self._residual(u, sig, fext)
+        rn = R.abs().amax(1) / (fref + self._fint_scale(sig))
+        rn = torch.where(torch.isfinite(rn), rn, torch.full_like(rn, float("inf")))
+        return sig, C, szz, C3, st1, dep, x, R, rn
+
+    def _line_search(self, u, ezz, du, dz, ev, st, p, T1, dt, fext, fref, frozen, n_max=8):
+        """Backtracking on the residual norm, per member (a full step is taken when it helps)."""
+        rn0 = ev[-1]
+        alpha = torch.ones_like(rn0)
+        accepted = frozen.clone()
+        u_new, z_new, ev_new = u, ezz, ev
+        for k in range(n_max):
+            a = alpha[:, None]
+            ut = u + a * du
+            zt = ezz + a[:, :, None] * dz if dz is not None else None
+            evt = self._eval(ut, zt, st, p, T1, dt, ev[6], fext, fref)
+            good = ~accepted & ((evt[-1] < rn0) | (k == n_max - 1))
+            u_new = torch.where(good[:, None], ut, u_new)
+            if dz is not None:
+                z_new = torch.where(good[:, None, None], zt, z_new)
+            ev_new = _select(good, evt, ev_new)
+            accepted = accepted | good
+            if bool(accepted.all()):
+                break
+            alpha = torch.where(accepted, alpha, 0.5 * alpha)
+            self.stats["ls"] = self.stats.get("ls", 0) + 1
+        return u_new, z_new, ev_new
+
+    def _dezz(self, du, szz, C3):
+        """Newton update of eps_zz that accompanies a displacement update ``du`` (plane stress)."""
+        deps = self._strain_lin(du)
+        return -(szz + (C3[..., ZZ, IP] * deps).sum(-1)) / C3[..., ZZ, ZZ]
+
+    def _strain_lin(self, du):
+        return self._strain(du)
+
+    @staticmethod
+    def _fint_scale(sig):
+        return sig.abs().amax((1, 2, 3)) * 1e-3
+
+    def observe(self, u, T_C):
+        """V relative to O at the output points, ``(b, n_out)`` in um."""
+        off = (self.alphas * self._eps_th(T_C)) @ self.hobs
+        return 1e3 * (u @ self.Hobs.T + off)
+
+    # ------------------------------------------------------------------ time loop
+    def solve(self, params: torch.Tensor, times, progress: bool = False) -> SolveResult:
+        """Run the thermal cycle for a batch of Anand parameter sets.
+
+        Args:
+            params: ``(B, 9)`` Anand constants in ANAND_NAMES order (MPa, K, 1/s); may require
+                grad, in which case the outputs are differentiable.
+            times: output times, s (each in ``(0, cycle end]``).
+            progress: show a tqdm bar over the time steps.
+        Returns:
+            :class:`SolveResult` with ``V`` of shape ``(B, n_time, n_out)`` in um.
+        """
+        params = torch.as_tensor(params, **self.tkw)
+        if params.ndim != 2 or params.shape[1] != len(ANAND_NAMES):
+            raise ValueError(f"params must have shape (B, 9), got {tuple(params.shape)}")
+        if not torch.isfinite(params).all():
+            raise ValueError("params contain NaN or inf")
+        times = sorted(float(t) for t in times)
+        grid = time_grid(self.problem.cycle, tuple(times), self.problem.stepping)
+        b = params.shape[0]
+        cyc = self.problem.cycle
+        u = torch.zeros(b, self.n_r, **self.tkw)
+        st = initial_state((b, *self.wdet.shape), params[:, 0, None, None], **self.tkw)
+        out = torch.full((b, len(times), len(self.names)), float("nan"), **self.tkw)
+        alive = torch.ones(b, dtype=torch.bool, device=u.device)
+        reasons = [""] * b
+        nsub = [0]
+        vel, rate_prev = torch.zeros_like(u), float("nan")
+        it = range(1, len(grid))
+        if progress:
+            from tqdm.auto import tqdm
+            it = tqdm(it, desc=f"FE cycle (B={b})", unit="step")
+        outs = []
+        for k in it:
+            t0, t1 = float(grid[k - 1]), float(grid[k])
+            idx = torch.nonzero(alive).squeeze(1)
+            if len(idx) == 0:
+                break
+            rate = (cyc(t1) - cyc(t0)) / (t1 - t0)
+            v0 = vel[idx] if abs(rate - rate_prev) < 1e-12 else None
+            u_a, st_a, ok = self._advance(u[idx], st.index(idx), params[idx], t0, t1, 0, nsub,
+                                          v0)
+            vel = _scatter(vel, (u_a - u[idx]) / (t1 - t0), idx)
+            rate_prev = rate
+            for j in torch.nonzero(~ok).squeeze(1).tolist():
+                reasons[int(idx[j])] = (f"no convergence in the step to t={t1:g} s "
+                                        f"(T={cyc(t1):.1f} C) after "
+                                        f"{self.problem.stepping.max_depth} halvings")
+            u, st = _scatter(u, u_a, idx), _scatter_state(st, st_a, idx)
+            alive = alive.clone()
+            alive[idx] = ok
+            if any(abs(t1 - tt) < 1e-9 for tt in times):
+                v = self.observe(u, cyc(t1))
+                v = torch.where(alive[:, None], v, torch.full_like(v, float("nan")))
+                outs.append(v)
+        for i in range(len(outs)):
+            out = out.clone()
+            out[:, i] = outs[i]
+        return SolveResult(torch.tensor(times, **self.tkw), list(self.names), out, alive,
+                           reasons, len(grid) - 1, nsub[0])
+
+    def _advance(self, u, st, p, t0, t1, depth, nsub, vel=None):
+        """Advance members from t0 to t1, halving the step for those that need it.
+
+        ``vel`` ``(b, n_r)``: displacement rate of the previous step (predictor), or None.
+        """
+        cyc, ts = self.problem.cycle, self.problem.stepping
+        du0 = None if vel is None else vel * (t1 - t0)
+        u1, st1, ok, dep = self.step(u, st, p, cyc(t1), t1 - t0, du0=du0)
+        good = ok & (dep <= ts.dep_max) if depth < ts.max_depth else ok
+        if bool(good.all()) or depth >= ts.max_depth:
+            return u1, st1, ok
+        idx = torch.nonzero(~good).squeeze(1)
+        nsub[0] += len(idx)
+        tm = 0.5 * (t0 + t1)
+        v = None if vel is None else vel[idx]
+        ua, sa, oka = self._advance(u[idx], st.index(idx), p[idx], t0, tm, depth + 1, nsub, v)
+        v = (ua - u[idx]) / (tm - t0)
+        ub, sb, okb = self._advance(ua, sa, p[idx], tm, t1, depth + 1, nsub, v)
+        okb = oka & okb
+        return (_scatter(u1, ub, idx), _scatter_state(st1, sb, idx),
+                _scatter(ok, okb, idx))
+
+
+def _chol_solve(L, rhs):
+    """Solve ``L L^T x = rhs`` for ``rhs`` of shape ``(b, n)`` (two triangular solves; on CPU
+    this is ~3x faster than ``torch.cholesky_solve`` for batched single right-hand sides)."""
+    y = torch.linalg.solve_triangular(L, rhs.unsqueeze(-1), upper=False)
+    return torch.linalg.solve_triangular(L.mT, y, upper=True).squeeze(-1)
+
+
+def _select(mask, new, old):
+    """Per-member choice between two tuples of batched results (``PointState`` aware)."""
+    out = []
+    for a, b in zip(new, old, strict=True):
+        if isinstance(a, PointState):
+            out.append(PointState(*(_where(mask, x, y) for x, y in
+                                    zip((a.eps_p, a.s, a.eps_zz), (b.eps_p, b.s, b.eps_zz),
+                                        strict=True))))
+        elif a is None:
+            out.append(None)
+        else:
+            out.append(_where(mask, a, b))
+    return tuple(out)
+
+
+def _where(mask, a, b):
+    return torch.where(mask.view(-1, *([1] * (a.ndim - 1))), a, b)
+
+
+def _scatter(full, part, idx):
+    if part.shape[0] == full.shape[0] and len(idx) == full.shape[0]:
+        return part
+    out = full.clone()
+    out[idx] = part
+    return out
+
+
+def _scatter_state(full: PointState, part: PointState, idx) -> PointState:
+    return PointState(_scatter(full.eps_p, part.eps_p, idx), _scatter(full.s, part.s, idx),
+                      _scatter(full.eps_zz, part.eps_zz, idx))

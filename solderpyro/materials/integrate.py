@@ -1,0 +1,303 @@
+"""Fully implicit (backward-Euler) Anand update at Gauss points, 3-D, plane stress or strain.
+
+Unknowns per point: the return variable ``zeta`` (``q = q_tr*sigmoid(zeta)``, the logit of the
+relaxed fraction of the trial von Mises stress), the deformation resistance ``s``, and in plane
+stress the out-of-plane strain ``eps_zz`` (iterated until sigma_zz = 0). The flow rule is enforced
+in log form,
+
+    R = log(dep) - log(dt*A) + QR/T - log(sinh(xi*q/s))/m = 0,
+
+which is asymptotically linear in ``zeta`` at both ends (elastic and fully relaxed), so a bracketed
+Newton converges for any ``xi*q/s`` and ``m`` (no overflow: ``log sinh`` is evaluated in log form).
+The consistent tangent is closed form. When autograd is on, the converged values are corrected
+by one Newton step with the graph attached, which gives exact first derivatives with respect to
+the inputs (implicit-function theorem) without differentiating through the iterations.
+
+Shapes: strains and stresses are Mandel 4-vectors ``(..., 4)`` = (xx, yy, zz, sqrt2*xy).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from .anand import hardening_residual, unpack
+from .elastic import ZZ, condense_zz
+
+ZETA_MAX = 700.0
+
+
+def _log_sinh_of_log(ly: torch.Tensor) -> torch.Tensor:
+    """``log(sinh(exp(ly)))``, stable for any real ``ly``."""
+    y = torch.exp(ly.clamp(max=700.0))
+    small = ly < -18.0
+    ys = torch.where(small, torch.ones_like(y), y)
+    big = ys + torch.log(-torch.expm1(-2.0 * ys)) - 0.6931471805599453
+    return torch.where(small, ly + y * y / 6.0, big)
+
+
+def _y_coth(ly: torch.Tensor) -> torch.Tensor:
+    """``y*coth(y)`` with ``y = exp(ly)``, stable (-> 1 as y -> 0)."""
+    y = torch.exp(ly.clamp(max=700.0))
+    small = ly < -9.0
+    ys = torch.where(small, torch.ones_like(y), y)
+    return torch.where(small, 1.0 + y * y / 3.0, ys / torch.tanh(ys))
+
+
+@dataclass
+class PointState:
+    """Internal state at Gauss points.
+
+    Attributes:
+        eps_p: inelastic strain, Mandel ``(..., 4)``.
+        s: deformation resistance, MPa, ``(...)``.
+        eps_zz: total out-of-plane strain (plane stress; zero in plane strain), ``(...)``.
+    """
+
+    eps_p: torch.Tensor
+    s: torch.Tensor
+    eps_zz: torch.Tensor
+
+    def index(self, idx) -> PointState:
+        return PointState(self.eps_p[idx], self.s[idx], self.eps_zz[idx])
+
+    def detach(self) -> PointState:
+        return PointState(self.eps_p.detach(), self.s.detach(), self.eps_zz.detach())
+
+
+def initial_state(shape: tuple[int, ...], s0: torch.Tensor, **tkw) -> PointState:
+    """Virgin state: zero strains, ``s = s0`` broadcast to ``shape``."""
+    return PointState(torch.zeros(*shape, 4, **tkw), torch.broadcast_to(s0, shape).clone(),
+                      torch.zeros(shape, **tkw))
+
+
+class _Trial:
+    """Elastic trial quantities for given total strain (Mandel)."""
+
+    def __init__(self, eps, eps_p_n, eps_th, K, G):
+        m = torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=eps.dtype, device=eps.device)
+        ee = eps - eps_p_n - eps_th[..., None] * m
+        tr = ee[..., :3].sum(-1)
+        self.m = m
+        self.p = K * tr
+        self.s_tr = 2.0 * G[..., None] * (ee - tr[..., None] * m / 3.0)
+        ss = (self.s_tr * self.s_tr).sum(-1) + torch.finfo(eps.dtype).tiny * 1e6
+        self.nrm = torch.sqrt(ss)
+        self.log_qtr = 0.5 * torch.log(1.5 * ss)
+
+
+def _solve_s(L, c, s_n, s_guess, p, iters=60):
+    """Solve the hardening residual for ``s`` given ``L = log(dep)`` (bracketed Newton)."""
+    logZ = L - c
+    _, _, _, _, _, h0, s_hat, n, _ = unpack(p)
+    s_star = s_hat * torch.exp(n * logZ)
+    lo, hi = torch.minimum(s_n, s_star), torch.maximum(s_n, s_star)
+    s = torch.minimum(torch.maximum(s_guess, lo), hi)
+    for _ in range(iters):
+        H, dH_ds, dH_dL, _ = hardening_residual(s, s_n, L, logZ, p)
+        done = H.abs() <= 1e-13 * s_n.abs() + 1e-300
+        if bool(done.all()):
+            break
+        lo = torch.where(H < 0, s, lo)
+        hi = torch.where(H > 0, s, hi)
+        s_new = s - H / dH_ds
+        bad = ~((s_new > lo) & (s_new < hi)) | ~torch.isfinite(s_new)
+        s_new = torch.where(bad, 0.5 * (lo + hi), s_new)
+        s = torch.where(done, s, s_new)
+    H, dH_ds, dH_dL, _ = hardening_residual(s, s_n, L, logZ, p)
+    return s, dH_ds, dH_dL
+
+
+def _return_map(tr: _Trial, s_n, p, c, G, zeta0, iters=100):
+    """Bracketed Newton on ``zeta`` with ``s(zeta)`` solved exactly inside. No autograd."""
+    _, _, _, xi, m, *_ = unpack(p)
+    base = tr.log_qtr - torch.log(3.0 * G)
+    lo = torch.full_like(base, -ZETA_MAX)
+    hi = torch.full_like(base, ZETA_MAX)
+    zeta = zeta0.clamp(-ZETA_MAX + 1, ZETA_MAX - 1)
+    s = s_n
+    for _ in range(iters):
+        L = base + F.logsigmoid(-zeta)
+        s, dH_ds, dH_dL = _solve_s(L, c, s_n, s, p)
+        ly = torch.log(xi) + tr.log_qtr + F.logsigmoid(zeta) - torch.log(s)
+        R = L - c - _log_sinh_of_log(ly) / m
+        done = (R.abs() < 1e-11) | (hi - lo < 1e-13)
+        if bool(done.all()):
+            break
+        lo = torch.where(R > 0, zeta, lo)
+        hi = torch.where(R < 0, zeta, hi)
+        yc = _y_coth(ly)
+        sg, sgm = torch.sigmoid(zeta), torch.sigmoid(-zeta)
+        ds_dz = dH_dL * sg / dH_ds
+        dR = -sg - yc * sgm / m + yc / (m * s) * ds_dz
+        z_new = zeta - R / dR
+        bad = ~((z_new > lo) & (z_new < hi)) | ~torch.isfinite(z_new)
+        zeta = torch.where(done, zeta, torch.where(bad, 0.5 * (lo + hi), z_new))
+    return zeta, s
+
+
+def _partials(tr: _Trial, zeta, s, s_n, p, c, G):
+    """Residuals ``(R, H)`` of (flow, hardening) and their 2x2 Jacobian in ``(zeta, s)``."""
+    _, _, _, xi, m, *_ = unpack(p)
+    L = tr.log_qtr - torch.log(3.0 * G) + F.logsigmoid(-zeta)
+    H, dH_ds, dH_dL, _ = hardening_residual(s, s_n, L, L - c, p)
+    ly = torch.log(xi) + tr.log_qtr + F.logsigmoid(zeta) - torch.log(s)
+    R = L - c - _log_sinh_of_log(ly) / m
+    yc = _y_coth(ly)
+    sg, sgm = torch.sigmoid(zeta), torch.sigmoid(-zeta)
+    J = torch.stack([torch.stack([-sg - yc * sgm / m, yc / (m * s)], -1),
+                     torch.stack([-dH_dL * sg, dH_ds], -1)], -2)
+    return R, H, J, yc, dH_ds, dH_dL
+
+
+def _return_map_joint(tr: _Trial, s_n, p, c, G, zeta, s, iters=12):
+    """Joint Newton on ``(zeta, s)`` from a warm start; returns a mask of converged points."""
+    for _ in range(iters):
+        R, H, J, *_ = _partials(tr, zeta, s, s_n, p, c, G)
+        done = (R.abs() < 1e-11) & (H.abs() <= 1e-13 * s_n)
+        if bool(done.all()):
+            return zeta, s, done
+        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        dz = -(J[..., 1, 1] * R - J[..., 0, 1] * H) / det
+        ds = -(J[..., 0, 0] * H - J[..., 1, 0] * R) / det
+        zeta = torch.where(done, zeta, zeta + dz.clamp(-10.0, 10.0))
+        s = torch.where(done, s, (s + ds).clamp_min(1e-3 * s_n))
+    R, H, *_ = _partials(tr, zeta, s, s_n, p, c, G)
+    done = (R.abs() < 1e-11) & (H.abs() <= 1e-13 * s_n) & torch.isfinite(zeta)
+    return zeta, s, done
+
+
+def _tangent3d(tr: _Trial, zeta, s, s_n, p, c, K, G):
+    """Consistent 3-D tangent ``(..., 4, 4)`` (Mandel) at the converged point."""
+    _, _, _, xi, m, *_ = unpack(p)
+    _, _, _, yc, dH_ds, dH_dL = _partials(tr, zeta, s, s_n, p, c, G)
+    w = yc * torch.exp((-zeta).clamp(max=700.0)) / m
+    Fs_dHdL = yc / (m * s) * dH_dL
+    coef = 2.0 * G * (torch.sigmoid(-zeta) - w * dH_ds / ((1.0 + w) * dH_ds - Fs_dHdL))
+    nb = tr.s_tr / tr.nrm[..., None]
+    mm = tr.m[:, None] * tr.m[None, :]
+    eye = torch.eye(4, dtype=zeta.dtype, device=zeta.device)
+    sg = torch.sigmoid(zeta)
+    return (K[..., None, None] * mm + (2.0 * G * sg)[..., None, None] * (eye - mm / 3.0)
+            + coef[..., None, None] * nb[..., :, None] * nb[..., None, :])
+
+
+def _initial_zeta(tr: _Trial, s_n, p, c, G):
+    """Predictor: flow at the trial stress, ``zeta`` = logit of the unrelaxed fraction."""
+    _, _, _, xi, m, *_ = unpack(p)
+    ly = torch.log(xi) + tr.log_qtr - torch.log(s_n)
+    d = (c + _log_sinh_of_log(ly) / m - tr.log_qtr + torch.log(3.0 * G)).clamp(max=-1e-3)
+    return -d + torch.log(-torch.expm1(d))
+
+
+def _moduli(shape, tkw, T, eps_th, E, nu, p):
+    T = torch.broadcast_to(torch.as_tensor(T, **tkw), shape)
+    eps_th = torch.broadcast_to(torch.as_tensor(eps_th, **tkw), shape)
+    E = torch.broadcast_to(torch.as_tensor(E, **tkw), shape)
+    nu = torch.broadcast_to(torch.as_tensor(nu, **tkw), shape)
+    p = torch.broadcast_to(p, (*shape, 9))
+    return T, eps_th, E / (3.0 * (1.0 - 2.0 * nu)), E / (2.0 * (1.0 + nu)), p
+
+
+def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, tangent=True):
+    """Backward-Euler Anand update for a given full 3-D strain (plane components + eps_zz).
+
+    Args:
+        eps: end-of-step total strain, Mandel ``(..., 4)`` = (xx, yy, zz, sqrt2*xy).
+        state: start-of-step :class:`PointState` with leading shape ``(...)``.
+        p: Anand constants ``(..., 9)`` (broadcastable), ANAND_NAMES order.
+        T: end-of-step temperature, K; dt: step, s; eps_th: free thermal strain
+            ``alpha*(T - T_ref)``; E (MPa), nu: elastic constants. All broadcastable to ``(...)``.
+        guess: optional ``(..., 2)`` warm start ``(zeta, s)`` from a nearby solve.
+        tangent: whether to compute the 3-D consistent tangent.
+    Returns:
+        ``(sigma (..., 4), new_state, C (..., 4, 4) or None, dep (...), x (..., 2))``; ``x`` is
+        the detached solution ``(zeta, s)`` for warm starts. With autograd on, outputs carry
+        exact first derivatives with respect to every input (one Newton step with the graph).
+    """
+    shape = eps.shape[:-1]
+    tkw = dict(dtype=eps.dtype, device=eps.device)
+    T, eps_th, K, G, p = _moduli(shape, tkw, T, eps_th, E, nu, p)
+    _, QR, A, *_ = unpack(p)
+    c = torch.log(dt * A) - QR / T
+    with torch.no_grad():
+        a = [t.detach() for t in (eps, state.eps_p, state.s, p, c, eps_th, K, G)]
+        tr = _Trial(a[0], a[1], a[5], a[6], a[7])
+        if guess is None:
+            zeta, s = _initial_zeta(tr, a[2], a[3], a[4], a[7]), a[2]
+        else:
+            zeta, s = guess[..., 0], guess[..., 1]
+        zeta, s, done = _return_map_joint(tr, a[2], a[3], a[4], a[7], zeta, s)
+        if not bool(done.all()):  # robust nested, bracketed solve where the joint one failed
+            i = ~done
+            sub = _Trial(a[0][i], a[1][i], a[5][i], a[6][i], a[7][i])
+            z0 = _initial_zeta(sub, a[2][i], a[3][i], a[4][i], a[7][i])
+            zi, si = _return_map(sub, a[2][i], a[3][i], a[4][i], a[7][i], z0)
+            zeta, s = zeta.clone(), s.clone()
+            zeta[i], s[i] = zi, si
+        x = torch.stack([zeta, s], -1)
+    tr = _Trial(eps, state.eps_p, eps_th, K, G)
+    needs_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (eps, state.eps_p, state.s, p, c, eps_th, K, G))
+    if needs_grad:
+        R, H, J, *_ = _partials(tr, x[..., 0], x[..., 1], state.s, p, c, G)
+        zeta, s = (x - torch.linalg.solve(J.detach(), torch.stack([R, H], -1))).unbind(-1)
+    sg = torch.sigmoid(zeta)
+    sigma = tr.p[..., None] * tr.m + sg[..., None] * tr.s_tr
+    eps_p = state.eps_p + (torch.sigmoid(-zeta) / (2.0 * G))[..., None] * tr.s_tr
+    dep = torch.exp(tr.log_qtr - torch.log(3.0 * G) + F.logsigmoid(-zeta))
+    C = None
+    if tangent:
+        with torch.no_grad():
+            C = _tangent3d(tr, x[..., 0], x[..., 1], state.s.detach(), p.detach(), c.detach(),
+                           K.detach(), G.detach())
+    return sigma, PointState(eps_p, s, eps[..., ZZ]), C, dep, x
+
+
+def _full_strain(eps_ip, ezz):
+    return torch.stack([eps_ip[..., 0], eps_ip[..., 1], ezz, eps_ip[..., 2]], -1)
+
+
+def ezz_predictor(eps_ip, state: PointState, eps_th, E, nu):
+    """Out-of-plane strain that keeps sigma_zz = 0 if no new inelastic flow occurs, ``(...)``."""
+    ee = eps_ip[..., :2].sum(-1) - state.eps_p[..., :2].sum(-1) - 2 * eps_th
+    return state.eps_p[..., ZZ] + eps_th - nu / (1.0 - nu) * ee
+
+
+def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stress",
+                 tangent=True, guess=None, iters=30):
+    """Anand update for an in-plane strain, plane stress (local eps_zz iteration) or strain.
+
+    Args:
+        eps_ip: end-of-step in-plane total strain, Mandel ``(..., 3)`` = (xx, yy, sqrt2*xy).
+        state, p, T, dt, eps_th, E, nu, guess: as in :func:`return_map_3d`.
+        plane: ``"stress"`` (sigma_zz = 0, eps_zz iterated by Newton) or ``"strain"``.
+    Returns:
+        ``(sigma (..., 4), new_state, C_ip (..., 3, 3) or None, dep, x)`` with the in-plane
+        consistent tangent (plane-stress condensed). Differentiable like :func:`return_map_3d`.
+    """
+    if plane == "strain":
+        out = return_map_3d(_full_strain(eps_ip, torch.zeros_like(eps_ip[..., 0])), state, p,
+                            T, dt, eps_th, E, nu, guess, tangent)
+        C = condense_zz(out[2], plane) if tangent else None
+        return out[0], out[1], C, out[3], out[4]
+    if plane != "stress":
+        raise ValueError(f"plane must be 'stress' or 'strain', got {plane!r}")
+    with torch.no_grad():
+        ezz = ezz_predictor(eps_ip.detach(), state.detach(), torch.as_tensor(eps_th), E, nu)
+        for _ in range(iters):
+            sig, _, C, _, guess = return_map_3d(_full_strain(eps_ip.detach(), ezz),
+                                                state.detach(), p.detach(), T, dt, eps_th,
+                                                E, nu, guess)
+            if bool((sig[..., ZZ].abs() <= 1e-9 * (1.0 + sig.abs().amax(-1))).all()):
+                break
+            ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
+    if torch.is_grad_enabled():  # one Newton step on eps_zz with the graph attached
+        sig, *_ = return_map_3d(_full_strain(eps_ip, ezz), state, p, T, dt, eps_th, E, nu,
+                                guess, tangent=False)
+        ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
+    sig, st, C, dep, x = return_map_3d(_full_strain(eps_ip, ezz), state, p, T, dt, eps_th,
+                                       E, nu, guess, tangent)
+    return sig, st, condense_zz(C, plane) if tangent else None, dep, x
