@@ -61,14 +61,27 @@ class TimeStepping:
         dep_max: largest equivalent inelastic strain increment per step at any Gauss point;
             a member exceeding it sub-steps (per member, so batching never changes a result).
         max_depth: how many times a step may be halved for one member before it is reported failed.
+        scheme: ``"sdirk2"`` (default: two-stage, L-stable, stiffly accurate, second order;
+            each stage is a backward-Euler solve from a shifted start state) or ``"euler"``
+            (backward Euler, first order).
     """
 
-    dT_max: float = 2.0
-    dwell_dt0: float = 5.0
+    dT_max: float = 4.0
+    dwell_dt0: float = 10.0
     growth: float = 1.5
-    dt_max: float = 150.0
-    dep_max: float = 5e-3
+    dt_max: float = 300.0
+    dep_max: float = 1e-2
     max_depth: int = 10
+    scheme: str = "sdirk2"
+
+    def __post_init__(self) -> None:
+        if self.scheme not in ("sdirk2", "euler"):
+            raise ValueError(f"stepping.scheme must be 'sdirk2' or 'euler', got {self.scheme!r}")
+        for k in ("dT_max", "dwell_dt0", "dt_max", "dep_max"):
+            if not getattr(self, k) > 0:
+                raise ValueError(f"stepping.{k} must be > 0, got {getattr(self, k)}")
+        if not self.growth >= 1.0:
+            raise ValueError(f"stepping.growth must be >= 1, got {self.growth}")
 
 
 def time_grid(cycle: ThermalCycle, out_times: tuple[float, ...], ts: TimeStepping) -> np.ndarray:

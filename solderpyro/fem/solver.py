@@ -39,6 +39,7 @@ from .mesh import build_mesh, locate
 from .problem import Problem
 
 KELVIN = 273.15
+SDIRK_GAMMA = 1.0 - 0.5 ** 0.5
 
 
 @dataclass
@@ -380,6 +381,27 @@ class SpecimenSolver:
         return SolveResult(torch.tensor(times, **self.tkw), list(self.names), out, alive,
                            reasons, len(grid) - 1, nsub[0])
 
+    def time_step(self, u, st, p, t0, t1, du0=None):
+        """Advance a batch from t0 to t1 with the configured scheme; see :meth:`step`.
+
+        SDIRK2 (gamma = 1 - 1/sqrt2): stage 1 is backward Euler to t0 + gamma*h; stage 2 is
+        backward Euler over gamma*h to t1 from the start state extrapolated with the stage-1
+        rates, ``y* = y0 + (1-gamma)/gamma * (y1 - y0)`` (internal variables only). The method is
+        L-stable and stiffly accurate, so it keeps backward Euler's robustness for fast
+        relaxation while its error falls as h^2.
+        """
+        cyc, h = self.problem.cycle, t1 - t0
+        if self.problem.stepping.scheme == "euler":
+            return self.step(u, st, p, cyc(t1), h, du0=du0)
+        g = SDIRK_GAMMA
+        ua, sa, oka, da = self.step(u, st, p, cyc(t0 + g * h), g * h,
+                                    du0=None if du0 is None else g * du0)
+        k = (1.0 - g) / g
+        st2 = PointState(st.eps_p + k * (sa.eps_p - st.eps_p), st.s + k * (sa.s - st.s),
+                         sa.eps_zz)
+        ub, sb, okb, db = self.step(ua, st2, p, cyc(t1), g * h, du0=k * (ua - u))
+        return ub, sb, oka & okb, torch.maximum(da, db)
+
     def _advance(self, u, st, p, t0, t1, depth, nsub, vel=None):
         """Advance members from t0 to t1, halving the step for those that need it.
 
@@ -387,7 +409,7 @@ class SpecimenSolver:
         """
         cyc, ts = self.problem.cycle, self.problem.stepping
         du0 = None if vel is None else vel * (t1 - t0)
-        u1, st1, ok, dep = self.step(u, st, p, cyc(t1), t1 - t0, du0=du0)
+        u1, st1, ok, dep = self.time_step(u, st, p, t0, t1, du0)
         good = ok & (dep <= ts.dep_max) if depth < ts.max_depth else ok
         if bool(good.all()) or depth >= ts.max_depth:
             return u1, st1, ok

@@ -1,0 +1,151 @@
+"""Command-line interface: ``solderpyro <command> [options] [key=value ...]``.
+
+Trailing ``key=value`` arguments are Hydra overrides of the configs in ``configs/``
+(e.g. ``mesh=fine specimen.plane=strain solver.device=cuda``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+log = logging.getLogger("solderpyro")
+
+
+def _split_overrides(rest: list[str]) -> list[str]:
+    bad = [a for a in rest if "=" not in a or a.startswith("-")]
+    if bad:
+        raise ValueError(f"unrecognized arguments {bad}: config overrides must be key=value")
+    return rest
+
+
+def _setup(overrides):
+    from .configure import build, compose
+
+    return build(compose(overrides))
+
+
+def simulate_table(setup, anand: dict, times, field: bool, progress: bool = True):
+    """Run one parameter set; returns ``(times, names, coords (n_out, 2), V (n_time, n_out))``."""
+    from .fem.problem import reference_grid
+    from .fem.solver import SpecimenSolver
+    from .params import anand_tensor
+
+    solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
+                            dtype=setup.dtype, device=setup.device)
+    p = anand_tensor(anand, base=setup.anand, dtype=setup.dtype, device=setup.device)[None]
+    res = solver.solve(p, times, progress=progress)
+    if not bool(res.ok.all()):
+        raise RuntimeError(f"the FE solve failed: {res.reasons[0]}")
+    pts = [setup.problem.points[n] for n in setup.problem.points]
+    if field:
+        pts += [tuple(x) for x in reference_grid()[1]]
+    return (res.times.cpu().numpy(), res.names, np.array(pts), res.V[0].detach().cpu().numpy())
+
+
+def cmd_simulate(a, overrides) -> int:
+    from .configure import parse_times
+    from .io.measurements import from_arrays, write_measurements
+    from .params import parse_theta
+
+    theta = parse_theta(a.theta) if a.theta else {}
+    if a.noise is not None and not a.noise > 0:
+        raise ValueError(f"--noise must be > 0 um, got {a.noise}")
+    setup = _setup(overrides)
+    times = parse_times(a.times) if a.times else setup.times
+    t, names, pts, V = simulate_table(setup, theta, times, a.field, progress=not a.quiet)
+    sigma = None
+    if a.noise is not None:
+        rng = np.random.default_rng(a.seed)
+        V = V + a.noise * rng.standard_normal(V.shape)
+        sigma = np.full(V.shape, a.noise)
+    temps = np.array([setup.problem.cycle(x) for x in t])
+    meta = {"generator": "solderpyro simulate", "theta": a.theta or "(config defaults)",
+            "overrides": " ".join(overrides) or "(none)", "plane": setup.problem.plane,
+            "noise_sigma_um": str(a.noise) if a.noise is not None else "0",
+            "seed": str(a.seed)}
+    m = from_arrays(t, names, pts, V, temperature_C=temps, sigma_um=sigma, meta=meta)
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_measurements(out, m)
+    log.info("wrote %d values (%d times x %d points) to %s", V.size, len(t), len(names), out)
+    return 0
+
+
+def cmd_demo(a, overrides) -> int:
+    from .fem.loading import EXTENDED_TIMES
+    from .io.measurements import from_arrays, write_measurements
+
+    setup = _setup(overrides)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cyc = setup.problem.cycle
+    dense = sorted(set(np.arange(150.0, cyc.end + 1e-9, 150.0).tolist()) | set(EXTENDED_TIMES))
+    log.info("simulating the reference case with Liu 2008 constants (%d output times)",
+             len(dense))
+    t, names, pts, V = simulate_table(setup, {}, dense, field=False, progress=True)
+    temps = np.array([cyc(x) for x in t])
+    write_measurements(out / "simulation.csv",
+                       from_arrays(t, names, pts, V, temperature_C=temps,
+                                   meta={"generator": "solderpyro demo",
+                                         "anand": "Liu 2008 (seed Table IV)"}))
+    from .plots import plot_cycle
+
+    fig = plot_cycle(t, V, names, temps, cyc, marks=EXTENDED_TIMES)
+    fig.savefig(out / "cycle.png", dpi=130)
+    seed = [i for i, x in enumerate(t) if x in (600.0, 2700.0, 4800.0, 7800.0)]
+    print("\nV relative to O at the seed points (a)-(d), um:")
+    print(f"{'time_s':>8} {'T_C':>6} " + " ".join(f"{n:>9}" for n in names))
+    for i in seed:
+        print(f"{t[i]:8.0f} {temps[i]:6.1f} " + " ".join(f"{v:9.4f}" for v in V[i]))
+    print(f"\noutputs: {out / 'simulation.csv'}\nplot:    {out / 'cycle.png'}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="solderpyro",
+        description="Bayesian identification of Anand solder constants from Moire data. "
+                    "Trailing key=value arguments override the configs in configs/ (Hydra "
+                    "syntax), e.g. mesh=fine specimen.plane=strain solver.device=cuda.")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("simulate", help="run the FE model for one parameter set and write "
+                       "the measurement CSV (shared/data-format.md)")
+    s.add_argument("--theta", default="", help="Anand constants, e.g. s0=12.9,QR=10586,xi=2.04,"
+                   "m=0.2 (names: s0, QR, A, xi, m, h0, s_hat, n, a; others from the config)")
+    s.add_argument("--times", default=None, help="seed (600,2700,4800,7800 s) | extended "
+                   "(+ dwell ends) | t1,t2,... in s (default: config loading.output_times)")
+    s.add_argument("--field", action="store_true",
+                   help="also write V on the 31 x 18 grid of shared/specimen.md")
+    s.add_argument("--noise", type=float, default=None,
+                   help="add Gaussian noise with this standard deviation, um")
+    s.add_argument("--seed", type=int, default=0, help="random seed of the noise")
+    s.add_argument("--out", required=True, help="output CSV path")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    d = sub.add_parser("demo", help="simulate the reference case with the Liu 2008 constants, "
+                       "write the outputs and a plot of V_A, V_B and temperature")
+    d.add_argument("--out", default="runs/demo", help="output directory")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    a, rest = parser.parse_known_args(argv)
+    logging.basicConfig(level=logging.DEBUG if a.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        overrides = _split_overrides(rest)
+        return {"simulate": cmd_simulate, "demo": cmd_demo}[a.command](a, overrides)
+    except (ValueError, FileNotFoundError, RuntimeError) as e:
+        print(f"solderpyro {a.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,125 @@
+"""Config edge: compose the YAML configs (Hydra) and turn them into typed library objects.
+
+Only the CLI and the experiment scripts import this module; the library itself takes typed
+objects (:class:`~solderpyro.fem.problem.Problem`, :class:`~solderpyro.params.ParameterSpace`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from .fem.loading import EXTENDED_TIMES, SEED_TIMES, ThermalCycle, TimeStepping
+from .fem.mesh import Layer, MeshSpec
+from .fem.problem import AnandSolder, Elastic, Problem
+from .params import ANAND_NAMES, ParameterSpace, check_anand_values
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+def compose(overrides: list[str] | None = None, config_name: str = "config"):
+    """Compose the config with Hydra overrides (``key=value``); errors name the bad override."""
+    from hydra import compose as _compose
+    from hydra import initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if not CONFIG_DIR.is_dir():
+        raise FileNotFoundError(f"config directory not found: {CONFIG_DIR}")
+    try:
+        with initialize_config_dir(str(CONFIG_DIR), version_base=None):
+            return _compose(config_name, overrides=list(overrides or []))
+    except (HydraException, OmegaConfBaseException) as e:
+        raise ValueError(f"bad config override in {overrides}: {e}") from None
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Typed objects built from a config."""
+
+    problem: Problem
+    space: ParameterSpace
+    anand: dict
+    times: tuple[float, ...]
+    dtype: torch.dtype
+    device: str
+
+
+def _num(cfg, key: str, path: str, lo: float | None = None, hi: float | None = None) -> float:
+    try:
+        v = float(cfg[key])
+    except (TypeError, ValueError, KeyError):
+        raise ValueError(f"config {path}.{key} must be a number, got {cfg.get(key)!r}") from None
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise ValueError(f"config {path}.{key}={v:g} is outside [{lo}, {hi}]")
+    return v
+
+
+def parse_times(spec) -> tuple[float, ...]:
+    """``"seed"``, ``"extended"``, ``"t1,t2,..."`` or a list of seconds -> tuple of times."""
+    if isinstance(spec, str):
+        s = spec.strip().lower()
+        if s == "seed":
+            return SEED_TIMES
+        if s == "extended":
+            return EXTENDED_TIMES
+        try:
+            return tuple(float(t) for t in s.split(",") if t.strip())
+        except ValueError:
+            raise ValueError(f"times must be 'seed', 'extended' or t1,t2,... in s; "
+                             f"got {spec!r}") from None
+    return tuple(float(t) for t in spec)
+
+
+def build(cfg) -> Setup:
+    """Typed :class:`Setup` from a composed config; errors name the offending key."""
+    mats = {}
+    for key in ("steel", "solder", "copper"):
+        if key not in cfg.materials:
+            raise ValueError(f"config materials.{key} is missing")
+    for key, m in cfg.materials.items():
+        if key in ("anand", "calibrate"):
+            continue
+        E = _num(m, "E_GPa", f"materials.{key}", 1e-6) * 1e3
+        nu = _num(m, "nu", f"materials.{key}", -0.999, 0.4999)
+        a = _num(m, "cte_ppm", f"materials.{key}", -1e3, 1e3) * 1e-6
+        law = str(m.get("law", "elastic"))
+        if law not in ("elastic", "anand"):
+            raise ValueError(f"config materials.{key}.law must be elastic|anand, got {law!r}")
+        mats[key] = (AnandSolder if law == "anand" else Elastic)(E=E, nu=nu, alpha=a)
+    anand = {k: float(v) for k, v in cfg.materials.anand.items()}
+    unknown = set(anand) - set(ANAND_NAMES)
+    if unknown:
+        raise ValueError(f"config materials.anand has unknown constants {sorted(unknown)}")
+    check_anand_values(anand)
+    cal = cfg.materials.calibrate
+    names = tuple(cal.keys())
+    space = ParameterSpace(names, tuple(float(cal[n][0]) for n in names),
+                           tuple(float(cal[n][1]) for n in names), defaults=anand)
+    sp, mc = cfg.specimen, cfg.mesh
+    layers = []
+    for lay in sp.layers:
+        rows = mc.rows.get(lay.name)
+        if rows is None:
+            raise ValueError(f"config mesh.rows has no entry for layer {lay.name!r}")
+        layers.append(Layer(str(lay.name), str(lay.material), float(lay.y0_mm), float(lay.y1_mm),
+                            int(rows.ny), float(rows.get("grading", 1.0)),
+                            str(rows.get("toward", "none"))))
+    st = cfg.solver.stepping
+    stepping = TimeStepping(**{k: (int(v) if k == "max_depth" else float(v))
+                               for k, v in st.items()})
+    ld = cfg.loading
+    problem = Problem(
+        layers=tuple(layers), materials=mats, half_length=float(sp.half_length_mm),
+        mesh=MeshSpec(int(mc.nx), float(mc.x_grading), bool(mc.half)), plane=str(sp.plane),
+        T_ref_C=float(ld.stress_free_C),
+        cycle=ThermalCycle(tuple(float(t) for t in ld.times_s),
+                           tuple(float(t) for t in ld.temps_C)),
+        stepping=stepping, points={k: tuple(map(float, v)) for k, v in sp.points.items()},
+        origin=tuple(map(float, sp.origin)), incompatible_modes=bool(mc.incompatible_modes))
+    dt = {"float64": torch.float64, "float32": torch.float32}.get(str(cfg.solver.dtype))
+    if dt is None:
+        raise ValueError(f"config solver.dtype must be float64|float32, got {cfg.solver.dtype!r}")
+    return Setup(problem, space, anand, parse_times(ld.output_times), dt, str(cfg.solver.device))
