@@ -99,6 +99,9 @@ def build(cfg) -> Setup:
     space = ParameterSpace(names, tuple(float(cal[n][0]) for n in names),
                            tuple(float(cal[n][1]) for n in names), defaults=anand)
     sp, mc = cfg.specimen, cfg.mesh
+    for key in ("nx",):
+        if not isinstance(mc.get(key), int) or mc.get(key) < 1:
+            raise ValueError(f"config mesh.{key} must be a positive integer, got {mc.get(key)!r}")
     layers = []
     for lay in sp.layers:
         rows = mc.rows.get(lay.name)
@@ -108,8 +111,11 @@ def build(cfg) -> Setup:
                             int(rows.ny), float(rows.get("grading", 1.0)),
                             str(rows.get("toward", "none"))))
     st = cfg.solver.stepping
-    stepping = TimeStepping(**{k: (int(v) if k == "max_depth" else float(v))
-                               for k, v in st.items()})
+    conv = {"max_depth": int, "scheme": str, "max_iter": int}
+    try:
+        stepping = TimeStepping(**{k: conv.get(k, float)(v) for k, v in st.items()})
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"config solver.stepping: {e}") from None
     ld = cfg.loading
     problem = Problem(
         layers=tuple(layers), materials=mats, half_length=float(sp.half_length_mm),

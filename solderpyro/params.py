@@ -127,7 +127,7 @@ class ParameterSpace:
         return b[0], b[1]
 
     def full(self, theta: torch.Tensor) -> torch.Tensor:
-        """Insert ``theta`` into the defaults: ``(..., n_theta)`` -> ``(..., 9)`` in ANAND_NAMES order.
+        """Insert ``theta`` into the defaults: ``(..., n_theta)`` -> ``(..., 9)`` (ANAND_NAMES).
 
         Differentiable with respect to ``theta``.
         """

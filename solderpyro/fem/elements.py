@@ -26,7 +26,7 @@ def _dN_dxi(xi: np.ndarray) -> np.ndarray:
 
 
 def _bmat(dNdx: np.ndarray) -> np.ndarray:
-    """Mandel B ``(..., 3, 2k)`` from physical derivatives ``(..., 2, k)``; dofs (u0, v0, u1, ...)."""
+    """Mandel B ``(..., 3, 2k)`` from derivatives ``(..., 2, k)``; dofs (u0, v0, u1, ...)."""
     sh = dNdx.shape[:-2]
     k = dNdx.shape[-1]
     B = np.zeros((*sh, 3, 2 * k))

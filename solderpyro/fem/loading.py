@@ -64,6 +64,8 @@ class TimeStepping:
         scheme: ``"sdirk2"`` (default: two-stage, L-stable, stiffly accurate, second order;
             each stage is a backward-Euler solve from a shifted start state) or ``"euler"``
             (backward Euler, first order).
+        max_iter: Newton iterations per stage before the step counts as failed (it is halved).
+        rtol: Newton tolerance on the residual, relative to the external + internal forces.
     """
 
     dT_max: float = 4.0
@@ -73,6 +75,8 @@ class TimeStepping:
     dep_max: float = 1e-2
     max_depth: int = 10
     scheme: str = "sdirk2"
+    max_iter: int = 30
+    rtol: float = 1e-10
 
     def __post_init__(self) -> None:
         if self.scheme not in ("sdirk2", "euler"):

@@ -30,7 +30,7 @@ class Layer:
 
 @dataclass(frozen=True)
 class MeshSpec:
-    """Mesh resolution along x. ``x_grading``: last/first element width (< 1 refines the free end)."""
+    """Resolution along x. ``x_grading``: last/first element width (< 1 refines the free end)."""
 
     nx: int = 30
     x_grading: float = 0.2

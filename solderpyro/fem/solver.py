@@ -202,7 +202,7 @@ class SpecimenSolver:
         K = self.S.reshape(1, n * n).repeat(b, 1).index_add_(1, self.kidx, Ke.reshape(b, -1))
         return K.view(b, n, n)
 
-    def step(self, u, st: PointState, p, T1, dt, max_iter=30, rtol=1e-10, du0=None):
+    def step(self, u, st: PointState, p, T1, dt, du0=None):
         """One backward-Euler step for a batch.
 
         Args:
@@ -230,6 +230,8 @@ class SpecimenSolver:
             fref = fext.abs().amax(1) + 1e-12
             x, L, info, rprev = None, None, None, None
             ev = self._eval(uk, ezz, st0, p0, T1, dt, None, fext, fref)
+            ts = self.problem.stepping
+            max_iter, rtol = ts.max_iter, ts.rtol
             for _ in range(max_iter):
                 sig, C, szz, C3, st1, dep, x, R, rn = ev
                 conv = rn <= rtol
@@ -407,7 +409,7 @@ class SpecimenSolver:
 
         ``vel`` ``(b, n_r)``: displacement rate of the previous step (predictor), or None.
         """
-        cyc, ts = self.problem.cycle, self.problem.stepping
+        ts = self.problem.stepping
         du0 = None if vel is None else vel * (t1 - t0)
         u1, st1, ok, dep = self.time_step(u, st, p, t0, t1, du0)
         good = ok & (dep <= ts.dep_max) if depth < ts.max_depth else ok

@@ -296,7 +296,7 @@ def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stre
             sig, _, C, _, guess = return_map_3d(_full_strain(eps_ip.detach(), ezz),
                                                 state.detach(), p.detach(), T, dt, eps_th,
                                                 E, nu, guess)
-            if bool((sig[..., ZZ].abs() <= 1e-9 * (1.0 + sig.abs().amax(-1))).all()):
+            if bool((sig[..., ZZ].abs() <= 1e-12 * (1.0 + sig.abs().amax(-1))).all()):
                 break
             ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
     if torch.is_grad_enabled():  # one Newton step on eps_zz with the graph attached

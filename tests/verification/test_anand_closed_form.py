@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from solderpyro.materials.anand import saturation, s_closed_form
+from solderpyro.materials.anand import s_closed_form, saturation
 from solderpyro.materials.integrate import (
     _solve_s,
     anand_update,

@@ -1,0 +1,113 @@
+"""Every config composes into typed objects; every experiment script and CLI command runs tiny."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from solderpyro.cli import main
+from solderpyro.configure import CONFIG_DIR, build, compose
+from solderpyro.io.measurements import read_measurements
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ["experiment=quick", "loading.times_s=[0,600,900]", "loading.temps_C=[25,75,75]",
+        "loading.output_times=[600,900]"]
+
+
+def _group_options():
+    for group in sorted(p for p in CONFIG_DIR.iterdir() if p.is_dir()):
+        for f in sorted(group.glob("*.yaml")):
+            yield f"{group.name}={f.stem}" if group.name != "experiment" else f"+x={f.stem}"
+
+
+@pytest.mark.parametrize("override", [o for o in _group_options() if not o.startswith("+x")])
+def test_every_group_option_composes(override):
+    setup = build(compose([override]))
+    assert setup.problem.mesh.nx >= 1 and len(setup.times) >= 1
+
+
+@pytest.mark.parametrize("exp", sorted(p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml")))
+def test_every_experiment_composes(exp):
+    cfg = compose([f"experiment={exp}"])
+    build(cfg)
+
+
+def test_defaults_are_the_reference_case():
+    s = build(compose([]))
+    assert s.problem.plane == "stress" and s.problem.T_ref_C == 25.0
+    assert s.space.names == ("s0", "QR", "xi", "m")
+    assert s.times == (600.0, 2700.0, 4800.0, 7800.0)
+    assert s.problem.materials["solder"].E == pytest.approx(32e3)
+
+
+@pytest.mark.parametrize("bad,msg", [
+    (["mesh.nx=0"], "mesh.nx"), (["materials.solder.nu=0.7"], "materials.solder.nu"),
+    (["nosuchkey=1"], "nosuchkey"), (["materials.anand.m=3"], "m=3"),
+    (["solver.stepping.scheme=rk4"], "scheme"), (["solver.dtype=float16"], "solver.dtype")])
+def test_bad_config_is_named(bad, msg):
+    with pytest.raises(ValueError, match=msg):
+        build(compose(bad))
+
+
+def test_cli_simulate_contract(tmp_path):
+    """simulate writes the measurement format; noise has the requested sigma; V_A > 0 at 75 C."""
+    out = tmp_path / "sim.csv"
+    rc = main(["simulate", "--theta", "s0=12.9,QR=10586,xi=2.04,m=0.2", "--times", "600,900",
+               "--out", str(out), "--quiet", *TINY])
+    assert rc == 0
+    m = read_measurements(out)
+    assert sorted(set(m.point)) == ["A", "B"] and len(m) == 4
+    tab = m.to_table()
+    assert tab[0, 0] > 5.0  # bending + expansion lifts A by several um at 75 C
+    noisy = tmp_path / "noisy.csv"
+    assert main(["simulate", "--theta", "s0=12.9,QR=10586,xi=2.04,m=0.2", "--times", "600,900",
+                 "--noise", "0.05", "--seed", "3", "--out", str(noisy), "--quiet", *TINY]) == 0
+    d = read_measurements(noisy).to_table() - tab
+    assert 0 < np.abs(d).max() < 0.25 and np.allclose(read_measurements(noisy).sigma_um, 0.05)
+
+
+def test_cli_field_grid(tmp_path):
+    out = tmp_path / "field.csv"
+    assert main(["simulate", "--times", "600", "--field", "--out", str(out), "--quiet",
+                 *TINY]) == 0
+    m = read_measurements(out)
+    assert len(m) == 2 + 31 * 18
+    tab = m.to_table()
+    pts = m.points()
+    # V is even in x (symmetric specimen): g_00_jj (x=-15) equals g_30_jj (x=+15)
+    for j in (0, 9, 17):
+        assert tab[0, pts.index(f"g_00_{j:02d}")] == pytest.approx(
+            tab[0, pts.index(f"g_30_{j:02d}")], abs=1e-12)
+    assert tab[0, pts.index("A")] == pytest.approx(tab[0, pts.index("g_30_17")], abs=1e-12)
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["--theta", "bogus=1"], "unknown Anand parameter 'bogus'"),
+    (["--theta", "m=5"], "m=5.0 is outside"),
+    (["--theta", "s0"], "not name=value"),
+    (["--times", "600,abc"], "times must be"),
+    (["--noise", "-1"], "--noise must be > 0"),
+    (["mesh.nx=abc"], "mesh.nx"),
+    (["notanoverride"], "key=value"),
+])
+def test_cli_bad_input_exits_nonzero_naming_it(tmp_path, capsys, args, msg):
+    rc = main(["simulate", "--out", str(tmp_path / "x.csv"), "--quiet", *args])
+    assert rc != 0
+    assert msg in capsys.readouterr().err
+
+
+def test_experiment_script_runs_tiny(tmp_path):
+    r = subprocess.run([sys.executable, str(ROOT / "experiments" / "simulate_reference.py"),
+                        *TINY, f"hydra.run.dir={tmp_path}"], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = read_measurements(tmp_path / "simulation.csv")
+    assert len(m) == 4 and (tmp_path / "cycle.png").stat().st_size > 10_000
+
+
+def test_demo_command_runs_tiny(tmp_path):
+    assert main(["demo", "--out", str(tmp_path), *TINY]) == 0
+    assert (tmp_path / "cycle.png").exists() and len(read_measurements(
+        tmp_path / "simulation.csv")) > 4
