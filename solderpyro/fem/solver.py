@@ -127,6 +127,7 @@ class SpecimenSolver:
         self.kidx = (self.edof[:, :, None] * self.n_r + self.edof[:, None, :]).reshape(-1)
         self.el_solder = el_nl
         self.stats = {"factor": 0, "iter": 0}
+        self._fcache = None
 
     # ------------------------------------------------------------------ set-up helpers
     def _dirichlet(self) -> np.ndarray:
@@ -202,7 +203,7 @@ class SpecimenSolver:
         K = self.S.reshape(1, n * n).repeat(b, 1).index_add_(1, self.kidx, Ke.reshape(b, -1))
         return K.view(b, n, n)
 
-    def step(self, u, st: PointState, p, T1, dt, du0=None):
+    def step(self, u, st: PointState, p, T1, dt, du0=None, gid=None):
         """One backward-Euler step for a batch.
 
         Args:
@@ -210,6 +211,8 @@ class SpecimenSolver:
             st: start-of-step Gauss-point state, leading shape ``(b, n_e, n_qp)``.
             p: ``(b, 9)`` Anand constants; T1: end-of-step temperature, degC; dt: step, s.
             du0: optional ``(b, n_r)`` predicted displacement increment (Newton's start).
+            gid: optional ``(b,)`` indices of these members in the batch of the running solve;
+                their Cholesky factors are reused across steps (modified Newton).
         Returns:
             ``(u1, st1, ok (b,), dep_max (b,))``.
         """
@@ -228,7 +231,17 @@ class SpecimenSolver:
                 ezz = ezz_predictor(self._strain(uk), st0, sol.alpha * self._eps_th(T1),
                                     sol.E, sol.nu)
             fref = fext.abs().amax(1) + 1e-12
-            x, L, info, rprev = None, None, None, None
+            b = uk.shape[0]
+            x = None
+            # modified Newton: start from this member's last factorization (kept across steps)
+            cache = self._fcache
+            if cache is not None and gid is not None:
+                L, have = cache["L"][gid].clone(), cache["have"][gid].clone()
+            else:
+                L = torch.zeros(b, self.n_r, self.n_r, **self.tkw)
+                have = torch.zeros(b, dtype=torch.bool, device=uk.device)
+            info = torch.zeros(b, dtype=torch.int32, device=uk.device)
+            rprev = torch.full((b,), float("inf"), **self.tkw)
             ev = self._eval(uk, ezz, st0, p0, T1, dt, None, fext, fref)
             ts = self.problem.stepping
             max_iter, rtol = ts.max_iter, ts.rtol
@@ -240,28 +253,33 @@ class SpecimenSolver:
                 ok = conv & torch.isfinite(R).all(1)
                 if bool(ok.all()):
                     break
-                # modified Newton: a member refactors only when its own contraction is poor
-                need = ~conv if L is None else (rn > 0.1 * rprev) & ~conv
-                if L is None:
-                    L = torch.zeros(uk.shape[0], self.n_r, self.n_r, **self.tkw)
-                    info = torch.zeros(uk.shape[0], dtype=torch.int32, device=uk.device)
-                    rprev = torch.full_like(rn, float("inf"))
+                # a member refactors only when it has no factor or its own contraction is poor
+                need = (~have | (rn > 0.1 * rprev)) & ~conv
                 ni = torch.nonzero(need).squeeze(1)
                 if len(ni):
                     Li, ii = torch.linalg.cholesky_ex(self._tangent(C[ni]))
                     L[ni], info[ni] = Li, ii
+                    have[ni] = ii == 0
                     self.stats["factor"] += len(ni)
                 self.stats["iter"] += 1
                 rprev = torch.where(conv, rprev, rn)
-                du = _chol_solve(L, -R)
-                bad = (info != 0) | ~torch.isfinite(du).all(1)
-                du = torch.where((conv | bad)[:, None], torch.zeros_like(du), du)
-                dz = self._dezz(du, szz, C3) if ps else None
-                uk, ezz, ev = self._line_search(uk, ezz, du, dz, ev, st0, p0, T1, dt, fext,
-                                                fref, conv | bad)
-                if bool(bad.all()):
+                bad = info != 0
+                act = torch.nonzero(~(conv | bad)).squeeze(1)  # only these members iterate
+                if len(act) == 0:
                     break
+                du = _chol_solve(L[act], -R[act])
+                bad[act] = ~torch.isfinite(du).all(1)
+                du = torch.where(bad[act, None], torch.zeros_like(du), du)
+                dz = self._dezz(du, szz[act], C3[act]) if ps else None
+                ua, za, eva = self._line_search(
+                    uk[act], None if ezz is None else ezz[act], du, dz, _take(ev, act),
+                    st0.index(act), p0[act], T1, dt, fext[act], fref[act], bad[act])
+                uk = _scatter(uk, ua, act)
+                ezz = None if ezz is None else _scatter(ezz, za, act)
+                ev = _put(ev, eva, act)
             dep_max = dep.amax((1, 2))
+            if cache is not None and gid is not None:
+                cache["L"][gid], cache["have"][gid] = L, have
             Kt = self._tangent(C) if needs_grad else None  # (b, n_r, n_r)
         if needs_grad:  # one Newton step with the graph attached: exact first derivatives
             sig, _, szz, _, _, _, _ = self._material(uk, ezz, st, p, T1, dt, tangent=False,
@@ -349,6 +367,8 @@ class SpecimenSolver:
         alive = torch.ones(b, dtype=torch.bool, device=u.device)
         reasons = [""] * b
         nsub = [0]
+        self._fcache = {"L": torch.zeros(b, self.n_r, self.n_r, **self.tkw),
+                        "have": torch.zeros(b, dtype=torch.bool, device=u.device)}
         vel, rate_prev = torch.zeros_like(u), float("nan")
         it = range(1, len(grid))
         if progress:
@@ -363,7 +383,7 @@ class SpecimenSolver:
             rate = (cyc(t1) - cyc(t0)) / (t1 - t0)
             v0 = vel[idx] if abs(rate - rate_prev) < 1e-12 else None
             u_a, st_a, ok = self._advance(u[idx], st.index(idx), params[idx], t0, t1, 0, nsub,
-                                          v0)
+                                          v0, idx)
             vel = _scatter(vel, (u_a - u[idx]) / (t1 - t0), idx)
             rate_prev = rate
             for j in torch.nonzero(~ok).squeeze(1).tolist():
@@ -380,10 +400,11 @@ class SpecimenSolver:
         for i in range(len(outs)):
             out = out.clone()
             out[:, i] = outs[i]
+        self._fcache = None  # free the factors
         return SolveResult(torch.tensor(times, **self.tkw), list(self.names), out, alive,
                            reasons, len(grid) - 1, nsub[0])
 
-    def time_step(self, u, st, p, t0, t1, du0=None):
+    def time_step(self, u, st, p, t0, t1, du0=None, gid=None):
         """Advance a batch from t0 to t1 with the configured scheme; see :meth:`step`.
 
         SDIRK2 (gamma = 1 - 1/sqrt2): stage 1 is backward Euler to t0 + gamma*h; stage 2 is
@@ -394,24 +415,24 @@ class SpecimenSolver:
         """
         cyc, h = self.problem.cycle, t1 - t0
         if self.problem.stepping.scheme == "euler":
-            return self.step(u, st, p, cyc(t1), h, du0=du0)
+            return self.step(u, st, p, cyc(t1), h, du0=du0, gid=gid)
         g = SDIRK_GAMMA
         ua, sa, oka, da = self.step(u, st, p, cyc(t0 + g * h), g * h,
-                                    du0=None if du0 is None else g * du0)
+                                    du0=None if du0 is None else g * du0, gid=gid)
         k = (1.0 - g) / g
         st2 = PointState(st.eps_p + k * (sa.eps_p - st.eps_p), st.s + k * (sa.s - st.s),
                          sa.eps_zz)
-        ub, sb, okb, db = self.step(ua, st2, p, cyc(t1), g * h, du0=k * (ua - u))
+        ub, sb, okb, db = self.step(ua, st2, p, cyc(t1), g * h, du0=k * (ua - u), gid=gid)
         return ub, sb, oka & okb, torch.maximum(da, db)
 
-    def _advance(self, u, st, p, t0, t1, depth, nsub, vel=None):
+    def _advance(self, u, st, p, t0, t1, depth, nsub, vel=None, gid=None):
         """Advance members from t0 to t1, halving the step for those that need it.
 
         ``vel`` ``(b, n_r)``: displacement rate of the previous step (predictor), or None.
         """
         ts = self.problem.stepping
         du0 = None if vel is None else vel * (t1 - t0)
-        u1, st1, ok, dep = self.time_step(u, st, p, t0, t1, du0)
+        u1, st1, ok, dep = self.time_step(u, st, p, t0, t1, du0, gid)
         good = ok & (dep <= ts.dep_max) if depth < ts.max_depth else ok
         if bool(good.all()) or depth >= ts.max_depth:
             return u1, st1, ok
@@ -419,9 +440,10 @@ class SpecimenSolver:
         nsub[0] += len(idx)
         tm = 0.5 * (t0 + t1)
         v = None if vel is None else vel[idx]
-        ua, sa, oka = self._advance(u[idx], st.index(idx), p[idx], t0, tm, depth + 1, nsub, v)
+        g = None if gid is None else gid[idx]
+        ua, sa, oka = self._advance(u[idx], st.index(idx), p[idx], t0, tm, depth + 1, nsub, v, g)
         v = (ua - u[idx]) / (tm - t0)
-        ub, sb, okb = self._advance(ua, sa, p[idx], tm, t1, depth + 1, nsub, v)
+        ub, sb, okb = self._advance(ua, sa, p[idx], tm, t1, depth + 1, nsub, v, g)
         okb = oka & okb
         return (_scatter(u1, ub, idx), _scatter_state(st1, sb, idx),
                 _scatter(ok, okb, idx))
@@ -432,6 +454,25 @@ def _chol_solve(L, rhs):
     this is ~3x faster than ``torch.cholesky_solve`` for batched single right-hand sides)."""
     y = torch.linalg.solve_triangular(L, rhs.unsqueeze(-1), upper=False)
     return torch.linalg.solve_triangular(L.mT, y, upper=True).squeeze(-1)
+
+
+def _take(ev, idx):
+    """Members ``idx`` of a tuple of batched results (``PointState`` aware)."""
+    return tuple(None if a is None else a.index(idx) if isinstance(a, PointState) else a[idx]
+                 for a in ev)
+
+
+def _put(ev, sub, idx):
+    """Write the members ``idx`` of a batched result tuple from ``sub``."""
+    out = []
+    for a, b in zip(ev, sub, strict=True):
+        if a is None:
+            out.append(None)
+        elif isinstance(a, PointState):
+            out.append(_scatter_state(a, b, idx))
+        else:
+            out.append(_scatter(a, b, idx))
+    return tuple(out)
 
 
 def _select(mask, new, old):

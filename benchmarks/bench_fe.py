@@ -1,0 +1,84 @@
+"""FE throughput on the reference case: batched solves vs sequential single runs.
+
+Usage: python benchmarks/bench_fe.py [--sizes 1,8,64,256] [--sequential 64] [--lhs 50]
+       [--device cpu|cuda] [--out benchmarks/results_fe.json]
+
+Every batch is a Latin hypercube over the seed box (s0, QR, xi, m) with Liu's other constants,
+through the full cycle at the default mesh and steps, outputs at the seed times. The ratio
+"batched vs sequential" is measured in the same run on the same parameter sets, so it is
+robust to the machine's load; absolute times are not.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+
+import torch
+from scipy.stats import qmc
+
+from solderpyro.fem.loading import SEED_TIMES
+from solderpyro.fem.problem import Problem
+from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.params import ParameterSpace
+
+
+def lhs(n: int, seed: int = 0) -> torch.Tensor:
+    """``(n, 4)`` Latin hypercube over the seed box, physical units."""
+    space = ParameterSpace.seed()
+    u = torch.as_tensor(qmc.LatinHypercube(d=space.n_theta, seed=seed).random(n))
+    return space.full(space.from_unit(u))
+
+
+def timed(solver: SpecimenSolver, p: torch.Tensor) -> tuple[float, bool]:
+    if p.device.type == "cuda":
+        torch.cuda.synchronize()
+    t = time.perf_counter()
+    r = solver.solve(p, SEED_TIMES)
+    if p.device.type == "cuda":
+        torch.cuda.synchronize()
+    return time.perf_counter() - t, bool(r.ok.all())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--sizes", default="1,8,64,256")
+    ap.add_argument("--sequential", type=int, default=64)
+    ap.add_argument("--lhs", type=int, default=50)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--dtype", default="float64")
+    ap.add_argument("--out", default="benchmarks/results_fe.json")
+    a = ap.parse_args()
+    dtype = getattr(torch, a.dtype)
+    solver = SpecimenSolver(Problem(), dtype=dtype, device=a.device)
+    res = {"device": a.device, "dtype": a.dtype, "threads": torch.get_num_threads(),
+           "machine": platform.processor() or platform.machine(), "torch": torch.__version__,
+           "n_retained_dofs": solver.n_r, "rows": []}
+    if a.device.startswith("cuda"):
+        res["gpu"] = torch.cuda.get_device_name()
+    for B in [int(b) for b in a.sizes.split(",") if b]:
+        p = lhs(B, seed=B).to(device=a.device, dtype=dtype)
+        w, ok = timed(solver, p)
+        res["rows"].append({"B": B, "wall_s": w, "runs_per_s": B / w, "all_ok": ok})
+        print(f"B={B:4d}: {w:8.2f} s  {B / w:7.3f} runs/s  ok={ok}", flush=True)
+    if a.sequential:
+        S = a.sequential
+        p = lhs(S, seed=S).to(device=a.device, dtype=dtype)
+        wb, _ = timed(solver, p)
+        ws = sum(timed(solver, p[i:i + 1])[0] for i in range(S))
+        res["sequential"] = {"B": S, "batched_s": wb, "sequential_s": ws, "speedup": ws / wb}
+        print(f"B={S}: batched {wb:.1f} s, {S} sequential single runs {ws:.1f} s, "
+              f"speedup {ws / wb:.2f}x", flush=True)
+    if a.lhs:
+        p = lhs(a.lhs, seed=2024).to(device=a.device, dtype=dtype)
+        w, ok = timed(solver, p)
+        res["lhs"] = {"n": a.lhs, "wall_s": w, "all_ok": ok}
+        print(f"seed-style LHS of {a.lhs} runs through the full cycle: {w:.1f} s, ok={ok}")
+    with open(a.out, "w") as f:
+        json.dump(res, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
