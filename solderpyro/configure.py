@@ -13,7 +13,7 @@ import torch
 
 from .fem.loading import EXTENDED_TIMES, SEED_TIMES, ThermalCycle, TimeStepping
 from .fem.mesh import Layer, MeshSpec
-from .fem.problem import AnandSolder, Elastic, Problem
+from .fem.problem import LAWS, Problem
 from .params import ANAND_NAMES, ParameterSpace, check_anand_values
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -86,9 +86,10 @@ def build(cfg) -> Setup:
         nu = _num(m, "nu", f"materials.{key}", -0.999, 0.4999)
         a = _num(m, "cte_ppm", f"materials.{key}", -1e3, 1e3) * 1e-6
         law = str(m.get("law", "elastic"))
-        if law not in ("elastic", "anand"):
-            raise ValueError(f"config materials.{key}.law must be elastic|anand, got {law!r}")
-        mats[key] = (AnandSolder if law == "anand" else Elastic)(E=E, nu=nu, alpha=a)
+        if law not in LAWS:
+            raise ValueError(f"config materials.{key}.law must be one of {sorted(LAWS)}, "
+                             f"got {law!r}")
+        mats[key] = LAWS[law](E=E, nu=nu, alpha=a)
     anand = {k: float(v) for k, v in cfg.materials.anand.items()}
     unknown = set(anand) - set(ANAND_NAMES)
     if unknown:

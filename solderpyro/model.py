@@ -30,16 +30,19 @@ class SpecimenModel:
         times: output times, s (default: the seed's four points (a)-(d)).
         field: also report V on the 31 x 18 grid of shared/specimen.md (after A, B).
         dtype, device: of the solve (float64 recommended; ``"cuda"`` works).
+        observation: optional map ``V (B, n_time, n_out) -> V'`` applied to the FE outputs (the
+            seam for observation-side effects, e.g. a Moire rigid offset and rotation per image).
     """
 
     def __init__(self, problem: Problem | None = None, space: ParameterSpace | None = None,
                  times=SEED_TIMES, field: bool = False, dtype=torch.float64,
-                 device="cpu") -> None:
+                 device="cpu", observation=None) -> None:
         self.problem = problem or Problem()
         self.space = space or ParameterSpace.seed()
         self.times = tuple(float(t) for t in times)
         self.solver = SpecimenSolver(self.problem, reference_grid() if field else None,
                                      dtype=dtype, device=device)
+        self.observation = observation
         self.last: SolveResult | None = None
 
     @property
@@ -71,7 +74,8 @@ class SpecimenModel:
 
     def __call__(self, theta: torch.Tensor) -> torch.Tensor:
         """``(B, n_theta) -> (B, n_time, n_out)`` in um; NaN rows for failed members."""
-        return self.run(theta).V
+        V = self.run(theta).V
+        return V if self.observation is None else self.observation(V)
 
     def _check(self, theta: torch.Tensor) -> None:
         if theta.ndim != 2 or theta.shape[-1] != self.space.n_theta:

@@ -108,11 +108,6 @@ def time_grid(cycle: ThermalCycle, out_times: tuple[float, ...], ts: TimeSteppin
         while sum(steps) + h < (b - a) * (1 - 1e-9):
             steps.append(h)
             h = min(h * ts.growth, cap)
-        n = max(len(steps), 1)
-        if sum(steps) < (b - a) and len(steps) > 0 and (b - a) - sum(steps) < 0.5 * steps[-1]:
-            n = len(steps)  # fold a tiny remainder into the last step
-        else:
-            n = len(steps) + 1
-        w = np.array((steps + [h])[:n])
+        w = np.array(steps + [h])  # sum >= b - a: scaling to fit only shrinks steps
         out += list(a + (b - a) * np.cumsum(w) / w.sum())
     return np.array(out)

@@ -16,7 +16,12 @@ from .mesh import Layer, MeshSpec
 
 @dataclass(frozen=True)
 class Elastic:
-    """Linear isotropic thermo-elastic material: E (MPa), nu, alpha (1/K)."""
+    """Linear isotropic thermo-elastic material: E (MPa), nu, alpha (1/K).
+
+    A material law is the seam through which physical effects enter a region: subclass and
+    override :meth:`thermal_strain` (e.g. a temperature-dependent CTE). Linear laws are
+    condensed once, so their stiffness must not depend on the batch member.
+    """
 
     E: float
     nu: float
@@ -29,13 +34,42 @@ class Elastic:
         if not -1.0 < self.nu < 0.5:
             raise ValueError(f"nu must lie in (-1, 0.5), got {self.nu}")
 
+    def thermal_strain(self, T_C, T_ref_C):
+        """Free (isotropic) thermal strain from ``T_ref_C`` to ``T_C`` (degC); scalar or tensor."""
+        return self.alpha * (T_C - T_ref_C)
+
 
 @dataclass(frozen=True)
 class AnandSolder(Elastic):
-    """Thermo-elastic-viscoplastic solder (Anand); the nine constants come per batch member."""
+    """Thermo-elastic-viscoplastic solder (Anand); the nine constants come per batch member.
+
+    :meth:`update` is what the solver calls at the Gauss points; a subclass can make the
+    modulus depend on temperature or add a back stress without touching the solver.
+    """
 
     nonlinear: bool = True
 
+    def modulus(self, T_C):
+        """Young's modulus (MPa) at temperature ``T_C`` (constant in the baseline model)."""
+        return self.E
+
+    def update(self, eps, state, p, T_C, T_ref_C, dt, guess=None, tangent=True):
+        """Gauss-point update; see :func:`solderpyro.materials.integrate.return_map_3d`.
+
+        Args:
+            eps: ``(b, n_e, n_qp, 4)`` total strain (Mandel); state: start-of-step state;
+            p: ``(b, 1, 1, 9)`` Anand constants; T_C: end-of-step temperature (degC);
+            T_ref_C: stress-free temperature; dt: step (s).
+        """
+        from ..materials.integrate import return_map_3d
+
+        return return_map_3d(eps, state, p, T_C + 273.15, dt,
+                             self.thermal_strain(T_C, T_ref_C), self.modulus(T_C), self.nu,
+                             guess=guess, tangent=tangent)
+
+
+#: Material laws by config name (``materials.<key>.law``); effects register theirs here.
+LAWS: dict[str, type] = {"elastic": Elastic, "anand": AnandSolder}
 
 #: seed Table III
 SUS630 = Elastic(E=200e3, nu=0.29, alpha=10.8e-6)

@@ -29,7 +29,6 @@ from ..materials.integrate import (
     _full_strain,
     ezz_predictor,
     initial_state,
-    return_map_3d,
 )
 from ..params import ANAND_NAMES
 from .assembly import condense, linear_system
@@ -38,7 +37,6 @@ from .loading import time_grid
 from .mesh import build_mesh, locate
 from .problem import Problem
 
-KELVIN = 273.15
 SDIRK_GAMMA = 1.0 - 0.5 ** 0.5
 
 
@@ -107,11 +105,10 @@ class SpecimenSolver:
         cond = condense(K, loads, Hobs, r, c)
         t = lambda a: torch.as_tensor(np.ascontiguousarray(a), **self.tkw)  # noqa: E731
         self.S = t(cond.S)
-        self.alpha = {k: problem.materials[k].alpha for k in cond.g}
+        self.lin_keys = list(cond.g)
         self.G = torch.stack([t(cond.g[k]) for k in cond.g])  # (n_mat, n_r)
         self.Hobs = t(cond.H)  # (n_out, n_r)
         self.hobs = torch.stack([t(cond.h[k]) for k in cond.h])  # (n_mat, n_out)
-        self.alphas = torch.tensor([self.alpha[k] for k in cond.g], **self.tkw)
         # solder element data on the retained dofs; a fixed dof points at dof 0 with a zero
         # B-matrix column, so it contributes nothing to strains, forces or tangents
         gmap = np.full(n_dof, -1)
@@ -154,12 +151,15 @@ class SpecimenSolver:
         return (H - Ho).tocsr()
 
     # ------------------------------------------------------------------ physics per step
-    def _eps_th(self, T_C):
-        return T_C - self.problem.T_ref_C
+    def _eps_th_lin(self, T_C):
+        """Free thermal strains ``(n_mat,)`` of the linear materials at T (degC)."""
+        mats, T0 = self.problem.materials, self.problem.T_ref_C
+        return torch.tensor([float(mats[k].thermal_strain(T_C, T0)) for k in self.lin_keys],
+                            **self.tkw)
 
     def _f_ext(self, T_C):
         """Condensed thermal force ``(n_r,)`` of the elastic regions at temperature T (degC)."""
-        return (self.alphas * self._eps_th(T_C)) @ self.G
+        return self._eps_th_lin(T_C) @ self.G
 
     def _strain(self, u):
         ue = u[:, self.edof]  # (b, n_e, 8)
@@ -175,10 +175,9 @@ class SpecimenSolver:
         eps = self._strain(u)
         if ezz is None:
             ezz = torch.zeros_like(eps[..., 0])
-        sol = self.solder
-        sig, st1, C3, dep, x = return_map_3d(
-            _full_strain(eps, ezz), st, p[:, None, None, :], T_C + KELVIN, dt,
-            sol.alpha * self._eps_th(T_C), sol.E, sol.nu, guess=guess, tangent=tangent)
+        sig, st1, C3, dep, x = self.solder.update(
+            _full_strain(eps, ezz), st, p[:, None, None, :], T_C, self.problem.T_ref_C, dt,
+            guess=guess, tangent=tangent)
         sig_ip, szz = sig[..., IP], sig[..., ZZ]
         C3 = C3 if C3_fixed is None else C3_fixed
         C = None
@@ -228,8 +227,9 @@ class SpecimenSolver:
                 uk = uk + du0.detach()
             ezz = None
             if ps:
-                ezz = ezz_predictor(self._strain(uk), st0, sol.alpha * self._eps_th(T1),
-                                    sol.E, sol.nu)
+                ezz = ezz_predictor(self._strain(uk), st0,
+                                    sol.thermal_strain(T1, self.problem.T_ref_C),
+                                    sol.modulus(T1), sol.nu)
             fref = fext.abs().amax(1) + 1e-12
             b = uk.shape[0]
             x = None
@@ -325,11 +325,8 @@ class SpecimenSolver:
 
     def _dezz(self, du, szz, C3):
         """Newton update of eps_zz that accompanies a displacement update ``du`` (plane stress)."""
-        deps = self._strain_lin(du)
+        deps = self._strain(du)  # linear in u
         return -(szz + (C3[..., ZZ, IP] * deps).sum(-1)) / C3[..., ZZ, ZZ]
-
-    def _strain_lin(self, du):
-        return self._strain(du)
 
     @staticmethod
     def _fint_scale(sig):
@@ -337,7 +334,7 @@ class SpecimenSolver:
 
     def observe(self, u, T_C):
         """V relative to O at the output points, ``(b, n_out)`` in um."""
-        off = (self.alphas * self._eps_th(T_C)) @ self.hobs
+        off = self._eps_th_lin(T_C) @ self.hobs
         return 1e3 * (u @ self.Hobs.T + off)
 
     # ------------------------------------------------------------------ time loop
