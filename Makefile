@@ -25,6 +25,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m ruff check solderpyro tests benchmarks experiments
+	$(BIN)/python -m mypy
 	$(BIN)/python -m pytest -q
 
 test-all: $(STAMP)

@@ -125,7 +125,8 @@ def build(cfg) -> Setup:
         cycle=ThermalCycle(tuple(float(t) for t in ld.times_s),
                            tuple(float(t) for t in ld.temps_C)),
         stepping=stepping, points={k: tuple(map(float, v)) for k, v in sp.points.items()},
-        origin=tuple(map(float, sp.origin)), incompatible_modes=bool(mc.incompatible_modes))
+        origin=(float(sp.origin[0]), float(sp.origin[1])),
+        incompatible_modes=bool(mc.incompatible_modes))
     dt = {"float64": torch.float64, "float32": torch.float32}.get(str(cfg.solver.dtype))
     if dt is None:
         raise ValueError(f"config solver.dtype must be float64|float32, got {cfg.solver.dtype!r}")

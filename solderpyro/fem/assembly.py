@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+import torch
 
 from ..materials.elastic import plane_elastic
 from .elements import edofs, q4_kinematics, qm6_stiffness
@@ -41,15 +42,17 @@ class Condensed:
 def linear_system(mesh, problem, lin_elems: np.ndarray):
     """Global sparse stiffness and unit thermal loads of the linear elastic elements."""
     n_dof = 2 * mesh.n_node
-    rows, cols, vals = [], [], []
-    loads = {}
-    tkw = {}
+    rows: list[np.ndarray] = []
+    cols: list[np.ndarray] = []
+    vals: list[np.ndarray] = []
+    loads: dict[str, np.ndarray] = {}
     for key, mat in problem.materials.items():
-        els = [e for e in lin_elems if mesh.layers[mesh.region[e]].material == key]
-        if not els:
+        els = np.array([e for e in lin_elems if mesh.layers[mesh.region[e]].material == key],
+                       dtype=int)
+        if len(els) == 0:
             continue
-        els = np.array(els)
-        D, d_th = (t.numpy() for t in plane_elastic(mat.E, mat.nu, problem.plane, **tkw))
+        D, d_th = (t.numpy() for t in plane_elastic(mat.E, mat.nu, problem.plane,
+                                                      dtype=torch.float64))
         xy = mesh.nodes[mesh.elems[els]]
         B, wdet = q4_kinematics(xy)
         if problem.incompatible_modes:

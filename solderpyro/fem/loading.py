@@ -104,7 +104,8 @@ def time_grid(cycle: ThermalCycle, out_times: tuple[float, ...], ts: TimeSteppin
     for a, b in zip(knots[:-1], knots[1:], strict=False):
         rate = abs(cycle(0.5 * (a + b)) - cycle(a)) / (0.5 * (b - a))
         cap = ts.dt_max if rate == 0 else min(ts.dt_max, ts.dT_max / rate)
-        steps, h = [], min(ts.dwell_dt0, cap)
+        steps: list[float] = []
+        h = min(ts.dwell_dt0, cap)
         while sum(steps) + h < (b - a) * (1 - 1e-9):
             steps.append(h)
             h = min(h * ts.growth, cap)

@@ -124,7 +124,7 @@ class SpecimenSolver:
         self.kidx = (self.edof[:, :, None] * self.n_r + self.edof[:, None, :]).reshape(-1)
         self.el_solder = el_nl
         self.stats = {"factor": 0, "iter": 0}
-        self._fcache = None
+        self._fcache: dict[str, torch.Tensor] | None = None
 
     # ------------------------------------------------------------------ set-up helpers
     def _dirichlet(self) -> np.ndarray:

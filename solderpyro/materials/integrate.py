@@ -300,6 +300,7 @@ def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stre
                 break
             ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
     if torch.is_grad_enabled():  # one Newton step on eps_zz with the graph attached
+        assert C is not None
         sig, *_ = return_map_3d(_full_strain(eps_ip, ezz), state, p, T, dt, eps_th, E, nu,
                                 guess, tangent=False)
         ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
