@@ -16,7 +16,7 @@ import torch
 from .fem.loading import SEED_TIMES
 from .fem.problem import Problem, reference_grid
 from .fem.solver import SolveResult, SpecimenSolver
-from .params import ParameterSpace
+from .params import PHYSICAL_RANGE, ParameterSpace
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +53,9 @@ class SpecimenModel:
     @property
     def output_points(self):
         """``(n_out, 2)`` coordinates (mm) of the outputs."""
-        from .fem.problem import reference_grid as _grid
         pts = [self.problem.points[n] for n in self.problem.points]
         if len(self.solver.names) > len(pts):
-            pts += [tuple(p) for p in _grid()[1]]
+            pts += [tuple(p) for p in reference_grid()[1]]
         return torch.tensor(pts, dtype=torch.float64)
 
     def run(self, theta: torch.Tensor, progress: bool = False) -> SolveResult:
@@ -83,7 +82,6 @@ class SpecimenModel:
                              f"{', '.join(self.space.names)}; got {tuple(theta.shape)}")
         if not torch.isfinite(theta).all():
             raise ValueError("theta contains NaN or inf")
-        from .params import PHYSICAL_RANGE
         for j, nm in enumerate(self.space.names):
             lo, hi = PHYSICAL_RANGE[nm]
             col = theta[:, j]
