@@ -315,7 +315,8 @@ class SpecimenSolver:
             u_new = torch.where(good[:, None], ut, u_new)
             if dz is not None:
                 z_new = torch.where(good[:, None, None], zt, z_new)
-            ev_new = _select(good, evt, ev_new)
+            gi = torch.nonzero(good).squeeze(1)
+            ev_new = _put(ev_new, _take(evt, gi), gi)
             accepted = accepted | good
             if bool(accepted.all()):
                 break
@@ -470,25 +471,6 @@ def _put(ev, sub, idx):
         else:
             out.append(_scatter(a, b, idx))
     return tuple(out)
-
-
-def _select(mask, new, old):
-    """Per-member choice between two tuples of batched results (``PointState`` aware)."""
-    out = []
-    for a, b in zip(new, old, strict=True):
-        if isinstance(a, PointState):
-            out.append(PointState(*(_where(mask, x, y) for x, y in
-                                    zip((a.eps_p, a.s, a.eps_zz), (b.eps_p, b.s, b.eps_zz),
-                                        strict=True))))
-        elif a is None:
-            out.append(None)
-        else:
-            out.append(_where(mask, a, b))
-    return tuple(out)
-
-
-def _where(mask, a, b):
-    return torch.where(mask.view(-1, *([1] * (a.ndim - 1))), a, b)
 
 
 def _scatter(full, part, idx):
