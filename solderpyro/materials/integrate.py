@@ -7,8 +7,12 @@ in log form,
 
     R = log(dep) - log(dt*A) + QR/T - log(sinh(xi*q/s))/m = 0,
 
-which is asymptotically linear in ``zeta`` at both ends (elastic and fully relaxed), so a bracketed
-Newton converges for any ``xi*q/s`` and ``m`` (no overflow: ``log sinh`` is evaluated in log form).
+which is asymptotically linear in ``zeta`` at both ends (elastic and fully relaxed). A joint
+Newton on ``(zeta, s)`` from a warm start solves most points; the few it leaves unconverged fall
+back to a bracketed Newton on ``zeta`` with ``s(zeta)`` solved exactly inside, which converges for
+any ``xi*q/s`` and ``m`` (no overflow: ``log sinh`` is evaluated in log form). In plane stress
+:func:`anand_update` iterates ``eps_zz`` locally; the FE solver instead updates it together with
+the displacements.
 The consistent tangent is closed form. When autograd is on, the converged values are corrected
 by one Newton step with the graph attached, which gives exact first derivatives with respect to
 the inputs (implicit-function theorem) without differentiating through the iterations.
