@@ -59,59 +59,66 @@ def check_anand_values(values: Mapping[str, float]) -> None:
 
 
 @dataclass(frozen=True)
-class ParameterSpace:
-    """Calibration parameters: which Anand constants vary, their box, scaling and defaults.
+class Box:
+    """A named box of inputs with an explicit, invertible map to the unit cube.
+
+    The one parameter description that feeds the FE (physical values), the GP input transform
+    (unit cube), the Pyro priors (uniform on the box) and the BoTorch bounds.
 
     Attributes:
-        names: the varied parameters, e.g. ``("s0", "QR", "xi", "m")``; ``n_theta = len(names)``.
-        lower, upper: box bounds in physical units, one per name.
-        log_scale: per name, whether the unit-cube map is logarithmic.
-        defaults: values of all nine Anand constants used for those not in ``names``.
+        names: input names; ``dim = len(names)``.
+        lower, upper: bounds in physical units, one per name (``lower < upper``).
+        log_scale: per name, whether the unit-cube map is logarithmic (needs ``lower > 0``).
+        units: optional unit strings, one per name (for tables and plots).
     """
 
     names: tuple[str, ...]
     lower: tuple[float, ...]
     upper: tuple[float, ...]
     log_scale: tuple[bool, ...] = ()
-    defaults: Mapping[str, float] = field(default_factory=lambda: dict(LIU2008))
+    units: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.names)
-        if not self.log_scale:
-            object.__setattr__(self, "log_scale", (False,) * n)
-        for attr in ("lower", "upper", "log_scale"):
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "lower", tuple(float(v) for v in self.lower))
+        object.__setattr__(self, "upper", tuple(float(v) for v in self.upper))
+        object.__setattr__(self, "log_scale", tuple(bool(v) for v in self.log_scale)
+                           or (False,) * n)
+        object.__setattr__(self, "units", tuple(self.units) or ("",) * n)
+        cls = type(self).__name__
+        for attr in ("lower", "upper", "log_scale", "units"):
             if len(getattr(self, attr)) != n:
-                raise ValueError(f"ParameterSpace.{attr} has {len(getattr(self, attr))} "
+                raise ValueError(f"{cls}.{attr} has {len(getattr(self, attr))} "
                                  f"entries, names has {n}")
-        for nm, lo, hi in zip(self.names, self.lower, self.upper, strict=True):
-            if nm not in ANAND_NAMES:
-                raise ValueError(f"unknown parameter {nm!r}; valid: {', '.join(ANAND_NAMES)}")
-            if not lo < hi:
+        if len(set(self.names)) != n:
+            raise ValueError(f"{cls}.names has duplicates: {self.names}")
+        for nm, lo, hi, lg in zip(self.names, self.lower, self.upper, self.log_scale,
+                                  strict=True):
+            if not (lo < hi):
                 raise ValueError(f"bounds of {nm}: lower {lo} must be < upper {hi}")
-        check_anand_values({k: v for k, v in self.defaults.items()})
+            if lg and lo <= 0:
+                raise ValueError(f"bounds of {nm}: log scale needs lower > 0, got {lo}")
 
-    @classmethod
-    def seed(cls) -> ParameterSpace:
-        """The seed's four calibrated constants on the box of shared/specimen.md."""
-        names = tuple(SEED_BOX)
-        return cls(names, tuple(SEED_BOX[k][0] for k in names),
-                   tuple(SEED_BOX[k][1] for k in names))
+    @property
+    def dim(self) -> int:
+        return len(self.names)
 
     @property
     def n_theta(self) -> int:
         return len(self.names)
 
     def bounds(self, **tkw) -> torch.Tensor:
-        """Box as a ``(2, n_theta)`` tensor (BoTorch's convention)."""
+        """Box as a ``(2, dim)`` tensor (BoTorch's convention), physical units."""
         return torch.tensor([self.lower, self.upper], **tkw)
 
     def to_unit(self, theta: torch.Tensor) -> torch.Tensor:
-        """Map ``(..., n_theta)`` physical values to the unit cube (log where flagged)."""
+        """Map ``(..., dim)`` physical values to the unit cube (log where flagged)."""
         lo, hi = self._lohi(theta)
         return (self._fwd(theta) - lo) / (hi - lo)
 
     def from_unit(self, u: torch.Tensor) -> torch.Tensor:
-        """Inverse of :meth:`to_unit`: ``(..., n_theta)`` in [0, 1] -> physical units."""
+        """Inverse of :meth:`to_unit`: ``(..., dim)`` in [0, 1] -> physical units."""
         lo, hi = self._lohi(u)
         z = lo + u * (hi - lo)
         logm = torch.tensor(self.log_scale, device=u.device)
@@ -125,6 +132,48 @@ class ParameterSpace:
         b = torch.tensor([self.lower, self.upper], dtype=like.dtype, device=like.device)
         b = self._fwd(b)
         return b[0], b[1]
+
+    @classmethod
+    def around(cls, names: Sequence[str], values: torch.Tensor) -> Box:
+        """The tightest box around ``values`` ``(n, dim)`` (a constant column gets +-0.5)."""
+        if values.ndim != 2 or values.shape[1] != len(names):
+            raise ValueError(f"values must have shape (n, {len(names)}), got "
+                             f"{tuple(values.shape)}")
+        lo, hi = values.min(0).values.tolist(), values.max(0).values.tolist()
+        lo2 = [a - 0.5 if a == b else a for a, b in zip(lo, hi, strict=True)]
+        hi2 = [b + 0.5 if a == b else b for a, b in zip(lo, hi, strict=True)]
+        return cls(tuple(names), tuple(lo2), tuple(hi2))
+
+
+@dataclass(frozen=True)
+class ParameterSpace(Box):
+    """Calibration parameters: which Anand constants vary, their box, scaling and defaults.
+
+    Attributes:
+        names: the varied parameters, e.g. ``("s0", "QR", "xi", "m")``; ``n_theta = len(names)``.
+        lower, upper: box bounds in physical units, one per name.
+        log_scale: per name, whether the unit-cube map is logarithmic.
+        units: filled from ``ANAND_UNITS`` when omitted.
+        defaults: values of all nine Anand constants used for those not in ``names``.
+    """
+
+    defaults: Mapping[str, float] = field(default_factory=lambda: dict(LIU2008))
+
+    def __post_init__(self) -> None:
+        for nm in self.names:
+            if nm not in ANAND_NAMES:
+                raise ValueError(f"unknown parameter {nm!r}; valid: {', '.join(ANAND_NAMES)}")
+        if not self.units:
+            object.__setattr__(self, "units", tuple(ANAND_UNITS[n] for n in self.names))
+        super().__post_init__()
+        check_anand_values({k: v for k, v in self.defaults.items()})
+
+    @classmethod
+    def seed(cls) -> ParameterSpace:
+        """The seed's four calibrated constants on the box of shared/specimen.md."""
+        names = tuple(SEED_BOX)
+        return cls(names, tuple(SEED_BOX[k][0] for k in names),
+                   tuple(SEED_BOX[k][1] for k in names))
 
     def full(self, theta: torch.Tensor) -> torch.Tensor:
         """Insert ``theta`` into the defaults: ``(..., n_theta)`` -> ``(..., 9)`` (ANAND_NAMES).

@@ -41,3 +41,68 @@ def plot_cycle(times, V, names, temps_C, cycle=None, marks=()):
     ax.set_title("Reference specimen through the thermal cycle")
     fig.tight_layout()
     return fig
+
+
+def plot_traces(post, names=None):
+    """Trace and marginal histogram per scalar parameter (one row each).
+
+    Args:
+        post: a :class:`~solderpyro.calibration.Posterior`; names: subset of its columns.
+    Returns:
+        the matplotlib Figure.
+    """
+    cols = post.columns()
+    names = list(names or cols)
+    fig, axes = plt.subplots(len(names), 2, figsize=(9, 2.2 * len(names)), squeeze=False,
+                             gridspec_kw={"width_ratios": [3, 1]})
+    for i, nm in enumerate(names):
+        a = cols[nm]  # (chain, draw)
+        for c in range(a.shape[0]):
+            axes[i, 0].plot(a[c], lw=0.5, alpha=0.8)
+            axes[i, 1].hist(a[c], bins=40, histtype="step", density=True)
+        axes[i, 0].set_ylabel(nm)
+        axes[i, 1].set_yticks([])
+    axes[-1, 0].set_xlabel("draw")
+    fig.tight_layout()
+    return fig
+
+
+def plot_bands(ax, x, bands, label="posterior predictive", color="C0"):
+    """Median and 95 % band of the process, plus the 95 % band of new observations.
+
+    Args:
+        ax: matplotlib axes; x: ``(n_new,)``; bands: a
+            :class:`~solderpyro.calibration.Bands` over ``n_new`` inputs.
+    """
+    x = np.asarray(x)
+    ax.fill_between(x, bands.obs_lo.numpy(), bands.obs_hi.numpy(), color=color, alpha=0.12,
+                    label="95 % new observation")
+    ax.fill_between(x, bands.lo.numpy(), bands.hi.numpy(), color=color, alpha=0.3,
+                    label="95 % process")
+    ax.plot(x, bands.median.numpy(), color=color, label=f"{label} median")
+
+
+def plot_validation(result, title="surrogate validation"):
+    """Predicted vs true with 95 % bars, and the standardized errors against N(0, 1).
+
+    Args:
+        result: a :class:`~solderpyro.surrogate.LooResult`.
+    Returns:
+        the matplotlib Figure.
+    """
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 4))
+    y, m, s = (t.reshape(-1).numpy() for t in (result.y, result.mean, result.sd))
+    a1.errorbar(y, m, yerr=1.96 * s, fmt="o", ms=3, lw=0.8)
+    lo, hi = float(min(y.min(), m.min())), float(max(y.max(), m.max()))
+    a1.plot([lo, hi], [lo, hi], "k--", lw=0.8)
+    a1.set_xlabel("true output")
+    a1.set_ylabel("predicted (95 % bar)")
+    a1.set_title(f"coverage {result.coverage95:.0%}, RMSE/sd {result.rmse_rel:.3f}")
+    z = result.z.reshape(-1).numpy()
+    a2.hist(z, bins=max(5, len(z) // 3), density=True, alpha=0.6)
+    g = np.linspace(-4, 4, 200)
+    a2.plot(g, np.exp(-0.5 * g**2) / np.sqrt(2 * np.pi), "k-", lw=1)
+    a2.set_xlabel("standardized error")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,69 @@
+"""What the observation likelihood sees of the computer model at a calibration point t.
+
+An emulator maps ``t (n_theta,)`` (physical units) and optional prediction inputs
+``x (n, n_x)`` to the code output's mean ``(n,)`` and covariance ``(n, n)`` there (``None``
+when the code is evaluated exactly). ``x=None`` means the observation inputs.
+
+- :class:`FunctionEmulator`: the computer model itself (the direct mode; cheap models, and the
+  ground truth a surrogate posterior is checked against).
+- :class:`GPEmulator`: a fitted :class:`~solderpyro.surrogate.GPSurrogate` (the modular mode:
+  hyperparameters fixed, code uncertainty propagated through the GP's predictive covariance).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from solderpyro.surrogate import GPSurrogate
+
+
+class FunctionEmulator:
+    """Direct evaluation of ``f(x (n, n_x), t (n_theta,)) -> (n,)``.
+
+    Args:
+        f: the computer model, differentiable in ``t`` for NUTS.
+        x_obs: ``(n_obs, n_x)`` observation inputs.
+    """
+
+    def __init__(self, f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                 x_obs: torch.Tensor) -> None:
+        self.f, self.x_obs = f, x_obs
+
+    def __call__(self, t: torch.Tensor, x: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        return self.f(self.x_obs if x is None else x, t), None
+
+
+class GPEmulator:
+    """A fitted GP surrogate seen at the observation inputs.
+
+    Two layouts:
+    - ``x_obs`` given: the GP's inputs are ``(x, t)`` concatenated (the seed's scalar layout);
+      ``gp.box`` lists the x columns first.
+    - ``x_obs=None``: the GP's inputs are ``t`` only and its outputs ``(n_y,)`` are the
+      observations themselves (``"batched"`` or ``"pca"`` surrogates of a multi-output code).
+
+    Args:
+        gp: fitted surrogate.
+        x_obs: ``(n_obs, n_x)`` or None.
+    """
+
+    def __init__(self, gp: GPSurrogate, x_obs: torch.Tensor | None = None) -> None:
+        if gp.model is None:
+            raise ValueError("gp must be fitted before it is used as an emulator")
+        n_x = 0 if x_obs is None else x_obs.shape[1]
+        if x_obs is not None and gp.output != "scalar":
+            raise ValueError("x_obs is only meaningful for a 'scalar' surrogate with x inputs")
+        self.gp, self.x_obs, self.n_x = gp, x_obs, n_x
+
+    def __call__(self, t: torch.Tensor, x: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        if self.x_obs is None:
+            if x is not None:
+                raise ValueError("this emulator predicts the observed outputs only (x=None)")
+            return self.gp.mean_cov(t.unsqueeze(0))
+        xx = self.x_obs if x is None else x
+        inp = torch.cat([xx, t.expand(xx.shape[0], t.shape[-1])], dim=-1)  # (n, n_x + n_theta)
+        return self.gp.mean_cov(inp)

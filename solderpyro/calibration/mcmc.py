@@ -1,0 +1,177 @@
+"""NUTS through Pyro: several chains, diagnostics, ArviZ export, the seed's table layout."""
+
+from __future__ import annotations
+
+import csv
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyro
+import torch
+from pyro.infer import MCMC, NUTS
+
+SUMMARY_COLUMNS = ("parameter", "q2.5", "median", "mean", "q97.5", "r_hat", "ess_bulk",
+                   "ess_tail")
+
+
+def _arviz() -> Any:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        import arviz as az
+    return az
+
+
+@dataclass
+class Posterior:
+    """Posterior draws and sampler diagnostics.
+
+    Attributes:
+        samples: site -> ``(chain, draw, ...)`` tensor, in physical units.
+        labels: site -> element labels for vector sites (e.g. ``t -> ["s0", "QR"]``).
+        divergences: number of divergent transitions per chain.
+        seconds: wall time of warm-up plus sampling, all chains.
+        raw: the sampler's own sites ``(chain, draw, ...)`` (unit cube, for predictions).
+    """
+
+    samples: dict[str, torch.Tensor]
+    labels: dict[str, list[str]] = field(default_factory=dict)
+    divergences: list[int] = field(default_factory=list)
+    seconds: float = float("nan")
+    raw: dict[str, torch.Tensor] = field(default_factory=dict)
+
+    @property
+    def n_chains(self) -> int:
+        return next(iter(self.samples.values())).shape[0]
+
+    def flat(self, site: str) -> torch.Tensor:
+        """``(chain * draw, ...)`` draws of one site."""
+        v = self.samples[site]
+        return v.reshape(-1, *v.shape[2:])
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """Scalar parameters by display name -> ``(chain, draw)`` arrays."""
+        out = {}
+        for site, v in self.samples.items():
+            a = v.detach().cpu().numpy()
+            if a.ndim == 2:
+                out[site] = a
+            else:
+                a = a.reshape(a.shape[0], a.shape[1], -1)
+                names = self.labels.get(site) or [f"{site}[{i}]" for i in range(a.shape[2])]
+                for i, nm in enumerate(names):
+                    out[nm] = a[:, :, i]
+        return out
+
+    def to_inference_data(self) -> Any:
+        """ArviZ InferenceData (posterior group; divergences in sample_stats)."""
+        az = _arviz()
+        cols = self.columns()
+        n_draw = next(iter(cols.values())).shape[1]
+        div = np.zeros((self.n_chains, n_draw), dtype=bool)
+        for c, k in enumerate(self.divergences):
+            div[c, :k] = True  # counts only; positions are not kept
+        return az.from_dict(posterior=cols, sample_stats={"diverging": div})
+
+    def summary(self) -> list[dict[str, float | str]]:
+        """Rows in the seed's layout (2.5 %, median, mean, 97.5 %) plus R-hat and ESS."""
+        az = _arviz()
+        idata = self.to_inference_data()
+        rhat = az.rhat(idata)
+        ess_b = az.ess(idata, method="bulk")
+        ess_t = az.ess(idata, method="tail")
+        rows: list[dict[str, float | str]] = []
+        for nm, a in self.columns().items():
+            q = np.quantile(a.reshape(-1), [0.025, 0.5, 0.975])
+            rows.append({"parameter": nm, "q2.5": q[0], "median": q[1], "mean": a.mean(),
+                         "q97.5": q[2], "r_hat": float(rhat[nm]),
+                         "ess_bulk": float(ess_b[nm]), "ess_tail": float(ess_t[nm])})
+        return rows
+
+    def min_ess(self) -> float:
+        """Smallest bulk ESS over the scalar parameters."""
+        return min(float(r["ess_bulk"]) for r in self.summary())
+
+    def save(self, path: str | Path) -> Path:
+        """Write the draws as ArviZ NetCDF; returns the path."""
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        self.to_inference_data().to_netcdf(str(p))
+        return p
+
+
+def write_summary(rows: Sequence[dict], path: str | Path,
+                  columns: Sequence[str] = SUMMARY_COLUMNS) -> Path:
+    """Write summary rows as CSV with the given columns (floats with 6 significant digits)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with p.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(columns)
+        for r in rows:
+            w.writerow([r[c] if isinstance(r[c], str) else f"{float(r[c]):.6g}"
+                        for c in columns])
+    return p
+
+
+def format_summary(rows: Sequence[dict], columns: Sequence[str] = SUMMARY_COLUMNS) -> str:
+    """The summary as an aligned text table."""
+    head = f"{columns[0]:<12}" + "".join(f"{c:>11}" for c in columns[1:])
+    lines = [head]
+    for r in rows:
+        lines.append(f"{r[columns[0]]!s:<12}" + "".join(f"{float(r[c]):>11.4g}"
+                                                         for c in columns[1:]))
+    return "\n".join(lines)
+
+
+def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warmup: int = 500,
+             draws: int = 1000, seed: int = 0, jit: bool = True, target_accept: float = 0.8,
+             max_tree_depth: int = 10, progress: bool = True
+             ) -> tuple[dict[str, torch.Tensor], list[int], float]:
+    """Run NUTS chains one after another (each seeded ``seed + chain``).
+
+    Args:
+        model: a Pyro model; ``args`` are passed to it.
+        chains, warmup, draws: chain count, warm-up and kept draws per chain.
+        jit: compile the potential with the PyTorch JIT (falls back to eager if tracing fails).
+
+    Returns:
+        samples ``site -> (chain, draw, ...)`` (the sampler's sites), divergences per chain,
+        wall seconds.
+    """
+    for nm, v in (("chains", chains), ("warmup", warmup), ("draws", draws)):
+        if not isinstance(v, int) or v < (0 if nm == "warmup" else 1):
+            raise ValueError(f"run_nuts {nm} must be a positive integer, got {v!r}")
+    per_chain, divs = [], []
+    t0 = time.perf_counter()
+    for c in range(chains):
+        pyro.set_rng_seed(seed + c)
+        mcmc = _one_chain(model, args, warmup, draws, jit, target_accept, max_tree_depth,
+                          progress and chains == 1, c)
+        per_chain.append({k: v.detach() for k, v in mcmc.get_samples().items()})
+        d = mcmc.diagnostics()
+        divs.append(sum(len(v) for k, v in d.get("divergences", {}).items()))
+    seconds = time.perf_counter() - t0
+    samples = {k: torch.stack([pc[k] for pc in per_chain]) for k in per_chain[0]}
+    return samples, divs, seconds
+
+
+def _one_chain(model: Callable[..., None], args: tuple, warmup: int, draws: int, jit: bool,
+               target_accept: float, max_tree_depth: int, progress: bool, chain: int) -> MCMC:
+    kernel = NUTS(model, jit_compile=jit, ignore_jit_warnings=True,
+                  target_accept_prob=target_accept, max_tree_depth=max_tree_depth)
+    mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup, disable_progbar=not progress)
+    try:
+        mcmc.run(*args)
+    except RuntimeError as exc:  # tracing trouble: run eagerly rather than fail
+        if not jit:
+            raise
+        warnings.warn(f"JIT failed for chain {chain} ({exc}); running eagerly", stacklevel=3)
+        kernel = NUTS(model, target_accept_prob=target_accept, max_tree_depth=max_tree_depth)
+        mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup, disable_progbar=not progress)
+        mcmc.run(*args)
+    return mcmc

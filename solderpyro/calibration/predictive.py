@@ -1,0 +1,179 @@
+"""Posterior predictive (seed Eq. 9 and 12): mean and bands at new inputs, over posterior draws.
+
+For each kept posterior draw the Gaussian conditional of the process at the new inputs given
+all data is formed (Eq. 9 mean, Eq. 12 covariance) and sampled once; observation bands add the
+noise sigma. The process is the code output at t, plus the discrepancy when it is modelled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from solderpyro.calibration.koh import (
+    SITE_CORR,
+    SITE_CORR_D,
+    SITE_SIGMA,
+    SITE_SIGMA_C,
+    SITE_SIGMA_D,
+    SITE_T,
+    JointInputs,
+    ObsInputs,
+    _basis,
+    _corr,
+)
+from solderpyro.calibration.mcmc import Posterior
+from solderpyro.surrogate.kernels import gaussian
+
+
+@dataclass(frozen=True)
+class Bands:
+    """Posterior predictive summaries at ``n_new`` inputs (output units).
+
+    Attributes:
+        draws: ``(n_draws, n_new)`` process draws; obs_draws: the same plus noise.
+        mean, median, lo, hi: ``(n_new,)`` process mean, median and 2.5 / 97.5 % quantiles.
+        obs_lo, obs_hi: ``(n_new,)`` 2.5 / 97.5 % quantiles of a new observation.
+    """
+
+    draws: torch.Tensor
+    obs_draws: torch.Tensor
+
+    @property
+    def mean(self) -> torch.Tensor:
+        return self.draws.mean(0)
+
+    @property
+    def median(self) -> torch.Tensor:
+        return self.draws.quantile(0.5, dim=0)
+
+    @property
+    def lo(self) -> torch.Tensor:
+        return self.draws.quantile(0.025, dim=0)
+
+    @property
+    def hi(self) -> torch.Tensor:
+        return self.draws.quantile(0.975, dim=0)
+
+    @property
+    def obs_lo(self) -> torch.Tensor:
+        return self.obs_draws.quantile(0.025, dim=0)
+
+    @property
+    def obs_hi(self) -> torch.Tensor:
+        return self.obs_draws.quantile(0.975, dim=0)
+
+
+def _pick(post: Posterior, n_draws: int, gen: torch.Generator) -> torch.Tensor:
+    total = next(iter(post.raw.values())).shape[0] * next(iter(post.raw.values())).shape[1]
+    return torch.randperm(total, generator=gen)[: min(n_draws, total)]
+
+
+def _raw(post: Posterior, site: str, i: int) -> torch.Tensor:
+    v = post.raw[site]
+    return v.reshape(-1, *v.shape[2:])[i]
+
+
+def _conditional_draw(mean: torch.Tensor, cov: torch.Tensor, y: torch.Tensor, n_o: int,
+                      noise_var: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Draw block 2 of N(mean, cov) given block 1 = y, block 1 observed with noise_var."""
+    c11 = cov[:n_o, :n_o] + noise_var * torch.eye(n_o, dtype=cov.dtype, device=cov.device)
+    l11 = torch.linalg.cholesky(c11)
+    a = torch.cholesky_solve(cov[:n_o, n_o:], l11)  # (n_o, n_p)
+    m = mean[n_o:] + a.T @ (y - mean[:n_o])
+    c = cov[n_o:, n_o:] - cov[n_o:, :n_o] @ a
+    c = 0.5 * (c + c.T)
+    ev, evec = torch.linalg.eigh(c)
+    e = torch.randn(m.shape[0], generator=gen, dtype=m.dtype, device=m.device)
+    return m + evec @ (ev.clamp_min(0).sqrt() * e)
+
+
+def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tensor | None,
+                              u_new: torch.Tensor | None = None, n_draws: int = 500,
+                              seed: int = 0) -> Bands:
+    """Predictive bands for a direct or modular calibration.
+
+    Args:
+        post: from :func:`~solderpyro.calibration.api.calibrate_direct` / ``calibrate_modular``.
+        inp: the model's inputs.
+        x_new: ``(n_new, n_x)`` new inputs; None predicts the observed outputs themselves.
+        u_new: ``(n_new, n_x)`` unit-cube x_new, needed with a discrepancy.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    y = inp.y_obs
+    n_o = y.shape[0]
+    proc, obs = [], []
+    for i in _pick(post, n_draws, gen).tolist():
+        t = inp.theta_box.from_unit(_raw(post, SITE_T, i))
+        sigma = _raw(post, SITE_SIGMA, i)
+        with torch.no_grad():
+            mean, cov = _stacked(inp, t, x_new)
+            if inp.discrepancy:
+                assert inp.u_x is not None
+                uu = torch.cat([inp.u_x, inp.u_x if u_new is None else u_new])
+                kd = _raw(post, SITE_SIGMA_D, i).square() * gaussian(
+                    uu, uu, _raw(post, SITE_CORR_D, i))
+                cov = kd if cov is None else cov + kd
+            if cov is None:
+                draw = mean[n_o:]
+            else:
+                draw = _conditional_draw(mean, cov, y, n_o, sigma.square(), gen)
+        proc.append(draw)
+        obs.append(draw + sigma * torch.randn(draw.shape, generator=gen, dtype=draw.dtype))
+    return Bands(torch.stack(proc), torch.stack(obs))
+
+
+def _stacked(inp: ObsInputs, t: torch.Tensor, x_new: torch.Tensor | None
+             ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Emulator mean/cov over [observation inputs; new inputs]."""
+    em = inp.emulator
+    if x_new is None:
+        m, c = em(t)
+        return torch.cat([m, m]), None if c is None else torch.cat(
+            [torch.cat([c, c], 1), torch.cat([c, c], 1)])
+    x_obs = getattr(em, "x_obs", None)
+    if x_obs is None:
+        raise ValueError("this emulator has no x inputs: call with x_new=None")
+    return em(t, torch.cat([x_obs, x_new]))
+
+
+def predict_joint(post: Posterior, inp: JointInputs, x_new: torch.Tensor, n_draws: int = 500,
+                  seed: int = 0) -> Bands:
+    """Seed Eq. 9 and 12 for the full joint model at ``x_new (n_new, n_x)`` (physical)."""
+    gen = torch.Generator().manual_seed(seed)
+    d = inp.data
+    u_new = d.x_box.to_unit(x_new)
+    m, n, p = inp.u_sim.shape[0], d.n_obs, x_new.shape[0]
+    proc, obs = [], []
+    for i in _pick(post, n_draws, gen).tolist():
+        t_u = _raw(post, SITE_T, i)
+        sigma, sigma_c = _raw(post, SITE_SIGMA, i), _raw(post, SITE_SIGMA_C, i)
+        corr = _raw(post, SITE_CORR, i)
+        beta = post.flat("beta")[i]  # physical -> standardized below
+        with torch.no_grad():
+            u_all = torch.cat([inp.u_sim,
+                               torch.cat([inp.u_xobs, t_u.expand(n, t_u.shape[-1])], -1),
+                               torch.cat([u_new, t_u.expand(p, t_u.shape[-1])], -1)])
+            sc2 = (sigma_c / inp.y_scale).square()
+            cov = sc2 * (_corr(inp, u_all, u_all, corr)
+                         + inp.nugget * torch.eye(m + n + p, dtype=u_all.dtype))
+            if inp.discrepancy:
+                ux = torch.cat([inp.u_xobs, u_new])
+                kd = _raw(post, SITE_SIGMA_D, i).square() / inp.y_scale**2 * gaussian(
+                    ux, ux, _raw(post, SITE_CORR_D, i))
+                cov = cov + torch.nn.functional.pad(kd, (m, 0, m, 0))
+            b_std = beta.clone()
+            b_std[0] = (beta[0] - inp.y_mean) / inp.y_scale
+            b_std[1:] = beta[1:] / inp.y_scale
+            mean = _basis(inp, u_all) @ b_std
+            noise = torch.cat([torch.zeros(m, dtype=mean.dtype),
+                               (sigma / inp.y_scale).square().expand(n)])
+            c11 = cov[: m + n, : m + n] + torch.diag(noise)
+            cov2 = torch.cat([torch.cat([c11, cov[: m + n, m + n:]], 1), cov[m + n:]], 0)
+            draw = _conditional_draw(mean, cov2, inp.z, m + n, torch.zeros((), dtype=mean.dtype),
+                                     gen)
+            draw = inp.y_mean + inp.y_scale * draw
+        proc.append(draw)
+        obs.append(draw + sigma * torch.randn(draw.shape, generator=gen, dtype=draw.dtype))
+    return Bands(torch.stack(proc), torch.stack(obs))

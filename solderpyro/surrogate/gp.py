@@ -1,0 +1,354 @@
+"""Exact-GP surrogate (GPyTorch) of a computer model y = f(X), X in a named box.
+
+Three output layouts, one code path (GPs on coefficients, a fixed basis back to outputs):
+
+- ``"scalar"``: one output, controllable inputs x are GP inputs beside t (the seed's way);
+  basis = [[1]].
+- ``"batched"``: one independent GP per output column, batched in GPyTorch; basis = identity.
+- ``"pca"``: principal components of the standardized outputs (Higdon et al. 2008), a GP per
+  kept component; basis = the first k right singular vectors, plus the truncation variance.
+
+Transforms are explicit: inputs go to the unit cube through :class:`solderpyro.params.Box`,
+outputs are standardized per column by :class:`Standardizer`. Hyperparameters are fitted by
+maximizing the exact marginal likelihood (L-BFGS, several restarts, best kept per GP). After the
+fit, predictions run through plain torch (:meth:`GPSurrogate.mean_cov`): differentiable in the
+inputs and cheap enough to sit inside an MCMC likelihood.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import gpytorch
+import torch
+
+from solderpyro.params import Box
+from solderpyro.surrogate.kernels import gaussian, matern52
+from solderpyro.surrogate.transforms import Standardizer
+
+
+class SurrogateWarning(UserWarning):
+    """The surrogate fails its own validation: predictions are not to be trusted."""
+
+
+class _BatchGP(gpytorch.models.ExactGP):
+    """``b`` independent exact GPs on the unit cube (GPyTorch batch mode)."""
+
+    def __init__(self, x: torch.Tensor, z: torch.Tensor, kernel: str, mean: str, ard: bool,
+                 nugget: float) -> None:
+        b, _, d = x.shape
+        bs = torch.Size([b])
+        lik = gpytorch.likelihoods.GaussianLikelihood(
+            batch_shape=bs, noise_constraint=gpytorch.constraints.GreaterThan(nugget))
+        super().__init__(x, z, lik)
+        self.mean_module = (gpytorch.means.ConstantMean(batch_shape=bs) if mean == "constant"
+                            else gpytorch.means.LinearMean(d, batch_shape=bs))
+        kw = dict(batch_shape=bs, ard_num_dims=d if ard else None,
+                  lengthscale_constraint=gpytorch.constraints.Interval(1e-3, 1e3))
+        base = (gpytorch.kernels.RBFKernel(**kw) if kernel == "gaussian"
+                else gpytorch.kernels.MaternKernel(nu=2.5, **kw))
+        self.covar_module = gpytorch.kernels.ScaleKernel(base, batch_shape=bs)
+
+    def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x),
+                                                         self.covar_module(x))
+
+
+@dataclass(frozen=True)
+class LooResult:
+    """Validation of a surrogate against known outputs (leave-one-out or held-out).
+
+    Attributes:
+        y: ``(n, n_y)`` true outputs; mean, sd: ``(n, n_y)`` predictions (physical units).
+        z: ``(n, n_y)`` standardized errors (y - mean) / sd, ~N(0, 1) for a calibrated GP.
+        coverage95: fraction of |z| <= 1.96. rmse_rel: RMSE / output standard deviation.
+    """
+
+    y: torch.Tensor
+    mean: torch.Tensor
+    sd: torch.Tensor
+    z: torch.Tensor
+    coverage95: float
+    rmse_rel: float
+    max_abs_z: float
+
+    def problems(self, min_coverage: float = 0.8, max_rmse_rel: float = 0.1) -> list[str]:
+        """Reasons not to trust the surrogate (empty when it passes)."""
+        out = []
+        if self.coverage95 < min_coverage:
+            out.append(f"95% intervals cover {self.coverage95:.0%} of the checks "
+                       f"(< {min_coverage:.0%}): the GP is overconfident")
+        if self.rmse_rel > max_rmse_rel:
+            out.append(f"RMSE is {self.rmse_rel:.1%} of the output spread "
+                       f"(> {max_rmse_rel:.0%}): too few runs or a poor kernel")
+        return out
+
+
+class GPSurrogate:
+    """GPyTorch exact-GP surrogate over a named input box.
+
+    Args:
+        box: the inputs (names, bounds, log-scale); ``d = box.dim``.
+        output: ``"scalar"``, ``"batched"`` or ``"pca"`` (see module docstring).
+        kernel: ``"gaussian"`` (seed Eq. 4) or ``"matern52"``.
+        mean: ``"constant"`` (seed's f(X) beta with f = 1) or ``"linear"``.
+        ard: one lengthscale per input (else one shared, as the seed's single theta).
+        n_pc: kept components for ``"pca"`` (default: enough for ``var_explained``).
+        var_explained: fraction of the standardized output variance the kept PCs explain.
+        nugget: lower bound of the GP noise variance (standardized units), for conditioning.
+        restarts: L-BFGS restarts from different initial lengthscales.
+    """
+
+    def __init__(self, box: Box, output: str = "scalar", kernel: str = "gaussian",
+                 mean: str = "constant", ard: bool = False, n_pc: int | None = None,
+                 var_explained: float = 0.999, nugget: float = 1e-6, restarts: int = 3) -> None:
+        for name, val, ok in (("output", output, ("scalar", "batched", "pca")),
+                              ("kernel", kernel, ("gaussian", "matern52")),
+                              ("mean", mean, ("constant", "linear"))):
+            if val not in ok:
+                raise ValueError(f"GPSurrogate {name}={val!r}; choose one of {ok}")
+        if not 0 < var_explained <= 1:
+            raise ValueError(f"var_explained must be in (0, 1], got {var_explained}")
+        self.box, self.output, self.kernel, self.mean = box, output, kernel, mean
+        self.ard, self.n_pc, self.var_explained = ard, n_pc, var_explained
+        self.nugget, self.restarts = nugget, restarts
+        self.model: _BatchGP | None = None
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, x: torch.Tensor, y: torch.Tensor) -> GPSurrogate:
+        """Fit to runs.
+
+        Args:
+            x: ``(n, d)`` inputs in physical units (columns as ``box.names``).
+            y: ``(n,)`` for ``"scalar"``, ``(n, n_y)`` otherwise.
+
+        Returns:
+            self, fitted.
+        """
+        x, y = self._check_xy(x, y)
+        self._y_train = y
+        self.std = Standardizer.fit(y)
+        ys = self.std.forward(y)  # (n, n_y)
+        self.basis, self.resid_var = self._basis(ys)  # (n_y, k), (n_y,)
+        z = (ys @ self.basis).T.contiguous()  # (k, n)
+        u = self.box.to_unit(x)
+        self.model = _BatchGP(u.expand(z.shape[0], *u.shape), z, self.kernel, self.mean,
+                              self.ard, self.nugget)
+        _fit_mll(self.model, self.restarts)
+        self._freeze()
+        return self
+
+    def _check_xy(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if x.ndim != 2 or x.shape[1] != self.box.dim:
+            raise ValueError(f"x must have shape (n, {self.box.dim}) for inputs "
+                             f"{self.box.names}, got {tuple(x.shape)}")
+        if self.output == "scalar":
+            if y.ndim == 2 and y.shape[1] == 1:
+                y = y[:, 0]
+            if y.ndim != 1:
+                raise ValueError(f"y must have shape (n,) for output='scalar', got "
+                                 f"{tuple(y.shape)}")
+            y = y.unsqueeze(-1)
+        elif y.ndim != 2:
+            raise ValueError(f"y must have shape (n, n_y) for output={self.output!r}, got "
+                             f"{tuple(y.shape)}")
+        if y.shape[0] != x.shape[0]:
+            raise ValueError(f"x has {x.shape[0]} rows but y has {y.shape[0]}")
+        if x.shape[0] < 2:
+            raise ValueError(f"need at least 2 runs to fit a GP, got {x.shape[0]}")
+        for nm, t in (("x", x), ("y", y)):
+            if not torch.isfinite(t).all():
+                raise ValueError(f"{nm} contains NaN or inf (rows "
+                                 f"{torch.nonzero(~torch.isfinite(t).all(-1)).flatten()[:10].tolist()})")
+        return x, y
+
+    def _basis(self, ys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        n_y = ys.shape[1]
+        if self.output != "pca":
+            return torch.eye(n_y, dtype=ys.dtype, device=ys.device), torch.zeros_like(ys[0])
+        _, s, vt = torch.linalg.svd(ys, full_matrices=False)
+        frac = torch.cumsum(s**2, 0) / (s**2).sum()
+        k = self.n_pc or int((frac < self.var_explained).sum().item()) + 1
+        k = min(k, vt.shape[0])
+        v = vt[:k].T  # (n_y, k)
+        resid = ys - ys @ v @ v.T
+        return v, resid.square().mean(0)
+
+    def _freeze(self) -> None:
+        """Cache plain-tensor hyperparameters, Cholesky factor and weights for prediction."""
+        m = self.model
+        assert m is not None
+        with torch.no_grad():
+            self._u = m.train_inputs[0].detach()  # (k, n, d)
+            zt = m.train_targets.detach()  # (k, n)
+            self._os = m.covar_module.outputscale.detach()  # (k,)
+            self._ls = m.covar_module.base_kernel.lengthscale.detach()[:, 0, :]  # (k, d|1)
+            self._noise = m.likelihood.noise.detach().reshape(-1)  # (k,)
+            mm = m.mean_module
+            self._c = mm.constant.detach().reshape(-1) if self.mean == "constant" \
+                else mm.bias.detach().reshape(-1)
+            self._w = None if self.mean == "constant" else mm.weights.detach()[..., 0]  # (k, d)
+            n = self._u.shape[1]
+            eye = torch.eye(n, dtype=zt.dtype, device=zt.device)
+            kxx = self._os[:, None, None] * self._corr(self._u, self._u) \
+                + self._noise[:, None, None] * eye
+            self._chol = torch.linalg.cholesky(kxx)  # (k, n, n)
+            r = (zt - self._prior_mean(self._u)).unsqueeze(-1)
+            self._alpha = torch.cholesky_solve(r, self._chol)[..., 0]  # (k, n)
+            self._kinv_diag = torch.cholesky_inverse(self._chol).diagonal(dim1=-2, dim2=-1)
+            self._z = zt
+
+    def _corr(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        if self.kernel == "gaussian":
+            return gaussian(a, b, 0.5 / self._ls.square())
+        return matern52(a, b, self._ls)
+
+    def _prior_mean(self, u: torch.Tensor) -> torch.Tensor:
+        out = self._c[:, None].expand(-1, u.shape[-2])
+        if self._w is not None:
+            out = out + (u * self._w[:, None, :]).sum(-1)
+        return out  # (k, n*)
+
+    @property
+    def theta(self) -> torch.Tensor:
+        """Seed-style correlation parameters ``(k, d|1)`` on the unit cube (gaussian kernel)."""
+        return 0.5 / self._ls.square()
+
+    # --------------------------------------------------------------- prediction
+    def _coef(self, x: torch.Tensor, full_cov: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        u = self.box.to_unit(x).expand(self._u.shape[0], *x.shape)  # (k, n*, d)
+        ks = self._os[:, None, None] * self._corr(u, self._u)  # (k, n*, n)
+        mean = self._prior_mean(u) + (ks * self._alpha[:, None, :]).sum(-1)  # (k, n*)
+        v = torch.linalg.solve_triangular(self._chol, ks.transpose(-1, -2), upper=False)
+        if full_cov:
+            kss = self._os[:, None, None] * self._corr(u, u)
+            return mean, kss - v.transpose(-1, -2) @ v  # (k, n*, n*)
+        return mean, (self._os[:, None] - v.square().sum(-2)).clamp_min(0.0)  # (k, n*)
+
+    def predict(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predictive mean and variance of the code output (no observation noise).
+
+        Args:
+            x: ``(n*, d)`` physical inputs.
+
+        Returns:
+            mean, var: ``(n*,)`` for ``"scalar"``, else ``(n*, n_y)``; physical units.
+        """
+        self._need_fit()
+        mc, vc = self._coef(x, full_cov=False)  # (k, n*)
+        mean = self.std.inverse(mc.T @ self.basis.T)  # (n*, n_y)
+        var = (vc.T @ self.basis.T.square() + self.resid_var) * self.std.scale.square()
+        if self.output == "scalar":
+            return mean[:, 0], var[:, 0]
+        return mean, var
+
+    def mean_cov(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Joint predictive mean and covariance over points and outputs (differentiable in x).
+
+        Args:
+            x: ``(n*, d)`` physical inputs.
+
+        Returns:
+            mean ``(n* * n_y,)`` and cov ``(n* * n_y, n* * n_y)``, point-major order
+            (index ``i * n_y + j`` is point i, output j); physical units.
+        """
+        self._need_fit()
+        mc, cc = self._coef(x, full_cov=True)  # (k, n*), (k, n*, n*)
+        sv = self.basis * self.std.scale[:, None]  # (n_y, k)
+        mean = self.std.inverse(mc.T @ self.basis.T).reshape(-1)
+        cov = torch.einsum("jk,kab,lk->ajbl", sv, cc, sv)  # (n*, n_y, n*, n_y)
+        n, n_y = x.shape[0], sv.shape[0]
+        cov = cov.reshape(n * n_y, n * n_y)
+        extra = (self.resid_var * self.std.scale.square()).repeat(n)
+        return mean, cov + torch.diag(extra)
+
+    def _need_fit(self) -> None:
+        if self.model is None:
+            raise RuntimeError("GPSurrogate.fit(x, y) must be called before predicting")
+
+    # --------------------------------------------------------------- validation
+    def loo(self) -> LooResult:
+        """Closed-form leave-one-out check (hyperparameters held at their fitted values)."""
+        self._need_fit()
+        with torch.no_grad():
+            vc = 1.0 / self._kinv_diag  # (k, n)
+            mc = self._z - self._alpha * vc
+            mean = self.std.inverse(mc.T @ self.basis.T)
+            var = (vc.T @ self.basis.T.square() + self.resid_var) * self.std.scale.square()
+        return _result(self._y_train, mean, var)
+
+    def validate(self, x: torch.Tensor, y: torch.Tensor) -> LooResult:
+        """Held-out check on runs not used in the fit: ``x (n, d)``, ``y`` as in :meth:`fit`."""
+        x, y = self._check_xy(x, y)
+        with torch.no_grad():
+            mean, var = self.predict(x)
+        if self.output == "scalar":
+            mean, var = mean[:, None], var[:, None]
+        return _result(y, mean, var)
+
+    def check(self, result: LooResult | None = None, **kw: float) -> list[str]:
+        """Warn (:class:`SurrogateWarning`) with every reason not to trust the surrogate."""
+        res = result if result is not None else self.loo()
+        probs = res.problems(**kw)
+        for p in probs:
+            warnings.warn(f"surrogate not trustworthy: {p}", SurrogateWarning, stacklevel=2)
+        return probs
+
+
+def _result(y: torch.Tensor, mean: torch.Tensor, var: torch.Tensor) -> LooResult:
+    sd = var.clamp_min(1e-300).sqrt()
+    z = (y - mean) / sd
+    spread = y.std(0).clamp_min(1e-300) if y.shape[0] > 1 else torch.ones_like(y[0])
+    rmse_rel = ((y - mean).square().mean(0).sqrt() / spread).mean().item()
+    return LooResult(y, mean, sd, z, (z.abs() <= 1.96).double().mean().item(), rmse_rel,
+                     z.abs().max().item())
+
+
+def _fit_mll(model: _BatchGP, restarts: int) -> None:
+    """Maximize the exact marginal likelihood; keep, per GP in the batch, the best restart."""
+    mll = gpytorch.mlls.ExactMarginalLogLikelihood(model.likelihood, model)
+    x, z = model.train_inputs[0], model.train_targets
+    best_state, best_loss = None, None
+    inits = [0.3, 1.0, 0.1, 3.0, 0.03][: max(1, restarts)]
+    for ls0 in inits:
+        model.covar_module.base_kernel.lengthscale = ls0
+        model.covar_module.outputscale = z.var(-1).clamp_min(1e-6)
+        model.likelihood.noise = max(1e-4, 10 * model.likelihood.noise_covar.raw_noise_constraint
+                                     .lower_bound.item())
+        model.train()
+        opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=300,
+                                line_search_fn="strong_wolfe", tolerance_grad=1e-9)
+
+        def closure(opt: torch.optim.LBFGS = opt) -> torch.Tensor:
+            opt.zero_grad()
+            loss = -mll(model(x), z).sum()
+            loss.backward()
+            return loss
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", gpytorch.utils.warnings.NumericalWarning)
+            try:
+                opt.step(closure)
+            except (RuntimeError, ValueError):  # a restart that runs into a bad region
+                continue
+            with torch.no_grad():
+                loss_b = -mll(model(x), z)  # (k,)
+        if not torch.isfinite(loss_b).all():
+            continue
+        state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        if best_state is None:
+            best_state, best_loss = state, loss_b
+        else:
+            better = loss_b < best_loss
+            for k, v in state.items():
+                if v.ndim and v.shape[0] == better.shape[0] and k.startswith(
+                        ("mean_module", "covar_module", "likelihood")):
+                    mask = better.reshape(-1, *([1] * (v.ndim - 1)))
+                    best_state[k] = torch.where(mask, v, best_state[k])
+            assert best_loss is not None
+            best_loss = torch.minimum(best_loss, loss_b)
+    if best_state is None:
+        raise RuntimeError("GP hyperparameter fit failed from every starting point")
+    model.load_state_dict(best_state)
+    model.eval()
