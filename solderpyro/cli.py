@@ -107,6 +107,45 @@ def cmd_demo(a, overrides) -> int:
     return 0
 
 
+def _nuts_args(a) -> dict:
+    return dict(chains=a.chains, warmup=a.warmup, draws=a.draws, seed=a.seed,
+                progress=not a.quiet)
+
+
+def cmd_example(a, overrides) -> int:
+    if overrides:
+        raise ValueError(f"'example' takes no config overrides, got {overrides}")
+    from .examples import seed_math
+
+    res = seed_math.run(a.out, **_nuts_args(a))
+    print(seed_math.report(res))
+    print(f"\noutputs in {a.out}")
+    return 0
+
+
+def cmd_koh(a, overrides) -> int:
+    if overrides:
+        raise ValueError(f"'koh' takes no config overrides, got {overrides}")
+    from .calibration.tables import koh_from_tables
+
+    koh_from_tables(a.sim, a.obs, _names(a.x), _names(a.t), a.y, a.out, mode=a.mode,
+                    discrepancy=a.discrepancy, **_nuts_args(a))
+    print(f"\nsummary: {Path(a.out) / 'summary.csv'}")
+    return 0
+
+
+def _names(text: str) -> list[str]:
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
+def _add_nuts(p: argparse.ArgumentParser, chains: int = 4) -> None:
+    p.add_argument("--seed", type=int, default=0, help="random seed (data and sampler)")
+    p.add_argument("--chains", type=int, default=chains, help="NUTS chains")
+    p.add_argument("--warmup", type=int, default=500, help="warm-up iterations per chain")
+    p.add_argument("--draws", type=int, default=1000, help="kept draws per chain")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="solderpyro",
@@ -131,6 +170,22 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="simulate the reference case with the Liu 2008 constants, "
                        "write the outputs and a plot of V_A, V_B and temperature")
     d.add_argument("--out", default="runs/demo", help="output directory")
+    e = sub.add_parser("example", help="worked examples; 'seed-math' reproduces the seed "
+                       "paper's mathematical example (Tables I, II, Figures 1-4)")
+    e.add_argument("name", choices=["seed-math"])
+    e.add_argument("--out", required=True, help="output directory")
+    _add_nuts(e)
+    k = sub.add_parser("koh", help="Kennedy-O'Hagan calibration of any simulator from CSV "
+                       "tables of its runs and of the observations")
+    k.add_argument("--sim", required=True, help="CSV of runs: columns x..., t..., y")
+    k.add_argument("--obs", required=True, help="CSV of observations: columns x..., y")
+    k.add_argument("--x", default="", help="controllable input columns, e.g. x1,x2")
+    k.add_argument("--t", required=True, help="calibration input columns, e.g. t1,t2")
+    k.add_argument("--y", required=True, help="output column")
+    k.add_argument("--out", required=True, help="output directory")
+    k.add_argument("--mode", default="joint", help="joint (seed, Eq. 5-8) | modular")
+    k.add_argument("--discrepancy", action="store_true", help="add a GP discrepancy delta(x)")
+    _add_nuts(k)
     return p
 
 
@@ -141,7 +196,9 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         overrides = _split_overrides(rest)
-        return {"simulate": cmd_simulate, "demo": cmd_demo}[a.command](a, overrides)
+        cmds = {"simulate": cmd_simulate, "demo": cmd_demo, "example": cmd_example,
+                "koh": cmd_koh}
+        return cmds[a.command](a, overrides)
     except (ValueError, FileNotFoundError, RuntimeError) as e:
         print(f"solderpyro {a.command}: error: {e}", file=sys.stderr)
         return 2

@@ -1,0 +1,62 @@
+"""KOH likelihoods: the beta marginalization is exact; bad input names the argument."""
+
+import math
+
+import pytest
+import torch
+
+from solderpyro.calibration import CalibrationData, Priors, calibrate_direct
+from solderpyro.calibration.koh import _joint_chol, joint_loglik, prepare_joint
+from solderpyro.examples.seed_math import LHS_T, X_BOX, code, lhs_runs, make_data
+
+DT = torch.float64
+
+
+def _data():
+    x, y = make_data(0)
+    xs, ts, ys = lhs_runs(8, 0)
+    return CalibrationData.create(xs, ts, ys, x, y, ["x"], ["t"], theta_box=LHS_T, x_box=X_BOX)
+
+
+def test_beta_marginal_equals_quadrature():
+    """log int N(z; F beta, S) d beta (flat prior), by Gauss-Hermite-free brute force."""
+    inp = prepare_joint(_data())
+    args = [(torch.tensor([0.4], dtype=DT), torch.tensor(0.5, dtype=DT),
+             torch.tensor(3.0, dtype=DT), torch.tensor([2.0], dtype=DT)),
+            (torch.tensor([0.7], dtype=DT), torch.tensor(0.8, dtype=DT),
+             torch.tensor(5.0, dtype=DT), torch.tensor([0.5], dtype=DT))]
+    ours, brute = [], []
+    for a in args:
+        ll, bh, bc = joint_loglik(inp, *a)
+        ours.append(ll.item())
+        chol, h = _joint_chol(inp, *a, None)
+        b = torch.linspace(bh.item() - 12 * bc.sqrt().item(), bh.item() + 12 * bc.sqrt().item(),
+                           20001, dtype=DT)
+        r = inp.z[None, :] - b[:, None] * h[:, 0][None, :]  # (n_b, N)
+        w = torch.linalg.solve_triangular(chol, r.T, upper=False)
+        logp = -0.5 * w.square().sum(0) - chol.diagonal().log().sum()
+        db = (b[1] - b[0]).item()
+        brute.append((torch.logsumexp(logp, 0) + math.log(db)).item())
+    # the marginal drops the constant (2 pi)^(p/2); differences between settings must agree
+    assert abs((ours[0] - ours[1]) - (brute[0] - brute[1])) < 1e-8
+
+
+def test_bad_input_names_the_argument():
+    x, y = make_data(0)
+    xs, ts, ys = lhs_runs(5, 0)
+    with pytest.raises(ValueError, match="y_obs contains NaN"):
+        CalibrationData.create(xs, ts, ys, x, torch.full_like(y, float("nan")))
+    with pytest.raises(ValueError, match="theta_sim has 4 rows, expected 5"):
+        CalibrationData.create(xs, ts[:4], ys, x, y)
+    with pytest.raises(ValueError, match="x_obs is empty"):
+        CalibrationData.create(xs, ts, ys, x[:0], y[:0])
+    with pytest.raises(ValueError, match="y_sim must have 1 dimension"):
+        CalibrationData.create(xs, ts, ys[:, None], x, y)
+    with pytest.raises(ValueError, match="Priors.sigma_max must be positive"):
+        Priors(sigma_max=0.0)
+    with pytest.raises(ValueError, match="corr_range"):
+        Priors(corr_range=(1.0, 0.5))
+    with pytest.raises(ValueError, match="x_obs has 11 rows but y_obs has 5"):
+        calibrate_direct(code, x, y[:5], LHS_T)
+    with pytest.raises(ValueError, match="run_nuts draws must be a positive integer"):
+        calibrate_direct(code, x, y, LHS_T, draws=0)

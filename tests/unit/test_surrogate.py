@@ -1,0 +1,116 @@
+"""GPSurrogate: transforms, agreement with GPyTorch's own predictive, layouts, validation."""
+
+import gpytorch
+import pytest
+import torch
+from scipy.stats import qmc
+
+from solderpyro.params import Box
+from solderpyro.surrogate import GPSurrogate, SurrogateWarning
+
+BOX = Box(("x", "t"), (0.0, 0.2), (3.0, 1.5), (False, True))
+
+
+def _f(X):
+    return 5.0 * torch.exp(-X[:, 1] * X[:, 0])
+
+
+def _design(n, seed=1):
+    u = torch.as_tensor(qmc.LatinHypercube(d=2, seed=seed).random(n), dtype=torch.float64)
+    return BOX.from_unit(u)
+
+
+def test_box_round_trip_and_log_scale():
+    x = _design(10)
+    assert torch.allclose(BOX.from_unit(BOX.to_unit(x)), x, rtol=1e-13, atol=0)
+    u = BOX.to_unit(torch.tensor([[1.5, (0.2 * 1.5) ** 0.5]], dtype=torch.float64))
+    assert torch.allclose(u, torch.tensor([[0.5, 0.5]], dtype=torch.float64), atol=1e-14)
+    with pytest.raises(ValueError, match="log scale needs lower > 0"):
+        Box(("a",), (0.0,), (1.0,), (True,))
+    with pytest.raises(ValueError, match="lower 2.0 must be < upper 1.0"):
+        Box(("a",), (2.0,), (1.0,))
+
+
+@pytest.mark.parametrize("kernel", ["gaussian", "matern52"])
+def test_frozen_predictor_matches_gpytorch(kernel):
+    """Our plain-torch prediction equals GPyTorch's exact predictive (standardized space)."""
+    x = _design(15)
+    gp = GPSurrogate(BOX, kernel=kernel, ard=True).fit(x, _f(x))
+    xt = _design(7, seed=5)
+    with torch.no_grad(), gpytorch.settings.fast_pred_var(False), \
+            gpytorch.settings.fast_computations(False, False, False):
+        ref = gp.model(BOX.to_unit(xt).expand(1, 7, 2))
+    m, c = gp._coef(xt, full_cov=True)
+    assert torch.allclose(m, ref.mean, atol=1e-8)
+    assert torch.allclose(c, ref.covariance_matrix, atol=1e-8)
+
+
+def test_accuracy_and_loo_on_smooth_function():
+    x = _design(30)
+    gp = GPSurrogate(BOX, ard=True).fit(x, _f(x))
+    xt = _design(200, seed=7)
+    held = gp.validate(xt, _f(xt))
+    assert held.rmse_rel < 0.05, held.rmse_rel
+    assert held.coverage95 >= 0.85, held.coverage95
+    loo = gp.loo()
+    assert loo.coverage95 >= 0.8 and loo.rmse_rel < 0.1
+
+
+def test_mean_cov_consistent_and_differentiable():
+    x = _design(15)
+    gp = GPSurrogate(BOX).fit(x, _f(x))
+    xt = _design(4, seed=3)
+    m, c = gp.mean_cov(xt)
+    pm, pv = gp.predict(xt)
+    assert torch.allclose(m, pm, atol=1e-12) and torch.allclose(c.diagonal(), pv, atol=1e-10)
+    xt = xt.clone().requires_grad_(True)
+    gp.mean_cov(xt)[0].sum().backward()
+    h = 1e-6
+    e = torch.zeros_like(xt)
+    e[1, 1] = h
+    fd = (gp.mean_cov(xt.detach() + e)[0].sum() - gp.mean_cov(xt.detach() - e)[0].sum()) / (2 * h)
+    assert torch.isclose(xt.grad[1, 1], fd, rtol=1e-5)
+
+
+def test_pca_recovers_low_rank_outputs_and_batched_agrees():
+    x = _design(25)
+    a, b = _f(x), torch.sin(2 * x[:, 0]) + x[:, 1]
+    v1 = torch.linspace(0, 1, 12, dtype=torch.float64)
+    v2 = torch.cos(torch.arange(12, dtype=torch.float64))
+    y = a[:, None] * v1 + b[:, None] * v2 + 3.0  # rank 2 plus a constant
+    pca = GPSurrogate(BOX, output="pca").fit(x, y)
+    assert pca.basis.shape[1] == 2
+    assert float(pca.resid_var.max()) < 1e-20
+    bat = GPSurrogate(BOX, output="batched").fit(x, y)
+    xt = _design(50, seed=9)
+    yt = _f(xt)[:, None] * v1 + (torch.sin(2 * xt[:, 0]) + xt[:, 1])[:, None] * v2 + 3.0
+    for g in (pca, bat):
+        r = g.validate(xt, yt)
+        assert r.rmse_rel < 0.05, (g.output, r.rmse_rel)
+    m, c = pca.mean_cov(xt[:2])
+    assert m.shape == (24,) and c.shape == (24, 24)
+    assert torch.linalg.eigvalsh(c).min() > -1e-8 * c.diagonal().max()
+
+
+def test_untrustworthy_surrogate_warns():
+    x = _design(4)
+    rough = torch.tensor([0.0, 10.0, -10.0, 5.0], dtype=torch.float64)
+    gp = GPSurrogate(BOX).fit(x, rough)
+    xt = _design(40, seed=2)
+    res = gp.validate(xt, torch.sin(40 * xt[:, 0]) * 10)
+    with pytest.warns(SurrogateWarning, match="not trustworthy"):
+        gp.check(res)
+
+
+def test_bad_input_names_argument():
+    gp = GPSurrogate(BOX)
+    with pytest.raises(ValueError, match=r"x must have shape \(n, 2\)"):
+        gp.fit(torch.zeros(5, 3, dtype=torch.float64), torch.zeros(5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="y contains NaN"):
+        gp.fit(_design(5), torch.tensor([1.0, float("nan"), 0, 0, 0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="x has 5 rows but y has 4"):
+        gp.fit(_design(5), torch.zeros(4, dtype=torch.float64))
+    with pytest.raises(ValueError, match="kernel='rbf'"):
+        GPSurrogate(BOX, kernel="rbf")
+    with pytest.raises(RuntimeError, match="must be called before"):
+        gp.predict(_design(2))
