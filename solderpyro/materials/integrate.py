@@ -147,50 +147,150 @@ def _return_map(tr: _Trial, s_n, p, c, G, zeta0, iters=100):
     return zeta, s
 
 
-def _partials(tr: _Trial, zeta, s, s_n, p, c, G):
-    """Residuals ``(R, H)`` of (flow, hardening) and their 2x2 Jacobian in ``(zeta, s)``."""
-    _, _, _, xi, m, *_ = unpack(p)
-    L = tr.log_qtr - torch.log(3.0 * G) + _logsigmoid(-zeta)
+def _partials_raw(base, lxq, zeta, s, s_n, p, c, m):
+    """Flow and hardening residuals ``(R, H)``, the entries of their 2x2 Jacobian in
+    ``(zeta, s)`` and the ingredients of the consistent tangent ``(yc, dH_ds, dH_dL)``.
+
+    ``base = log(q_tr) - log(3G)`` and ``lxq = log(xi) + log(q_tr)`` are the constant parts of
+    ``log(dep)`` and of ``log(xi*q/s)``; ``m`` the rate sensitivity.
+    """
+    t = torch.log1p(torch.exp(-zeta.abs()))  # shared by logsigmoid(zeta) and logsigmoid(-zeta)
+    L = base + (torch.minimum(-zeta, torch.zeros_like(zeta)) - t)
     H, dH_ds, dH_dL, _ = hardening_residual(s, s_n, L, L - c, p)
-    ly = torch.log(xi) + tr.log_qtr + _logsigmoid(zeta) - torch.log(s)
+    ly = lxq + (torch.minimum(zeta, torch.zeros_like(zeta)) - t) - torch.log(s)
     R = L - c - _log_sinh_of_log(ly) / m
     yc = _y_coth(ly)
     sg, sgm = torch.sigmoid(zeta), torch.sigmoid(-zeta)
-    J = torch.stack([torch.stack([-sg - yc * sgm / m, yc / (m * s)], -1),
-                     torch.stack([-dH_dL * sg, dH_ds], -1)], -2)
+    return R, H, (-sg - yc * sgm / m, yc / (m * s), -dH_dL * sg, dH_ds), yc, dH_ds, dH_dL
+
+
+def _consts(log_qtr, p, G):
+    """``(base, lxq, m)`` of :func:`_partials_raw`."""
+    _, _, _, xi, m, *_ = unpack(p)
+    return log_qtr - torch.log(3.0 * G), torch.log(xi) + log_qtr, m
+
+
+def _partials(tr: _Trial, zeta, s, s_n, p, c, G):
+    """Residuals ``(R, H)`` of (flow, hardening) and their 2x2 Jacobian in ``(zeta, s)``."""
+    base, lxq, m = _consts(tr.log_qtr, p, G)
+    R, H, (j00, j01, j10, j11), yc, dH_ds, dH_dL = _partials_raw(base, lxq, zeta, s, s_n, p,
+                                                                 c, m)
+    J = torch.stack([torch.stack([j00, j01], -1), torch.stack([j10, j11], -1)], -2)
     return R, H, J, yc, dH_ds, dH_dL
 
 
+#: Below this many points the joint Newton iterates on the full arrays; above it, it drops the
+#: converged points from its working set (index gathers cost less than the elementwise work).
+COMPACT_MIN = 4096
+
+
 def _return_map_joint(tr: _Trial, s_n, p, c, G, zeta, s, iters=12):
-    """Joint Newton on ``(zeta, s)`` from a warm start; returns a mask of converged points."""
-    for _ in range(iters):
-        R, H, J, *_ = _partials(tr, zeta, s, s_n, p, c, G)
-        done = (R.abs() < 1e-11) & (H.abs() <= 1e-13 * s_n)
+    """Joint Newton on ``(zeta, s)`` from a warm start.
+
+    Returns ``(zeta, s, done, aux)``: ``done`` masks the converged points and ``aux`` =
+    ``(yc, dH_ds, dH_dL)`` at the returned point (valid where ``done``) for the tangent. A
+    converged point is frozen; on large arrays the iteration continues on the unconverged points
+    only, which gives the same values as iterating on all of them.
+    """
+    shape = zeta.shape
+    base, lxq, m = _consts(tr.log_qtr, p, G)
+    sn, cc = s_n, c
+    pp = torch.broadcast_to(p, (*shape, p.shape[-1]))
+    w = None  # flat indices of the working set once compacted, else None (all points)
+    full: list[torch.Tensor] = []
+    for it in range(iters + 1):
+        R, H, (j00, j01, j10, j11), yc, dH_ds, dH_dL = _partials_raw(base, lxq, zeta, s, sn, pp,
+                                                                     cc, m)
+        done = (R.abs() < 1e-11) & (H.abs() <= 1e-13 * sn)
+        if it == iters:
+            done = done & torch.isfinite(zeta)
+            break
         if bool(done.all()):
-            return zeta, s, done
-        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
-        dz = -(J[..., 1, 1] * R - J[..., 0, 1] * H) / det
-        ds = -(J[..., 0, 0] * H - J[..., 1, 0] * R) / det
+            break
+        n_w = done.numel()
+        if n_w >= COMPACT_MIN:
+            n_done = int(done.sum())
+            if 3 * n_done >= 2 * n_w:  # drop the converged points (>= 2/3) from the working set
+                if w is None:
+                    w = torch.arange(n_w, device=zeta.device)
+                    full = [torch.empty(n_w, dtype=zeta.dtype, device=zeta.device)
+                            for _ in range(5)]
+                for buf, val in zip(full, (zeta, s, yc, dH_ds, dH_dL), strict=True):
+                    buf[w] = val.reshape(-1)
+                keep = ~done
+                w = w[keep.reshape(-1)]
+                base, lxq, m, sn, cc, zeta, s, R, H, j00, j01, j10, j11 = (
+                    torch.broadcast_to(t, shape)[keep] if t.shape != keep.shape else t[keep]
+                    for t in (base, lxq, m, sn, cc, zeta, s, R, H, j00, j01, j10, j11))
+                pp = pp[keep]
+                shape = zeta.shape
+                done = torch.zeros_like(zeta, dtype=torch.bool)
+        det = j00 * j11 - j01 * j10
+        dz = -(j11 * R - j01 * H) / det
+        ds = -(j00 * H - j10 * R) / det
         zeta = torch.where(done, zeta, zeta + dz.clamp(-10.0, 10.0))
-        s = torch.where(done, s, (s + ds).clamp_min(1e-3 * s_n))
-    R, H, *_ = _partials(tr, zeta, s, s_n, p, c, G)
-    done = (R.abs() < 1e-11) & (H.abs() <= 1e-13 * s_n) & torch.isfinite(zeta)
-    return zeta, s, done
+        s = torch.where(done, s, (s + ds).clamp_min(1e-3 * sn))
+    aux = (yc, dH_ds, dH_dL)
+    if w is not None:
+        for buf, val in zip(full, (zeta, s, *aux), strict=True):
+            buf[w] = val
+        d = torch.ones(full[0].shape, dtype=torch.bool, device=done.device)
+        d[w] = done
+        zeta, s, done, yc, dH_ds, dH_dL = (t.reshape(s_n.shape)
+                                           for t in (*full[:2], d, *full[2:]))
+        aux = (yc, dH_ds, dH_dL)
+    return zeta, s, done, aux
 
 
-def _tangent3d(tr: _Trial, zeta, s, s_n, p, c, K, G):
-    """Consistent 3-D tangent ``(..., 4, 4)`` (Mandel) at the converged point."""
-    _, _, _, xi, m, *_ = unpack(p)
-    _, _, _, yc, dH_ds, dH_dL = _partials(tr, zeta, s, s_n, p, c, G)
+@dataclass
+class Tangent3D:
+    """Consistent 3-D tangent in factored form (Mandel), leading shape ``(...)``:
+
+        C = K m m^T + g2 (I - m m^T / 3) + coef nb nb^T,
+
+    ``m = (1, 1, 1, 0)``, ``nb`` the unit trial deviator. :meth:`full` forms ``(..., 4, 4)``;
+    :meth:`col_zz` and :meth:`row_zz` give ``C[..., :, ZZ]`` and ``C[..., ZZ, :]`` (the same
+    floating-point values) without forming the rest, which is all plane stress needs per
+    iteration.
+    """
+
+    K: torch.Tensor
+    g2: torch.Tensor
+    coef: torch.Tensor
+    nb: torch.Tensor
+
+    def _consts(self):
+        m = torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=self.nb.dtype, device=self.nb.device)
+        mm = m[:, None] * m[None, :]
+        return mm, torch.eye(4, dtype=m.dtype, device=m.device) - mm / 3.0
+
+    def full(self) -> torch.Tensor:
+        mm, dev = self._consts()
+        return (self.K[..., None, None] * mm + self.g2[..., None, None] * dev
+                + self.coef[..., None, None] * self.nb[..., :, None] * self.nb[..., None, :])
+
+    def col_zz(self) -> torch.Tensor:
+        mm, dev = self._consts()
+        return (self.K[..., None] * mm[:, ZZ] + self.g2[..., None] * dev[:, ZZ]
+                + self.coef[..., None] * self.nb * self.nb[..., ZZ, None])
+
+    def row_zz(self) -> torch.Tensor:
+        mm, dev = self._consts()
+        return (self.K[..., None] * mm[ZZ] + self.g2[..., None] * dev[ZZ]
+                + (self.coef * self.nb[..., ZZ])[..., None] * self.nb)
+
+    def index(self, idx) -> Tangent3D:
+        return Tangent3D(self.K[idx], self.g2[idx], self.coef[idx], self.nb[idx])
+
+
+def _tangent3d(tr: _Trial, zeta, s, m, K, G, yc, dH_ds, dH_dL) -> Tangent3D:
+    """Consistent 3-D tangent at the converged point, from the tangent ingredients
+    ``(yc, dH_ds, dH_dL)`` of :func:`_partials_raw` there."""
     w = yc * torch.exp((-zeta).clamp(max=700.0)) / m
     Fs_dHdL = yc / (m * s) * dH_dL
     coef = 2.0 * G * (torch.sigmoid(-zeta) - w * dH_ds / ((1.0 + w) * dH_ds - Fs_dHdL))
     nb = tr.s_tr / tr.nrm[..., None]
-    mm = tr.m[:, None] * tr.m[None, :]
-    eye = torch.eye(4, dtype=zeta.dtype, device=zeta.device)
-    sg = torch.sigmoid(zeta)
-    return (K[..., None, None] * mm + (2.0 * G * sg)[..., None, None] * (eye - mm / 3.0)
-            + coef[..., None, None] * nb[..., :, None] * nb[..., None, :])
+    return Tangent3D(torch.broadcast_to(K, zeta.shape), 2.0 * G * torch.sigmoid(zeta), coef, nb)
 
 
 def _initial_zeta(tr: _Trial, s_n, p, c, G):
@@ -220,7 +320,8 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
         T: end-of-step temperature, K; dt: step, s; eps_th: free thermal strain
             ``alpha*(T - T_ref)``; E (MPa), nu: elastic constants. All broadcastable to ``(...)``.
         guess: optional ``(..., 2)`` warm start ``(zeta, s)`` from a nearby solve.
-        tangent: whether to compute the 3-D consistent tangent.
+        tangent: whether to compute the 3-D consistent tangent; ``"factored"`` returns it as a
+            :class:`Tangent3D` instead of a ``(..., 4, 4)`` tensor.
     Returns:
         ``(sigma (..., 4), new_state, C (..., 4, 4) or None, dep (...), x (..., 2))``; ``x`` is
         the detached solution ``(zeta, s)`` for warm starts. With autograd on, outputs carry
@@ -238,7 +339,7 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
             zeta, s = _initial_zeta(tr, a[2], a[3], a[4], a[7]), a[2]
         else:
             zeta, s = guess[..., 0], guess[..., 1]
-        zeta, s, done = _return_map_joint(tr, a[2], a[3], a[4], a[7], zeta, s)
+        zeta, s, done, aux = _return_map_joint(tr, a[2], a[3], a[4], a[7], zeta, s)
         if not bool(done.all()):  # robust nested, bracketed solve where the joint one failed
             i = ~done
             sub = _Trial(a[0][i], a[1][i], a[5][i], a[6][i], a[7][i])
@@ -246,22 +347,24 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
             zi, si = _return_map(sub, a[2][i], a[3][i], a[4][i], a[7][i], z0)
             zeta, s = zeta.clone(), s.clone()
             zeta[i], s[i] = zi, si
+            aux = None
         x = torch.stack([zeta, s], -1)
-    tr = _Trial(eps, state.eps_p, eps_th, K, G)
+        C: torch.Tensor | Tangent3D | None = None
+        if tangent:
+            if aux is None:
+                aux = _partials(tr, zeta, s, a[2], a[3], a[4], a[7])[3:]
+            Cf = _tangent3d(tr, zeta, s, a[3][..., 4], a[6], a[7], *aux)
+            C = Cf if tangent == "factored" else Cf.full()
     needs_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (eps, state.eps_p, state.s, p, c, eps_th, K, G))
     if needs_grad:
+        tr = _Trial(eps, state.eps_p, eps_th, K, G)
         R, H, J, *_ = _partials(tr, x[..., 0], x[..., 1], state.s, p, c, G)
         zeta, s = (x - torch.linalg.solve(J.detach(), torch.stack([R, H], -1))).unbind(-1)
     sg = torch.sigmoid(zeta)
     sigma = tr.p[..., None] * tr.m + sg[..., None] * tr.s_tr
     eps_p = state.eps_p + (torch.sigmoid(-zeta) / (2.0 * G))[..., None] * tr.s_tr
     dep = torch.exp(tr.log_qtr - torch.log(3.0 * G) + _logsigmoid(-zeta))
-    C = None
-    if tangent:
-        with torch.no_grad():
-            C = _tangent3d(tr, x[..., 0], x[..., 1], state.s.detach(), p.detach(), c.detach(),
-                           K.detach(), G.detach())
     return sigma, PointState(eps_p, s, eps[..., ZZ]), C, dep, x
 
 
