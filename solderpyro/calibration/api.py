@@ -91,12 +91,15 @@ def calibrate_joint(data: CalibrationData, priors: Priors | None = None,
                     **nuts: Any) -> tuple[Posterior, JointInputs]:
     """The seed's full joint KOH calibration (t, sigma, beta, sigma_c, theta sampled together).
 
+    NUTS adapts a dense mass matrix here unless ``full_mass=False`` is passed.
+
     Returns:
         the posterior (beta drawn from its exact Gaussian conditional per draw, output units)
         and the model inputs (for :func:`predict_joint`).
     """
     pr = priors or Priors()
     inp = prepare_joint(data, kernel, mean, ard, discrepancy, nugget)
+    nuts.setdefault("full_mass", True)  # sigma_c, theta and t are strongly correlated
     samples, divs, sec = run_nuts(joint_model, (inp, pr), **nuts)
     post = _post(samples, data.theta_box, divs, sec)
     post.samples["beta"] = _beta_draws(inp, post, pr, seed=int(nuts.get("seed", 0)))
