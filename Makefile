@@ -8,7 +8,7 @@ PIN_SPEC ?= gpytorch==1.15.2 linear-operator==0.6.1 pyro-ppl==1.9.2 botorch==0.1
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-all lint bench clean
+.PHONY: install demo test test-all lint bench bench-koh seed-math clean
 
 $(STAMP): pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -37,6 +37,13 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_fe.py
+
+bench-koh: $(STAMP)
+	$(BIN)/python -m pip install -q -e ".[bench]"
+	$(BIN)/python benchmarks/bench_koh.py
+
+seed-math: $(STAMP)
+	$(BIN)/solderpyro example seed-math --out runs/seed-math
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
