@@ -60,3 +60,29 @@ def test_bad_input_names_the_argument():
         calibrate_direct(code, x, y[:5], LHS_T)
     with pytest.raises(ValueError, match="run_nuts draws must be a positive integer"):
         calibrate_direct(code, x, y, LHS_T, draws=0)
+
+
+def test_posterior_netcdf_round_trip_and_summary(tmp_path):
+    import warnings
+
+    import numpy as np
+
+    from solderpyro.calibration import Posterior
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        import arviz as az
+    g = torch.Generator().manual_seed(0)
+    t = torch.randn(4, 500, 2, generator=g, dtype=DT) * torch.tensor([1.0, 0.1], dtype=DT)
+    post = Posterior({"t": t, "sigma": t[..., 0].abs()}, {"t": ["s0", "m"]}, [0, 1, 0, 0])
+    rows = {r["parameter"]: r for r in post.summary()}
+    assert set(rows) == {"s0", "m", "sigma"}
+    # iid N(0, 1) draws: median within 4 standard errors of 0, quantiles near +-1.96
+    assert abs(float(rows["s0"]["median"])) < 4 * 1.2533 / np.sqrt(2000)
+    assert abs(float(rows["s0"]["q97.5"]) - 1.96) < 0.15
+    assert abs(float(rows["s0"]["r_hat"]) - 1.0) < 0.01
+    assert float(rows["s0"]["ess_bulk"]) > 1200
+    path = post.save(tmp_path / "post.nc")
+    back = az.from_netcdf(str(path))
+    assert np.array_equal(back.posterior["m"].values, t[..., 1].numpy())
+    assert int(back.sample_stats["diverging"].values.sum()) == 1
