@@ -1,7 +1,7 @@
 """FE throughput on the reference case: batched solves vs sequential single runs.
 
 Usage: python benchmarks/bench_fe.py [--sizes 1,8,64,256] [--sequential 64] [--lhs 50]
-       [--device cpu|cuda] [--out benchmarks/results_fe.json]
+       [--device cpu|cuda] [--threads N] [--out benchmarks/results_fe.json]
 
 Every batch is a Latin hypercube over the seed box (s0, QR, xi, m) with Liu's other constants,
 through the full cycle at the default mesh and steps, outputs at the seed times. The ratio
@@ -49,8 +49,13 @@ def main() -> None:
     ap.add_argument("--lhs", type=int, default=50)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dtype", default="float64")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="torch intra-op threads (0: torch's default); 1 is the robust choice "
+                         "on a machine shared with other jobs")
     ap.add_argument("--out", default="benchmarks/results_fe.json")
     a = ap.parse_args()
+    if a.threads:
+        torch.set_num_threads(a.threads)
     dtype = getattr(torch, a.dtype)
     solver = SpecimenSolver(Problem(), dtype=dtype, device=a.device)
     res = {"device": a.device, "dtype": a.dtype, "threads": torch.get_num_threads(),
