@@ -1,0 +1,448 @@
+"""Crash-safe run store for FE runs, and a DOE runner that reuses it.
+
+Layout on disk (one JSON file per completed run, written atomically)::
+
+    root/<config_hash>/meta.json                 hash inputs in readable form
+    root/<config_hash>/runs/<param_hash>.json    one run: 9 Anand constants, ok, V, ...
+
+``config_hash`` covers everything the FE outputs depend on except the Anand constants (the
+:class:`~solderpyro.fem.problem.Problem`, the output times, the field flag, the dtype);
+``param_hash`` covers the nine constants (exact float64 values). A record is written to a
+temporary file in the same directory, flushed, fsynced and renamed over its final name, so a
+crash or ``kill -9`` leaves either the whole record or none. :func:`run_doe` stores each member
+of a batch as soon as the batch finishes: a kill loses at most the batch in flight, and a rerun
+computes only what is missing. Failed members are stored (``ok=False`` with the reason) and are
+not recomputed on rerun.
+
+The solver's code is not part of the hash: after changing the solver (not the problem), use a
+new ``root``. Each record names the solderpyro version that computed it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import enum
+import functools
+import hashlib
+import json
+import logging
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .params import ANAND_NAMES
+
+log = logging.getLogger(__name__)
+
+#: Version of the record layout; part of the config hash, so a new layout never reads old files.
+STORE_SCHEMA = 1
+_MAX_DEPTH = 32
+
+
+def _qualname(obj: Any) -> str:
+    return f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', repr(obj))}"
+
+
+def _canon(obj: Any, depth: int = 0) -> Any:
+    """JSON-able canonical form of ``obj``: same value -> same form in every process."""
+    if depth > _MAX_DEPTH:
+        raise ValueError("config_hash: object nesting too deep (a reference cycle?)")
+    d = depth + 1
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, enum.Enum):
+        return {"__enum__": _qualname(type(obj)), "name": obj.name}
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj)  # json writes floats with repr: exact round trip
+    if isinstance(obj, (np.ndarray, torch.Tensor)):
+        a = obj.detach().cpu().numpy() if isinstance(obj, torch.Tensor) else obj
+        return {"__array__": str(a.dtype), "shape": list(a.shape), "data": _canon(a.tolist(), d)}
+    if isinstance(obj, (torch.dtype, torch.device, os.PathLike)):
+        return str(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {"__type__": _qualname(type(obj)),
+                **{f.name: _canon(getattr(obj, f.name), d) for f in dataclasses.fields(obj)}}
+    if isinstance(obj, (tuple, list)):
+        return [_canon(v, d) for v in obj]
+    if isinstance(obj, dict):
+        return {"__dict__": sorted(([_canon(k, d), _canon(v, d)] for k, v in obj.items()),
+                                   key=lambda kv: json.dumps(kv[0], sort_keys=True))}
+    if isinstance(obj, (set, frozenset)):
+        return {"__set__": sorted((_canon(v, d) for v in obj), key=json.dumps)}
+    if isinstance(obj, functools.partial):
+        return {"__partial__": _canon(obj.func, d), "args": _canon(obj.args, d),
+                "keywords": _canon(obj.keywords, d)}
+    if isinstance(obj, type) or callable(obj) and not hasattr(obj, "__dict__"):
+        return {"__callable__": _qualname(obj)}
+    if callable(obj) and hasattr(obj, "__code__"):  # functions, lambdas, methods
+        return {"__callable__": _qualname(obj)}
+    state = {k: v for k, v in getattr(obj, "__dict__", {}).items() if not k.startswith("_")}
+    return {"__type__": _qualname(type(obj)), "vars": _canon(state, d)}
+
+
+def config_inputs(problem: Any, times: Sequence[float], field: bool,
+                  dtype: torch.dtype) -> dict:
+    """The inputs of :func:`config_hash` in canonical, readable (JSON-able) form.
+
+    Args:
+        problem: the :class:`~solderpyro.fem.problem.Problem` (any dataclass tree works).
+        times: output times, s (order does not matter: the solver reports them sorted).
+        field: whether V is also reported on the full-field grid.
+        dtype: torch dtype of the solve.
+    """
+    return {"schema": STORE_SCHEMA, "problem": _canon(problem),
+            "times": sorted(float(t) for t in times), "field": bool(field), "dtype": str(dtype)}
+
+
+def config_hash(problem: Any, times: Sequence[float], field: bool, dtype: torch.dtype) -> str:
+    """Short hex hash (sha256 of canonical JSON, 16 hex digits) of what the FE outputs depend
+    on besides the Anand constants: problem (mesh, cycle, materials, plane, stepping, points,
+    ...), output times, field flag and dtype. Stable across processes and sessions."""
+    text = json.dumps(config_inputs(problem, times, field, dtype), sort_keys=True,
+                      separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _as_values(values: Any) -> list[float]:
+    if isinstance(values, torch.Tensor):
+        values = values.detach().cpu().to(torch.float64).tolist()
+    vals = [float(v) for v in np.asarray(values, dtype=np.float64).reshape(-1)]
+    if len(vals) != len(ANAND_NAMES):
+        raise ValueError(f"expected {len(ANAND_NAMES)} Anand constants "
+                         f"({', '.join(ANAND_NAMES)}), got {len(vals)}")
+    return vals
+
+
+def param_hash(values: Any) -> str:
+    """Hex hash (24 digits) of the nine Anand constants ``(9,)`` in ANAND_NAMES order.
+
+    Uses the exact ``repr`` of the float64 values: two sets hash alike iff they are bitwise equal
+    (after conversion to float64).
+    """
+    text = ",".join(repr(v) for v in _as_values(values))
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _version() -> str:
+    from . import __version__
+
+    return str(__version__)
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """One completed FE run.
+
+    Attributes:
+        params: the nine Anand constants by name (MPa, K, 1/s).
+        ok: False when the member failed to converge; ``reason`` says where.
+        times: ``(n_time,)`` output times, s (sorted).
+        names: ``n_out`` output labels.
+        V: ``(n_time, n_out)`` float64 array, um; NaN where not computed (failed member).
+        n_steps: grid steps of the solve; n_substeps: extra sub-steps summed over the batch
+            the run was solved in (``batch_size`` members); None when the solver gave none.
+        created: ISO time (UTC) of the record; version: solderpyro version that computed it.
+    """
+
+    params: dict[str, float]
+    ok: bool
+    reason: str
+    times: tuple[float, ...]
+    names: tuple[str, ...]
+    V: np.ndarray
+    n_steps: int | None = None
+    n_substeps: int | None = None
+    batch_size: int | None = None
+    created: str = ""
+    version: str = ""
+
+    @property
+    def values(self) -> list[float]:
+        """The constants in ANAND_NAMES order, ``(9,)``."""
+        return [float(self.params[k]) for k in ANAND_NAMES]
+
+    def to_json(self) -> dict:
+        V = [[None if not math.isfinite(x) else float(x) for x in row] for row in self.V.tolist()]
+        return {"schema": STORE_SCHEMA, "params": {k: float(self.params[k]) for k in ANAND_NAMES},
+                "ok": bool(self.ok), "reason": str(self.reason),
+                "times": [float(t) for t in self.times], "names": [str(n) for n in self.names],
+                "V": V, "n_steps": self.n_steps, "n_substeps": self.n_substeps,
+                "batch_size": self.batch_size, "created": self.created or _now(),
+                "version": self.version or _version()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> RunRecord:
+        """Inverse of :meth:`to_json`; raises ``ValueError``/``KeyError``/``TypeError`` when
+        the dict is incomplete or inconsistent."""
+        if d.get("schema") != STORE_SCHEMA:
+            raise ValueError(f"record schema {d.get('schema')!r}, expected {STORE_SCHEMA}")
+        params = {k: float(d["params"][k]) for k in ANAND_NAMES}
+        times = tuple(float(t) for t in d["times"])
+        names = tuple(str(n) for n in d["names"])
+        V = np.array([[np.nan if x is None else float(x) for x in row] for row in d["V"]],
+                     dtype=np.float64).reshape(len(times), len(names))
+        if not isinstance(d["ok"], bool):
+            raise TypeError(f"record 'ok' must be a bool, got {d['ok']!r}")
+        return cls(params, d["ok"], str(d["reason"]), times, names, V,
+                   d.get("n_steps"), d.get("n_substeps"), d.get("batch_size"),
+                   str(d.get("created", "")), str(d.get("version", "")))
+
+
+def _write_atomic(path: Path, payload: dict) -> None:
+    """Write ``payload`` as JSON to ``path``: temp file in the same dir, fsync, rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(payload, f, indent=1, allow_nan=False)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    try:  # make the rename itself durable
+        dfd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:
+        pass
+    finally:
+        os.close(dfd)
+
+
+class RunStore:
+    """Directory of FE runs, keyed by config hash and parameter hash (see module docstring).
+
+    Args:
+        root: directory of the store (created on first write).
+    """
+
+    def __init__(self, root: str | os.PathLike) -> None:
+        self.root = Path(root)
+
+    def config_dir(self, cfg_hash: str) -> Path:
+        return self.root / cfg_hash
+
+    def register(self, problem: Any, times: Sequence[float], field: bool,
+                 dtype: torch.dtype) -> str:
+        """Hash of the configuration; writes ``meta.json`` for it when missing. Returns the hash."""
+        h = config_hash(problem, times, field, dtype)
+        meta = self.config_dir(h) / "meta.json"
+        if not meta.exists():
+            _write_atomic(meta, {"config_hash": h, "created": _now(), "version": _version(),
+                                 "inputs": config_inputs(problem, times, field, dtype)})
+        return h
+
+    def meta(self, cfg_hash: str) -> dict | None:
+        """Contents of ``meta.json`` for ``cfg_hash`` (None when absent or unreadable)."""
+        return self._read_json(self.config_dir(cfg_hash) / "meta.json")
+
+    def path(self, cfg_hash: str, values: Any) -> Path:
+        """File of the run with Anand constants ``values`` ``(9,)``."""
+        return self.config_dir(cfg_hash) / "runs" / f"{param_hash(values)}.json"
+
+    def put(self, cfg_hash: str, record: RunRecord) -> Path:
+        """Store ``record`` atomically (replacing any earlier record of the same constants)."""
+        p = self.path(cfg_hash, record.values)
+        _write_atomic(p, record.to_json())
+        return p
+
+    def get(self, cfg_hash: str, values: Any) -> RunRecord | None:
+        """The stored run of ``values`` ``(9,)``, or None (missing, unreadable or mismatched)."""
+        p = self.path(cfg_hash, values)
+        rec = self._read(p)
+        if rec is not None and rec.values != _as_values(values):
+            log.warning("run store: %s holds other parameters than its name says; ignored", p)
+            return None
+        return rec
+
+    def records(self, cfg_hash: str) -> list[RunRecord]:
+        """All readable runs of ``cfg_hash`` (unreadable files are skipped with a warning)."""
+        runs = self.config_dir(cfg_hash) / "runs"
+        paths = sorted(runs.glob("*.json")) if runs.is_dir() else []
+        return [r for r in map(self._read, paths) if r is not None]
+
+    def _read(self, path: Path) -> RunRecord | None:
+        d = self._read_json(path)
+        if d is None:
+            return None
+        try:
+            return RunRecord.from_json(d)
+        except (KeyError, ValueError, TypeError, AttributeError) as e:
+            log.warning("run store: skipping malformed record %s (%s: %s)", path,
+                        type(e).__name__, e)
+            return None
+
+    @staticmethod
+    def _read_json(path: Path) -> dict | None:
+        try:
+            with open(path) as f:
+                d = json.load(f)
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError) as e:  # JSONDecodeError and UnicodeDecodeError included
+            log.warning("run store: skipping unreadable file %s (%s: %s)", path,
+                        type(e).__name__, e)
+            return None
+        if not isinstance(d, dict):
+            log.warning("run store: skipping %s (not a JSON object)", path)
+            return None
+        return d
+
+
+@dataclass(frozen=True)
+class DoeResult:
+    """Outputs of :func:`run_doe`, row for row with its ``params``.
+
+    Attributes:
+        params: ``(n, 9)`` Anand constants, float64.
+        V: ``(n, n_time, n_out)`` um, float64; NaN rows for failed members.
+        ok: ``(n,)`` bool. reasons: ``n`` strings, empty for converged members.
+        n_reused: rows served from the store as it was before this call.
+        n_computed: distinct parameter sets solved in this call.
+        times: ``(n_time,)`` output times, s (sorted); names: ``n_out`` output labels.
+    """
+
+    params: torch.Tensor
+    V: torch.Tensor
+    ok: torch.Tensor
+    reasons: list[str]
+    n_reused: int
+    n_computed: int
+    times: tuple[float, ...] = ()
+    names: tuple[str, ...] = ()
+
+    @property
+    def n_failed(self) -> int:
+        return int((~self.ok).sum())
+
+
+def _solve(solver: Any, p: torch.Tensor, times: list[float]) -> Any:
+    if hasattr(solver, "solve"):
+        return solver.solve(p, times, progress=False)
+    return solver(p, times)
+
+
+def _batch_records(res: Any, p: torch.Tensor, times: list[float]) -> list[RunRecord]:
+    """One :class:`RunRecord` per member of a solver result ``res`` for params ``p (b, 9)``."""
+    V = res.V.detach().cpu().to(torch.float64).numpy()  # (b, n_time, n_out)
+    rtimes = tuple(float(t) for t in torch.as_tensor(res.times).tolist())
+    if V.shape[:2] != (p.shape[0], len(times)) or not np.allclose(rtimes, times, rtol=0,
+                                                                  atol=1e-9):
+        raise ValueError(f"solver returned V of shape {V.shape} at times {rtimes}, expected "
+                         f"({p.shape[0]}, {len(times)}, n_out) at {tuple(times)}")
+    ok = torch.as_tensor(res.ok).cpu().tolist()
+    reasons = list(getattr(res, "reasons", None) or [""] * len(ok))
+    n_steps, n_sub = getattr(res, "n_steps", None), getattr(res, "n_substeps", None)
+    out = []
+    for i, row in enumerate(p.tolist()):
+        why = str(reasons[i]) or ("" if ok[i] else "solver reported failure (no reason given)")
+        out.append(RunRecord(dict(zip(ANAND_NAMES, row, strict=True)), bool(ok[i]), why,
+                             tuple(times), tuple(str(n) for n in res.names), V[i],
+                             None if n_steps is None else int(n_steps),
+                             None if n_sub is None else int(n_sub), int(p.shape[0])))
+    return out
+
+
+def _assemble(keys: list[str], found: dict[str, RunRecord],
+              times: list[float]) -> tuple[torch.Tensor, torch.Tensor, list[str], tuple]:
+    names = {found[k].names for k in keys}
+    if len(names) > 1:
+        raise ValueError(f"stored runs of one config have different outputs: {names}")
+    nm = names.pop() if names else ()
+    V = torch.full((len(keys), len(times), len(nm)), float("nan"), dtype=torch.float64)
+    ok = torch.zeros(len(keys), dtype=torch.bool)
+    reasons = []
+    for i, k in enumerate(keys):
+        r = found[k]
+        ok[i] = r.ok
+        reasons.append(r.reason)
+        if r.ok:
+            V[i] = torch.as_tensor(r.V, dtype=torch.float64)
+    return V, ok, reasons, nm
+
+
+def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
+            times: Sequence[float], batch_size: int = 64, progress: bool = True) -> DoeResult:
+    """Solve a design ``params (n, 9)``, reusing and filling ``store``.
+
+    Rows already stored under ``cfg_hash`` (converged or failed) are read back; the others are
+    solved in batches of ``batch_size`` and every member of a batch is stored as soon as that
+    batch finishes. Duplicate rows are solved once.
+
+    Args:
+        solver: a :class:`~solderpyro.fem.solver.SpecimenSolver` (anything with
+            ``.solve(params (b, 9), times, progress=False)``), or a callable
+            ``(params (b, 9), times) -> SolveResult``-like (``V (b, n_time, n_out)``, ``ok (b,)``,
+            ``reasons``, ``times``, ``names``). It must match ``cfg_hash`` (see
+            :meth:`RunStore.register`); the store cannot check that.
+        store: the run store. cfg_hash: hash of the problem, times, field flag and dtype.
+        params: ``(n, 9)`` Anand constants in ANAND_NAMES order (MPa, K, 1/s), finite.
+        times: output times, s. batch_size: members per FE solve. progress: tqdm over batches.
+
+    Returns:
+        :class:`DoeResult`; V is NaN for failed members, whose reasons are logged.
+    """
+    p = torch.as_tensor(params).detach().to(device="cpu", dtype=torch.float64)
+    if p.ndim != 2 or p.shape[1] != len(ANAND_NAMES):
+        raise ValueError(f"params must have shape (n, {len(ANAND_NAMES)}), got {tuple(p.shape)}")
+    if not torch.isfinite(p).all():
+        raise ValueError("params contain NaN or inf")
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    tt = sorted(float(t) for t in times)
+    keys = [param_hash(row) for row in p]
+    first = {k: i for i, k in reversed(list(enumerate(keys)))}  # key -> first row holding it
+    found: dict[str, RunRecord] = {}
+    for k, i in first.items():
+        rec = store.get(cfg_hash, p[i])
+        if rec is not None and np.allclose(rec.times, tt, rtol=0, atol=1e-9):
+            found[k] = rec
+        elif rec is not None:
+            log.warning("run store: %s has times %s, not %s; recomputing",
+                        store.path(cfg_hash, p[i]), rec.times, tt)
+    n_reused = sum(k in found for k in keys)
+    missing = [first[k] for k in sorted(first, key=first.__getitem__) if k not in found]
+    where = store.config_dir(cfg_hash)
+    log.info("run store %s: %d of %d runs reused, %d parameter sets to compute", where,
+             n_reused, len(keys), len(missing))
+    batches = [missing[j:j + batch_size] for j in range(0, len(missing), batch_size)]
+    from tqdm.auto import tqdm
+
+    for rows in tqdm(batches, desc=f"DOE ({len(missing)} runs)", unit="batch",
+                     disable=not progress or not batches):
+        for rec in _batch_records(_solve(solver, p[rows], tt), p[rows], tt):
+            store.put(cfg_hash, rec)
+            found[param_hash(rec.values)] = rec
+    V, ok, reasons, names = _assemble(keys, found, tt)
+    _log_summary(where, n_reused, len(missing), ok, reasons, p)
+    return DoeResult(p, V, ok, reasons, n_reused, len(missing), tuple(tt), names)
+
+
+def _log_summary(where: Path, n_reused: int, n_computed: int, ok: torch.Tensor,
+                 reasons: list[str], p: torch.Tensor) -> None:
+    bad = torch.nonzero(~ok).squeeze(1).tolist()
+    log.info("DOE done: %d rows, %d reused, %d computed, %d failed; store %s", len(ok),
+             n_reused, n_computed, len(bad), where)
+    for i in bad[:10]:
+        log.warning("DOE row %d failed (params %s): %s",
+                    i, dict(zip(ANAND_NAMES, p[i].tolist(), strict=True)), reasons[i])
+    if len(bad) > 10:
+        log.warning("... and %d more failed rows", len(bad) - 10)
