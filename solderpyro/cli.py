@@ -134,6 +134,25 @@ def cmd_koh(a, overrides) -> int:
     return 0
 
 
+def cmd_calibrate(a, overrides) -> int:
+    from .fem.problem import reference_grid
+    from .io.measurements import read_measurements
+    from .workflow import calibrate_specimen
+
+    setup = _setup(overrides)
+    labels, pts = reference_grid()
+    valid = {**{k: tuple(v) for k, v in setup.problem.points.items()},
+             **{lab: (float(x), float(y)) for lab, (x, y) in zip(labels, pts, strict=True)}}
+    meas = read_measurements(a.data, valid_points=valid)
+    if a.runs < 5:
+        raise ValueError(f"--runs must be at least 5, got {a.runs}")
+    res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,
+                             store_root=a.store, batch_size=a.batch, nuts=_nuts_args(a),
+                             progress=not a.quiet)
+    print(f"\nreport:  {res.out / 'report.md'}\nsummary: {res.out / 'summary.csv'}")
+    return 0
+
+
 def _names(text: str) -> list[str]:
     return [n.strip() for n in text.split(",") if n.strip()]
 
@@ -186,6 +205,16 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--mode", default="joint", help="joint (seed, Eq. 5-8) | modular")
     k.add_argument("--discrepancy", action="store_true", help="add a GP discrepancy delta(x)")
     _add_nuts(k)
+    c = sub.add_parser("calibrate", help="calibrate the Anand constants of the config's box "
+                       "(default s0, QR, xi, m) against a measurement CSV: LHS DOE of FE runs "
+                       "(run store), GP surrogate, KOH with NUTS, report")
+    c.add_argument("--data", required=True, help="measurement CSV (shared/data-format.md); "
+                   "points A, B or grid labels g_ii_jj, any output times")
+    c.add_argument("--out", required=True, help="run directory (report.md, summary.csv, ...)")
+    c.add_argument("--runs", type=int, default=50, help="Latin hypercube FE runs (seed: 50)")
+    c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
+    c.add_argument("--batch", type=int, default=64, help="FE runs per batched solve")
+    _add_nuts(c)
     return p
 
 
@@ -197,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         overrides = _split_overrides(rest)
         cmds = {"simulate": cmd_simulate, "demo": cmd_demo, "example": cmd_example,
-                "koh": cmd_koh}
+                "koh": cmd_koh, "calibrate": cmd_calibrate}
         return cmds[a.command](a, overrides)
     except (ValueError, FileNotFoundError, RuntimeError) as e:
         print(f"solderpyro {a.command}: error: {e}", file=sys.stderr)

@@ -122,11 +122,13 @@ class Box:
         lo, hi = self._lohi(u)
         z = lo + u * (hi - lo)
         logm = torch.tensor(self.log_scale, device=u.device)
-        return torch.where(logm, torch.exp(z), z)
+        # inner where: exp never sees a large linear-scale value (inf there poisons gradients)
+        return torch.where(logm, torch.exp(torch.where(logm, z, torch.zeros_like(z))), z)
 
     def _fwd(self, x: torch.Tensor) -> torch.Tensor:
         logm = torch.tensor(self.log_scale, device=x.device)
-        return torch.where(logm, torch.log(x.clamp_min(1e-300)), x)
+        safe = torch.where(logm, x, torch.ones_like(x)).clamp_min(1e-300)
+        return torch.where(logm, torch.log(safe), x)
 
     def _lohi(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b = torch.tensor([self.lower, self.upper], dtype=like.dtype, device=like.device)

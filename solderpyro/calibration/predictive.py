@@ -91,8 +91,14 @@ def _conditional_draw(mean: torch.Tensor, cov: torch.Tensor, y: torch.Tensor, n_
 
 def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tensor | None,
                               u_new: torch.Tensor | None = None, n_draws: int = 500,
-                              seed: int = 0) -> Bands:
+                              seed: int = 0, condition: bool | None = None) -> Bands:
     """Predictive bands for a direct or modular calibration.
+
+    ``condition`` (default: True for new inputs, False for ``x_new=None``) conditions the
+    process on ``y_obs`` through the code and discrepancy covariances (Eq. 9, 12). Without it
+    the bands are the model's own prediction at the posterior draws (code uncertainty and noise
+    included), which is what a model-vs-measurement comparison must show: conditioning at the
+    observed points would pull the bands onto the data and hide a misfit.
 
     Args:
         post: from :func:`~solderpyro.calibration.api.calibrate_direct` / ``calibrate_modular``.
@@ -103,6 +109,7 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
     gen = torch.Generator().manual_seed(seed)
     y = inp.y_obs
     n_o = y.shape[0]
+    cond = (x_new is not None) if condition is None else condition
     proc, obs = [], []
     for i in _pick(post, n_draws, gen).tolist():
         t = inp.theta_box.from_unit(_raw(post, SITE_T, i))
@@ -117,6 +124,11 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
                 cov = kd if cov is None else cov + kd
             if cov is None:
                 draw = mean[n_o:]
+            elif not cond:
+                c = cov[n_o:, n_o:]
+                ev, evec = torch.linalg.eigh(0.5 * (c + c.T))
+                e = torch.randn(ev.shape[0], generator=gen, dtype=ev.dtype)
+                draw = mean[n_o:] + evec @ (ev.clamp_min(0).sqrt() * e)
             else:
                 draw = _conditional_draw(mean, cov, y, n_o, sigma.square(), gen)
         proc.append(draw)

@@ -114,3 +114,14 @@ def test_bad_input_names_argument():
         GPSurrogate(BOX, kernel="rbf")
     with pytest.raises(RuntimeError, match="must be called before"):
         gp.predict(_design(2))
+
+
+def test_box_maps_have_finite_gradients_for_large_linear_values():
+    """exp() of a large linear-scale value must not poison gradients (QR ~ 1e4 K)."""
+    box = Box(("s0", "QR", "m"), (5.0, 7000.0, 0.05), (25.0, 13000.0, 0.5), (False, False, True))
+    u = torch.full((3,), 0.5, dtype=torch.float64, requires_grad=True)
+    box.from_unit(u).sum().backward()
+    assert torch.isfinite(u.grad).all()
+    x = torch.tensor([10.0, 9000.0, 0.1], dtype=torch.float64, requires_grad=True)
+    box.to_unit(x).sum().backward()
+    assert torch.isfinite(x.grad).all()

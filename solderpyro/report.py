@@ -1,0 +1,119 @@
+"""The run directory's figures and ``report.md`` (what a user opens first)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
+
+from solderpyro.io.measurements import Measurements
+from solderpyro.plots import plot_traces, plot_validation
+
+
+def _by_point(meas: Measurements) -> dict[str, np.ndarray]:
+    return {p: np.flatnonzero(meas.point == p) for p in meas.points()}
+
+
+def plot_model_vs_data(meas: Measurements, curves: dict[str, tuple[Any, Any, Any]],
+                       title: str):
+    """Measured V (error bars) against model curves, per point over time (<= 4 points) or as
+    a measured-vs-model scatter (full field).
+
+    Args:
+        curves: label -> ``(mid (n_obs,), lo (n_obs,) | None, hi (n_obs,) | None)`` in um,
+            row for row with ``meas``.
+    Returns:
+        the matplotlib Figure.
+    """
+    groups = _by_point(meas)
+    err = np.where(np.isfinite(meas.sigma_um), meas.sigma_um, 0.0)
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    if len(groups) <= 4:
+        for k, (p, rows) in enumerate(groups.items()):
+            t = meas.time_s[rows] / 60
+            ax.errorbar(t, meas.value_um[rows], yerr=2 * err[rows], fmt="ks", ms=4,
+                        label="measured" if k == 0 else None)
+            for j, (lab, (mid, lo, hi)) in enumerate(curves.items()):
+                ax.plot(t, mid[rows], "o-", color=f"C{j}", label=f"{lab} ({p})")
+                if lo is not None and hi is not None:
+                    ax.fill_between(t, lo[rows], hi[rows], color=f"C{j}", alpha=0.25)
+            ax.annotate(p, (t[-1], meas.value_um[rows][-1]), textcoords="offset points",
+                        xytext=(6, 0))
+        ax.set_xlabel("time (min)")
+        ax.set_ylabel("V relative to O (um)")
+    else:
+        for j, (lab, (mid, lo, hi)) in enumerate(curves.items()):
+            yerr = None if lo is None or hi is None else np.abs(np.stack([mid - lo, hi - mid]))
+            ax.errorbar(meas.value_um, mid, yerr=yerr, fmt=".", color=f"C{j}", label=lab,
+                        alpha=0.6)
+        lim = [float(meas.value_um.min()), float(meas.value_um.max())]
+        ax.plot(lim, lim, "k--", lw=0.8)
+        ax.set_xlabel("measured V (um)")
+        ax.set_ylabel("model V (um)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: list[str],
+          bands, y_liu: torch.Tensor, doe, ti, oi, nuts: dict[str, Any]) -> Path:
+    """Write the figures and ``report.md`` into ``out``; returns the report path."""
+    def save(fig, name: str) -> str:
+        fig.savefig(out / name, dpi=120)
+        plt.close(fig)
+        return name
+
+    liu = y_liu.numpy()
+    f8 = save(plot_model_vs_data(meas, {"Liu 2008 (seed Table IV)": (liu, None, None)},
+                                 "Model with literature constants vs measurement (seed Fig. 8)"),
+              "fig8_literature.png")
+    f9 = save(plot_traces(post), "fig9_posterior.png")
+    f10 = save(plot_model_vs_data(meas, {"posterior predictive": (
+        bands.median.numpy(), bands.obs_lo.numpy(), bands.obs_hi.numpy())},
+        "Posterior predictive (95 % band of a new measurement) vs measurement (seed Fig. 10)"),
+        "fig10_predictive.png")
+    fl = save(plot_validation(loo, "surrogate leave-one-out"), "surrogate_loo.png")
+    rmse_liu = float(np.sqrt(np.mean((liu - meas.value_um) ** 2)))
+    rmse_post = float(np.sqrt(np.mean((bands.median.numpy() - meas.value_um) ** 2)))
+    inside = float(np.mean((bands.obs_lo.numpy() <= meas.value_um)
+                           & (meas.value_um <= bands.obs_hi.numpy())))
+    lines = ["# solderpyro calibration report", "",
+             f"- data: {len(meas)} values at {len(meas.points())} point(s) x "
+             f"{len(meas.times())} time(s)",
+             f"- FE runs: {int(doe.ok.sum())} converged, {int((~doe.ok).sum())} failed "
+             f"({doe.n_reused} reused from the run store, {doe.n_computed} computed)",
+             f"- NUTS: {nuts['chains']} chains x {nuts['draws']} draws after {nuts['warmup']} "
+             f"warm-up; divergences per chain {post.divergences}; {post.seconds:.0f} s",
+             f"- RMSE model vs data: Liu 2008 constants {rmse_liu:.3g} um -> posterior "
+             f"median {rmse_post:.3g} um; {inside:.0%} of the measurements inside the 95 % "
+             "predictive band", "",
+             "## Posterior (seed Table V layout)", "",
+             "| parameter | 2.5 % | median | mean | 97.5 % | R-hat | ESS |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['parameter']} | {float(r['q2.5']):.4g} | {float(r['median']):.4g} "
+                     f"| {float(r['mean']):.4g} | {float(r['q97.5']):.4g} | "
+                     f"{float(r['r_hat']):.3f} | {float(r['ess_bulk']):.0f} |")
+    warn = list(problems)
+    warn += [f"R-hat of {r['parameter']} is {float(r['r_hat']):.3f} (> 1.01): chains disagree"
+             for r in rows if float(r["r_hat"]) > 1.01]
+    if sum(post.divergences):
+        warn.append(f"{sum(post.divergences)} divergent transitions")
+    lines += ["", "## Warnings", ""] + ([f"- {w}" for w in warn] or ["- none"])
+    lines += ["", "## Figures", "",
+              f"![literature constants vs data]({f8})", "",
+              f"![posterior traces and marginals]({f9})", "",
+              f"![posterior predictive]({f10})", "",
+              f"![surrogate validation]({fl})", "",
+              f"Surrogate leave-one-out: 95 % coverage {loo.coverage95:.0%}, RMSE "
+              f"{loo.rmse_rel:.3f} of the output spread.", "",
+              "Files: `summary.csv` (parameter, q2.5, median, mean, q97.5), `posterior.nc` "
+              "(ArviZ InferenceData)."]
+    p = out / "report.md"
+    p.write_text("\n".join(lines) + "\n")
+    return p
