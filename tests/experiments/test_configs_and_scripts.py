@@ -107,7 +107,36 @@ def test_experiment_script_runs_tiny(tmp_path):
     assert len(m) == 4 and (tmp_path / "cycle.png").stat().st_size > 10_000
 
 
+CAL_TINY = ["--runs", "10", "--chains", "2", "--warmup", "60", "--draws", "60", "--quiet"]
+
+
 def test_demo_command_runs_tiny(tmp_path):
-    assert main(["demo", "--out", str(tmp_path), *TINY]) == 0
+    """Simulate, then calibrate on synthetic data; `calibrate` on the same data reuses the
+    stored runs and writes the contract's summary.csv."""
+    assert main(["demo", "--out", str(tmp_path), *CAL_TINY, *TINY]) == 0
     assert (tmp_path / "cycle.png").exists() and len(read_measurements(
         tmp_path / "simulation.csv")) > 4
+    cal = tmp_path / "calibration"
+    for f in ("report.md", "summary.csv", "posterior.nc", "fig8_literature.png",
+              "fig9_posterior.png", "fig10_predictive.png", "surrogate_loo.png"):
+        assert (cal / f).stat().st_size > 100, f
+    n_stored = len(list((tmp_path / "store").glob("*/runs/*.json")))
+    assert n_stored == 11  # 10 LHS runs + the Liu 2008 run, nothing lost
+    out = tmp_path / "again"
+    assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(out),
+                 "--store", str(tmp_path / "store"), *CAL_TINY, *TINY]) == 0
+    assert len(list((tmp_path / "store").glob("*/runs/*.json"))) == n_stored  # all reused
+    rows = (out / "summary.csv").read_text().splitlines()
+    assert rows[0] == "parameter,q2.5,median,mean,q97.5"
+    assert [r.split(",")[0] for r in rows[1:]] == ["s0", "QR", "xi", "m", "sigma"]
+
+
+def test_calibrate_rejects_points_not_in_the_model(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time_s,temperature_C,point,x_mm,y_mm,quantity,value_um,sigma_um\n"
+                   "600,75,A,15,4.5,V,1.0,0.05\n"
+                   "600,75,Q,0,0,V,1.0,0.05\n")
+    assert main(["calibrate", "--data", str(bad), "--out", str(tmp_path / "o"),
+                 "--store", str(tmp_path / "s"), *CAL_TINY, *TINY]) == 2
+    err = capsys.readouterr().err
+    assert "'Q'" in err and "line 3" in err
