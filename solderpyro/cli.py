@@ -135,7 +135,7 @@ def _demo_calibration(a, setup, out: Path) -> int:
 
     res = calibrate_specimen(setup, read_measurements(data), out / "calibration",
                              n_runs=a.runs, seed=a.seed, store_root=out / "store",
-                             nuts=_nuts_args(a), progress=not a.quiet)
+                             nuts=_nuts_args(a), progress=not a.quiet, **setup.surrogate)
     inside = {r["parameter"]: float(r["q2.5"]) <= DEMO_TRUTH[str(r["parameter"])]
               <= float(r["q97.5"]) for r in res.summary if r["parameter"] in DEMO_TRUTH}
     print(f"\ntruth {DEMO_TRUTH}; inside the 95 % interval: {inside}")
@@ -187,7 +187,7 @@ def cmd_calibrate(a, overrides) -> int:
         raise ValueError(f"--runs must be at least 5, got {a.runs}")
     res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,
                              store_root=a.store, batch_size=a.batch, nuts=_nuts_args(a),
-                             progress=not a.quiet)
+                             progress=not a.quiet, **setup.surrogate)
     print(f"\nreport:  {res.out / 'report.md'}\nsummary: {res.out / 'summary.csv'}")
     return 0
 

@@ -6,7 +6,7 @@ objects (:class:`~solderpyro.fem.problem.Problem`, :class:`~solderpyro.params.Pa
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -45,6 +45,7 @@ class Setup:
     times: tuple[float, ...]
     dtype: torch.dtype
     device: str
+    surrogate: dict = field(default_factory=dict)  # GPSurrogate kernel / ard / mean
 
 
 def _num(cfg, key: str, path: str, lo: float | None = None, hi: float | None = None) -> float:
@@ -130,4 +131,16 @@ def build(cfg) -> Setup:
     dt = {"float64": torch.float64, "float32": torch.float32}.get(str(cfg.solver.dtype))
     if dt is None:
         raise ValueError(f"config solver.dtype must be float64|float32, got {cfg.solver.dtype!r}")
-    return Setup(problem, space, anand, parse_times(ld.output_times), dt, str(cfg.solver.device))
+    return Setup(problem, space, anand, parse_times(ld.output_times), dt, str(cfg.solver.device),
+                 _surrogate(cfg))
+
+
+def _surrogate(cfg) -> dict:
+    """GP settings from the ``surrogate`` group (absent in older configs: the defaults)."""
+    sc = cfg.get("surrogate") or {}
+    out = {"kernel": str(sc.get("kernel", "gaussian")), "ard": bool(sc.get("ard", True)),
+           "mean": str(sc.get("mean", "constant"))}
+    for key, ok in (("kernel", ("gaussian", "matern52")), ("mean", ("constant", "linear"))):
+        if out[key] not in ok:
+            raise ValueError(f"config surrogate.{key} must be one of {ok}, got {out[key]!r}")
+    return out

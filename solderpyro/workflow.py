@@ -72,7 +72,8 @@ def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs: int = 50,
                        seed: int = 0, store_root: str | Path = "runs/store",
                        batch_size: int = 64, nuts: dict[str, Any] | None = None,
-                       progress: bool = True) -> SpecimenCalibration:
+                       progress: bool = True, kernel: str = "gaussian", ard: bool = True,
+                       mean: str = "constant") -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
 
     Args:
@@ -81,6 +82,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         out: run directory (created). n_runs: LHS size (the seed: 50).
         store_root: the run store shared by calibrations of the same problem.
         nuts: options of :func:`~solderpyro.calibration.mcmc.run_nuts`.
+        kernel, ard, mean: the GP surrogate's settings (see :class:`GPSurrogate`).
 
     Returns:
         :class:`SpecimenCalibration`; writes summary.csv, posterior.nc, figures, report.md.
@@ -111,7 +113,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     output = "batched" if y_obs.shape[0] <= 16 else "pca"
     log.info("surrogate: %s GP on %d runs, %d observed outputs", output, int(ok.sum()),
              y_obs.shape[0])
-    gp = GPSurrogate(space, output=output, ard=True).fit(theta[ok], y_sim[:n_runs][ok])
+    gp = GPSurrogate(space, output=output, kernel=kernel, ard=ard, mean=mean)
+    gp.fit(theta[ok], y_sim[:n_runs][ok])
     loo = gp.loo()
     problems = gp.check(loo)
     sig = meas.sigma_um[np.isfinite(meas.sigma_um)]

@@ -140,3 +140,19 @@ def test_calibrate_rejects_points_not_in_the_model(tmp_path, capsys):
                  "--store", str(tmp_path / "s"), *CAL_TINY, *TINY]) == 2
     err = capsys.readouterr().err
     assert "'Q'" in err and "line 3" in err
+
+
+def test_calibrate_experiment_script_runs_tiny(tmp_path):
+    data = tmp_path / "data.csv"
+    assert main(["simulate", "--theta", "s0=12.9,m=0.1", "--noise", "0.05", "--out", str(data),
+                 "--quiet", *TINY]) == 0
+    r = subprocess.run([sys.executable, str(ROOT / "experiments" / "calibrate.py"), *TINY,
+                        f"data.path={data}", "calibration.runs=8", "calibration.chains=1",
+                        "calibration.warmup=50", "calibration.draws=50",
+                        f"calibration.store={tmp_path / 'store'}", "surrogate=matern",
+                        f"hydra.run.dir={tmp_path / 'run'}"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = (tmp_path / "run" / "summary.csv").read_text().splitlines()
+    assert [x.split(",")[0] for x in rows[1:]] == ["s0", "QR", "xi", "m", "sigma"]
+    assert (tmp_path / "run" / "report.md").exists()
