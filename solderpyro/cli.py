@@ -88,7 +88,7 @@ def cmd_demo(a, overrides) -> int:
     dense = sorted(set(np.arange(150.0, cyc.end + 1e-9, 150.0).tolist()) | set(marks))
     log.info("simulating the reference case with Liu 2008 constants (%d output times)",
              len(dense))
-    t, names, pts, V = simulate_table(setup, {}, dense, field=False, progress=True)
+    t, names, pts, V = simulate_table(setup, {}, dense, field=False, progress=not a.quiet)
     temps = np.array([cyc(x) for x in t])
     write_measurements(out / "simulation.csv",
                        from_arrays(t, names, pts, V, temperature_C=temps,
@@ -187,7 +187,7 @@ def cmd_calibrate(a, overrides) -> int:
         raise ValueError(f"--runs must be at least 5, got {a.runs}")
     res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,
                              store_root=a.store, batch_size=a.batch, nuts=_nuts_args(a),
-                             progress=not a.quiet, **setup.surrogate)
+                             progress=not a.quiet, exact=a.exact, **setup.surrogate)
     print(f"\nreport:  {res.out / 'report.md'}\nsummary: {res.out / 'summary.csv'}")
     return 0
 
@@ -257,6 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--runs", type=int, default=50, help="Latin hypercube FE runs (seed: 50)")
     c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
     c.add_argument("--batch", type=int, default=64, help="FE runs per batched solve")
+    c.add_argument("--exact", type=int, default=0, metavar="N",
+                   help="surrogate vs exact: reweight N posterior draws by the FE likelihood "
+                   "(N more FE runs; writes exact_check.csv and a report section)")
     _add_nuts(c)
     return p
 

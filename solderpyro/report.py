@@ -61,7 +61,8 @@ def plot_model_vs_data(meas: Measurements, curves: dict[str, tuple[Any, Any, Any
 
 
 def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: list[str],
-          bands, y_liu: torch.Tensor, doe, ti, oi, nuts: dict[str, Any]) -> Path:
+          bands, y_liu: torch.Tensor, doe, ti, oi, nuts: dict[str, Any],
+          exact: list[dict] | None = None) -> Path:
     """Write the figures and ``report.md`` into ``out``; returns the report path."""
     def save(fig, name: str) -> str:
         fig.savefig(out / name, dpi=120)
@@ -105,6 +106,17 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
     if sum(post.divergences):
         warn.append(f"{sum(post.divergences)} divergent transitions")
     lines += ["", "## Warnings", ""] + ([f"- {w}" for w in warn] or ["- none"])
+    if exact:
+        lines += ["", "## Surrogate vs exact FE likelihood", "",
+                  "Importance reweighting of surrogate draws by the FE "
+                  f"likelihood (Kish ESS of the weights {exact[0]['weights_ess']:.0f}):", "",
+                  "| parameter | surrogate 2.5 / 50 / 97.5 % | exact 2.5 / 50 / 97.5 % |",
+                  "|---|---|---|"]
+        for r in exact:
+            lines.append(f"| {r['parameter']} | {r['surrogate_q2.5']:.4g} / "
+                         f"{r['surrogate_median']:.4g} / {r['surrogate_q97.5']:.4g} | "
+                         f"{r['exact_q2.5']:.4g} / {r['exact_median']:.4g} / "
+                         f"{r['exact_q97.5']:.4g} |")
     lines += ["", "## Figures", "",
               f"![literature constants vs data]({f8})", "",
               f"![posterior traces and marginals]({f9})", "",

@@ -33,6 +33,59 @@ log = logging.getLogger("solderpyro")
 SUMMARY = ("parameter", "q2.5", "median", "mean", "q97.5")
 
 
+def weighted_quantiles(x: torch.Tensor, w: torch.Tensor, probs: tuple[float, ...]
+                       ) -> list[float]:
+    """Quantiles of ``x (n,)`` under normalized weights ``w (n,)`` (linear interpolation)."""
+    order = torch.argsort(x)
+    xs, cw = x[order], torch.cumsum(w[order], 0)
+    cw = (cw - 0.5 * w[order]) / cw[-1]
+    return [float(np.interp(p, cw.numpy(), xs.numpy())) for p in probs]
+
+
+def exact_check(solver: SpecimenSolver, store: RunStore, cfg_hash: str, setup: Setup,
+                times: tuple[float, ...], post: Posterior, inp: Any, ti: np.ndarray,
+                oi: np.ndarray, n: int = 64, seed: int = 0, progress: bool = True
+                ) -> list[dict]:
+    """Surrogate vs exact: reweight ``n`` surrogate-posterior draws by the FE likelihood.
+
+    For draws (t, sigma) of the surrogate posterior, the importance weight of the exact
+    posterior (the FE in the likelihood, no code uncertainty, same priors) is
+    N(y; FE(t), sigma^2 I) / N(y; mu(t), C(t) + sigma^2 I). The FE runs go through the run store.
+
+    Returns:
+        rows: parameter, surrogate q2.5 / median / q97.5, exact (reweighted) q2.5 / median /
+        q97.5, and the Kish effective sample size of the weights (same for every row).
+    """
+    g = torch.Generator().manual_seed(seed)
+    flat_t, flat_s = post.flat("t"), post.flat("sigma")
+    idx = torch.randperm(flat_t.shape[0], generator=g)[:n]
+    t, sig = flat_t[idx], flat_s[idx]
+    doe = run_doe(solver, store, cfg_hash, setup.space.full(t), times, progress=progress)
+    y = inp.y_obs
+    lw = torch.full((t.shape[0],), -torch.inf, dtype=torch.float64)
+    for i in range(t.shape[0]):
+        if not bool(doe.ok[i]):
+            continue
+        with torch.no_grad():
+            m, c = inp.emulator(t[i])
+            cs = c + sig[i] ** 2 * torch.eye(y.shape[0], dtype=y.dtype)
+            l_sur = torch.distributions.MultivariateNormal(m, cs).log_prob(y)
+            l_fe = torch.distributions.Normal(doe.V[i, ti, oi], sig[i]).log_prob(y).sum()
+        lw[i] = l_fe - l_sur
+    w = torch.exp(lw - lw.max())
+    w = w / w.sum()
+    ess = float(1.0 / (w**2).sum())
+    rows = []
+    cols = {**{nm: t[:, j] for j, nm in enumerate(setup.space.names)}, "sigma": sig}
+    for nm, x in cols.items():
+        qs = torch.quantile(x, torch.tensor([0.025, 0.5, 0.975], dtype=x.dtype)).tolist()
+        qe = weighted_quantiles(x, w, (0.025, 0.5, 0.975))
+        rows.append({"parameter": nm, "surrogate_q2.5": qs[0], "surrogate_median": qs[1],
+                     "surrogate_q97.5": qs[2], "exact_q2.5": qe[0], "exact_median": qe[1],
+                     "exact_q97.5": qe[2], "weights_ess": ess})
+    return rows
+
+
 @dataclass
 class SpecimenCalibration:
     """What :func:`calibrate_specimen` produced (files are in ``out``)."""
@@ -73,7 +126,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                        seed: int = 0, store_root: str | Path = "runs/store",
                        batch_size: int = 64, nuts: dict[str, Any] | None = None,
                        progress: bool = True, kernel: str = "gaussian", ard: bool = True,
-                       mean: str = "constant") -> SpecimenCalibration:
+                       mean: str = "constant", exact: int = 0) -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
 
     Args:
@@ -83,6 +136,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         store_root: the run store shared by calibrations of the same problem.
         nuts: options of :func:`~solderpyro.calibration.mcmc.run_nuts`.
         kernel, ard, mean: the GP surrogate's settings (see :class:`GPSurrogate`).
+        exact: if > 0, reweight that many surrogate draws by the exact FE likelihood
+            (:func:`exact_check`) and write ``exact_check.csv``.
 
     Returns:
         :class:`SpecimenCalibration`; writes summary.csv, posterior.nc, figures, report.md.
@@ -109,7 +164,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     if int(ok.sum()) < max(5, space.dim + 2):
         raise RuntimeError(f"only {int(ok.sum())} of {n_runs} FE runs converged: "
                            f"{sorted(set(r for r in doe.reasons if r))[:3]}")
-    y_obs = torch.as_tensor(meas.value_um, dtype=torch.float64)
+    y_obs = torch.tensor(np.array(meas.value_um), dtype=torch.float64)
     output = "batched" if y_obs.shape[0] <= 16 else "pca"
     log.info("surrogate: %s GP on %d runs, %d observed outputs", output, int(ok.sum()),
              y_obs.shape[0])
@@ -131,8 +186,14 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     write_summary(rows, out / "summary.csv", SUMMARY)
     post.save(out / "posterior.nc")
     bands = predict_observation_model(post, inp, None, seed=seed)
+    ex = None
+    if exact > 0:
+        log.info("exact check: reweighting %d surrogate draws by the FE likelihood", exact)
+        ex = exact_check(solver, store, h, setup, times, post, inp, ti, oi, exact, seed,
+                         progress)
+        write_summary(ex, out / "exact_check.csv", tuple(ex[0]))
     from solderpyro import report
 
-    report.write(out, meas, rows, post, loo, problems, bands, y_sim[-1], doe, ti, oi, nk)
+    report.write(out, meas, rows, post, loo, problems, bands, y_sim[-1], doe, ti, oi, nk, ex)
     print(format_summary(rows))
     return SpecimenCalibration(out, post, rows, loo, int(ok.sum()), int((~ok).sum()))
