@@ -16,18 +16,29 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def fig1(path, x, y, xg, bands, t_reg, true_fn) -> None:
-    """Data, the regression curve, the direct posterior predictive and the true process."""
+def _prediction(path, x, y, xg, bands, true_fn, label, color, title, extra=None) -> None:
+    """Predictive bands, the true process and the data on one axes (Figures 1 and 4)."""
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    plot_bands(ax, xg[:, 0], bands, "direct")
-    ax.plot(xg[:, 0], 5 * torch.exp(-t_reg * xg[:, 0]), "C1--", label=f"regression t={t_reg:.3f}")
+    plot_bands(ax, xg[:, 0], bands, label, color=color)
+    if extra is not None:
+        extra(ax)
     ax.plot(xg[:, 0], true_fn(xg[:, 0]), "k:", label="true process")
     ax.plot(x[:, 0], y, "k*", ms=9, label="data")
     ax.set_xlabel("x")
     ax.set_ylabel("y")
     ax.legend()
-    ax.set_title("Figure 1: data and direct calibration")
+    ax.set_title(title)
     _save(fig, path)
+
+
+def fig1(path, x, y, xg, bands, t_reg, true_fn) -> None:
+    """Data, the regression curve, the direct posterior predictive and the true process."""
+    def regression(ax):
+        ax.plot(xg[:, 0], 5 * torch.exp(-t_reg * xg[:, 0]), "C1--",
+                label=f"regression t={t_reg:.3f}")
+
+    _prediction(path, x, y, xg, bands, true_fn, "direct", "C0",
+                "Figure 1: data and direct calibration", regression)
 
 
 def fig2(path, post) -> None:
@@ -70,12 +81,5 @@ def fig3(path, xs, ts, ys, data, post, inp, code) -> None:
 
 def fig4(path, x, y, xg, bands, true_fn) -> None:
     """Full-joint posterior predictive against the true process."""
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    plot_bands(ax, xg[:, 0], bands, "full joint", color="C2")
-    ax.plot(xg[:, 0], true_fn(xg[:, 0]), "k:", label="true process")
-    ax.plot(x[:, 0], y, "k*", ms=9, label="data")
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
-    ax.legend()
-    ax.set_title("Figure 4: posterior prediction of the surrogate calibration")
-    _save(fig, path)
+    _prediction(path, x, y, xg, bands, true_fn, "full joint", "C2",
+                "Figure 4: posterior prediction of the surrogate calibration")
