@@ -36,8 +36,8 @@ def test_example_seed_math_contract(tmp_path):
         rows = _rows(tmp_path / name)
         assert rows[0] == ["parameter", "q2.5", "median", "q97.5"]
         assert [r[0] for r in rows[1:]] == params
-        for r in rows[1:]:
-            lo, med, hi = map(float, r[1:])
+        for row in rows[1:]:
+            lo, med, hi = map(float, row[1:])
             assert lo <= med <= hi
     reg = _rows(tmp_path / "regression.csv")
     assert reg[0] == ["t", "sigma"] and 0.2 < float(reg[1][0]) < 1.2
