@@ -76,7 +76,7 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
     f9 = save(plot_traces(post), "fig9_posterior.png")
     f10 = save(plot_model_vs_data(meas, {"posterior predictive": (
         bands.median.numpy(), bands.obs_lo.numpy(), bands.obs_hi.numpy())},
-        "Posterior predictive (95 % band of a new measurement) vs measurement (seed Fig. 10)"),
+        "Posterior predictive, 95 % band of a new measurement (seed Fig. 10)"),
         "fig10_predictive.png")
     fl = save(plot_validation(loo, "surrogate leave-one-out"), "surrogate_loo.png")
     rmse_liu = float(np.sqrt(np.mean((liu - meas.value_um) ** 2)))
