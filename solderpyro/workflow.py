@@ -174,7 +174,11 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     problems = gp.check(loo)
     sig = meas.sigma_um[np.isfinite(meas.sigma_um)]
     yr = float(y_obs.max() - y_obs.min())
-    pr = Priors(sigma_max=max(10 * float(sig.max()) if sig.size else 0.0, 0.5 * yr, 1e-3))
+    if sig.size == len(meas) and sig.size:  # the file states the noise: use it
+        pr = Priors(sigma_known=float(np.median(sig)))
+        log.info("noise: sigma_um from the data (%.3g um), known to ~10 %%", pr.sigma_known)
+    else:
+        pr = Priors(sigma_max=max(10 * float(sig.max()) if sig.size else 0.0, 0.5 * yr, 1e-3))
     nk: dict[str, Any] = dict(chains=4, warmup=500, draws=1000, seed=seed, progress=progress)
     nk.update(nuts or {})
     log.info("NUTS: %d chains x %d draws (modular KOH, code uncertainty from the GP)",

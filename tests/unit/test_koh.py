@@ -98,3 +98,21 @@ def test_weighted_quantiles_match_repeated_samples():
     # integer weights == repeating samples: weight 3 on 4.0 moves the median to 4.0's side
     w2 = torch.tensor([1.0, 1.0, 1.0, 3.0], dtype=DT) / 6
     assert weighted_quantiles(x, w2, (0.5,))[0] > 3.0
+
+
+def test_known_sigma_prior_is_centred_on_the_stated_noise():
+    import pyro
+
+    x, y = make_data(0)
+    pr = Priors(sigma_known=0.6)
+    from solderpyro.calibration.emulators import FunctionEmulator
+    from solderpyro.calibration.koh import observation_model, prepare_observation
+
+    inp = prepare_observation(y, FunctionEmulator(code, x), LHS_T)
+    draws = torch.stack([pyro.poutine.trace(observation_model).get_trace(inp, pr)
+                         .nodes["sigma"]["value"] for _ in range(2000)])
+    # LogNormal(log 0.6, 0.1): median 0.6, 95 % within a factor exp(0.196)
+    assert abs(draws.median().item() - 0.6) < 0.01
+    assert ((draws / 0.6).log().abs() < 0.196).double().mean().item() > 0.93
+    with pytest.raises(ValueError, match="Priors.sigma_known must be positive"):
+        Priors(sigma_known=-1.0)
