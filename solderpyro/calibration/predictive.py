@@ -82,9 +82,12 @@ def _conditional_draw(mean: torch.Tensor, cov: torch.Tensor, y: torch.Tensor, n_
     l11 = torch.linalg.cholesky(c11)
     a = torch.cholesky_solve(cov[:n_o, n_o:], l11)  # (n_o, n_p)
     m = mean[n_o:] + a.T @ (y - mean[:n_o])
-    c = cov[n_o:, n_o:] - cov[n_o:, :n_o] @ a
-    c = 0.5 * (c + c.T)
-    ev, evec = torch.linalg.eigh(c)
+    return _gaussian_draw(m, cov[n_o:, n_o:] - cov[n_o:, :n_o] @ a, gen)
+
+
+def _gaussian_draw(m: torch.Tensor, c: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """One draw of N(m, c); c is symmetrized and its round-off negative eigenvalues clipped."""
+    ev, evec = torch.linalg.eigh(0.5 * (c + c.T))
     e = torch.randn(m.shape[0], generator=gen, dtype=m.dtype, device=m.device)
     return m + evec @ (ev.clamp_min(0).sqrt() * e)
 
@@ -125,10 +128,7 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
             if cov is None:
                 draw = mean[n_o:]
             elif not cond:
-                c = cov[n_o:, n_o:]
-                ev, evec = torch.linalg.eigh(0.5 * (c + c.T))
-                e = torch.randn(ev.shape[0], generator=gen, dtype=ev.dtype)
-                draw = mean[n_o:] + evec @ (ev.clamp_min(0).sqrt() * e)
+                draw = _gaussian_draw(mean[n_o:], cov[n_o:, n_o:], gen)
             else:
                 draw = _conditional_draw(mean, cov, y, n_o, sigma.square(), gen)
         proc.append(draw)
