@@ -34,6 +34,7 @@ from scipy.stats import qmc  # noqa: E402
 
 from solderpyro.calibration import CalibrationData, Priors, calibrate_direct, calibrate_joint  # noqa: E402,E501
 from solderpyro.calibration.koh import prepare_joint  # noqa: E402
+from solderpyro.calibration.mcmc import flatten_sites  # noqa: E402
 from solderpyro.examples.seed_math import X_OBS, code, make_data  # noqa: E402
 from solderpyro.params import Box  # noqa: E402
 
@@ -130,28 +131,12 @@ def _run_numpyro(model, chains, warmup, draws, seed, random, dense=False):
               num_chains=chains, chain_method="sequential", progress_bar=False)
     mc.run(random.PRNGKey(seed))
     sec = time.perf_counter() - t0
-    s = mc.get_samples(group_by_chain=True)
-    cols = {}
-    for k, v in s.items():
-        a = np.asarray(v)
-        if a.ndim == 2:
-            cols[k] = a
-        else:
-            for i in range(a.shape[-1]):
-                cols[f"{k}[{i}]"] = a[..., i]
-    return cols, sec
+    return flatten_sites(mc.get_samples(group_by_chain=True)), sec
 
 
 def raw_cols(post) -> dict[str, np.ndarray]:
-    cols = {}
-    for k, v in post.raw.items():
-        a = v.numpy()
-        if a.ndim == 2:
-            cols[k] = a
-        else:
-            for i in range(a.shape[-1]):
-                cols[f"{k}[{i}]"] = a[..., i]
-    return cols
+    """The sampler's own sites of a solderpyro posterior, named as on the NumPyro side."""
+    return flatten_sites(post.raw)
 
 
 def main() -> None:

@@ -17,9 +17,8 @@ import hydra
 from omegaconf import DictConfig
 
 from solderpyro.configure import build
-from solderpyro.fem.problem import reference_grid
 from solderpyro.io.measurements import read_measurements
-from solderpyro.workflow import calibrate_specimen
+from solderpyro.workflow import calibrate_specimen, output_points
 
 log = logging.getLogger(__name__)
 
@@ -29,10 +28,8 @@ def main(cfg: DictConfig) -> None:
     if not cfg.data.path:
         raise SystemExit("set data.path=FILE.csv (a measurement CSV, shared/data-format.md)")
     setup = build(cfg)
-    labels, pts = reference_grid()
-    valid = {**{k: tuple(v) for k, v in setup.problem.points.items()},
-             **{lab: (float(x), float(y)) for lab, (x, y) in zip(labels, pts, strict=True)}}
-    meas = read_measurements(hydra.utils.to_absolute_path(cfg.data.path), valid_points=valid)
+    meas = read_measurements(hydra.utils.to_absolute_path(cfg.data.path),
+                             valid_points=output_points(setup.problem))
     out = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     c = cfg.calibration
     res = calibrate_specimen(setup, meas, out, n_runs=int(c.runs), seed=int(c.seed),

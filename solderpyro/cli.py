@@ -174,15 +174,11 @@ def cmd_koh(a, overrides) -> int:
 
 
 def cmd_calibrate(a, overrides) -> int:
-    from .fem.problem import reference_grid
     from .io.measurements import read_measurements
-    from .workflow import calibrate_specimen
+    from .workflow import calibrate_specimen, output_points
 
     setup = _setup(overrides)
-    labels, pts = reference_grid()
-    valid = {**{k: tuple(v) for k, v in setup.problem.points.items()},
-             **{lab: (float(x), float(y)) for lab, (x, y) in zip(labels, pts, strict=True)}}
-    meas = read_measurements(a.data, valid_points=valid)
+    meas = read_measurements(a.data, valid_points=output_points(setup.problem))
     if a.runs < 5:
         raise ValueError(f"--runs must be at least 5, got {a.runs}")
     res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,

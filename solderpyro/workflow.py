@@ -98,6 +98,17 @@ class SpecimenCalibration:
     n_runs_failed: int
 
 
+def output_points(problem: Any) -> dict[str, tuple[float, float]]:
+    """Every label a measurement may name: the problem's points (A, B) and the 31 x 18 grid.
+
+    Returns:
+        label -> (x_mm, y_mm), for ``read_measurements(valid_points=...)``.
+    """
+    labels, pts = reference_grid()
+    return {**{k: (float(v[0]), float(v[1])) for k, v in problem.points.items()},
+            **{lab: (float(x), float(y)) for lab, (x, y) in zip(labels, pts, strict=True)}}
+
+
 def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple[str, ...]
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Where each measured row sits in the model output ``(n_time, n_out)``.

@@ -87,10 +87,12 @@ def _uniform(lo: float | torch.Tensor, hi: float | torch.Tensor, n: int | None,
     return d if n is None else d.expand([n]).to_event(1)
 
 
-def _sigma_prior(priors: Priors, y_range: float, tkw: dict[str, Any]) -> dist.Distribution:
+def _sigma_prior(priors: Priors, y: torch.Tensor, tkw: dict[str, Any]) -> dist.Distribution:
+    """Known noise (LogNormal) or flat on (0, sigma_max); sigma_max defaults to 2 x range(y)."""
     if priors.sigma_known is not None:
         return dist.LogNormal(torch.tensor(math.log(priors.sigma_known), **tkw),
                               torch.tensor(0.1, **tkw))
+    y_range = (y.max() - y.min()).item() if y.shape[0] > 1 else y.abs().item()
     return _uniform(0.0, priors.sigma_max or 2 * max(y_range, 1e-12), None, tkw)
 
 
@@ -223,9 +225,8 @@ def joint_model(inp: JointInputs, priors: Priors) -> None:
     """The seed's full-joint KOH posterior (Eq. 5-8) as a Pyro model (beta integrated out)."""
     d = inp.data
     tkw: dict[str, Any] = dict(dtype=inp.z.dtype, device=inp.z.device)
-    yr = (d.y_obs.max() - d.y_obs.min()).item() if d.n_obs > 1 else d.y_obs.abs().item()
     t_unit = _site(priors, SITE_T, _uniform(0.0, 1.0, d.theta_box.dim, tkw))
-    sigma = _site(priors, SITE_SIGMA, _sigma_prior(priors, yr, tkw))
+    sigma = _site(priors, SITE_SIGMA, _sigma_prior(priors, d.y_obs, tkw))
     sigma_c = _site(priors, SITE_SIGMA_C, _uniform(0.0, priors.sigma_c_max or 10 * inp.y_scale,
                                                    None, tkw))
     corr = _site(priors, SITE_CORR, _corr_prior(priors, inp.n_corr, tkw))
@@ -289,10 +290,9 @@ def observation_model(inp: ObsInputs, priors: Priors) -> None:
     """Direct or modular KOH posterior as a Pyro model."""
     y = inp.y_obs
     tkw: dict[str, Any] = dict(dtype=y.dtype, device=y.device)
-    yr = (y.max() - y.min()).item() if y.shape[0] > 1 else y.abs().item()
     t_unit = _site(priors, SITE_T, _uniform(0.0, 1.0, inp.theta_box.dim, tkw))
     mean, cov = inp.emulator(inp.theta_box.from_unit(t_unit))
-    sigma = _site(priors, SITE_SIGMA, _sigma_prior(priors, yr, tkw))
+    sigma = _site(priors, SITE_SIGMA, _sigma_prior(priors, y, tkw))
     k_delta = None
     if inp.discrepancy:
         assert inp.u_x is not None

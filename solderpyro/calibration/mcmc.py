@@ -26,6 +26,26 @@ def _arviz() -> Any:
     return az
 
 
+def flatten_sites(samples: dict[str, Any], labels: dict[str, list[str]] | None = None
+                  ) -> dict[str, np.ndarray]:
+    """Sites ``(chain, draw, ...)`` -> scalar columns ``(chain, draw)`` by display name.
+
+    A vector site becomes one column per element, named by ``labels[site]`` or ``site[i]``.
+    Accepts torch tensors or array-likes (e.g. NumPyro's jax arrays).
+    """
+    out = {}
+    for site, v in samples.items():
+        a = v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else np.asarray(v)
+        if a.ndim == 2:
+            out[site] = a
+            continue
+        a = a.reshape(a.shape[0], a.shape[1], -1)
+        names = (labels or {}).get(site) or [f"{site}[{i}]" for i in range(a.shape[2])]
+        for i, nm in enumerate(names):
+            out[nm] = a[:, :, i]
+    return out
+
+
 @dataclass
 class Posterior:
     """Posterior draws and sampler diagnostics.
@@ -55,17 +75,7 @@ class Posterior:
 
     def columns(self) -> dict[str, np.ndarray]:
         """Scalar parameters by display name -> ``(chain, draw)`` arrays."""
-        out = {}
-        for site, v in self.samples.items():
-            a = v.detach().cpu().numpy()
-            if a.ndim == 2:
-                out[site] = a
-            else:
-                a = a.reshape(a.shape[0], a.shape[1], -1)
-                names = self.labels.get(site) or [f"{site}[{i}]" for i in range(a.shape[2])]
-                for i, nm in enumerate(names):
-                    out[nm] = a[:, :, i]
-        return out
+        return flatten_sites(self.samples, self.labels)
 
     def to_inference_data(self) -> Any:
         """ArviZ InferenceData (posterior group; divergences in sample_stats)."""
