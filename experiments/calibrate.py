@@ -36,8 +36,18 @@ def main(cfg: DictConfig) -> None:
                              store_root=hydra.utils.to_absolute_path(c.store),
                              batch_size=int(c.batch),
                              nuts=dict(chains=int(c.chains), warmup=int(c.warmup),
-                                       draws=int(c.draws)), **setup.surrogate)
-    log.info("report: %s", res.out / "report.md")
+                                       draws=int(c.draws)),
+                             record={"overrides": _task_overrides(), "data": str(cfg.data.path)},
+                             **setup.surrogate)
+    log.info("report: %s", res.out / "report.html")
+
+
+def _task_overrides() -> list[str]:
+    """The command line's config overrides (kept in run.json for ``solderpyro diagnose``)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return [o for o in HydraConfig.get().overrides.task
+            if not o.startswith(("data.", "calibration.", "hydra."))]
 
 
 if __name__ == "__main__":

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import html
+import re
 from pathlib import Path
 from typing import Any
 
@@ -128,4 +130,69 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
               "(ArviZ InferenceData)."]
     p = out / "report.md"
     p.write_text("\n".join(lines) + "\n")
+    write_html(lines, out / "report.html", "solderpyro calibration report")
     return p
+
+
+def _inline(text: str) -> str:
+    """Markdown inline code and bold -> HTML (text is escaped first)."""
+    t = html.escape(text, quote=False)
+    t = re.sub(r"`([^`]+)`", r"<code>\1</code>", t)
+    return re.sub(r"\*\*([^*]+)\*\*", r"<b>\1</b>", t)
+
+
+def markdown_to_html(lines: list[str], title: str) -> str:
+    """The report's Markdown subset (headings, lists, tables, images, paragraphs) as a
+    self-contained HTML page; figures stay beside it as relative links.
+
+    Args:
+        lines: Markdown lines as written to ``report.md``.
+        title: the page title.
+    Returns:
+        the HTML text.
+    """
+    body: list[str] = []
+    i = 0
+    while i < len(lines):
+        ln = lines[i]
+        if ln.startswith("#"):
+            k = len(ln) - len(ln.lstrip("#"))
+            body.append(f"<h{k}>{_inline(ln[k:].strip())}</h{k}>")
+        elif ln.startswith("|"):
+            rows = []
+            while i < len(lines) and lines[i].startswith("|"):
+                rows.append([c.strip() for c in lines[i].strip().strip("|").split("|")])
+                i += 1
+            head, rest = rows[0], [r for r in rows[1:] if not set("".join(r)) <= set("-: ")]
+            body.append("<table><tr>" + "".join(f"<th>{_inline(c)}</th>" for c in head)
+                        + "</tr>" + "".join("<tr>" + "".join(f"<td>{_inline(c)}</td>"
+                                                             for c in r) + "</tr>"
+                                            for r in rest) + "</table>")
+            continue
+        elif ln.startswith("- "):
+            items = []
+            while i < len(lines) and lines[i].startswith("- "):
+                items.append(f"<li>{_inline(lines[i][2:])}</li>")
+                i += 1
+            body.append("<ul>" + "".join(items) + "</ul>")
+            continue
+        elif (m := re.fullmatch(r"!\[([^\]]*)\]\(([^)]+)\)", ln.strip())):
+            body.append(f'<figure><img src="{html.escape(m.group(2))}" '
+                        f'alt="{html.escape(m.group(1))}"><figcaption>'
+                        f"{html.escape(m.group(1))}</figcaption></figure>")
+        elif ln.strip():
+            body.append(f"<p>{_inline(ln)}</p>")
+        i += 1
+    style = ("body{font-family:sans-serif;max-width:60em;margin:2em auto;padding:0 1em}"
+             "table{border-collapse:collapse}td,th{border:1px solid #bbb;padding:.2em .6em;"
+             "text-align:right}th{background:#eee}img{max-width:100%}"
+             "figcaption{color:#555;font-size:.9em}")
+    return (f"<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>{html.escape(title)}"
+            f"</title><style>{style}</style></head><body>\n" + "\n".join(body)
+            + "\n</body></html>\n")
+
+
+def write_html(lines: list[str], path: Path, title: str) -> Path:
+    """Write :func:`markdown_to_html` of ``lines`` to ``path``; returns the path."""
+    path.write_text(markdown_to_html(lines, title), encoding="utf-8")
+    return path

@@ -10,6 +10,7 @@ NUTS -> summary table (seed Table V layout), InferenceData, figures and ``report
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors, calibrate_modular, predict_observation_model
+from solderpyro.calibration.koh import emulator_lowrank
 from solderpyro.calibration.mcmc import Posterior, format_summary, write_summary
 from solderpyro.configure import Setup
 from solderpyro.design import lhs
@@ -67,9 +69,14 @@ def exact_check(solver: SpecimenSolver, store: RunStore, cfg_hash: str, setup: S
         if not bool(doe.ok[i]):
             continue
         with torch.no_grad():
-            m, c = inp.emulator(t[i])
-            cs = c + sig[i] ** 2 * torch.eye(y.shape[0], dtype=y.dtype)
-            l_sur = torch.distributions.MultivariateNormal(m, cs).log_prob(y)
+            lr = emulator_lowrank(inp.emulator, t[i])
+            if lr is not None:
+                l_sur = torch.distributions.LowRankMultivariateNormal(
+                    lr[0], lr[1], lr[2] + sig[i] ** 2).log_prob(y)
+            else:
+                m, c = inp.emulator(t[i])
+                cs = c + sig[i] ** 2 * torch.eye(y.shape[0], dtype=y.dtype)
+                l_sur = torch.distributions.MultivariateNormal(m, cs).log_prob(y)
             l_fe = torch.distributions.Normal(doe.V[i, ti, oi], sig[i]).log_prob(y).sum()
         lw[i] = l_fe - l_sur
     w = torch.exp(lw - lw.max())
@@ -133,11 +140,39 @@ def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple
     return ti, oi
 
 
+RUN_FILES = ("run.json", "data.csv", "draws.npz")
+
+
+def save_run(out: Path, meas: Measurements, setup: Setup, post: Posterior, bands: Any,
+             y_obs: torch.Tensor, y_liu: torch.Tensor, priors: Priors,
+             record: dict[str, Any]) -> None:
+    """Keep what a later ``solderpyro diagnose`` needs in the run directory.
+
+    Writes ``data.csv`` (the measurements, exact round trip), ``draws.npz`` (flat posterior
+    draws ``theta (n, dim)`` in physical units with ``names``, ``sigma (n,)`` in um, the
+    predictive ``process (n_pred, n_obs)`` and ``observed (n_pred, n_obs)`` draws, ``y_obs`` and
+    the Liu-constants model ``y_liu``, all in um) and ``run.json`` (settings, parameter box).
+    """
+    from solderpyro.io.measurements import write_measurements
+
+    write_measurements(out / "data.csv", meas)
+    np.savez(out / "draws.npz", theta=post.flat("t").numpy(), sigma=post.flat("sigma").numpy(),
+             names=np.array(setup.space.names), process=bands.draws.numpy(),
+             observed=bands.obs_draws.numpy(), y_obs=y_obs.numpy(), y_liu=y_liu.numpy())
+    sp = setup.space
+    info = {**record, "parameters": list(sp.names), "lower": list(sp.lower),
+            "upper": list(sp.upper), "sigma_known": priors.sigma_known,
+            "effects": list(getattr(setup, "effects", ()) or ()),
+            "times_s": [float(t) for t in meas.times()], "points": list(meas.points())}
+    (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
+
+
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs: int = 50,
                        seed: int = 0, store_root: str | Path = "runs/store",
                        batch_size: int = 64, nuts: dict[str, Any] | None = None,
                        progress: bool = True, kernel: str = "gaussian", ard: bool = True,
-                       mean: str = "constant", exact: int = 0) -> SpecimenCalibration:
+                       mean: str = "constant", exact: int = 0,
+                       record: dict[str, Any] | None = None) -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
 
     Args:
@@ -149,6 +184,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         kernel, ard, mean: the GP surrogate's settings (see :class:`GPSurrogate`).
         exact: if > 0, reweight that many surrogate draws by the exact FE likelihood
             (:func:`exact_check`) and write ``exact_check.csv``.
+        record: how the run was asked for (e.g. ``{"overrides": [...]}``), kept in
+            ``run.json`` so that ``solderpyro diagnose`` can rebuild the model.
 
     Returns:
         :class:`SpecimenCalibration`; writes summary.csv, posterior.nc, figures, report.md.
@@ -201,6 +238,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     write_summary(rows, out / "summary.csv", SUMMARY)
     post.save(out / "posterior.nc")
     bands = predict_observation_model(post, inp, None, seed=seed)
+    save_run(out, meas, setup, post, bands, y_obs, y_sim[-1], pr,
+             {**(record or {}), "n_runs": n_runs, "seed": seed, "store": str(store_root),
+              "kernel": kernel, "ard": ard, "mean": mean, "surrogate_output": output,
+              "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95)})
     ex = None
     if exact > 0:
         log.info("exact check: reweighting %d surrogate draws by the FE likelihood", exact)

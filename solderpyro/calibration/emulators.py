@@ -67,3 +67,12 @@ class GPEmulator:
         xx = self.x_obs if x is None else x
         inp = torch.cat([xx, t.expand(xx.shape[0], t.shape[-1])], dim=-1)  # (n, n_x + n_theta)
         return self.gp.mean_cov(inp)
+
+    def lowrank(self, t: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """``(mean (n_obs,), F (n_obs, k), d (n_obs,))`` with code covariance ``F F^T + diag(d)``
+        for a PCA surrogate of the observations (``x_obs=None``); None for other layouts, whose
+        covariance :meth:`__call__` gives densely."""
+        if self.x_obs is not None or self.gp.output != "pca":
+            return None
+        return self.gp.mean_lowrank(t)

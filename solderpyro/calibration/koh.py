@@ -286,12 +286,26 @@ def observation_covariance(inp: ObsInputs, cov: torch.Tensor | None, sigma: torc
     return out if k_delta is None else out + k_delta
 
 
+def emulator_lowrank(emulator: Any, t: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The emulator's low-rank form ``(mean, F, d)`` at ``t`` when it has one (PCA), else None."""
+    lr = getattr(emulator, "lowrank", None)
+    return None if lr is None else lr(t)
+
+
 def observation_model(inp: ObsInputs, priors: Priors) -> None:
     """Direct or modular KOH posterior as a Pyro model."""
     y = inp.y_obs
     tkw: dict[str, Any] = dict(dtype=y.dtype, device=y.device)
     t_unit = _site(priors, SITE_T, _uniform(0.0, 1.0, inp.theta_box.dim, tkw))
-    mean, cov = inp.emulator(inp.theta_box.from_unit(t_unit))
+    t = inp.theta_box.from_unit(t_unit)
+    lr = None if inp.discrepancy else emulator_lowrank(inp.emulator, t)
+    if lr is not None:  # PCA surrogate (full field): Woodbury, O(n k^2) per evaluation
+        sigma = _site(priors, SITE_SIGMA, _sigma_prior(priors, y, tkw))
+        pyro.sample(SITE_Y, dist.LowRankMultivariateNormal(lr[0], lr[1],
+                                                           lr[2] + sigma.square()), obs=y)
+        return
+    mean, cov = inp.emulator(t)
     sigma = _site(priors, SITE_SIGMA, _sigma_prior(priors, y, tkw))
     k_delta = None
     if inp.discrepancy:

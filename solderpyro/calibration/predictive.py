@@ -22,6 +22,7 @@ from solderpyro.calibration.koh import (
     ObsInputs,
     _basis,
     _corr,
+    emulator_lowrank,
 )
 from solderpyro.calibration.mcmc import Posterior
 from solderpyro.surrogate.kernels import gaussian
@@ -118,6 +119,16 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
         t = inp.theta_box.from_unit(_raw(post, SITE_T, i))
         sigma = _raw(post, SITE_SIGMA, i)
         with torch.no_grad():
+            lr = None if (x_new is not None or cond or inp.discrepancy) else \
+                emulator_lowrank(inp.emulator, t)
+            if lr is not None:  # PCA: draw through the factor, never forming the n x n cov
+                m0, F, dg = lr
+                draw = m0 + F @ torch.randn(F.shape[1], generator=gen, dtype=m0.dtype) \
+                    + dg.sqrt() * torch.randn(m0.shape, generator=gen, dtype=m0.dtype)
+                proc.append(draw)
+                obs.append(draw + sigma * torch.randn(draw.shape, generator=gen,
+                                                      dtype=draw.dtype))
+                continue
             mean, cov = _stacked(inp, t, x_new)
             if inp.discrepancy:
                 assert inp.u_x is not None

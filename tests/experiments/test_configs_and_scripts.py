@@ -1,5 +1,6 @@
 """Every config composes into typed objects; every experiment script and CLI command runs tiny."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -161,3 +162,25 @@ def test_calibrate_experiment_script_runs_tiny(tmp_path):
     rows = (tmp_path / "run" / "summary.csv").read_text().splitlines()
     assert [x.split(",")[0] for x in rows[1:]] == ["s0", "QR", "xi", "m", "sigma"]
     assert (tmp_path / "run" / "report.md").exists()
+
+
+def test_calibrate_full_field_tiny(tmp_path):
+    """Full-field data (the 31 x 18 grid) go through the PCA surrogate and the low-rank
+    likelihood; the run directory has everything a diagnosis needs."""
+    data = tmp_path / "field.csv"
+    assert main(["simulate", "--theta", "s0=12.9,m=0.1", "--field", "--noise", "0.05",
+                 "--out", str(data), "--quiet", *TINY]) == 0
+    m = read_measurements(data)
+    assert len(m) > 1000
+    out = tmp_path / "run"
+    assert main(["calibrate", "--data", str(data), "--out", str(out), "--store",
+                 str(tmp_path / "store"), *CAL_TINY, *TINY]) == 0
+    info = json.loads((out / "run.json").read_text())
+    assert info["surrogate_output"] == "pca" and info["overrides"] == TINY
+    for f in ("report.html", "report.md", "summary.csv", "posterior.nc", "draws.npz",
+              "data.csv", "fig10_predictive.png"):
+        assert (out / f).stat().st_size > 100, f
+    with np.load(out / "draws.npz") as z:
+        assert z["process"].shape[1] == len(m) and z["theta"].shape[1] == 4
+    html = (out / "report.html").read_text()
+    assert "<table>" in html and 'src="fig10_predictive.png"' in html

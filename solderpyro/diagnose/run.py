@@ -1,0 +1,371 @@
+"""``solderpyro diagnose RUN_DIR``: does the calibrated model fit, and which effect is missing?
+
+Data flow: the run directory of ``solderpyro calibrate`` (``run.json``, ``data.csv``,
+``draws.npz``) -> posterior predictive checks of the surrogate predictive (with code
+uncertainty) -> the FE at a few posterior draws, with every candidate effect switched on at
+"off", and finite-difference Jacobians w.r.t. the calibrated parameters and each effect's
+parameters -> misfit chi-square after a linearised refit and a score test per effect
+(:mod:`solderpyro.diagnose.stats`) -> ranking, confusions, verdict -> ``diagnosis.json``,
+``diagnosis.md`` and figures.
+
+The FE is exact (no code uncertainty), so the misfit and score statistics are measured against
+the measurement noise alone: the noise the data file states (``sigma_um``) when there is one,
+otherwise the posterior median of sigma.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from solderpyro.diagnose.stats import (
+    Misfit,
+    PredictiveCheck,
+    Score,
+    confusion,
+    misfit,
+    predictive_check,
+    score_test,
+)
+
+log = logging.getLogger("solderpyro")
+
+#: significance of the misfit test and (Bonferroni over candidates) of each effect
+ALPHA = 0.01
+#: an effect whose signature the calibrated parameters can mimic to within this share
+#: cannot be identified from the data
+MIN_IDENTIFIABLE = 0.05
+#: canonical correlation above which two effects cannot be told apart
+MAX_CONFUSION = 0.9
+
+
+@dataclass
+class Diagnosis:
+    """What :func:`diagnose` found (also written to ``diagnosis.json``)."""
+
+    misfit: bool
+    verdict: str
+    ranking: list[dict]
+    check: dict
+    indistinguishable: list[list[str]]
+    suggestions: list[str]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"misfit": self.misfit, "verdict": self.verdict, "ranking": self.ranking,
+                "check": self.check, "indistinguishable": self.indistinguishable,
+                "suggestions": self.suggestions}
+
+
+def load_run(run_dir: str | Path) -> dict[str, Any]:
+    """Read what ``solderpyro calibrate`` left in ``run_dir`` for a diagnosis.
+
+    Returns:
+        dict with ``info`` (run.json), ``setup`` (:class:`~solderpyro.configure.Setup`),
+        ``meas`` (measurements), ``draws`` (arrays of draws.npz).
+    Raises:
+        FileNotFoundError naming the missing file.
+    """
+    from solderpyro.configure import build, compose
+    from solderpyro.io.measurements import read_measurements
+    from solderpyro.workflow import RUN_FILES, output_points
+
+    d = Path(run_dir)
+    for f in RUN_FILES:
+        if not (d / f).is_file():
+            raise FileNotFoundError(f"{d / f} is missing: RUN_DIR must be a directory written "
+                                    "by 'solderpyro calibrate' (this version)")
+    info = json.loads((d / "run.json").read_text())
+    setup = build(compose(list(info.get("overrides", []))))
+    meas = read_measurements(d / "data.csv", valid_points=output_points(setup.problem))
+    with np.load(d / "draws.npz") as z:
+        draws = {k: z[k] for k in z.files}
+    return {"info": info, "setup": setup, "meas": meas, "draws": draws}
+
+
+def _pick_draws(theta: np.ndarray, k: int, seed: int) -> np.ndarray:
+    """Row indices: the draw nearest the component-wise median (scaled), then random ones."""
+    med = np.median(theta, 0)
+    sc = theta.std(0) + 1e-300
+    first = int(np.argmin((((theta - med) / sc) ** 2).sum(1)))
+    rng = np.random.default_rng(seed)
+    rest = rng.choice(np.delete(np.arange(len(theta)), first), size=max(k - 1, 0),
+                      replace=False)
+    return np.concatenate([[first], rest]).astype(int)
+
+
+@dataclass
+class _Columns:
+    """Finite-difference design: which FE member perturbs which parameter column."""
+
+    names: list[str]  # every column: calibrated parameters, then candidates' parameters
+    owner: list[str]  # "theta" or the effect's name
+    step: np.ndarray  # physical step per column
+    central: np.ndarray  # bool per column
+
+
+def _fd_design(box_names, box_lo, box_hi, cands: dict[str, Any], rel: float) -> _Columns:
+    names, owner, step, central = [], [], [], []
+    for nm, lo, hi in zip(box_names, box_lo, box_hi, strict=True):
+        names.append(nm)
+        owner.append("theta")
+        step.append(rel * (hi - lo))
+        central.append(True)
+    for ename, eff in cands.items():
+        pb = eff.params
+        for j, nm in enumerate(pb.names):
+            off = float(eff.off[j])
+            lo, hi = float(pb.lower[j]), float(pb.upper[j])
+            names.append(nm)
+            owner.append(ename)
+            step.append(rel * (hi - lo))
+            central.append(off - rel * (hi - lo) >= lo)  # one-sided at the box edge
+    return _Columns(names, owner, np.array(step), np.array(central))
+
+
+def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
+                 candidates: tuple[str, ...], times: tuple[float, ...], field: bool,
+                 rel: float = 1e-3, progress: bool = True) -> dict[str, Any]:
+    """FE outputs and finite-difference Jacobians at calibrated draws, candidates at "off".
+
+    Args:
+        setup: typed problem and parameter box; ``setup.space`` are the calibrated Anand
+            constants.
+        theta: ``(K, n_cal)`` calibrated parameter draws (Anand constants of ``setup.space``,
+            then the run's own effects' parameters), physical units.
+        run_effects: effects already on in the calibration; candidates: effects to test.
+        times: output times, s; field: also the 31 x 18 grid.
+        rel: step as a share of each parameter's box width (one-sided at a box edge).
+    Returns:
+        dict: ``V (K, n_time, n_out)`` at the draws (um), ``J (K, n_time, n_out, n_col)``
+        (um per unit), ``cols`` (:class:`_Columns`), ``names`` (output labels), ``times``.
+    """
+    from solderpyro.effects import EFFECTS
+    from solderpyro.fem.problem import reference_grid
+    from solderpyro.fem.solver import SpecimenSolver
+
+    effs = tuple(run_effects) + tuple(candidates)
+    cands = {n: EFFECTS[n] for n in candidates}
+    sp = setup.space
+    names = list(sp.names)
+    lo, hi = list(sp.lower), list(sp.upper)
+    for n in run_effects:
+        pb = EFFECTS[n].params
+        names += list(pb.names)
+        lo += list(pb.lower)
+        hi += list(pb.upper)
+    cols = _fd_design(names, lo, hi, cands, rel)
+    n_cal = len(names)
+    off = np.concatenate([np.asarray(EFFECTS[n].off, float) for n in candidates]) \
+        if candidates else np.zeros(0)
+    solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
+                            dtype=setup.dtype, device=setup.device, effects=effs)
+    rows = []
+    for th in theta:
+        base = np.concatenate([th, off])
+        rows.append(base)
+        for c in range(len(cols.names)):
+            e = np.zeros_like(base)
+            e[c] = cols.step[c]
+            rows.append(base + e)
+            if cols.central[c]:
+                rows.append(base - e)
+    P = torch.tensor(np.array(rows), dtype=torch.float64)
+    full = torch.cat([sp.full(P[:, :sp.n_theta]), P[:, sp.n_theta:]], 1)
+    log.info("diagnose: %d FE runs (%d draws x %d Jacobian columns, candidates: %s)",
+             len(rows), len(theta), len(cols.names), ", ".join(candidates) or "none")
+    res = solver.solve(full, times, progress=progress)
+    V = res.V.detach().numpy()
+    if not bool(res.ok.all()):
+        bad = [r for r in res.reasons if r]
+        raise RuntimeError(f"{len(bad)} FE runs of the diagnosis failed: {bad[:2]}")
+    K = len(theta)
+    Vb = np.empty((K, *V.shape[1:]))
+    J = np.empty((K, *V.shape[1:], len(cols.names)))
+    i = 0
+    for k in range(K):
+        Vb[k] = V[i]
+        i += 1
+        for c in range(len(cols.names)):
+            plus = V[i]
+            i += 1
+            if cols.central[c]:
+                J[k, ..., c] = (plus - V[i]) / (2 * cols.step[c])
+                i += 1
+            else:
+                J[k, ..., c] = (plus - Vb[k]) / cols.step[c]
+    return {"V": Vb, "J": J, "cols": cols, "names": list(res.names), "n_cal": n_cal,
+            "times": tuple(float(t) for t in res.times)}
+
+
+def _group(cols: _Columns, owner: str) -> np.ndarray:
+    return np.array([j for j, o in enumerate(cols.owner) if o == owner], dtype=int)
+
+
+def analyse(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: _Columns, sigma: float,
+            ) -> tuple[Misfit, list[Score], list[list[Score]]]:
+    """Misfit and score tests at each draw.
+
+    Args:
+        y: ``(n,)`` data, um; V: ``(K, n)`` FE at the draws; J: ``(K, n, n_col)`` Jacobians;
+        cols: columns; sigma: noise sd, um.
+    Returns:
+        ``(misfit at the first draw, scores at the first draw (one per candidate), scores per
+        draw)``.
+    """
+    w = np.full(len(y), 1.0 / sigma**2)
+    th = _group(cols, "theta")
+    effects = [o for o in dict.fromkeys(cols.owner) if o != "theta"]
+    per_draw = []
+    for k in range(V.shape[0]):
+        r = y - V[k]
+        per_draw.append([score_test(e, r, J[k][:, th], J[k][:, _group(cols, e)], w)
+                         for e in effects])
+    return misfit(y - V[0], J[0][:, th], w), per_draw[0], per_draw
+
+
+def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_draws: int = 3,
+             seed: int = 0, progress: bool = True) -> Diagnosis:
+    """Diagnose the calibration in ``run_dir``; writes diagnosis.json, diagnosis.md, figures.
+
+    Args:
+        run_dir: a directory written by ``solderpyro calibrate``.
+        candidates: effect names to test (default: every registered effect that the run did
+            not switch on).
+        n_draws: posterior draws at which the FE and its Jacobians are evaluated (the first is
+            the one nearest the posterior median; the ranking uses it, the others show how
+            stable the evidence is over the posterior).
+    Returns:
+        :class:`Diagnosis`.
+    """
+    from solderpyro.effects import EFFECTS
+    from solderpyro.workflow import observation_index
+
+    d = Path(run_dir)
+    run = load_run(d)
+    info, setup, meas, dr = run["info"], run["setup"], run["meas"], run["draws"]
+    run_effects = tuple(info.get("effects", []))
+    if candidates is None:
+        candidates = tuple(n for n in EFFECTS if n not in run_effects)
+    unknown = [c for c in candidates if c not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effect(s) {unknown}; valid: {', '.join(EFFECTS)}")
+    y = np.asarray(meas.value_um, float)
+    sigma_draws = dr["sigma"]
+    sig_known = info.get("sigma_known")
+    sigma = float(sig_known) if sig_known else float(np.median(sigma_draws))
+    rng = np.random.default_rng(seed)
+    sig_pred = rng.choice(sigma_draws, size=dr["process"].shape[0])
+    pc = predictive_check(y, dr["process"], sig_pred, seed=seed)
+    field = any(p not in setup.problem.points for p in meas.points())
+    times = tuple(float(t) for t in meas.times())
+    idx = _pick_draws(dr["theta"], n_draws, seed)
+    fe = fe_jacobians(setup, dr["theta"][idx], run_effects, candidates, times, field,
+                      progress=progress)
+    ti, oi = observation_index(meas, fe["times"], tuple(fe["names"]))
+    V = fe["V"][:, ti, oi]
+    J = fe["J"][:, ti, oi, :]
+    mf, scores, per_draw = analyse(y, V, J, fe["cols"], sigma)
+    diag = _verdict(mf, pc, scores, per_draw, sigma, len(candidates))
+    _write(d, diag, meas, mf, pc, scores, V[0], sigma)
+    return diag
+
+
+def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
+             per_draw: list[list[Score]], sigma: float, n_cand: int) -> Diagnosis:
+    bad = mf.p_value < ALPHA
+    order = sorted(range(len(scores)), key=lambda i: -scores[i].evidence)
+    ranking: list[dict[str, Any]] = []
+    for i in order:
+        s = scores[i]
+        ev_draws = [pd[i].evidence for pd in per_draw]
+        flag = bad and s.p_value < ALPHA / max(n_cand, 1) \
+            and s.identifiable >= MIN_IDENTIFIABLE
+        ranking.append({
+            "effect": s.effect, "evidence": round(float(s.evidence), 4),
+            "statistic": float(s.statistic), "dof": s.dof, "p_value": float(s.p_value),
+            "identifiable": float(s.identifiable),
+            "explained_share": float(s.statistic / mf.chi2) if mf.chi2 > 0 else 0.0,
+            "chi2_after": float(s.chi2_after),
+            "rms_after_um": float(np.sqrt(max(s.chi2_after, 0.0) / len(mf.residual)) * sigma),
+            "delta": [float(v) for v in s.delta], "flagged": bool(flag),
+            "evidence_over_draws": [round(float(e), 3) for e in ev_draws]})
+    flagged = [r for r in ranking if r["flagged"]]
+    groups: list[list[str]] = []
+    by = {s.effect: s for s in scores}
+    for r in flagged:
+        if any(r["effect"] in g for g in groups):
+            continue
+        g = [r["effect"]] + [q["effect"] for q in flagged if q is not r
+                             and confusion(by[r["effect"]], by[q["effect"]]) > MAX_CONFUSION]
+        if len(g) > 1:
+            groups.append(g)
+    confounded = [r["effect"] for r in ranking if bad and r["identifiable"] < MIN_IDENTIFIABLE]
+    suggestions: list[str] = []
+    if not bad:
+        verdict = (f"the model fits: chi2 = {mf.chi2:.1f} on {mf.dof} dof (p = {mf.p_value:.2g})"
+                   f", RMS residual {mf.rms:.3g} um against noise {sigma:.3g} um; no effect is "
+                   "flagged")
+    elif not flagged:
+        verdict = (f"misfit (chi2 = {mf.chi2:.1f} on {mf.dof} dof, p = {mf.p_value:.2g}; RMS "
+                   f"{mf.rms:.3g} um vs noise {sigma:.3g} um) that no candidate effect explains:"
+                   " an unknown effect")
+    else:
+        top = flagged[0]
+        left = top["chi2_after"]
+        verdict = (f"misfit (chi2 = {mf.chi2:.1f} on {mf.dof} dof, p = {mf.p_value:.2g}; RMS "
+                   f"{mf.rms:.3g} um vs noise {sigma:.3g} um). Best explanation: "
+                   f"{top['effect']} (score {top['statistic']:.1f} on {top['dof']} dof, "
+                   f"explains {top['explained_share']:.0%} of the chi2)")
+        from scipy import stats as _st
+
+        if _st.chi2.sf(left, max(mf.dof - top["dof"], 1)) < ALPHA:
+            verdict += "; a misfit remains after it: more than one effect, or an unknown one"
+        if groups and top["effect"] in groups[0]:
+            verdict += (f". The data cannot tell apart: {', '.join(groups[0])}")
+            suggestions.append("measure where the candidates differ: full-field V (the 31 x 18 "
+                               "grid) or more times (the dwell ends), see diagnosis.md")
+    if confounded:
+        suggestions.append(f"not identifiable from these data (confounded with the calibrated "
+                           f"parameters): {', '.join(confounded)}")
+    check = {"chi2": mf.chi2, "dof": mf.dof, "p_value": mf.p_value, "rms_um": mf.rms,
+             "noise_um": sigma, "ppc_p_value": pc.p_value,
+             "max_abs_z": float(np.abs(pc.z).max())}
+    return Diagnosis(bool(bad), verdict, ranking, check, groups, suggestions)
+
+
+def _write(d: Path, diag: Diagnosis, meas: Any, mf: Misfit, pc: PredictiveCheck,
+           scores: list[Score], V0: np.ndarray, sigma: float) -> None:
+    from solderpyro.diagnose.plots import plot_ranking, plot_residuals
+
+    (d / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2) + "\n")
+    f1 = plot_residuals(meas, mf.residual, pc, sigma, d / "diagnosis_residuals.png")
+    by = {s.effect: s for s in scores}
+    f2 = plot_ranking(meas, mf.residual, [by[r["effect"]] for r in diag.ranking], sigma,
+                      d / "diagnosis_ranking.png")
+    lines = ["# solderpyro diagnosis", "", f"**Verdict:** {diag.verdict}.", "",
+             f"- misfit chi2 {mf.chi2:.2f} on {mf.dof} dof (p = {mf.p_value:.3g}); RMS residual "
+             f"{mf.rms:.4g} um, noise {sigma:.4g} um",
+             f"- posterior predictive p-value {pc.p_value:.3g}; largest |z| "
+             f"{np.abs(pc.z).max():.2f}", "",
+             "## Candidate effects (best first)", "",
+             "| effect | evidence (-log10 p) | score | dof | identifiable | explains | "
+             "RMS after (um) | flagged |", "|---|---|---|---|---|---|---|---|"]
+    for r in diag.ranking:
+        lines.append(f"| {r['effect']} | {r['evidence']:.2f} | {r['statistic']:.2f} | "
+                     f"{r['dof']} | {r['identifiable']:.2f} | {r['explained_share']:.0%} | "
+                     f"{r['rms_after_um']:.3g} | {'yes' if r['flagged'] else ''} |")
+    if diag.indistinguishable:
+        lines += ["", "Cannot be told apart from these data: "
+                  + "; ".join(", ".join(g) for g in diag.indistinguishable)]
+    lines += ["", "## Suggestions", ""] + ([f"- {s}" for s in diag.suggestions] or ["- none"])
+    lines += ["", "## Figures", "", f"![residuals]({f1})", "", f"![ranking]({f2})", ""]
+    (d / "diagnosis.md").write_text("\n".join(lines) + "\n")
+    from solderpyro.report import write_html
+
+    write_html(lines, d / "diagnosis.html", "solderpyro diagnosis")
