@@ -17,6 +17,11 @@ The consistent tangent is closed form. When autograd is on, the converged values
 by one Newton step with the graph attached, which gives exact first derivatives with respect to
 the inputs (implicit-function theorem) without differentiating through the iterations.
 
+Optional linear (Prager) kinematic hardening, ``C_k`` (MPa) and the back stress ``X`` of
+:class:`PointState`: the flow is driven by ``xi = dev(sigma) - X`` and the return above runs on
+``xi`` with ``3G`` replaced by ``3G + C_k`` (derivation in :mod:`.kinematic`). ``C_k = None`` and
+``X = None`` is the isotropic model; ``C_k = 0`` gives the same numbers to the last bit.
+
 Shapes: strains and stresses are Mandel 4-vectors ``(..., 4)`` = (xx, yy, zz, sqrt2*xy).
 """
 
@@ -63,36 +68,49 @@ class PointState:
         eps_p: inelastic strain, Mandel ``(..., 4)``.
         s: deformation resistance, MPa, ``(...)``.
         eps_zz: total out-of-plane strain (plane stress; zero in plane strain), ``(...)``.
+        X: back stress (deviatoric), MPa, Mandel ``(..., 4)``; ``None`` means zero (no kinematic
+            hardening so far). Optional, so ``PointState(eps_p, s, eps_zz)`` keeps working.
     """
 
     eps_p: torch.Tensor
     s: torch.Tensor
     eps_zz: torch.Tensor
+    X: torch.Tensor | None = None
 
     def index(self, idx) -> PointState:
-        return PointState(self.eps_p[idx], self.s[idx], self.eps_zz[idx])
+        return PointState(self.eps_p[idx], self.s[idx], self.eps_zz[idx],
+                          None if self.X is None else self.X[idx])
 
     def detach(self) -> PointState:
-        return PointState(self.eps_p.detach(), self.s.detach(), self.eps_zz.detach())
+        return PointState(self.eps_p.detach(), self.s.detach(), self.eps_zz.detach(),
+                          None if self.X is None else self.X.detach())
 
 
-def initial_state(shape: tuple[int, ...], s0: torch.Tensor, **tkw) -> PointState:
-    """Virgin state: zero strains, ``s = s0`` broadcast to ``shape``."""
+def initial_state(shape: tuple[int, ...], s0: torch.Tensor, *, kinematic: bool = False,
+                  **tkw) -> PointState:
+    """Virgin state: zero strains, ``s = s0`` broadcast to ``shape``; with ``kinematic`` also a
+    zero back stress ``X`` ``(*shape, 4)`` (else ``X = None``, which the update reads as zero)."""
     return PointState(torch.zeros(*shape, 4, **tkw), torch.broadcast_to(s0, shape).clone(),
-                      torch.zeros(shape, **tkw))
+                      torch.zeros(shape, **tkw),
+                      torch.zeros(*shape, 4, **tkw) if kinematic else None)
 
 
 class _Trial:
-    """Elastic trial quantities for given total strain (Mandel)."""
+    """Elastic trial quantities for given total strain (Mandel).
 
-    def __init__(self, eps, eps_p_n, eps_th, K, G):
+    ``xi_tr = s_tr - X_n`` is the trial effective stress (``s_tr`` itself without back stress);
+    ``nrm``, ``log_qtr`` are its norm and the log of its von Mises equivalent.
+    """
+
+    def __init__(self, eps, eps_p_n, eps_th, K, G, X_n=None):
         m = torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=eps.dtype, device=eps.device)
         ee = eps - eps_p_n - eps_th[..., None] * m
         tr = ee[..., :3].sum(-1)
         self.m = m
         self.p = K * tr
         self.s_tr = 2.0 * G[..., None] * (ee - tr[..., None] * m / 3.0)
-        ss = (self.s_tr * self.s_tr).sum(-1) + torch.finfo(eps.dtype).tiny * 1e6
+        self.xi_tr = self.s_tr if X_n is None else self.s_tr - X_n
+        ss = (self.xi_tr * self.xi_tr).sum(-1) + torch.finfo(eps.dtype).tiny * 1e6
         self.nrm = torch.sqrt(ss)
         self.log_qtr = 0.5 * torch.log(1.5 * ss)
 
@@ -283,14 +301,27 @@ class Tangent3D:
         return Tangent3D(self.K[idx], self.g2[idx], self.coef[idx], self.nb[idx])
 
 
-def _tangent3d(tr: _Trial, zeta, s, m, K, G, yc, dH_ds, dH_dL) -> Tangent3D:
+def _tangent3d(tr: _Trial, zeta, s, m, K, G, yc, dH_ds, dH_dL, C_k=None) -> Tangent3D:
     """Consistent 3-D tangent at the converged point, from the tangent ingredients
-    ``(yc, dH_ds, dH_dL)`` of :func:`_partials_raw` there."""
+    ``(yc, dH_ds, dH_dL)`` of :func:`_partials_raw` there; ``C_k`` ``(...)`` or None the
+    kinematic modulus (see :mod:`.kinematic` for the two extra factors)."""
     w = yc * torch.exp((-zeta).clamp(max=700.0)) / m
     Fs_dHdL = yc / (m * s) * dH_dL
-    coef = 2.0 * G * (torch.sigmoid(-zeta) - w * dH_ds / ((1.0 + w) * dH_ds - Fs_dHdL))
-    nb = tr.s_tr / tr.nrm[..., None]
-    return Tangent3D(torch.broadcast_to(K, zeta.shape), 2.0 * G * torch.sigmoid(zeta), coef, nb)
+    bracket = torch.sigmoid(-zeta) - w * dH_ds / ((1.0 + w) * dH_ds - Fs_dHdL)
+    nb = tr.xi_tr / tr.nrm[..., None]
+    if C_k is None:
+        g2, coef = 2.0 * G * torch.sigmoid(zeta), 2.0 * G * bracket
+    else:
+        Gk = _return_modulus(G, C_k)
+        g2 = 2.0 * G * (torch.sigmoid(zeta) + torch.sigmoid(-zeta) * (C_k / 3.0) / Gk)
+        coef = 2.0 * G * (G / Gk) * bracket
+    return Tangent3D(torch.broadcast_to(K, zeta.shape), g2, coef, nb)
+
+
+def _return_modulus(G, C_k):
+    """``Gk = G + C_k/3`` (so that ``3*Gk = 3G + C_k``), the shear modulus the return map sees;
+    ``G`` itself when ``C_k`` is None. ``G + 0/3 == G`` exactly, hence C_k = 0 is bit-exact."""
+    return G if C_k is None else G + C_k / 3.0
 
 
 def _initial_zeta(tr: _Trial, s_n, p, c, G):
@@ -310,7 +341,8 @@ def _moduli(shape, tkw, T, eps_th, E, nu, p):
     return T, eps_th, E / (3.0 * (1.0 - 2.0 * nu)), E / (2.0 * (1.0 + nu)), p
 
 
-def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, tangent=True):
+def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, tangent=True,
+                  C_k=None):
     """Backward-Euler Anand update for a given full 3-D strain (plane components + eps_zz).
 
     Args:
@@ -322,29 +354,38 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
         guess: optional ``(..., 2)`` warm start ``(zeta, s)`` from a nearby solve.
         tangent: whether to compute the 3-D consistent tangent; ``"factored"`` returns it as a
             :class:`Tangent3D` instead of a ``(..., 4, 4)`` tensor.
+        C_k: Prager kinematic hardening modulus, MPa, broadcastable to ``(...)`` (e.g.
+            ``(b, 1, 1)`` per batch member in the FE), or None / 0 for none. The back stress is
+            ``state.X`` (None = zero); the new state carries ``X`` whenever ``C_k`` or
+            ``state.X`` is given. See :mod:`.kinematic`.
     Returns:
         ``(sigma (..., 4), new_state, C (..., 4, 4) or None, dep (...), x (..., 2))``; ``x`` is
         the detached solution ``(zeta, s)`` for warm starts. With autograd on, outputs carry
-        exact first derivatives with respect to every input (one Newton step with the graph).
+        exact first derivatives with respect to every input, ``C_k`` and ``state.X`` included
+        (one Newton step with the graph).
     """
     shape = eps.shape[:-1]
     tkw = dict(dtype=eps.dtype, device=eps.device)
     T, eps_th, K, G, p = _moduli(shape, tkw, T, eps_th, E, nu, p)
+    Ck = _kinematic_modulus(C_k, shape, tkw)
+    Gk, Xn = _return_modulus(G, Ck), state.X
     _, QR, A, *_ = unpack(p)
     c = torch.log(dt * A) - QR / T
     with torch.no_grad():
-        a = [t.detach() for t in (eps, state.eps_p, state.s, p, c, eps_th, K, G)]
-        tr = _Trial(a[0], a[1], a[5], a[6], a[7])
+        a = [t.detach() for t in (eps, state.eps_p, state.s, p, c, eps_th, K, G, Gk)]
+        xd = None if Xn is None else Xn.detach()
+        tr = _Trial(a[0], a[1], a[5], a[6], a[7], xd)
         if guess is None:
-            zeta, s = _initial_zeta(tr, a[2], a[3], a[4], a[7]), a[2]
+            zeta, s = _initial_zeta(tr, a[2], a[3], a[4], a[8]), a[2]
         else:
             zeta, s = guess[..., 0], guess[..., 1]
-        zeta, s, done, aux = _return_map_joint(tr, a[2], a[3], a[4], a[7], zeta, s)
+        zeta, s, done, aux = _return_map_joint(tr, a[2], a[3], a[4], a[8], zeta, s)
         if not bool(done.all()):  # robust nested, bracketed solve where the joint one failed
             i = ~done
-            sub = _Trial(a[0][i], a[1][i], a[5][i], a[6][i], a[7][i])
-            z0 = _initial_zeta(sub, a[2][i], a[3][i], a[4][i], a[7][i])
-            zi, si = _return_map(sub, a[2][i], a[3][i], a[4][i], a[7][i], z0)
+            sub = _Trial(a[0][i], a[1][i], a[5][i], a[6][i], a[7][i], None if xd is None
+                         else torch.broadcast_to(xd, a[1].shape)[i])
+            z0 = _initial_zeta(sub, a[2][i], a[3][i], a[4][i], a[8][i])
+            zi, si = _return_map(sub, a[2][i], a[3][i], a[4][i], a[8][i], z0)
             zeta, s = zeta.clone(), s.clone()
             zeta[i], s[i] = zi, si
             aux = None
@@ -352,20 +393,41 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
         C: torch.Tensor | Tangent3D | None = None
         if tangent:
             if aux is None:
-                aux = _partials(tr, zeta, s, a[2], a[3], a[4], a[7])[3:]
-            Cf = _tangent3d(tr, zeta, s, a[3][..., 4], a[6], a[7], *aux)
+                aux = _partials(tr, zeta, s, a[2], a[3], a[4], a[8])[3:]
+            yc, dH_ds, dH_dL = aux
+            Cf = _tangent3d(tr, zeta, s, a[3][..., 4], a[6], a[7], yc, dH_ds, dH_dL,
+                            C_k=None if Ck is None else Ck.detach())
             C = Cf if tangent == "factored" else Cf.full()
     needs_grad = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (eps, state.eps_p, state.s, p, c, eps_th, K, G))
+        t is not None and t.requires_grad
+        for t in (eps, state.eps_p, state.s, p, c, eps_th, K, G, Gk, Xn))
     if needs_grad:
-        tr = _Trial(eps, state.eps_p, eps_th, K, G)
-        R, H, J, *_ = _partials(tr, x[..., 0], x[..., 1], state.s, p, c, G)
+        tr = _Trial(eps, state.eps_p, eps_th, K, G, Xn)
+        R, H, J, *_ = _partials(tr, x[..., 0], x[..., 1], state.s, p, c, Gk)
         zeta, s = (x - torch.linalg.solve(J.detach(), torch.stack([R, H], -1))).unbind(-1)
     sg = torch.sigmoid(zeta)
-    sigma = tr.p[..., None] * tr.m + sg[..., None] * tr.s_tr
-    eps_p = state.eps_p + (torch.sigmoid(-zeta) / (2.0 * G))[..., None] * tr.s_tr
-    dep = torch.exp(tr.log_qtr - torch.log(3.0 * G) + _logsigmoid(-zeta))
-    return sigma, PointState(eps_p, s, eps[..., ZZ]), C, dep, x
+    deps_p = (torch.sigmoid(-zeta) / (2.0 * Gk))[..., None] * tr.xi_tr  # (..., 4)
+    X = _back_stress(Xn, Ck, deps_p)
+    sigma = tr.p[..., None] * tr.m + sg[..., None] * tr.xi_tr  # + X below: dev(sigma) = xi + X
+    if X is not None:
+        sigma = sigma + X
+    dep = torch.exp(tr.log_qtr - torch.log(3.0 * Gk) + _logsigmoid(-zeta))
+    return sigma, PointState(state.eps_p + deps_p, s, eps[..., ZZ], X), C, dep, x
+
+
+def _kinematic_modulus(C_k, shape, tkw):
+    """``C_k`` as a ``shape`` tensor, or None when absent (None or a plain number 0)."""
+    if C_k is None or (not isinstance(C_k, torch.Tensor) and C_k == 0):
+        return None
+    return torch.broadcast_to(torch.as_tensor(C_k, **tkw), shape)
+
+
+def _back_stress(X_n, C_k, deps_p):
+    """Prager update ``X = X_n + (2/3) C_k deps_p`` (Mandel ``(..., 4)``), None-aware."""
+    if C_k is None:
+        return X_n
+    dX = (2.0 / 3.0) * C_k[..., None] * deps_p
+    return dX if X_n is None else X_n + dX
 
 
 def _full_strain(eps_ip, ezz):
@@ -373,18 +435,22 @@ def _full_strain(eps_ip, ezz):
 
 
 def ezz_predictor(eps_ip, state: PointState, eps_th, E, nu):
-    """Out-of-plane strain that keeps sigma_zz = 0 if no new inelastic flow occurs, ``(...)``."""
+    """Out-of-plane strain that keeps sigma_zz = 0 if no new inelastic flow occurs, ``(...)``.
+
+    Valid with kinematic hardening too: without new flow ``sigma = C_el (eps - eps_p - eps_th)``
+    and the back stress does not enter the stress.
+    """
     ee = eps_ip[..., :2].sum(-1) - state.eps_p[..., :2].sum(-1) - 2 * eps_th
     return state.eps_p[..., ZZ] + eps_th - nu / (1.0 - nu) * ee
 
 
 def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stress",
-                 tangent=True, guess=None, iters=30):
+                 tangent=True, guess=None, iters=30, C_k=None):
     """Anand update for an in-plane strain, plane stress (local eps_zz iteration) or strain.
 
     Args:
         eps_ip: end-of-step in-plane total strain, Mandel ``(..., 3)`` = (xx, yy, sqrt2*xy).
-        state, p, T, dt, eps_th, E, nu, guess: as in :func:`return_map_3d`.
+        state, p, T, dt, eps_th, E, nu, guess, C_k: as in :func:`return_map_3d`.
         plane: ``"stress"`` (sigma_zz = 0, eps_zz iterated by Newton) or ``"strain"``.
     Returns:
         ``(sigma (..., 4), new_state, C_ip (..., 3, 3) or None, dep, x)`` with the in-plane
@@ -392,25 +458,26 @@ def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stre
     """
     if plane == "strain":
         out = return_map_3d(_full_strain(eps_ip, torch.zeros_like(eps_ip[..., 0])), state, p,
-                            T, dt, eps_th, E, nu, guess, tangent)
+                            T, dt, eps_th, E, nu, guess, tangent, C_k=C_k)
         C = condense_zz(out[2], plane) if tangent else None
         return out[0], out[1], C, out[3], out[4]
     if plane != "stress":
         raise ValueError(f"plane must be 'stress' or 'strain', got {plane!r}")
     with torch.no_grad():
         ezz = ezz_predictor(eps_ip.detach(), state.detach(), torch.as_tensor(eps_th), E, nu)
+        Ckd = C_k.detach() if isinstance(C_k, torch.Tensor) else C_k
         for _ in range(iters):
             sig, _, C, _, guess = return_map_3d(_full_strain(eps_ip.detach(), ezz),
                                                 state.detach(), p.detach(), T, dt, eps_th,
-                                                E, nu, guess)
+                                                E, nu, guess, C_k=Ckd)
             if bool((sig[..., ZZ].abs() <= 1e-12 * (1.0 + sig.abs().amax(-1))).all()):
                 break
             ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
     if torch.is_grad_enabled():  # one Newton step on eps_zz with the graph attached
         assert C is not None
         sig, *_ = return_map_3d(_full_strain(eps_ip, ezz), state, p, T, dt, eps_th, E, nu,
-                                guess, tangent=False)
+                                guess, tangent=False, C_k=C_k)
         ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
     sig, st, C, dep, x = return_map_3d(_full_strain(eps_ip, ezz), state, p, T, dt, eps_th,
-                                       E, nu, guess, tangent)
+                                       E, nu, guess, tangent, C_k=C_k)
     return sig, st, condense_zz(C, plane) if tangent else None, dep, x

@@ -1,0 +1,101 @@
+"""Linear (Prager) kinematic hardening on top of the Anand flow: equations and closed forms.
+
+The update itself lives in :func:`solderpyro.materials.integrate.return_map_3d` (keyword
+``C_k``, state field ``PointState.X``); this module documents it and gives the closed forms the
+tests check it against.
+
+Notation (Mandel 4-vectors ``(xx, yy, zz, sqrt2*xy)``, so ``a:b = a.b`` and ``|a|`` is the
+tensor norm): for a deviator ``a`` the von Mises equivalent is ``a_eq = sqrt(3/2)*|a|``; for an
+inelastic strain increment ``d`` (deviatoric) the equivalent is ``d_eq = sqrt(2/3)*|d|``.
+
+Model
+    effective stress    xi = dev(sigma) - X                 (X the back stress, deviatoric)
+    flow rule           deps_p = (3/2) * dep * xi / q,      q = xi_eq = sqrt(3/2)*|xi|
+                        dep = dt*A*exp(-QR/T) * sinh(xi_A*q/s)^(1/m)   (Anand, with q for sigma)
+    resistance          ds = h0*|1 - s/s*|^a sign(1 - s/s*) * dep      (unchanged)
+    back stress         dX = (2/3) * C_k * deps_p                       (C_k in MPa)
+
+Backward Euler, radial return on ``xi`` (von Mises + linear Prager keep it radial). With the
+unit direction ``n = xi/|xi|``, ``deps_p = sqrt(3/2)*dep*n``, and the trial effective stress
+``xi_tr = s_tr - X_n`` (``s_tr = 2G dev(eps - eps_p_n)``)::
+
+    xi = s_tr - 2G*deps_p - X_n - (2/3)*C_k*deps_p
+       = xi_tr - (2G + 2C_k/3) * sqrt(3/2) * dep * n
+
+so ``n = xi_tr/|xi_tr|`` and, multiplying the norms by sqrt(3/2),
+
+    q = q_tr - (3G + C_k) * dep,        q_tr = sqrt(3/2)*|xi_tr|.
+
+This is the isotropic return with ``3G -> 3G + C_k``, i.e. ``G -> Gk = G + C_k/3``. The logit form
+of :mod:`.integrate` carries over unchanged: ``q = q_tr*sigmoid(zeta)``,
+``dep = q_tr*sigmoid(-zeta)/(3*Gk)``, and the flow and hardening residuals in ``(zeta, s)`` are
+those of the isotropic model with ``Gk`` in ``log(dep)``. Then
+
+    deps_p  = sigmoid(-zeta)/(2*Gk) * xi_tr                      (= (3/2) dep xi_tr/q_tr)
+    X       = X_n + (2/3)*C_k*deps_p
+    sigma   = K tr(eps - eps_th) m + sigmoid(zeta)*xi_tr + X      (dev(sigma) = xi + X)
+
+With ``C_k = 0``: ``Gk = G + 0 = G`` and ``X = X_n + 0``, the isotropic update to the last bit.
+
+Consistent tangent. ``dev(sigma) = X_n + phi*xi_tr`` with
+``phi = sigmoid(zeta) + sigmoid(-zeta)*(C_k/3)/Gk = 1 - sigmoid(-zeta)*G/Gk``;
+``d xi_tr = 2G P_dev d eps`` and ``zeta`` depends on ``eps`` only through ``log q_tr``
+(``d log q_tr = 2G nb.d eps/|xi_tr|``, ``nb = xi_tr/|xi_tr|``). Hence the same factored form
+``C = K m m^T + g2 P_dev + coef nb nb^T`` as without back stress, with
+
+    g2   = 2G * phi,
+    coef = 2G * (G/Gk) * sigmoid(zeta)*sigmoid(-zeta)*dzeta/dlog(q_tr),
+
+and ``sigmoid*sigmoid'*dzeta/dlog q_tr`` is the closed-form bracket of the isotropic tangent
+(``log(3Gk)`` is a constant of the residual, so the bracket is unchanged in form).
+
+Elastic predictor (plane stress ``eps_zz``): without new flow ``sigma = C_el(eps - eps_p -
+eps_th)``; ``X`` does not enter, so :func:`.integrate.ezz_predictor` is unchanged.
+
+Closed form at constant inelastic rate and temperature, proportional (e.g. pure shear or
+uniaxial) loading from ``X = 0``: ``X`` stays collinear with ``xi``, ``X_eq = C_k*eps_p_eq`` and
+
+    sigma_eq(eps_p) = q_Anand(s(eps_p)) + C_k*eps_p,   q_Anand = (s/xi_A)*asinh(Z^m)
+
+with ``s(eps_p)`` the transient of ``shared/anand.md``. Reversing the direction at the same rate
+and the same ``s`` needs ``xi = -q`` instead of ``+q``: the reverse flow stress is lower in
+magnitude by ``2*X_eq`` (Bauschinger effect).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .anand import s_closed_form, saturation
+
+
+def equivalent(a: torch.Tensor) -> torch.Tensor:
+    """Von Mises equivalent ``sqrt(3/2)*|dev a|`` of a Mandel ``(..., 4)``, ``(...)``."""
+    m = torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=a.dtype, device=a.device)
+    d = a - a[..., :3].sum(-1, keepdim=True) / 3.0 * m
+    return math.sqrt(1.5) * d.norm(dim=-1)
+
+
+def strain_equivalent(d: torch.Tensor) -> torch.Tensor:
+    """Equivalent ``sqrt(2/3)*|d|`` of a deviatoric Mandel strain ``(..., 4)``, ``(...)``."""
+    return math.sqrt(2.0 / 3.0) * d.norm(dim=-1)
+
+
+def flow_stress_closed_form(eps_p: torch.Tensor, rate: torch.Tensor, T: torch.Tensor,
+                            p: torch.Tensor, C_k: torch.Tensor | float) -> torch.Tensor:
+    """Von Mises stress at constant inelastic rate and temperature, proportional loading, MPa.
+
+    ``sigma_eq = (s(eps_p)/xi)*asinh(Z^m) + C_k*eps_p``, ``Z = (rate/A) exp(QR/T)``.
+
+    Args:
+        eps_p: equivalent inelastic strain (from the virgin state), ``(...)``.
+        rate: equivalent inelastic strain rate, 1/s; T: temperature, K (broadcastable).
+        p: ``(..., 9)`` Anand constants; C_k: Prager modulus, MPa (broadcastable).
+    Returns:
+        ``(...)`` flow stress in MPa.
+    """
+    sigma_star, s_star = saturation(rate, T, p)
+    s = s_closed_form(eps_p, rate, T, p)
+    return sigma_star * s / s_star + C_k * eps_p
