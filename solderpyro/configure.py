@@ -6,15 +6,17 @@ objects (:class:`~solderpyro.fem.problem.Problem`, :class:`~solderpyro.params.Pa
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
+from .effects import EFFECTS, EffectSet, effect_set
 from .fem.loading import EXTENDED_TIMES, SEED_TIMES, ThermalCycle, TimeStepping
 from .fem.mesh import Layer, MeshSpec
 from .fem.problem import LAWS, Problem
-from .params import ANAND_NAMES, ParameterSpace, check_anand_values
+from .params import ANAND_NAMES, Box, ParameterSpace, check_anand_values
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
@@ -46,6 +48,21 @@ class Setup:
     dtype: torch.dtype
     device: str
     surrogate: dict = field(default_factory=dict)  # GPSurrogate kernel / ard / mean
+    #: physical effects switched on (``effects: [...]``), names of solderpyro.effects.EFFECTS
+    effects: tuple[str, ...] = ()
+    #: prior-box overrides ``{effect: {param: (lower, upper)}}`` (``effect_box`` in the config)
+    effect_bounds: Mapping[str, Mapping[str, tuple[float, float]]] = field(default_factory=dict)
+
+    @property
+    def effect_set(self) -> EffectSet:
+        """The switched-on effects with their boxes, bound to :attr:`times` (pass it as
+        ``effects=`` to :class:`~solderpyro.model.SpecimenModel` / the solver)."""
+        return effect_set(self.effects, self.times, self.effect_bounds)
+
+    @property
+    def effect_box(self) -> Box:
+        """Prior box of the effects' parameters, in column order (empty box: no effects)."""
+        return self.effect_set.box
 
 
 def _num(cfg, key: str, path: str, lo: float | None = None, hi: float | None = None) -> float:
@@ -131,8 +148,35 @@ def build(cfg) -> Setup:
     dt = {"float64": torch.float64, "float32": torch.float32}.get(str(cfg.solver.dtype))
     if dt is None:
         raise ValueError(f"config solver.dtype must be float64|float32, got {cfg.solver.dtype!r}")
+    names, bounds = _effects(cfg)
     return Setup(problem, space, anand, parse_times(ld.output_times), dt, str(cfg.solver.device),
-                 _surrogate(cfg))
+                 _surrogate(cfg), names, bounds)
+
+
+def _effects(cfg) -> tuple[tuple[str, ...], dict[str, dict[str, tuple[float, float]]]]:
+    """``effects`` (list of names) and ``effect_box`` (``{effect: {param: [lo, hi]}}``)."""
+    valid = ", ".join(sorted(EFFECTS))
+    raw = cfg.get("effects") or []
+    names = (str(raw),) if isinstance(raw, str) else tuple(str(n) for n in raw)
+    for n in names:
+        if n not in EFFECTS:
+            raise ValueError(f"config effects: unknown effect {n!r}; valid effects: {valid}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"config effects lists an effect twice: {list(names)}")
+    bounds: dict[str, dict[str, tuple[float, float]]] = {}
+    for key, box in (cfg.get("effect_box") or {}).items():
+        if key not in EFFECTS:
+            raise ValueError(f"config effect_box.{key}: unknown effect {key!r}; valid effects: "
+                             f"{valid}")
+        if not hasattr(box, "items"):
+            raise ValueError(f"config effect_box.{key} must map parameters to [lower, upper], "
+                             f"got {box!r}")
+        try:
+            EFFECTS[key].with_box({str(k): v for k, v in box.items()})
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"config effect_box.{key}: {e}") from None
+        bounds[str(key)] = {str(k): (float(v[0]), float(v[1])) for k, v in box.items()}
+    return names, bounds
 
 
 def _surrogate(cfg) -> dict:

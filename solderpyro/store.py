@@ -6,8 +6,10 @@ Layout on disk (one JSON file per completed run, written atomically)::
     root/<config_hash>/runs/<param_hash>.json    one run: 9 Anand constants, ok, V, ...
 
 ``config_hash`` covers everything the FE outputs depend on except the Anand constants (the
-:class:`~solderpyro.fem.problem.Problem`, the output times, the field flag, the dtype);
-``param_hash`` covers the nine constants (exact float64 values). A record is written to a
+:class:`~solderpyro.fem.problem.Problem`, the output times, the field flag, the dtype, and the
+physical effects switched on with their settings, so runs with effects never share a directory
+with baseline runs); ``param_hash`` covers the nine constants, followed by the effects'
+parameters when there are effects (exact float64 values). A record is written to a
 temporary file in the same directory, flushed, fsynced and renamed over its final name, so a
 crash or ``kill -9`` leaves either the whole record or none. :func:`run_doe` stores each member
 of a batch as soon as the batch finishes: a kill loses at most the batch in flight, and a rerun
@@ -91,7 +93,7 @@ def _canon(obj: Any, depth: int = 0) -> Any:
 
 
 def config_inputs(problem: Any, times: Sequence[float], field: bool,
-                  dtype: torch.dtype) -> dict:
+                  dtype: torch.dtype, effects: Any = ()) -> dict:
     """The inputs of :func:`config_hash` in canonical, readable (JSON-able) form.
 
     Args:
@@ -99,16 +101,36 @@ def config_inputs(problem: Any, times: Sequence[float], field: bool,
         times: output times, s (order does not matter: the solver reports them sorted).
         field: whether V is also reported on the full-field grid.
         dtype: torch dtype of the solve.
+        effects: physical effects switched on (names, :class:`~solderpyro.effects.Effect`
+            instances or an :class:`~solderpyro.effects.EffectSet`); each enters as its name and
+            settings (:meth:`~solderpyro.effects.Effect.settings`), in order. Prior boxes do
+            not enter (they do not change the outputs). No effects: the key is absent, so
+            baseline hashes are those of stores written before effects existed.
     """
-    return {"schema": STORE_SCHEMA, "problem": _canon(problem),
-            "times": sorted(float(t) for t in times), "field": bool(field), "dtype": str(dtype)}
+    out = {"schema": STORE_SCHEMA, "problem": _canon(problem),
+           "times": sorted(float(t) for t in times), "field": bool(field), "dtype": str(dtype)}
+    fx = _effect_settings(effects, times)
+    if fx:
+        out["effects"] = _canon(fx)
+    return out
 
 
-def config_hash(problem: Any, times: Sequence[float], field: bool, dtype: torch.dtype) -> str:
+def _effect_settings(effects: Any, times: Sequence[float]) -> list[dict]:
+    from .effects import EffectSet
+
+    if effects is None or len(effects) == 0:
+        return []
+    fx = effects if isinstance(effects, EffectSet) else EffectSet(list(effects))
+    return fx.bind(times).settings()
+
+
+def config_hash(problem: Any, times: Sequence[float], field: bool, dtype: torch.dtype,
+                effects: Any = ()) -> str:
     """Short hex hash (sha256 of canonical JSON, 16 hex digits) of what the FE outputs depend
-    on besides the Anand constants: problem (mesh, cycle, materials, plane, stepping, points,
-    ...), output times, field flag and dtype. Stable across processes and sessions."""
-    text = json.dumps(config_inputs(problem, times, field, dtype), sort_keys=True,
+    on besides the parameters: problem (mesh, cycle, materials, plane, stepping, points, ...),
+    output times, field flag, dtype and effects (see :func:`config_inputs`). Stable across
+    processes and sessions."""
+    text = json.dumps(config_inputs(problem, times, field, dtype, effects), sort_keys=True,
                       separators=(",", ":"), allow_nan=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -117,17 +139,19 @@ def _as_values(values: Any) -> list[float]:
     if isinstance(values, torch.Tensor):
         values = values.detach().cpu().to(torch.float64).tolist()
     vals = [float(v) for v in np.asarray(values, dtype=np.float64).reshape(-1)]
-    if len(vals) != len(ANAND_NAMES):
+    if len(vals) < len(ANAND_NAMES):
         raise ValueError(f"expected {len(ANAND_NAMES)} Anand constants "
-                         f"({', '.join(ANAND_NAMES)}), got {len(vals)}")
+                         f"({', '.join(ANAND_NAMES)}), then any effect parameters; "
+                         f"got {len(vals)} values")
     return vals
 
 
 def param_hash(values: Any) -> str:
-    """Hex hash (24 digits) of the nine Anand constants ``(9,)`` in ANAND_NAMES order.
+    """Hex hash (24 digits) of the nine Anand constants in ANAND_NAMES order, followed by the
+    effects' parameters when there are effects: ``(9 + n_eff,)``.
 
     Uses the exact ``repr`` of the float64 values: two sets hash alike iff they are bitwise equal
-    (after conversion to float64).
+    (after conversion to float64). Nine values hash as before effects existed.
     """
     text = ",".join(repr(v) for v in _as_values(values))
     return hashlib.sha256(text.encode()).hexdigest()[:24]
@@ -148,7 +172,8 @@ class RunRecord:
     """One completed FE run.
 
     Attributes:
-        params: the nine Anand constants by name (MPa, K, 1/s).
+        params: the nine Anand constants by name (MPa, K, 1/s), then the effects' parameters
+            by name (in column order).
         ok: False when the member failed to converge; ``reason`` says where.
         times: ``(n_time,)`` output times, s (sorted).
         names: ``n_out`` output labels.
@@ -171,13 +196,19 @@ class RunRecord:
     version: str = ""
 
     @property
+    def param_names(self) -> list[str]:
+        """ANAND_NAMES, then the effect parameters' names, ``(9 + n_eff,)``."""
+        return [*ANAND_NAMES, *(k for k in self.params if k not in ANAND_NAMES)]
+
+    @property
     def values(self) -> list[float]:
-        """The constants in ANAND_NAMES order, ``(9,)``."""
-        return [float(self.params[k]) for k in ANAND_NAMES]
+        """The constants in ANAND_NAMES order, then the effect parameters: ``(9 + n_eff,)``."""
+        return [float(self.params[k]) for k in self.param_names]
 
     def to_json(self) -> dict:
         V = [[None if not math.isfinite(x) else float(x) for x in row] for row in self.V.tolist()]
-        return {"schema": STORE_SCHEMA, "params": {k: float(self.params[k]) for k in ANAND_NAMES},
+        return {"schema": STORE_SCHEMA,
+                "params": {k: float(self.params[k]) for k in self.param_names},
                 "ok": bool(self.ok), "reason": str(self.reason),
                 "times": [float(t) for t in self.times], "names": [str(n) for n in self.names],
                 "V": V, "n_steps": self.n_steps, "n_substeps": self.n_substeps,
@@ -191,6 +222,7 @@ class RunRecord:
         if d.get("schema") != STORE_SCHEMA:
             raise ValueError(f"record schema {d.get('schema')!r}, expected {STORE_SCHEMA}")
         params = {k: float(d["params"][k]) for k in ANAND_NAMES}
+        params.update({str(k): float(v) for k, v in d["params"].items() if k not in params})
         times = tuple(float(t) for t in d["times"])
         names = tuple(str(n) for n in d["names"])
         V = np.array([[np.nan if x is None else float(x) for x in row] for row in d["V"]],
@@ -241,13 +273,15 @@ class RunStore:
         return self.root / cfg_hash
 
     def register(self, problem: Any, times: Sequence[float], field: bool,
-                 dtype: torch.dtype) -> str:
-        """Hash of the configuration; writes ``meta.json`` for it when missing. Returns the hash."""
-        h = config_hash(problem, times, field, dtype)
+                 dtype: torch.dtype, effects: Any = ()) -> str:
+        """Hash of the configuration (``effects``: as in :func:`config_inputs`); writes
+        ``meta.json`` for it when missing. Returns the hash."""
+        h = config_hash(problem, times, field, dtype, effects)
         meta = self.config_dir(h) / "meta.json"
         if not meta.exists():
             _write_atomic(meta, {"config_hash": h, "created": _now(), "version": _version(),
-                                 "inputs": config_inputs(problem, times, field, dtype)})
+                                 "inputs": config_inputs(problem, times, field, dtype,
+                                                         effects)})
         return h
 
     def meta(self, cfg_hash: str) -> dict | None:
@@ -255,7 +289,7 @@ class RunStore:
         return self._read_json(self.config_dir(cfg_hash) / "meta.json")
 
     def path(self, cfg_hash: str, values: Any) -> Path:
-        """File of the run with Anand constants ``values`` ``(9,)``."""
+        """File of the run with parameters ``values`` ``(9 + n_eff,)``."""
         return self.config_dir(cfg_hash) / "runs" / f"{param_hash(values)}.json"
 
     def put(self, cfg_hash: str, record: RunRecord) -> Path:
@@ -265,7 +299,8 @@ class RunStore:
         return p
 
     def get(self, cfg_hash: str, values: Any) -> RunRecord | None:
-        """The stored run of ``values`` ``(9,)``, or None (missing, unreadable or mismatched)."""
+        """The stored run of ``values`` ``(9 + n_eff,)``, or None (missing, unreadable or
+        mismatched)."""
         p = self.path(cfg_hash, values)
         rec = self._read(p)
         if rec is not None and rec.values != _as_values(values):
@@ -312,7 +347,7 @@ class DoeResult:
     """Outputs of :func:`run_doe`, row for row with its ``params``.
 
     Attributes:
-        params: ``(n, 9)`` Anand constants, float64.
+        params: ``(n, 9 + n_eff)`` Anand constants (then effect parameters), float64.
         V: ``(n, n_time, n_out)`` um, float64; NaN rows for failed members.
         ok: ``(n,)`` bool. reasons: ``n`` strings, empty for converged members.
         n_reused: rows served from the store as it was before this call.
@@ -340,8 +375,10 @@ def _solve(solver: Any, p: torch.Tensor, times: list[float]) -> Any:
     return solver(p, times)
 
 
-def _batch_records(res: Any, p: torch.Tensor, times: list[float]) -> list[RunRecord]:
-    """One :class:`RunRecord` per member of a solver result ``res`` for params ``p (b, 9)``."""
+def _batch_records(res: Any, p: torch.Tensor, times: list[float],
+                   names: Sequence[str]) -> list[RunRecord]:
+    """One :class:`RunRecord` per member of a solver result ``res`` for params ``p`` ``(b, k)``
+    named ``names`` ``(k,)``."""
     V = res.V.detach().cpu().to(torch.float64).numpy()  # (b, n_time, n_out)
     rtimes = tuple(float(t) for t in torch.as_tensor(res.times).tolist())
     if V.shape[:2] != (p.shape[0], len(times)) or not np.allclose(rtimes, times, rtol=0,
@@ -354,7 +391,7 @@ def _batch_records(res: Any, p: torch.Tensor, times: list[float]) -> list[RunRec
     out = []
     for i, row in enumerate(p.tolist()):
         why = str(reasons[i]) or ("" if ok[i] else "solver reported failure (no reason given)")
-        out.append(RunRecord(dict(zip(ANAND_NAMES, row, strict=True)), bool(ok[i]), why,
+        out.append(RunRecord(dict(zip(names, row, strict=True)), bool(ok[i]), why,
                              tuple(times), tuple(str(n) for n in res.names), V[i],
                              None if n_steps is None else int(n_steps),
                              None if n_sub is None else int(n_sub), int(p.shape[0])))
@@ -380,8 +417,9 @@ def _assemble(keys: list[str], found: dict[str, RunRecord],
 
 
 def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
-            times: Sequence[float], batch_size: int = 64, progress: bool = True) -> DoeResult:
-    """Solve a design ``params (n, 9)``, reusing and filling ``store``.
+            times: Sequence[float], batch_size: int = 64, progress: bool = True,
+            param_names: Sequence[str] | None = None) -> DoeResult:
+    """Solve a design ``params (n, 9 + n_eff)``, reusing and filling ``store``.
 
     Rows already stored under ``cfg_hash`` (converged or failed) are read back; the others are
     solved in batches of ``batch_size`` and every member of a batch is stored as soon as that
@@ -389,25 +427,31 @@ def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
 
     Args:
         solver: a :class:`~solderpyro.fem.solver.SpecimenSolver` (anything with
-            ``.solve(params (b, 9), times, progress=False)``), or a callable
-            ``(params (b, 9), times) -> SolveResult``-like (``V (b, n_time, n_out)``, ``ok (b,)``,
-            ``reasons``, ``times``, ``names``). It must match ``cfg_hash`` (see
+            ``.solve(params (b, 9 + n_eff), times, progress=False)``), or a callable
+            ``(params (b, 9 + n_eff), times) -> SolveResult``-like (``V (b, n_time, n_out)``,
+            ``ok (b,)``, ``reasons``, ``times``, ``names``). It must match ``cfg_hash`` (see
             :meth:`RunStore.register`); the store cannot check that.
-        store: the run store. cfg_hash: hash of the problem, times, field flag and dtype.
-        params: ``(n, 9)`` Anand constants in ANAND_NAMES order (MPa, K, 1/s), finite.
+        store: the run store. cfg_hash: hash of the problem, times, field flag, dtype
+            and effects.
+        params: ``(n, 9 + n_eff)`` Anand constants in ANAND_NAMES order (MPa, K, 1/s), then
+            the effects' parameters (``n_eff = 0`` without effects), finite.
         times: output times, s. batch_size: members per FE solve. progress: tqdm over batches.
+        param_names: names of the ``params`` columns; default ``solver.param_names(times)``
+            when the solver has it, else ANAND_NAMES.
 
     Returns:
         :class:`DoeResult`; V is NaN for failed members, whose reasons are logged.
     """
     p = torch.as_tensor(params).detach().to(device="cpu", dtype=torch.float64)
-    if p.ndim != 2 or p.shape[1] != len(ANAND_NAMES):
-        raise ValueError(f"params must have shape (n, {len(ANAND_NAMES)}), got {tuple(p.shape)}")
+    tt = sorted(float(t) for t in times)
+    pnames = _param_names(solver, tt, param_names)
+    if p.ndim != 2 or p.shape[1] != len(pnames):
+        raise ValueError(f"params must have shape (n, {len(pnames)}) ({', '.join(pnames)}), "
+                         f"got {tuple(p.shape)}")
     if not torch.isfinite(p).all():
         raise ValueError("params contain NaN or inf")
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    tt = sorted(float(t) for t in times)
     keys = [param_hash(row) for row in p]
     first = {k: i for i, k in reversed(list(enumerate(keys)))}  # key -> first row holding it
     found: dict[str, RunRecord] = {}
@@ -428,21 +472,35 @@ def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
 
     for rows in tqdm(batches, desc=f"DOE ({len(missing)} runs)", unit="batch",
                      disable=not progress or not batches):
-        for rec in _batch_records(_solve(solver, p[rows], tt), p[rows], tt):
+        for rec in _batch_records(_solve(solver, p[rows], tt), p[rows], tt, pnames):
             store.put(cfg_hash, rec)
             found[param_hash(rec.values)] = rec
     V, ok, reasons, names = _assemble(keys, found, tt)
-    _log_summary(where, n_reused, len(missing), ok, reasons, p)
+    _log_summary(where, n_reused, len(missing), ok, reasons, p, pnames)
     return DoeResult(p, V, ok, reasons, n_reused, len(missing), tuple(tt), names)
 
 
+def _param_names(solver: Any, times: list[float],
+                 names: Sequence[str] | None) -> list[str]:
+    if names is not None:
+        out = [str(n) for n in names]
+    elif callable(getattr(solver, "param_names", None)):
+        out = list(solver.param_names(times))
+    else:
+        out = list(ANAND_NAMES)
+    if out[:len(ANAND_NAMES)] != list(ANAND_NAMES) or len(set(out)) != len(out):
+        raise ValueError(f"param_names must be ANAND_NAMES followed by distinct effect "
+                         f"parameter names, got {out}")
+    return out
+
+
 def _log_summary(where: Path, n_reused: int, n_computed: int, ok: torch.Tensor,
-                 reasons: list[str], p: torch.Tensor) -> None:
+                 reasons: list[str], p: torch.Tensor, names: Sequence[str]) -> None:
     bad = torch.nonzero(~ok).squeeze(1).tolist()
     log.info("DOE done: %d rows, %d reused, %d computed, %d failed; store %s", len(ok),
              n_reused, n_computed, len(bad), where)
     for i in bad[:10]:
         log.warning("DOE row %d failed (params %s): %s",
-                    i, dict(zip(ANAND_NAMES, p[i].tolist(), strict=True)), reasons[i])
+                    i, dict(zip(names, p[i].tolist(), strict=True)), reasons[i])
     if len(bad) > 10:
         log.warning("... and %d more failed rows", len(bad) - 10)

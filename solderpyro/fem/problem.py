@@ -53,18 +53,25 @@ class AnandSolder(Elastic):
         """Young's modulus (MPa) at temperature ``T_C`` (constant in the baseline model)."""
         return self.E
 
-    def update(self, eps, state, p, T_C, T_ref_C, dt, guess=None, tangent=True):
+    def update(self, eps, state, p, T_C, T_ref_C, dt, guess=None, tangent=True, *,
+               eps_th=None, E=None):
         """Gauss-point update; see :func:`solderpyro.materials.integrate.return_map_3d`.
 
         Args:
             eps: ``(b, n_e, n_qp, 4)`` total strain (Mandel); state: start-of-step state;
-            p: ``(b, 1, 1, 9)`` Anand constants; T_C: end-of-step temperature (degC);
-            T_ref_C: stress-free temperature; dt: step (s).
+            p: ``(b, 1, 1, 9)`` Anand constants; T_C: end-of-step temperature (degC), a float
+                or per member ``(b, 1, 1)``; T_ref_C: stress-free temperature; dt: step (s).
+            eps_th, E: optional free thermal strain and Young's modulus (MPa), float or
+                ``(b, 1, 1)``, replacing :meth:`thermal_strain` and :meth:`modulus` (physical
+                effects computed per batch member, see :mod:`solderpyro.effects`).
         """
         from ..materials.integrate import return_map_3d
 
-        return return_map_3d(eps, state, p, T_C + 273.15, dt,
-                             self.thermal_strain(T_C, T_ref_C), self.modulus(T_C), self.nu,
+        if eps_th is None:
+            eps_th = self.thermal_strain(T_C, T_ref_C)
+        if E is None:
+            E = self.modulus(T_C)
+        return return_map_3d(eps, state, p, T_C + 273.15, dt, eps_th, E, self.nu,
                              guess=guess, tangent=tangent)
 
 

@@ -13,16 +13,25 @@ and its outputs after the failure are NaN; the others are unaffected.
 Differentiability: the Newton iterations run without autograd; at each step the converged
 solution is corrected by one Newton step with the graph attached (implicit-function theorem),
 so outputs are differentiable with respect to the Anand constants.
+
+Physical effects (:mod:`solderpyro.effects`): ``effects=(...)`` appends the effects' parameters
+to the nine constants of each member. They enter through :class:`~solderpyro.effects.EffectSet`
+only (temperature history, stress-free temperature and pre-history, thermal strains, solder
+modulus, observation), so temperature and thermal strains become per-member tensors; the solver
+core never names an effect. Without effects the solver runs the baseline path unchanged.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ..effects import Effect, EffectSet
 from ..materials.elastic import IP, ZZ, condense_zz
 from ..materials.integrate import (
     PointState,
@@ -34,11 +43,12 @@ from ..materials.integrate import (
 from ..params import ANAND_NAMES
 from .assembly import condense, linear_system
 from .elements import bbar, edofs, q4_kinematics
-from .loading import time_grid
+from .loading import ThermalCycle, time_grid
 from .mesh import build_mesh, locate
 from .problem import Problem
 
 SDIRK_GAMMA = 1.0 - 0.5 ** 0.5
+N_ANAND = len(ANAND_NAMES)
 
 
 @dataclass
@@ -64,6 +74,29 @@ class SolveResult:
     extra: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class _Thermo:
+    """Temperature-dependent inputs at one instant of the solve.
+
+    Attributes:
+        T: temperature, degC; eps_th: the solder's free thermal strain; E: its Young's
+            modulus, MPa. Floats in the baseline model; ``(b, 1, 1)`` per member with effects.
+        eps_lin: free thermal strains of the linear materials, ``(n_mat,)`` or ``(b, n_mat)``.
+        per_member: whether the fields are per batch member (then :meth:`index` selects rows).
+    """
+
+    T: Any
+    eps_th: Any
+    E: Any
+    eps_lin: torch.Tensor
+    per_member: bool = False
+
+    def index(self, idx) -> _Thermo:
+        if not self.per_member:
+            return self
+        return _Thermo(self.T[idx], self.eps_th[idx], self.E[idx], self.eps_lin[idx], True)
+
+
 class SpecimenSolver:
     """FE model of a :class:`~solderpyro.fem.problem.Problem`, set up once, solved for batches.
 
@@ -71,11 +104,20 @@ class SpecimenSolver:
         problem: geometry, materials, loading and outputs.
         field_points: optional ``(labels, (n_pt, 2) array)`` extra points reported as V (mm).
         dtype, device: torch dtype/device of the solve (float64 recommended).
+        effects: physical effects switched on (names of :data:`solderpyro.effects.EFFECTS`,
+            :class:`~solderpyro.effects.Effect` instances, or an
+            :class:`~solderpyro.effects.EffectSet`); their parameters follow the nine Anand
+            constants in ``params``, in this order (see :meth:`param_names`).
     """
 
     def __init__(self, problem: Problem, field_points=None, dtype=torch.float64,
-                 device="cpu") -> None:
+                 device="cpu", effects: EffectSet | Sequence[str | Effect] = ()) -> None:
         self.problem = problem
+        self.effects: EffectSet | None = (effects if isinstance(effects, EffectSet)
+                                          else EffectSet(effects) if effects else None)
+        if self.effects is not None and len(self.effects) == 0:
+            self.effects = None
+        self._fx: EffectSet | None = None  # the effects bound to the running solve's times
         self.tkw = dict(dtype=dtype, device=torch.device(device))
         self.mesh = mesh = build_mesh(problem.layers, problem.half_length, problem.mesh)
         nonlin = np.array([problem.materials[lay.material].nonlinear for lay in mesh.layers])
@@ -101,6 +143,7 @@ class SpecimenSolver:
             names += list(field_points[0])
             pts = np.concatenate([pts, np.asarray(field_points[1], float)])
         self.names = names
+        self.x_out = torch.as_tensor(pts[:, 0].copy(), **self.tkw)  # (n_out,) mm
         Hobs = self._observation(pts)
         K, loads = linear_system(mesh, problem, el_lin)
         cond = condense(K, loads, Hobs, r, c)
@@ -129,6 +172,15 @@ class SpecimenSolver:
         self.el_solder = el_nl
         self.stats = {"factor": 0, "iter": 0}
         self._fcache: dict[str, torch.Tensor] | None = None
+
+    def param_names(self, times=None) -> list[str]:
+        """Names of the ``params`` columns: the nine Anand constants, then the effects'
+        parameters (for output times ``times``, s: an observation effect may have one
+        parameter per image; None: the effects' defaults)."""
+        if self.effects is None:
+            return list(ANAND_NAMES)
+        fx = self.effects if times is None else self.effects.bind(times)
+        return [*ANAND_NAMES, *fx.names]
 
     # ------------------------------------------------------------------ set-up helpers
     def _dirichlet(self) -> np.ndarray:
@@ -165,6 +217,30 @@ class SpecimenSolver:
         """Condensed thermal force ``(n_r,)`` of the elastic regions at temperature T (degC)."""
         return self._eps_th_lin(T_C) @ self.G
 
+    def _thermo_T(self, T_C: float) -> _Thermo:
+        """Baseline inputs at a uniform temperature ``T_C`` (degC), shared by the batch."""
+        sol, T0 = self.solder, self.problem.T_ref_C
+        return _Thermo(T_C, sol.thermal_strain(T_C, T0), sol.modulus(T_C), self._eps_th_lin(T_C))
+
+    def _as_thermo(self, th) -> _Thermo:
+        return th if isinstance(th, _Thermo) else self._thermo_T(float(th))
+
+    def _thermo(self, t: float, p: torch.Tensor) -> _Thermo:
+        """Inputs at time ``t`` (s) for the members ``p`` ``(b, 9 + n_eff)``: the program's
+        temperature in the baseline model, else per member through the bound effects."""
+        pr, fx = self.problem, self._fx
+        if fx is None:
+            return self._thermo_T(pr.cycle(t))
+        q = p[:, N_ANAND:]
+        T = fx.temperature(pr.cycle, t, pr.T_ref_C, q)  # (b,)
+        T_ref = fx.stress_free(pr.T_ref_C, q)  # (b,)
+        mats = pr.materials
+        eps_lin = torch.stack([fx.thermal_strain(mats[k], T, T_ref, q)
+                               for k in self.lin_keys], -1)  # (b, n_mat)
+        eps_th = fx.thermal_strain(self.solder, T, T_ref, q)
+        E = fx.modulus(self.solder, T, q)
+        return _Thermo(T[:, None, None], eps_th[:, None, None], E[:, None, None], eps_lin, True)
+
     def _strain(self, u):
         """In-plane strains ``(b, n_e, n_qp, 3)``: one small matrix product per element, with
         the batch as the columns (much cheaper than one 3x8 product per point)."""
@@ -176,6 +252,9 @@ class SpecimenSolver:
                   condense=True):
         """Solder update at all Gauss points for displacements ``u`` and out-of-plane ``ezz``.
 
+        ``T_C``: the temperature (degC, float) or the inputs of :meth:`_thermo`; ``p``:
+        ``(b, 9 + n_eff)`` (the Anand constants are its first nine columns).
+
         Returns ``(sigma_ip, C_ip, sigma_zz, C3, new_state, dep, x)``: in plane stress the
         in-plane stress and tangent are condensed on eps_zz (the residual of sigma_zz = 0 is
         eliminated with the Newton update of eps_zz, so the global iteration drives it to zero).
@@ -185,9 +264,11 @@ class SpecimenSolver:
         eps = self._strain(u)
         if ezz is None:
             ezz = torch.zeros_like(eps[..., 0])
+        th = self._as_thermo(T_C)
+        kw = {"eps_th": th.eps_th, "E": th.E} if th.per_member else {}
         sig, st1, C3, dep, x = self.solder.update(
-            _full_strain(eps, ezz), st, p[:, None, None, :], T_C, self.problem.T_ref_C, dt,
-            guess=guess, tangent="factored" if tangent else False)
+            _full_strain(eps, ezz), st, p[:, None, None, :N_ANAND], th.T, self.problem.T_ref_C,
+            dt, guess=guess, tangent="factored" if tangent else False, **kw)
         sig_ip, szz = sig[..., IP], sig[..., ZZ]
         C3 = C3 if C3_fixed is None else C3_fixed
         C = None
@@ -234,7 +315,8 @@ class SpecimenSolver:
         Args:
             u: ``(b, n_r)`` start-of-step retained displacements, mm.
             st: start-of-step Gauss-point state, leading shape ``(b, n_e, n_qp)``.
-            p: ``(b, 9)`` Anand constants; T1: end-of-step temperature, degC; dt: step, s.
+            p: ``(b, 9 + n_eff)`` Anand constants (then effect parameters); T1: end-of-step
+                temperature, degC (float), or the inputs of :meth:`_thermo`; dt: step, s.
             du0: optional ``(b, n_r)`` predicted displacement increment (Newton's start).
             gid: optional ``(b,)`` indices of these members in the batch of the running solve;
                 their Cholesky factors are reused across steps (modified Newton).
@@ -243,7 +325,8 @@ class SpecimenSolver:
         """
         needs_grad = torch.is_grad_enabled() and (p.requires_grad or u.requires_grad
                                                   or st.s.requires_grad)
-        fext = self._f_ext(T1).expand(u.shape[0], -1)
+        T1 = self._as_thermo(T1)
+        fext = (T1.eps_lin @ self.G).expand(u.shape[0], -1)  # (b, n_r)
         ok = torch.zeros(u.shape[0], dtype=torch.bool, device=u.device)
         ps = self.problem.plane == "stress"
         sol = self.solder
@@ -253,9 +336,7 @@ class SpecimenSolver:
                 uk = uk + du0.detach()
             ezz = None
             if ps:
-                ezz = ezz_predictor(self._strain(uk), st0,
-                                    sol.thermal_strain(T1, self.problem.T_ref_C),
-                                    sol.modulus(T1), sol.nu)
+                ezz = ezz_predictor(self._strain(uk), st0, T1.eps_th, T1.E, sol.nu)
             fref = fext.abs().amax(1) + 1e-12
             b = uk.shape[0]
             x = None
@@ -313,7 +394,7 @@ class SpecimenSolver:
                 dz = self._dezz(du, _rows(szz, act), _rows(C3, act)) if ps else None
                 ua, za, eva = self._line_search(
                     _rows(uk, act), None if ezz is None else _rows(ezz, act), du, dz,
-                    _take(ev, act), _take((st0,), act)[0], _rows(p0, act), T1, dt,
+                    _take(ev, act), _take((st0,), act)[0], _rows(p0, act), _rows(T1, act), dt,
                     _rows(fext, act), _rows(fref, act), bad_a)
                 uk = _scatter(uk, ua, act)
                 ezz = None if ezz is None else _scatter(ezz, za, act)
@@ -376,29 +457,73 @@ class SpecimenSolver:
         return sig.abs().amax((1, 2, 3)) * 1e-3
 
     def observe(self, u, T_C):
-        """V relative to O at the output points, ``(b, n_out)`` in um."""
-        off = self._eps_th_lin(T_C) @ self.hobs
+        """V relative to O at the output points, ``(b, n_out)`` in um.
+
+        Args:
+            u: ``(b, n_r)`` retained displacements, mm.
+            T_C: temperature, degC (float), or the inputs of :meth:`_thermo` (per member).
+        """
+        off = self._as_thermo(T_C).eps_lin @ self.hobs  # (n_out,) or (b, n_out)
         return 1e3 * (u @ self.Hobs.T + off)
 
     # ------------------------------------------------------------------ time loop
     def solve(self, params: torch.Tensor, times, progress: bool = False) -> SolveResult:
-        """Run the thermal cycle for a batch of Anand parameter sets.
+        """Run the thermal cycle for a batch of Anand parameter sets (and effect parameters).
 
         Args:
-            params: ``(B, 9)`` Anand constants in ANAND_NAMES order (MPa, K, 1/s); may require
-                grad, in which case the outputs are differentiable.
+            params: ``(B, 9 + n_eff)``: the Anand constants in ANAND_NAMES order (MPa, K, 1/s),
+                then the effects' parameters in the order of :meth:`param_names` ``(times)``
+                (``n_eff = 0`` without effects); may require grad, in which case the outputs
+                are differentiable with respect to every column.
             times: output times, s (each in ``(0, cycle end]``).
             progress: show a tqdm bar over the time steps.
         Returns:
-            :class:`SolveResult` with ``V`` of shape ``(B, n_time, n_out)`` in um.
+            :class:`SolveResult` with ``V`` of shape ``(B, n_time, n_out)`` in um. With an
+            effect that simulates a pre-history, V is relative to the state at t = 0.
+        """
+        times = sorted(float(t) for t in times)
+        params, grid, t_zero = self._prepare(params, times)
+        try:
+            out, alive, reasons, nsub = self._run(params, grid, times, t_zero, progress)
+            if self._fx is not None:
+                out = self._fx.observe(out, self.x_out, self.problem.origin[0],
+                                       params[:, N_ANAND:])
+        finally:
+            self._fcache = None  # free the factors
+            self._fx = None
+        return SolveResult(torch.tensor(times, **self.tkw), list(self.names), out, alive,
+                           reasons, len(grid) - 1, nsub)
+
+    def _prepare(self, params, times: list[float]):
+        """Validate ``params``, bind the effects to ``times`` and build the time grid.
+
+        Returns ``(params, grid (n_step + 1,), t_zero)``: the grid starts at ``-D`` when an
+        effect simulates a pre-history of duration D; ``t_zero`` says whether there is one (t = 0
+        is then a grid point where the reference of V is taken and the predictor restarts).
         """
         params = torch.as_tensor(params, **self.tkw)
-        if params.ndim != 2 or params.shape[1] != len(ANAND_NAMES):
-            raise ValueError(f"params must have shape (B, 9), got {tuple(params.shape)}")
+        fx = None if self.effects is None else self.effects.bind(times)
+        n_p = N_ANAND + (0 if fx is None else fx.n_params)
+        if params.ndim != 2 or params.shape[1] != n_p:
+            what = "" if fx is None else f" ({', '.join([*ANAND_NAMES, *fx.names])})"
+            raise ValueError(f"params must have shape (B, {n_p}){what}, got "
+                             f"{tuple(params.shape)}")
         if not torch.isfinite(params).all():
             raise ValueError("params contain NaN or inf")
-        times = sorted(float(t) for t in times)
         grid = time_grid(self.problem.cycle, tuple(times), self.problem.stepping)
+        pre = None if fx is None else fx.pre_history()
+        if fx is not None:
+            fx.check(params[:, N_ANAND:])
+        if pre is not None:  # a shared grid for the pre-history: the box's largest change
+            D, dT = pre
+            T0 = self.problem.cycle(0.0)
+            g0 = time_grid(ThermalCycle((0.0, D), (T0 + dT, T0)), (), self.problem.stepping)
+            grid = np.concatenate([g0[:-1] - D, grid])
+        self._fx = fx
+        return params, grid, pre is not None
+
+    def _run(self, params, grid, times, t_zero: bool, progress: bool):
+        """The time loop; returns ``(V (B, n_time, n_out), alive (B,), reasons, n_substeps)``."""
         b = params.shape[0]
         cyc = self.problem.cycle
         u = torch.zeros(b, self.n_r, **self.tkw)
@@ -409,6 +534,7 @@ class SpecimenSolver:
         nsub = [0]
         self._fcache = self._factor_cache(b)
         vel, rate_prev = torch.zeros_like(u), float("nan")
+        V0 = None
         it = range(1, len(grid))
         if progress:
             from tqdm.auto import tqdm
@@ -425,23 +551,27 @@ class SpecimenSolver:
                                           v0, idx)
             vel = _scatter(vel, (u_a - u[idx]) / (t1 - t0), idx)
             rate_prev = rate
+            where = f"T={cyc(t1):.1f} C" if t1 > 0 else "pre-history"
             for j in torch.nonzero(~ok).squeeze(1).tolist():
                 reasons[int(idx[j])] = (f"no convergence in the step to t={t1:g} s "
-                                        f"(T={cyc(t1):.1f} C) after "
+                                        f"({where}) after "
                                         f"{self.problem.stepping.max_depth} halvings")
             u, st = _scatter(u, u_a, idx), _scatter_state(st, st_a, idx)
             alive = alive.clone()
             alive[idx] = ok
+            if t_zero and t1 == 0.0:  # the Moire reference image: V relative to this state;
+                V0 = self.observe(u, self._thermo(0.0, params))  # the cycle starts afresh
+                vel, rate_prev = torch.zeros_like(u), float("nan")
+                self._fcache["have"].zero_()
             if any(abs(t1 - tt) < 1e-9 for tt in times):
-                v = self.observe(u, cyc(t1))
+                v = self.observe(u, self._thermo(t1, params))
+                v = v if V0 is None else v - V0
                 v = torch.where(alive[:, None], v, torch.full_like(v, float("nan")))
                 outs.append(v)
         for i in range(len(outs)):
             out = out.clone()
             out[:, i] = outs[i]
-        self._fcache = None  # free the factors
-        return SolveResult(torch.tensor(times, **self.tkw), list(self.names), out, alive,
-                           reasons, len(grid) - 1, nsub[0])
+        return out, alive, reasons, nsub[0]
 
     def time_step(self, u, st, p, t0, t1, du0=None, gid=None):
         """Advance a batch from t0 to t1 with the configured scheme; see :meth:`step`.
@@ -452,16 +582,17 @@ class SpecimenSolver:
         L-stable and stiffly accurate, so it keeps backward Euler's robustness for fast
         relaxation while its error falls as h^2.
         """
-        cyc, h = self.problem.cycle, t1 - t0
+        h = t1 - t0
         if self.problem.stepping.scheme == "euler":
-            return self.step(u, st, p, cyc(t1), h, du0=du0, gid=gid)
+            return self.step(u, st, p, self._thermo(t1, p), h, du0=du0, gid=gid)
         g = SDIRK_GAMMA
-        ua, sa, oka, da = self.step(u, st, p, cyc(t0 + g * h), g * h,
+        ua, sa, oka, da = self.step(u, st, p, self._thermo(t0 + g * h, p), g * h,
                                     du0=None if du0 is None else g * du0, gid=gid)
         k = (1.0 - g) / g
         st2 = PointState(st.eps_p + k * (sa.eps_p - st.eps_p), st.s + k * (sa.s - st.s),
                          sa.eps_zz)
-        ub, sb, okb, db = self.step(ua, st2, p, cyc(t1), g * h, du0=k * (ua - u), gid=gid)
+        ub, sb, okb, db = self.step(ua, st2, p, self._thermo(t1, p), g * h, du0=k * (ua - u),
+                                    gid=gid)
         return ub, sb, oka & okb, torch.maximum(da, db)
 
     def _advance(self, u, st, p, t0, t1, depth, nsub, vel=None, gid=None):
@@ -503,6 +634,8 @@ def _col_zz(C3):
 def _rows(a, idx):
     """``a[idx]`` (tensor, ``PointState`` or ``Tangent3D``) for sorted, unique member indices
     ``idx``; ``a`` itself (no copy) when they are all of its members."""
+    if isinstance(a, _Thermo):
+        return a if not a.per_member or len(idx) == a.eps_lin.shape[0] else a.index(idx)
     if isinstance(a, PointState | Tangent3D):
         n = a.s.shape[0] if isinstance(a, PointState) else a.K.shape[0]
         return a if len(idx) == n else a.index(idx)

@@ -1,0 +1,258 @@
+"""Contract tests of the physical effects (solderpyro.effects): registry, off == baseline,
+batch invariance with mixed effect values, gradients against finite differences, and the
+config / run-store / model surfaces."""
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from solderpyro.configure import build, compose
+from solderpyro.effects import EFFECTS, Effect, EffectSet, effect_box, get_effect
+from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
+from solderpyro.fem.mesh import Layer, MeshSpec
+from solderpyro.fem.problem import Problem
+from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.model import SpecimenModel
+from solderpyro.params import ANAND_NAMES, ParameterSpace, anand_tensor
+from solderpyro.store import RunRecord, RunStore, config_hash, param_hash, run_doe
+
+CONTRACT = ("modulus_temperature", "stress_free_temperature", "thermal_lag", "cte_temperature",
+            "moire_rigid_motion")
+SHORT = ThermalCycle((0.0, 600.0, 1500.0), (25.0, 75.0, 75.0))
+LAYERS = (Layer("copper", "copper", -4.0, 0.0, 4, 0.25, "top"),
+          Layer("solder", "solder", 0.0, 0.5, 2),
+          Layer("steel", "steel", 0.5, 4.5, 4, 0.25, "bottom"))
+STEP = TimeStepping(dT_max=10.0, dwell_dt0=20.0, dt_max=450.0)
+TIMES = (600.0, 1500.0)
+F64 = torch.float64
+#: an interior point of each effect's box (and of moire's first offset and second rotation)
+INTERIOR = {"modulus_temperature": [3e-3], "stress_free_temperature": [120.0],
+            "thermal_lag": [60.0], "cte_temperature": [1.5e-3],
+            "moire_rigid_motion": [0.3, -0.2, 20.0, -10.0]}
+
+
+def small_problem(**kw):
+    kw.setdefault("stepping", STEP)
+    return Problem(layers=LAYERS, mesh=MeshSpec(nx=10), cycle=SHORT, **kw)
+
+
+def with_anand(q, anand=None):
+    """``(b, 9 + n)`` from effect values ``q`` ``(b, n)`` and the Liu constants."""
+    q = torch.as_tensor(q, dtype=F64)
+    return torch.cat([anand_tensor(anand, dtype=F64)[None].expand(q.shape[0], -1), q], 1)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Small batched solves run ~8x faster on one intra-op thread when the machine is shared
+    (two threads wait on each other's cores); restored after each test."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def baseline():
+    """The baseline model at Liu's constants (module scope: set up before the float64 default
+    of conftest, hence the explicit dtype)."""
+    return SpecimenSolver(small_problem()).solve(anand_tensor(dtype=F64)[None], TIMES).V
+
+
+# ------------------------------------------------------------------ registry and boxes
+
+def test_registry_contract():
+    """Every effect: a registered name, a Box with units, an off value inside the box, parameter
+    names that clash with no Anand constant, and JSON-able settings."""
+    assert set(CONTRACT) <= set(EFFECTS)
+    for name, eff in EFFECTS.items():
+        assert isinstance(eff, Effect) and eff.name == name and get_effect(name) is eff
+        b = eff.params
+        assert len(eff.off) == b.dim and all(u for u in b.units)
+        assert all(lo <= v <= hi for v, lo, hi in zip(eff.off, b.lower, b.upper, strict=True))
+        assert not set(b.names) & set(ANAND_NAMES)
+        json.dumps(eff.settings())
+    with pytest.raises(ValueError, match="valid effects: .*thermal_lag"):
+        get_effect("thermal_lagg")
+
+
+def test_effect_set_columns_and_binding_to_times():
+    fx = EffectSet(["thermal_lag", "moire_rigid_motion", "cte_temperature"]).bind([900.0, 600.0])
+    assert fx.names == ("tau", "moire_c_1", "moire_c_2", "moire_w_1", "moire_w_2", "c_alpha")
+    assert fx.off == (0.0,) * 6 and fx.n_params == 6
+    q = torch.arange(12.0).reshape(2, 6)
+    assert [t.shape[1] for t in fx.split(q)] == [1, 4, 1]
+    assert fx.box.units == ("s", "um", "um", "urad", "urad", "1/K")
+    with pytest.raises(ValueError, match="listed twice"):
+        EffectSet(["thermal_lag", "thermal_lag"])
+    with pytest.raises(ValueError, match="tau must be >= 0"):
+        EffectSet(["thermal_lag"]).check(torch.tensor([[-1.0]]))
+
+
+def test_box_overrides_and_errors():
+    b = effect_box(["thermal_lag", "moire_rigid_motion"], SEED_TIMES,
+                   {"thermal_lag": {"tau": (0.0, 120.0)}, "moire_rigid_motion": {"c": (-2, 2)}})
+    assert b.upper[0] == 120.0 and b.lower[1:5] == (-2.0,) * 4 and b.upper[5:] == (50.0,) * 4
+    with pytest.raises(ValueError, match="no parameter 'taux'; valid: tau"):
+        EFFECTS["thermal_lag"].with_box({"taux": (0, 1)})
+    with pytest.raises(ValueError, match="lower 5 must be < upper 1"):
+        EFFECTS["thermal_lag"].with_box({"tau": (5, 1)})
+    with pytest.raises(ValueError, match="box keys c .* and w"):
+        EFFECTS["moire_rigid_motion"].with_box({"moire_c_1": (0, 1)})
+    with pytest.raises(ValueError, match="unknown effect 'nope'"):
+        effect_box(["thermal_lag"], None, {"nope": {}})
+
+
+# ------------------------------------------------------------------ (a) off == baseline
+
+@pytest.mark.parametrize("name", CONTRACT)
+def test_off_value_gives_the_baseline(name, baseline):
+    """The off value reproduces the baseline model to 1e-12 um (rounding only)."""
+    solver = SpecimenSolver(small_problem(), effects=(name,))
+    off = EFFECTS[name].bind(TIMES).off
+    V = solver.solve(with_anand([off]), TIMES).V
+    err = (V - baseline).abs().max().item()
+    assert err <= 1e-12, (name, err)
+
+
+# ------------------------------------------------------------------ (b) batch invariance
+
+def test_batch_invariance_with_mixed_effect_values(baseline):
+    """All effects on at once, each member with its own values (one all-off): every member of
+    the batch equals its single run to 1e-10 um, and the all-off member is the baseline."""
+    names = CONTRACT
+    solver = SpecimenSolver(small_problem(), effects=names)
+    fx = EffectSet(names).bind(TIMES)
+    g = torch.Generator().manual_seed(3)
+    lo, hi = fx.box.bounds(dtype=torch.float64)
+    q = torch.cat([torch.tensor([fx.off]), lo + (hi - lo) * torch.rand(2, fx.n_params,
+                                                                        generator=g)])
+    P = with_anand(q)
+    P[2, :9] = anand_tensor({"s0": 9.0, "xi": 3.0, "m": 0.1}, dtype=F64)  # another material, too
+    batch = solver.solve(P, TIMES)
+    assert bool(batch.ok.all())
+    assert (batch.V[0] - baseline[0]).abs().max() <= 1e-12
+    for i in range(1, len(P)):
+        single = solver.solve(P[i:i + 1], TIMES).V[0]
+        assert torch.allclose(batch.V[i], single, rtol=0, atol=1e-10), (i, batch.V[i] - single)
+        assert (batch.V[i] - baseline[0]).abs().max() > 0.1  # the members really differ
+
+
+# ------------------------------------------------------------------ (c) gradients
+
+#: columns checked (moire: its first offset and its last rotation) and their FD steps
+FD_COLS = {"tau": 0.03, "k_E": 5e-7, "T_sf": 0.016, "c_alpha": 3e-7, "moire_c_1": 2e-4,
+           "moire_w_2": 1e-2}
+
+
+def test_effect_gradients_match_finite_differences():
+    """Autograd through the FE w.r.t. every effect's parameter(s), at the off values and at an
+    interior point (all effects on together), against finite differences in float64: central,
+    except at tau = 0 (the box's edge; tau < 0 is not admissible), where a second-order
+    one-sided difference gives the one-sided derivative a score test at the off value uses.
+    A fixed random projection of the outputs is differentiated (one backward pass); a wrong
+    component of the Jacobian would show in it. Steps ~1e-4 of each box width: the FD
+    truncation error is then < 1e-7 relative and the Newton noise (rtol 1e-10) far smaller."""
+    fx = EffectSet(CONTRACT).bind(TIMES)
+    solver = SpecimenSolver(small_problem(), effects=fx)
+    q = torch.tensor([fx.off, [v for k in CONTRACT for v in INTERIOR[k]]], dtype=F64)
+    P = with_anand(q).requires_grad_(True)
+    w = torch.tensor([0.8, -0.3, 0.5, 1.1], dtype=F64)  # projection of the 4 outputs
+    y = solver.solve(P, TIMES).V.reshape(2, -1) @ w  # (2,)
+    grad = torch.autograd.grad(y.sum(), P)[0]  # rows are independent members
+    rows, meta = [], []
+    for name, h in FD_COLS.items():
+        c = 9 + fx.names.index(name)
+        for i in range(2):
+            for st in (1.0, 2.0) if name == "tau" and i == 0 else (1.0, -1.0):
+                r = P[i].detach().clone()
+                r[c] += st * h
+                rows.append(r)
+            meta.append((name, c, i, h))
+    yh = (solver.solve(torch.stack(rows), TIMES).V.reshape(len(rows), -1) @ w).reshape(-1, 2)
+    y0 = y.detach()
+    for (name, c, i, h), (ya, yb) in zip(meta, yh, strict=True):
+        if name == "tau" and i == 0:  # (-3 f(0) + 4 f(h) - f(2h)) / 2h
+            fd = (-3.0 * y0[i] + 4.0 * ya - yb) / (2.0 * h)
+        else:
+            fd = (ya - yb) / (2.0 * h)
+        g = grad[i, c]
+        print(f"{name:10s} member {i}: autograd {g.item(): .9e}  FD {fd.item(): .9e}")
+        assert fd.abs() > 1e-6 * abs(1.0 / h)  # the effect acts (not a 0 == 0 check)
+        assert torch.allclose(g, fd, rtol=1e-5, atol=0.0), (name, i, g, fd)
+
+
+# ------------------------------------------------------------------ model, config, store
+
+def test_model_theta_layout_and_names():
+    space = ParameterSpace.seed()
+    model = SpecimenModel(small_problem(), space, TIMES, effects=("thermal_lag",
+                                                                   "moire_rigid_motion"))
+    assert model.param_names == [*space.names, "tau", "moire_c_1", "moire_c_2", "moire_w_1",
+                                 "moire_w_2"]
+    assert model.n_theta == 9 and model.effect_box.names == tuple(model.param_names[4:])
+    theta = torch.tensor([[12.41, 9400.0, 1.5, 0.303, 30.0, 0.1, 0.2, 5.0, -5.0]])
+    V = model(theta)
+    direct = model.solver.solve(torch.cat([space.full(theta[:, :4]), theta[:, 4:]], 1), TIMES).V
+    assert V.shape == (1, 2, 2) and torch.equal(V, direct)
+    with pytest.raises(ValueError, match=r"shape \(B, 9\) for s0, QR, xi, m, tau, moire_c_1"):
+        model(theta[:, :4])
+    with pytest.raises(ValueError, match="tau must be >= 0"):
+        model(torch.cat([theta[:, :4], -theta[:, 4:5], theta[:, 5:]], 1))
+
+
+def test_config_effects_and_boxes():
+    s = build(compose([]))
+    assert s.effects == () and s.effect_box.dim == 0
+    for name, box in s.effect_bounds.items():  # the config's boxes are the library defaults
+        eff = EFFECTS[name]
+        assert eff.with_box(box).params == eff.params, name
+    s = build(compose(["effects=[thermal_lag,moire_rigid_motion]", "loading.output_times=extended",
+                       "effect_box.thermal_lag.tau=[0,120]"]))
+    assert s.effects == ("thermal_lag", "moire_rigid_motion")
+    assert s.effect_box.names[0] == "tau" and s.effect_box.upper[0] == 120.0
+    assert s.effect_box.dim == 1 + 2 * 7
+    with pytest.raises(ValueError, match="config effects: unknown effect 'lag'; valid effects: "
+                                         "cte_temperature, .*thermal_lag"):
+        build(compose(["effects=[lag]"]))
+    with pytest.raises(ValueError, match="effect_box.thermal_lag: .*lower 9 must be < upper 1"):
+        build(compose(["effect_box.thermal_lag.tau=[9,1]"]))
+
+
+def test_store_hash_separates_effects_and_records_round_trip(tmp_path):
+    pr = Problem()
+    h0 = config_hash(pr, SEED_TIMES, False, torch.float64)
+    assert h0 == config_hash(pr, SEED_TIMES, False, torch.float64, ())  # baseline unchanged
+    h1 = config_hash(pr, SEED_TIMES, False, torch.float64, ("thermal_lag",))
+    h2 = config_hash(pr, SEED_TIMES, False, torch.float64, ("thermal_lag", "cte_temperature"))
+    h3 = config_hash(pr, SEED_TIMES, False, torch.float64,
+                     (dataclasses.replace(EFFECTS["stress_free_temperature"], cooldown_s=600.0),))
+    h4 = config_hash(pr, SEED_TIMES, False, torch.float64, ("stress_free_temperature",))
+    assert len({h0, h1, h2, h3, h4}) == 5
+    boxed = EFFECTS["thermal_lag"].with_box({"tau": (0.0, 60.0)})  # a prior is not an output
+    assert config_hash(pr, SEED_TIMES, False, torch.float64, (boxed,)) == h1
+    # a DOE with effect parameters: records carry them, and a rerun reuses them
+    names = [*ANAND_NAMES, "tau"]
+    calls = []
+
+    def fake(p, times):
+        calls.append(len(p))
+        V = p[:, 9, None, None].expand(-1, len(times), 2).clone()
+        return type("R", (), {"V": V, "ok": torch.ones(len(p), dtype=torch.bool), "reasons": None,
+                              "times": torch.tensor(times), "names": ["A", "B"]})()
+
+    store = RunStore(tmp_path)
+    h = store.register(pr, SEED_TIMES, False, torch.float64, ("thermal_lag",))
+    assert store.meta(h)["inputs"]["effects"][0]["__dict__"]  # readable settings in meta.json
+    P = with_anand([[0.0], [30.0], [30.0]])
+    r = run_doe(fake, store, h, P, SEED_TIMES, progress=False, param_names=names)
+    assert r.n_computed == 2 and r.V[1, 0, 0] == 30.0 and calls == [2]
+    r = run_doe(fake, store, h, P, SEED_TIMES, progress=False, param_names=names)
+    assert r.n_reused == 3 and calls == [2]
+    rec = store.get(h, P[1])
+    assert isinstance(rec, RunRecord) and rec.params["tau"] == 30.0 and rec.values == P[1].tolist()
+    assert param_hash(P[1]) != param_hash(P[0]) and param_hash(P[0, :9]) != param_hash(P[0])
+    with pytest.raises(ValueError, match=r"shape \(n, 10\)"):
+        run_doe(fake, store, h, P[:, :9], SEED_TIMES, progress=False, param_names=names)
