@@ -183,8 +183,68 @@ def cmd_calibrate(a, overrides) -> int:
         raise ValueError(f"--runs must be at least 5, got {a.runs}")
     res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,
                              store_root=a.store, batch_size=a.batch, nuts=_nuts_args(a),
-                             progress=not a.quiet, exact=a.exact, **setup.surrogate)
-    print(f"\nreport:  {res.out / 'report.md'}\nsummary: {res.out / 'summary.csv'}")
+                             progress=not a.quiet, exact=a.exact,
+                             record={"overrides": list(overrides), "data": str(a.data)},
+                             **setup.surrogate)
+    print(f"\nreport:  {res.out / 'report.html'}\nsummary: {res.out / 'summary.csv'}")
+    return 0
+
+
+def cmd_diagnose(a, overrides) -> int:
+    if overrides:
+        raise ValueError(f"'diagnose' takes no config overrides (the run's own are used), "
+                         f"got {overrides}")
+    if a.draws < 1:
+        raise ValueError(f"--draws must be >= 1, got {a.draws}")
+    from .diagnose import diagnose
+
+    cands = tuple(_names(a.effects)) if a.effects else None
+    dg = diagnose(a.run_dir, candidates=cands, n_draws=a.draws, seed=a.seed,
+                  progress=not a.quiet)
+    print(f"\nverdict: {dg.verdict}\n")
+    print(f"{'effect':26s} {'evidence':>9s} {'score':>9s} {'dof':>4s} {'ident.':>7s}  flagged")
+    for r in dg.ranking:
+        print(f"{r['effect']:26s} {r['evidence']:9.2f} {r['statistic']:9.2f} {r['dof']:4d} "
+              f"{r['identifiable']:7.2f}  {'yes' if r['flagged'] else ''}")
+    for s in dg.suggestions:
+        print(f"suggestion: {s}")
+    print(f"\ndiagnosis: {Path(a.run_dir) / 'diagnosis.json'} and diagnosis.html")
+    return 0
+
+
+def cmd_sensitivity(a, overrides) -> int:
+    from .configure import parse_times
+    from .sensitivity import parse_bounds, run_sensitivity
+
+    bounds = parse_bounds(a.box)
+    setup = _setup(overrides)
+    times = parse_times(a.times) if a.times else setup.times
+    cmd = " ".join(["solderpyro sensitivity", "--out", str(a.out), "--runs", str(a.runs),
+                    "--grad-points", str(a.grad_points), "--seed", str(a.seed),
+                    *(["--times", a.times] if a.times else []),
+                    *(["--box", a.box] if a.box else []), *overrides])
+    res = run_sensitivity(setup, a.out, n_runs=a.runs, grad_points=a.grad_points,
+                          grad_batch=a.grad_batch, times=times, store_root=a.store,
+                          seed=a.seed, n_sobol=a.sobol_samples, n_boot=a.bootstrap,
+                          bounds=bounds, batch_size=a.batch, progress=not a.quiet, command=cmd)
+    print(f"\n{'parameter':>9} {'DGSM':>9} {'S1':>7} {'ST':>7} {'ST 95 %':>15} rank")
+    for r in sorted(res.rows, key=lambda r: r["rank"]):
+        print(f"{r['parameter']:>9} {r['dgsm']:9.3g} {r['S1']:7.3f} {r['ST']:7.3f} "
+              f"[{r['ST_lo']:5.3f}, {r['ST_hi']:5.3f}] {r['rank']:4d}")
+    print(f"\n{res.verdict['text']}\nreport: {res.out / 'sensitivity.md'}")
+    return 0
+
+
+def cmd_compare(a, overrides) -> int:
+    if overrides:
+        raise ValueError(f"'compare' takes no config overrides, got {overrides}")
+    from .diagnose.compare import compare
+
+    r = compare(a.before, a.after, a.out)
+    print(f"RMS residual {r['before']['rms_um']:.4g} -> {r['after']['rms_um']:.4g} um; "
+          f"ELPD {r['before']['elpd']:.2f} -> {r['after']['elpd']:.2f} "
+          f"(gain {r['elpd_gain']:.2f} nats)")
+    print(f"comparison: {Path(a.out or a.after) / 'comparison.md'}")
     return 0
 
 
@@ -257,6 +317,48 @@ def build_parser() -> argparse.ArgumentParser:
                    help="surrogate vs exact: reweight N posterior draws by the FE likelihood "
                    "(N more FE runs; writes exact_check.csv and a report section)")
     _add_nuts(c)
+    g = sub.add_parser("diagnose", help="does the calibrated model fit the data, and which "
+                       "physical effect is missing? Posterior predictive checks, a misfit test "
+                       "and a score test per candidate effect through the FE; writes "
+                       "RUN_DIR/diagnosis.json, diagnosis.md/.html and figures")
+    g.add_argument("run_dir", help="a run directory written by 'solderpyro calibrate'")
+    g.add_argument("--effects", default="", help="comma-separated candidate effects (default: "
+                   "every effect the run did not switch on)")
+    g.add_argument("--draws", type=int, default=3, help="posterior draws at which the FE and "
+                   "its finite-difference Jacobians are evaluated (the first is the draw "
+                   "nearest the posterior median)")
+    g.add_argument("--seed", type=int, default=0, help="random seed (draw choice, replicates)")
+    g.add_argument("--quiet", action="store_true", help="no progress bars")
+    v = sub.add_parser("sensitivity", help="rank the nine Anand constants by their influence "
+                       "on V_A, V_B over a prior box: DGSM through the FE (autograd) and Sobol "
+                       "main/total indices through a GP surrogate; writes sensitivity.csv/.json/"
+                       ".png/.md")
+    v.add_argument("--out", required=True, help="output directory")
+    v.add_argument("--runs", type=int, default=100, help="LHS FE runs for the GP surrogate "
+                   "(>= 10; kept in the run store)")
+    v.add_argument("--grad-points", type=int, default=32, help="LHS points of the DGSM, each "
+                   "an FE solve with autograd (>= 2)")
+    v.add_argument("--grad-batch", type=int, default=16, help="members per autograd FE solve "
+                   "(memory: ~0.3 GB per member on the default mesh)")
+    v.add_argument("--times", default=None, help="seed (600,2700,4800,7800 s) | extended "
+                   "(+ dwell ends) | t1,t2,... in s (default: config loading.output_times)")
+    v.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
+    v.add_argument("--seed", type=int, default=0, help="seed of the designs, the Sobol "
+                   "scrambling and the bootstrap")
+    v.add_argument("--sobol-samples", type=int, default=8192, help="Sobol base sample on the "
+                   "GP mean (power of two; (9 + 2) x this many GP evaluations)")
+    v.add_argument("--bootstrap", type=int, default=200, help="bootstrap resamples for the "
+                   "intervals (>= 10)")
+    v.add_argument("--box", default="", help="override bounds of the nine-constant box, e.g. "
+                   "A=1e5:1e8,h0=500:3000 (defaults: docs/sensitivity.md)")
+    v.add_argument("--batch", type=int, default=64, help="FE runs per batched DOE solve")
+    v.add_argument("--quiet", action="store_true", help="no progress bars")
+    q = sub.add_parser("compare", help="before/after of two calibrations on the same data "
+                       "(e.g. without and with effects=[NAME]): RMS residual, misfit, ELPD, "
+                       "posterior shifts; writes comparison.md/.json")
+    q.add_argument("before", help="run directory of the first calibration")
+    q.add_argument("after", help="run directory of the second calibration")
+    q.add_argument("--out", default=None, help="where to write (default: AFTER)")
     return p
 
 
@@ -268,7 +370,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         overrides = _split_overrides(rest)
         cmds = {"simulate": cmd_simulate, "demo": cmd_demo, "example": cmd_example,
-                "koh": cmd_koh, "calibrate": cmd_calibrate}
+                "koh": cmd_koh, "calibrate": cmd_calibrate, "diagnose": cmd_diagnose,
+                "sensitivity": cmd_sensitivity, "compare": cmd_compare}
         return cmds[a.command](a, overrides)
     except (ValueError, FileNotFoundError, RuntimeError) as e:
         print(f"solderpyro {a.command}: error: {e}", file=sys.stderr)

@@ -24,15 +24,35 @@ from solderpyro.calibration.koh import emulator_lowrank
 from solderpyro.calibration.mcmc import Posterior, format_summary, write_summary
 from solderpyro.configure import Setup
 from solderpyro.design import lhs
+from solderpyro.effects import EffectSet, effect_set
 from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.io.measurements import Measurements
-from solderpyro.params import LIU2008, anand_tensor
+from solderpyro.params import LIU2008, Box, anand_tensor
 from solderpyro.store import RunStore, run_doe
 from solderpyro.surrogate import GPSurrogate, LooResult
 
 log = logging.getLogger("solderpyro")
 SUMMARY = ("parameter", "q2.5", "median", "mean", "q97.5")
+
+
+def calibration_box(setup: Setup, fx: EffectSet | None = None) -> Box:
+    """The calibrated parameters: ``setup.space`` (Anand constants), then the parameters of the
+    switched-on effects ``fx`` (bound to the data's times), with their prior boxes."""
+    sp = setup.space
+    if fx is None or len(fx) == 0:
+        return sp
+    eb = fx.box
+    return Box(tuple(sp.names) + tuple(eb.names), tuple(sp.lower) + tuple(eb.lower),
+               tuple(sp.upper) + tuple(eb.upper), tuple(sp.log_scale) + tuple(eb.log_scale),
+               tuple(sp.units) + tuple(eb.units))
+
+
+def fe_params(setup: Setup, theta: torch.Tensor) -> torch.Tensor:
+    """Solver rows ``(n, 9 + n_eff)`` from calibrated ``theta (n, n_anand + n_eff)``: the nine
+    Anand constants (defaults for those not calibrated), then the effects' parameters."""
+    n = setup.space.n_theta
+    return torch.cat([setup.space.full(theta[:, :n]), theta[:, n:]], 1)
 
 
 def weighted_quantiles(x: torch.Tensor, w: torch.Tensor, probs: tuple[float, ...]
@@ -62,7 +82,7 @@ def exact_check(solver: SpecimenSolver, store: RunStore, cfg_hash: str, setup: S
     flat_t, flat_s = post.flat("t"), post.flat("sigma")
     idx = torch.randperm(flat_t.shape[0], generator=g)[:n]
     t, sig = flat_t[idx], flat_s[idx]
-    doe = run_doe(solver, store, cfg_hash, setup.space.full(t), times, progress=progress)
+    doe = run_doe(solver, store, cfg_hash, fe_params(setup, t), times, progress=progress)
     y = inp.y_obs
     lw = torch.full((t.shape[0],), -torch.inf, dtype=torch.float64)
     for i in range(t.shape[0]):
@@ -83,7 +103,8 @@ def exact_check(solver: SpecimenSolver, store: RunStore, cfg_hash: str, setup: S
     w = w / w.sum()
     ess = float(1.0 / (w**2).sum())
     rows = []
-    cols = {**{nm: t[:, j] for j, nm in enumerate(setup.space.names)}, "sigma": sig}
+    names = calibration_box(setup, solver.effects).names
+    cols = {**{nm: t[:, j] for j, nm in enumerate(names)}, "sigma": sig}
     for nm, x in cols.items():
         qs = torch.quantile(x, torch.tensor([0.025, 0.5, 0.975], dtype=x.dtype)).tolist()
         qe = weighted_quantiles(x, w, (0.025, 0.5, 0.975))
@@ -143,26 +164,28 @@ def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple
 RUN_FILES = ("run.json", "data.csv", "draws.npz")
 
 
-def save_run(out: Path, meas: Measurements, setup: Setup, post: Posterior, bands: Any,
-             y_obs: torch.Tensor, y_liu: torch.Tensor, priors: Priors,
-             record: dict[str, Any]) -> None:
+def save_run(out: Path, meas: Measurements, space: Box, effects: tuple[str, ...],
+             post: Posterior, bands: Any, y_obs: torch.Tensor, y_liu: torch.Tensor,
+             priors: Priors, record: dict[str, Any]) -> None:
     """Keep what a later ``solderpyro diagnose`` needs in the run directory.
 
     Writes ``data.csv`` (the measurements, exact round trip), ``draws.npz`` (flat posterior
     draws ``theta (n, dim)`` in physical units with ``names``, ``sigma (n,)`` in um, the
-    predictive ``process (n_pred, n_obs)`` and ``observed (n_pred, n_obs)`` draws, ``y_obs`` and
+    predictive ``process (n_pred, n_obs)`` and ``observed (n_pred, n_obs)`` draws with their
+    noise ``sigma_pred (n_pred,)``, ``y_obs`` and
     the Liu-constants model ``y_liu``, all in um) and ``run.json`` (settings, parameter box).
     """
     from solderpyro.io.measurements import write_measurements
 
     write_measurements(out / "data.csv", meas)
     np.savez(out / "draws.npz", theta=post.flat("t").numpy(), sigma=post.flat("sigma").numpy(),
-             names=np.array(setup.space.names), process=bands.draws.numpy(),
-             observed=bands.obs_draws.numpy(), y_obs=y_obs.numpy(), y_liu=y_liu.numpy())
-    sp = setup.space
-    info = {**record, "parameters": list(sp.names), "lower": list(sp.lower),
-            "upper": list(sp.upper), "sigma_known": priors.sigma_known,
-            "effects": list(getattr(setup, "effects", ()) or ()),
+             names=np.array(space.names), process=bands.draws.numpy(),
+             observed=bands.obs_draws.numpy(), y_obs=y_obs.numpy(), y_liu=y_liu.numpy(),
+             sigma_pred=(bands.sigma if bands.sigma is not None
+                         else torch.full((bands.draws.shape[0],), float("nan"))).numpy())
+    info = {**record, "parameters": list(space.names), "lower": list(space.lower),
+            "upper": list(space.upper), "sigma_known": priors.sigma_known,
+            "effects": list(effects),
             "times_s": [float(t) for t in meas.times()], "points": list(meas.points())}
     (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
 
@@ -196,15 +219,20 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         raise ValueError("the measurement file has no rows")
     field = any(p not in setup.problem.points for p in meas.points())
     times = tuple(float(t) for t in meas.times())
+    fx = effect_set(setup.effects, times, setup.effect_bounds) if setup.effects else None
     solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                            dtype=setup.dtype, device=setup.device)
+                            dtype=setup.dtype, device=setup.device, effects=fx or ())
     store = RunStore(store_root)
-    h = store.register(setup.problem, times, field, setup.dtype)
-    space = setup.space
+    h = store.register(setup.problem, times, field, setup.dtype, effects=fx or ())
+    space = calibration_box(setup, fx)
     theta = lhs(space, n_runs, seed)  # (n_runs, n_theta)
     liu = anand_tensor({}, base=LIU2008, dtype=torch.float64)[None]
-    params = torch.cat([space.full(theta), liu])  # the literature run rides along
+    if fx is not None:  # the literature run with every effect off
+        liu = torch.cat([liu, torch.tensor([fx.off], dtype=torch.float64)], 1)
+    params = torch.cat([fe_params(setup, theta), liu])  # the literature run rides along
     log.info("DOE: %d LHS runs over %s + the Liu 2008 constants", n_runs, ", ".join(space.names))
+    if fx is not None:
+        log.info("effects on: %s (parameters %s)", ", ".join(fx.keys), ", ".join(fx.names))
     doe = run_doe(solver, store, h, params, times, batch_size, progress)
     ti, oi = observation_index(meas, doe.times, doe.names)
     y_sim = doe.V[:, ti, oi]  # (n_runs + 1, n_obs)
@@ -233,12 +261,12 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
              nk["chains"], nk["draws"])
     post, inp = calibrate_modular(gp, y_obs, space, priors=pr, **nk)
     rows = [r for r in post.summary()]
-    order = list(space.names) + ["sigma"]
+    order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
     write_summary(rows, out / "summary.csv", SUMMARY)
     post.save(out / "posterior.nc")
     bands = predict_observation_model(post, inp, None, seed=seed)
-    save_run(out, meas, setup, post, bands, y_obs, y_sim[-1], pr,
+    save_run(out, meas, space, setup.effects, post, bands, y_obs, y_sim[-1], pr,
              {**(record or {}), "n_runs": n_runs, "seed": seed, "store": str(store_root),
               "kernel": kernel, "ard": ard, "mean": mean, "surrogate_output": output,
               "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95)})

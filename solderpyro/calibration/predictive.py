@@ -36,10 +36,12 @@ class Bands:
         draws: ``(n_draws, n_new)`` process draws; obs_draws: the same plus noise.
         mean, median, lo, hi: ``(n_new,)`` process mean, median and 2.5 / 97.5 % quantiles.
         obs_lo, obs_hi: ``(n_new,)`` 2.5 / 97.5 % quantiles of a new observation.
+        sigma: ``(n_draws,)`` the noise sd of each draw (None where not recorded).
     """
 
     draws: torch.Tensor
     obs_draws: torch.Tensor
+    sigma: torch.Tensor | None = None
 
     @property
     def mean(self) -> torch.Tensor:
@@ -114,10 +116,11 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
     y = inp.y_obs
     n_o = y.shape[0]
     cond = (x_new is not None) if condition is None else condition
-    proc, obs = [], []
+    proc, obs, sigmas = [], [], []
     for i in _pick(post, n_draws, gen).tolist():
         t = inp.theta_box.from_unit(_raw(post, SITE_T, i))
         sigma = _raw(post, SITE_SIGMA, i)
+        sigmas.append(sigma)
         with torch.no_grad():
             lr = None if (x_new is not None or cond or inp.discrepancy) else \
                 emulator_lowrank(inp.emulator, t)
@@ -144,7 +147,7 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
                 draw = _conditional_draw(mean, cov, y, n_o, sigma.square(), gen)
         proc.append(draw)
         obs.append(draw + sigma * torch.randn(draw.shape, generator=gen, dtype=draw.dtype))
-    return Bands(torch.stack(proc), torch.stack(obs))
+    return Bands(torch.stack(proc), torch.stack(obs), torch.stack(sigmas).reshape(-1))
 
 
 def _stacked(inp: ObsInputs, t: torch.Tensor, x_new: torch.Tensor | None

@@ -26,7 +26,7 @@ def _draw(ax_list, meas: Any, values: np.ndarray, label: str, field: bool, color
         ax = ax_list[0]
         for k, p in enumerate(meas.points()):
             rows = np.flatnonzero(meas.point == p)
-            ax.plot(meas.time_s[rows] / 60, values[rows], marker,
+            ax.plot(meas.time_s[rows] / 60, values[rows], marker=marker[0],
                     color=color if len(meas.points()) == 1 else f"C{k}",
                     ls="-" if marker == "o-" else "--", label=f"{label} ({p})")
         return None

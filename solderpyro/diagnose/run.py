@@ -145,26 +145,21 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         dict: ``V (K, n_time, n_out)`` at the draws (um), ``J (K, n_time, n_out, n_col)``
         (um per unit), ``cols`` (:class:`_Columns`), ``names`` (output labels), ``times``.
     """
-    from solderpyro.effects import EFFECTS
+    from solderpyro.effects import effect_set
     from solderpyro.fem.problem import reference_grid
     from solderpyro.fem.solver import SpecimenSolver
+    from solderpyro.workflow import calibration_box
 
-    effs = tuple(run_effects) + tuple(candidates)
-    cands = {n: EFFECTS[n] for n in candidates}
+    fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
+    cands = {e.name: e for e in fx_all.effects if e.name in candidates}
+    cal = calibration_box(setup, effect_set(run_effects, times, setup.effect_bounds)
+                          if run_effects else None)
+    cols = _fd_design(list(cal.names), list(cal.lower), list(cal.upper), cands, rel)
+    n_cal = cal.dim
+    off = np.array([v for e in cands.values() for v in e.off], float)
     sp = setup.space
-    names = list(sp.names)
-    lo, hi = list(sp.lower), list(sp.upper)
-    for n in run_effects:
-        pb = EFFECTS[n].params
-        names += list(pb.names)
-        lo += list(pb.lower)
-        hi += list(pb.upper)
-    cols = _fd_design(names, lo, hi, cands, rel)
-    n_cal = len(names)
-    off = np.concatenate([np.asarray(EFFECTS[n].off, float) for n in candidates]) \
-        if candidates else np.zeros(0)
     solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                            dtype=setup.dtype, device=setup.device, effects=effs)
+                            dtype=setup.dtype, device=setup.device, effects=fx_all)
     rows = []
     for th in theta:
         base = np.concatenate([th, off])
@@ -259,9 +254,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     sigma_draws = dr["sigma"]
     sig_known = info.get("sigma_known")
     sigma = float(sig_known) if sig_known else float(np.median(sigma_draws))
-    rng = np.random.default_rng(seed)
-    sig_pred = rng.choice(sigma_draws, size=dr["process"].shape[0])
-    pc = predictive_check(y, dr["process"], sig_pred, seed=seed)
+    pc = predictive_check(y, dr["process"], dr["sigma_pred"], seed=seed)
     field = any(p not in setup.problem.points for p in meas.points())
     times = tuple(float(t) for t in meas.times())
     idx = _pick_draws(dr["theta"], n_draws, seed)

@@ -1,0 +1,124 @@
+"""Synthetic data with a hidden effect: the proof that a diagnosis finds what is missing.
+
+The FE with one effect switched on at a known value (and the Anand constants at known values)
+plus N(0, sigma^2) noise; the file's metadata records the truth. The effect's magnitude is the
+smallest of a ladder of values whose change of the noise-free point data (V at A and B at the
+extended times) reaches ``target_rms`` (issue 6: at least 0.3 um).
+
+Units: um, s, and each effect's own parameter units (docs/effects.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from solderpyro.fem.loading import EXTENDED_TIMES
+
+#: Anand constants of the synthetic truths (the demo's): s0 MPa, QR K, xi, m
+TRUTH = {"s0": 12.92, "QR": 10586.0, "xi": 2.04, "m": 0.1}
+FRACTIONS = (0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
+
+
+def _ladder(eff: Any, seed: int) -> np.ndarray:
+    """``(len(FRACTIONS), n_p)`` candidate values from "off" toward the box's far side; a
+    multi-parameter effect gets one fixed random direction (seeded)."""
+    b = eff.params
+    off = np.asarray(eff.off, float)
+    lo, hi = np.asarray(b.lower, float), np.asarray(b.upper, float)
+    far = np.where(hi - off >= off - lo, hi, lo)
+    if len(off) > 1:
+        u = np.random.default_rng(seed).uniform(0.3, 1.0, len(off))
+        u *= np.random.default_rng(seed + 1).choice([-1.0, 1.0], len(off))
+        far = np.where(u > 0, hi, lo)
+        d = np.abs(u) * (far - off)
+    else:
+        d = far - off
+    return off[None] + np.asarray(FRACTIONS)[:, None] * d[None]
+
+
+def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 0,
+                  anand: dict[str, float] | None = None) -> tuple[np.ndarray, float]:
+    """The effect's hidden parameter values and their RMS change of the point data.
+
+    Args:
+        setup: typed problem (:func:`solderpyro.configure.build`).
+        effect: registry name.
+        target_rms: the RMS change (um) of V_A, V_B at the extended times to reach.
+        anand: Anand constants (default :data:`TRUTH`, others from the config).
+    Returns:
+        ``(values (n_p,), rms_um)``; the largest ladder value when none reaches the target.
+    """
+    from solderpyro.effects import effect_set
+    from solderpyro.fem.solver import SpecimenSolver
+    from solderpyro.params import anand_tensor
+
+    fx = effect_set((effect,), EXTENDED_TIMES, setup.effect_bounds)
+    eff = fx.effects[0]
+    lad = _ladder(eff, seed)
+    rows = np.vstack([np.asarray(eff.off, float)[None], lad])
+    a = anand_tensor(anand or TRUTH, base=setup.anand, dtype=torch.float64)
+    P = torch.cat([a.expand(len(rows), -1), torch.tensor(rows)], 1)
+    solver = SpecimenSolver(setup.problem, dtype=setup.dtype, effects=fx)
+    V = solver.solve(P, EXTENDED_TIMES).V.detach().numpy()
+    rms = np.sqrt(((V[1:] - V[:1]) ** 2).mean((1, 2)))
+    ok = np.flatnonzero(rms >= target_rms)
+    k = int(ok[0]) if len(ok) else len(rms) - 1
+    return lad[k], float(rms[k])
+
+
+def make_dataset(setup: Any, effect: str | None, path: str | Path, field: bool,
+                 times: tuple[float, ...], noise: float = 0.05, seed: int = 0,
+                 values: np.ndarray | None = None, anand: dict[str, float] | None = None
+                 ) -> Path:
+    """Write a measurement CSV with a hidden ``effect`` (None: a clean dataset).
+
+    Args:
+        setup: typed problem. effect: registry name or None.
+        path: the CSV to write. field: the 31 x 18 grid (plus A, B) instead of A and B only.
+        times: observation times, s. noise: sd of the added Gaussian noise, um.
+        values: the effect's parameters (default :func:`hidden_values`).
+        anand: Anand constants of the truth (default :data:`TRUTH`).
+    Returns:
+        the path; metadata lines name the truth (``hidden_effect``, ``hidden_values``).
+    """
+    from solderpyro.effects import effect_set
+    from solderpyro.fem.problem import reference_grid
+    from solderpyro.fem.solver import SpecimenSolver
+    from solderpyro.io.measurements import from_arrays, write_measurements
+    from solderpyro.params import anand_tensor
+
+    truth = dict(anand or TRUTH)
+    a = anand_tensor(truth, base=setup.anand, dtype=torch.float64)[None]
+    meta = {"generator": "solderpyro hidden-effect dataset", "truth": str(truth),
+            "noise_sigma_um": str(noise), "hidden_effect": effect or "none"}
+    if effect is not None:
+        if values is None:
+            values, rms = hidden_values(setup, effect, seed=seed, anand=truth)
+            meta["hidden_rms_point_um"] = f"{rms:.4g}"
+        fx = effect_set((effect,), times, setup.effect_bounds)
+        meta["hidden_values"] = str(dict(zip(fx.names, np.asarray(values).tolist(),
+                                             strict=True)))
+        a = torch.cat([a, torch.tensor(np.asarray(values, float))[None]], 1)
+        solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
+                                dtype=setup.dtype, effects=fx)
+    else:
+        solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
+                                dtype=setup.dtype)
+    res = solver.solve(a, times)
+    if not bool(res.ok.all()):
+        raise RuntimeError(f"the FE solve of the hidden-effect data failed: {res.reasons[0]}")
+    V = res.V[0].detach().numpy()
+    pts = [setup.problem.points[n] for n in setup.problem.points]
+    if field:
+        pts += [tuple(x) for x in reference_grid()[1]]
+    rng = np.random.default_rng(seed + 1000)
+    y = V + noise * rng.standard_normal(V.shape)
+    temps = [setup.problem.cycle(t) for t in res.times.tolist()]
+    m = from_arrays(res.times.numpy(), res.names, np.array(pts), y, temperature_C=temps,
+                    sigma_um=noise, meta=meta)
+    write_measurements(path, m)
+    return Path(path)
