@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from solderpyro.calibration import Priors, calibrate_modular, predict_observation_model
+from solderpyro.calibration import Priors, calibrate_emulator, predict_observation_model
+from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
 from solderpyro.calibration.koh import emulator_lowrank
 from solderpyro.calibration.mcmc import Posterior, format_summary, write_summary
 from solderpyro.configure import Setup
@@ -46,6 +48,42 @@ def calibration_box(setup: Setup, fx: EffectSet | None = None) -> Box:
     return Box(tuple(sp.names) + tuple(eb.names), tuple(sp.lower) + tuple(eb.lower),
                tuple(sp.upper) + tuple(eb.upper), tuple(sp.log_scale) + tuple(eb.log_scale),
                tuple(sp.units) + tuple(eb.units))
+
+
+OBSERVATION_SEAM = "observation operator"
+
+
+def split_effects(setup: Setup, times: tuple[float, ...]
+                  ) -> tuple[EffectSet | None, EffectSet | None, EffectSet | None]:
+    """The switched-on effects bound to ``times``: all (FE-side first, then observation-side),
+    those the FE must simulate, and the observation-side ones (applied after the surrogate);
+    None where empty."""
+    if not setup.effects:
+        return None, None, None
+    fx = effect_set(setup.effects, times, setup.effect_bounds)
+    obs = [e.name for e in fx.effects if e.seam == OBSERVATION_SEAM]
+    fe = [e.name for e in fx.effects if e.seam != OBSERVATION_SEAM]
+
+    def mk(names: list[str]) -> EffectSet | None:
+        return effect_set(names, times, setup.effect_bounds) if names else None
+
+    return mk(fe + obs), mk(fe), mk(obs)
+
+
+def observation_offset(fx_obs: EffectSet, problem: Any, names: Sequence[str], n_time: int,
+                       ti: np.ndarray, oi: np.ndarray) -> Any:
+    """``q (n_q,) -> (n_obs,)``: what additive observation effects add to each observation, um
+    (they act on V after the FE: ``EffectSet.observe`` of a zero field)."""
+    pts = output_points(problem)
+    x = torch.tensor([pts[n][0] for n in names], dtype=torch.float64)
+    x_O = float(problem.origin[0])
+    tt, oo = torch.as_tensor(ti), torch.as_tensor(oi)
+
+    def offset(q: torch.Tensor) -> torch.Tensor:
+        z = torch.zeros(1, n_time, len(names), dtype=q.dtype)
+        return fx_obs.observe(z, x, x_O, q.reshape(1, -1))[0, tt, oo]
+
+    return offset
 
 
 def fe_params(setup: Setup, theta: torch.Tensor) -> torch.Tensor:
@@ -219,16 +257,17 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         raise ValueError("the measurement file has no rows")
     field = any(p not in setup.problem.points for p in meas.points())
     times = tuple(float(t) for t in meas.times())
-    fx = effect_set(setup.effects, times, setup.effect_bounds) if setup.effects else None
+    fx, fx_fe, fx_obs = split_effects(setup, times)
     solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                            dtype=setup.dtype, device=setup.device, effects=fx or ())
+                            dtype=setup.dtype, device=setup.device, effects=fx_fe or ())
     store = RunStore(store_root)
-    h = store.register(setup.problem, times, field, setup.dtype, effects=fx or ())
-    space = calibration_box(setup, fx)
-    theta = lhs(space, n_runs, seed)  # (n_runs, n_theta)
+    h = store.register(setup.problem, times, field, setup.dtype, effects=fx_fe or ())
+    gp_box = calibration_box(setup, fx_fe)  # what the FE runs and the surrogate vary
+    space = calibration_box(setup, fx)  # ... plus observation-side effects (no FE needed)
+    theta = lhs(gp_box, n_runs, seed)  # (n_runs, n_fe)
     liu = anand_tensor({}, base=LIU2008, dtype=torch.float64)[None]
-    if fx is not None:  # the literature run with every effect off
-        liu = torch.cat([liu, torch.tensor([fx.off], dtype=torch.float64)], 1)
+    if fx_fe is not None:  # the literature run with every effect off
+        liu = torch.cat([liu, torch.tensor([fx_fe.off], dtype=torch.float64)], 1)
     params = torch.cat([fe_params(setup, theta), liu])  # the literature run rides along
     log.info("DOE: %d LHS runs over %s + the Liu 2008 constants", n_runs, ", ".join(space.names))
     if fx is not None:
@@ -236,15 +275,16 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     doe = run_doe(solver, store, h, params, times, batch_size, progress)
     ti, oi = observation_index(meas, doe.times, doe.names)
     y_sim = doe.V[:, ti, oi]  # (n_runs + 1, n_obs)
+    y_liu = y_sim[-1]
     ok = doe.ok[:n_runs]
-    if int(ok.sum()) < max(5, space.dim + 2):
+    if int(ok.sum()) < max(5, gp_box.dim + 2):
         raise RuntimeError(f"only {int(ok.sum())} of {n_runs} FE runs converged: "
                            f"{sorted(set(r for r in doe.reasons if r))[:3]}")
     y_obs = torch.tensor(np.array(meas.value_um), dtype=torch.float64)
     output = "batched" if y_obs.shape[0] <= 16 else "pca"
     log.info("surrogate: %s GP on %d runs, %d observed outputs", output, int(ok.sum()),
              y_obs.shape[0])
-    gp = GPSurrogate(space, output=output, kernel=kernel, ard=ard, mean=mean)
+    gp = GPSurrogate(gp_box, output=output, kernel=kernel, ard=ard, mean=mean)
     gp.fit(theta[ok], y_sim[:n_runs][ok])
     loo = gp.loo()
     problems = gp.check(loo)
@@ -259,25 +299,34 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     nk.update(nuts or {})
     log.info("NUTS: %d chains x %d draws (modular KOH, code uncertainty from the GP)",
              nk["chains"], nk["draws"])
-    post, inp = calibrate_modular(gp, y_obs, space, priors=pr, **nk)
+    emulator: Any = GPEmulator(gp)
+    if fx_obs is not None:  # additive observation effects applied after the surrogate
+        emulator = ObservedEmulator(emulator, gp_box.dim, observation_offset(
+            fx_obs, setup.problem, doe.names, len(doe.times), ti, oi))
+    post, inp = calibrate_emulator(emulator, y_obs, space, priors=pr, **nk)
     rows = [r for r in post.summary()]
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
     write_summary(rows, out / "summary.csv", SUMMARY)
     post.save(out / "posterior.nc")
     bands = predict_observation_model(post, inp, None, seed=seed)
-    save_run(out, meas, space, setup.effects, post, bands, y_obs, y_sim[-1], pr,
+    save_run(out, meas, space, fx.keys if fx is not None else (), post, bands, y_obs,
+             y_liu, pr,
              {**(record or {}), "n_runs": n_runs, "seed": seed, "store": str(store_root),
               "kernel": kernel, "ard": ard, "mean": mean, "surrogate_output": output,
               "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95)})
     ex = None
     if exact > 0:
         log.info("exact check: reweighting %d surrogate draws by the FE likelihood", exact)
+        if fx_obs is not None:  # the exact FE likelihood needs the observation effects too
+            solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
+                                    dtype=setup.dtype, device=setup.device, effects=fx or ())
+            h = store.register(setup.problem, times, field, setup.dtype, effects=fx or ())
         ex = exact_check(solver, store, h, setup, times, post, inp, ti, oi, exact, seed,
                          progress)
         write_summary(ex, out / "exact_check.csv", tuple(ex[0]))
     from solderpyro import report
 
-    report.write(out, meas, rows, post, loo, problems, bands, y_sim[-1], doe, ti, oi, nk, ex)
+    report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk, ex)
     print(format_summary(rows))
     return SpecimenCalibration(out, post, rows, loo, int(ok.sum()), int((~ok).sum()))

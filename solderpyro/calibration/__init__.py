@@ -12,8 +12,9 @@ __all__ = ["Bands", "CalibrationData", "FunctionEmulator", "GPEmulator", "Poster
 
 from solderpyro.calibration.api import (  # noqa: E402
     calibrate_direct,
+    calibrate_emulator,
     calibrate_joint,
     calibrate_modular,
 )
 
-__all__ += ["calibrate_direct", "calibrate_joint", "calibrate_modular"]
+__all__ += ["calibrate_direct", "calibrate_emulator", "calibrate_joint", "calibrate_modular"]

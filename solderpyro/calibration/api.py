@@ -84,6 +84,17 @@ def calibrate_modular(gp: GPSurrogate, y_obs: torch.Tensor, theta_box: Box,
     return _run_obs(inp, priors, nuts), inp
 
 
+def calibrate_emulator(emulator: Any, y_obs: torch.Tensor, theta_box: Box,
+                       priors: Priors | None = None, **nuts: Any
+                       ) -> tuple[Posterior, ObsInputs]:
+    """Modular calibration through any emulator ``t (n_theta,) -> (mean (n_obs,), cov)`` (e.g.
+    a :class:`~solderpyro.calibration.emulators.ObservedEmulator`); as
+    :func:`calibrate_modular` otherwise."""
+    inp = prepare_observation(y_obs, emulator, theta_box)
+    nuts.setdefault("full_mass", theta_box.dim > 1)
+    return _run_obs(inp, priors, nuts), inp
+
+
 def _run_obs(inp: ObsInputs, priors: Priors | None, nuts: dict) -> Posterior:
     samples, divs, sec = run_nuts(observation_model, (inp, priors or Priors()), **nuts)
     return _post(samples, inp.theta_box, divs, sec)

@@ -13,6 +13,7 @@ when the code is evaluated exactly). ``x=None`` means the observation inputs.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import torch
 
@@ -76,3 +77,37 @@ class GPEmulator:
         if self.x_obs is not None or self.gp.output != "pca":
             return None
         return self.gp.mean_lowrank(t)
+
+
+class ObservedEmulator:
+    """An emulator of the FE outputs followed by additive observation-side effects.
+
+    Observation effects (e.g. a Moire rigid offset and rotation per image) act on the observed
+    V after the FE, additively, so the surrogate need not learn them: ``t = (t_fe, q)`` and the
+    prediction is ``mean(t_fe) + offset(q)`` with the code covariance of ``t_fe`` unchanged.
+
+    Args:
+        base: emulator of the observations from ``t_fe (n_fe,)`` (a :class:`GPEmulator`).
+        n_fe: number of leading entries of ``t`` that the base emulator takes.
+        offset: ``q (n_q,) -> (n_obs,)`` additive offset of each observation, um
+            (differentiable).
+    """
+
+    def __init__(self, base: Any, n_fe: int, offset: Callable[[torch.Tensor], torch.Tensor]
+                 ) -> None:
+        self.base, self.n_fe, self.offset = base, n_fe, offset
+        self.x_obs = None
+
+    def __call__(self, t: torch.Tensor, x: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        m, c = self.base(t[..., :self.n_fe], x)
+        return m + self.offset(t[..., self.n_fe:]), c
+
+    def lowrank(self, t: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """As :meth:`GPEmulator.lowrank`, shifted by the offset."""
+        lr = getattr(self.base, "lowrank", None)
+        out = None if lr is None else lr(t[..., :self.n_fe])
+        if out is None:
+            return None
+        return out[0] + self.offset(t[..., self.n_fe:]), out[1], out[2]

@@ -253,7 +253,7 @@ class ObsInputs:
     discrepancy: bool = False
 
 
-def prepare_observation(y_obs: torch.Tensor, emulator: FunctionEmulator | GPEmulator,
+def prepare_observation(y_obs: torch.Tensor, emulator: FunctionEmulator | GPEmulator | Any,
                         theta_box: Box, x_obs: torch.Tensor | None = None,
                         x_box: Box | None = None, discrepancy: bool = False) -> ObsInputs:
     """Validate and bundle the inputs of :func:`observation_model`."""

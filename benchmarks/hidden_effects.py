@@ -1,0 +1,112 @@
+"""Proof on data with a hidden effect (issue 6 §5): calibrate -> diagnose -> add the top effect
+-> calibrate again, for one dataset per effect plus a clean one, full-field and point data.
+
+Usage: python benchmarks/hidden_effects.py [--kind field|point|both] [--effects a,b,...]
+       [--runs 50] [--chains 2] [--warmup 300] [--draws 500] [--work runs/hidden]
+       [--out benchmarks/results_hidden.json]
+
+Each case's result is appended to the JSON file as soon as it is done (a rerun skips finished
+cases; FE runs are reused from the run store). Full-field data: the 31 x 18 grid (+ A, B) at
+the four seed times; point data: A and B at the seven extended times; noise 0.05 um; the truth's
+Anand constants are solderpyro.diagnose.hidden.TRUTH.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import logging
+import time
+from pathlib import Path
+
+import torch
+
+from solderpyro.configure import build, compose
+from solderpyro.diagnose import diagnose
+from solderpyro.diagnose.compare import compare
+from solderpyro.diagnose.hidden import TRUTH, make_dataset
+from solderpyro.effects import EFFECTS
+from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
+from solderpyro.io.measurements import read_measurements
+from solderpyro.workflow import calibrate_specimen, output_points
+
+
+def _calibrate(overrides, data, out, a):
+    setup = build(compose(overrides))
+    meas = read_measurements(data, valid_points=output_points(setup.problem))
+    nuts = dict(chains=a.chains, warmup=a.warmup, draws=a.draws)
+    return calibrate_specimen(setup, meas, out, n_runs=a.runs, store_root=a.work + "/store",
+                              nuts=nuts, progress=False, record={"overrides": overrides},
+                              **setup.surrogate)
+
+
+def _covered(run_dir: Path, truth: dict) -> dict:
+    import csv
+
+    with open(run_dir / "summary.csv", newline="") as fh:
+        rows = {r["parameter"]: r for r in csv.DictReader(fh)}
+    return {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
+            for k, v in truth.items() if k in rows}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--kind", default="field", choices=("field", "point", "both"))
+    ap.add_argument("--effects", default="", help="hidden effects (default: all + clean)")
+    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--chains", type=int, default=2)
+    ap.add_argument("--warmup", type=int, default=300)
+    ap.add_argument("--draws", type=int, default=500)
+    ap.add_argument("--work", default="runs/hidden")
+    ap.add_argument("--out", default="benchmarks/results_hidden.json")
+    a = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    torch.set_num_threads(1)
+    out = Path(a.out)
+    done = json.loads(out.read_text()) if out.exists() else []
+    seen = {(r["kind"], r["hidden"]) for r in done}
+    kinds = ("field", "point") if a.kind == "both" else (a.kind,)
+    hidden = [h.strip() for h in a.effects.split(",") if h.strip()] or ["none", *EFFECTS]
+    base = build(compose([]))
+    for kind in kinds:
+        times = SEED_TIMES if kind == "field" else EXTENDED_TIMES
+        ov = [f"loading.output_times=[{','.join(str(t) for t in times)}]"]
+        for h in hidden:
+            if (kind, h) in seen:
+                continue
+            t0 = time.perf_counter()
+            d = Path(a.work) / kind / h
+            d.mkdir(parents=True, exist_ok=True)
+            data = make_dataset(base, None if h == "none" else h, d / "data.csv",
+                                kind == "field", times, seed=1)
+            meta = read_measurements(data).meta
+            _calibrate(ov, data, d / "base", a)
+            dg = diagnose(d / "base", n_draws=2, progress=False)
+            rec = {"kind": kind, "hidden": h, "hidden_values": meta.get("hidden_values"),
+                   "hidden_rms_point_um": meta.get("hidden_rms_point_um"),
+                   "misfit": dg.misfit, "verdict": dg.verdict,
+                   "ranking": [(r["effect"], r["evidence"], r["flagged"]) for r in dg.ranking],
+                   "indistinguishable": dg.indistinguishable,
+                   "rank_of_hidden": next((i + 1 for i, r in enumerate(dg.ranking)
+                                           if r["effect"] == h), None)}
+            top = next((r["effect"] for r in dg.ranking if r["flagged"]), None)
+            if top is not None:
+                _calibrate([*ov, f"effects=[{top}]"], data, d / f"with_{top}", a)
+                cmp = compare(d / "base", d / f"with_{top}")
+                truth = dict(TRUTH)
+                if h == top and meta.get("hidden_values"):
+                    truth.update(ast.literal_eval(meta["hidden_values"]))
+                rec.update({"added": top, "rms_before_um": cmp["before"]["rms_um"],
+                            "rms_after_um": cmp["after"]["rms_um"],
+                            "elpd_gain": cmp["elpd_gain"],
+                            "covered_after": _covered(d / f"with_{top}", truth)})
+            rec["covered_base"] = _covered(d / "base", TRUTH)
+            rec["seconds"] = time.perf_counter() - t0
+            done.append(rec)
+            out.write_text(json.dumps(done, indent=2) + "\n")
+            print(json.dumps(rec), flush=True)
+
+
+if __name__ == "__main__":
+    main()
