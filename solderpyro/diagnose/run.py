@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.stats import chi2 as _chi2
 
 from solderpyro.diagnose.stats import (
     Misfit,
@@ -43,6 +44,8 @@ ALPHA = 0.01
 MIN_IDENTIFIABLE = 0.05
 #: canonical correlation above which two effects cannot be told apart
 MAX_CONFUSION = 0.9
+#: magnitudes (share of the way from "off" to the box's far edge) of the likelihood-ratio ladder
+LADDER = (0.15, 0.4, 1.0)
 
 
 @dataclass
@@ -170,6 +173,22 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
             rows.append(base + e)
             if cols.central[c]:
                 rows.append(base - e)
+    # a ladder of finite magnitudes per one-parameter candidate (first draw): the likelihood
+    # ratio sees effects whose first derivative at "off" vanishes (thresholds, e.g. yielding)
+    ladder: dict[str, np.ndarray] = {}
+    base0 = np.concatenate([theta[0], off])
+    for ename, eff in cands.items():
+        if eff.n_params != 1:
+            continue
+        j = n_cal + int(np.flatnonzero(np.array(cols.owner[n_cal:]) == ename)[0])
+        b = eff.params
+        o = float(eff.off[0])
+        far = b.upper[0] if b.upper[0] - o >= o - b.lower[0] else b.lower[0]
+        ladder[ename] = o + np.asarray(LADDER) * (far - o)
+        for v in ladder[ename]:
+            r = base0.copy()
+            r[j] = v
+            rows.append(r)
     P = torch.tensor(np.array(rows), dtype=torch.float64)
     full = torch.cat([sp.full(P[:, :sp.n_theta]), P[:, sp.n_theta:]], 1)
     log.info("diagnose: %d FE runs (%d draws x %d Jacobian columns, candidates: %s)",
@@ -194,7 +213,12 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
                 i += 1
             else:
                 J[k, ..., c] = (plus - Vb[k]) / cols.step[c]
+    VL = {}
+    for ename, vals in ladder.items():
+        VL[ename] = (vals, V[i:i + len(vals)])
+        i += len(vals)
     return {"V": Vb, "J": J, "cols": cols, "names": list(res.names), "n_cal": n_cal,
+            "ladder": VL,
             "times": tuple(float(t) for t in res.times)}
 
 
@@ -203,6 +227,7 @@ def _group(cols: _Columns, owner: str) -> np.ndarray:
 
 
 def analyse(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: _Columns, sigma: float,
+            ladder: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
             ) -> tuple[Misfit, list[Score], list[list[Score]]]:
     """Misfit and score tests at each draw.
 
@@ -221,7 +246,32 @@ def analyse(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: _Columns, sigma: 
         r = y - V[k]
         per_draw.append([score_test(e, r, J[k][:, th], J[k][:, _group(cols, e)], w)
                          for e in effects])
-    return misfit(y - V[0], J[0][:, th], w), per_draw[0], per_draw
+    mf = misfit(y - V[0], J[0][:, th], w)
+    for sc in per_draw[0]:
+        if ladder and sc.effect in ladder:
+            vals, VL = ladder[sc.effect]
+            lr = likelihood_ratio(mf.chi2, y, VL, J[0][:, th], w)
+            sc.lr, sc.lr_value = float(lr.max()), float(vals[int(np.argmax(lr))])
+            if sc.lr > sc.statistic:  # a finite magnitude explains more than the slope at off
+                sc.statistic = sc.lr
+                sc.dof = max(sc.dof, 1)
+                sc.p_value = float(_chi2.sf(sc.lr, sc.dof))
+                sc.evidence = min(300.0, -np.log10(max(sc.p_value, 1e-300)))
+                sc.chi2_after = mf.chi2 - sc.lr
+    return mf, per_draw[0], per_draw
+
+
+def likelihood_ratio(chi2_base: float, y: np.ndarray, V_ladder: np.ndarray,
+                     J_theta: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Chi-square drop ``(L,)`` when the effect is switched on at each ladder magnitude and the
+    calibrated parameters are refitted (linearised with ``J_theta``, as the baseline misfit).
+
+    Args:
+        chi2_base: the baseline misfit chi-square; y: ``(n,)`` data, um;
+        V_ladder: ``(L, n)`` FE with the effect at each magnitude; J_theta: ``(n, p)``;
+        w: ``(n,)`` weights 1/um^2.
+    """
+    return np.array([chi2_base - misfit(y - v, J_theta, w).chi2 for v in V_ladder])
 
 
 def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_draws: int = 3,
@@ -263,7 +313,8 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     ti, oi = observation_index(meas, fe["times"], tuple(fe["names"]))
     V = fe["V"][:, ti, oi]
     J = fe["J"][:, ti, oi, :]
-    mf, scores, per_draw = analyse(y, V, J, fe["cols"], sigma)
+    lad = {k: (v, VL[:, ti, oi]) for k, (v, VL) in fe["ladder"].items()}
+    mf, scores, per_draw = analyse(y, V, J, fe["cols"], sigma, lad)
     diag = _verdict(mf, pc, scores, per_draw, sigma, len(candidates))
     _write(d, diag, meas, mf, pc, scores, V[0], sigma)
     return diag
@@ -287,6 +338,7 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
             "chi2_after": float(s.chi2_after),
             "rms_after_um": float(np.sqrt(max(s.chi2_after, 0.0) / len(mf.residual)) * sigma),
             "delta": [float(v) for v in s.delta], "flagged": bool(flag),
+            "likelihood_ratio": s.lr, "best_magnitude": s.lr_value,
             "evidence_over_draws": [round(float(e), 3) for e in ev_draws]})
     flagged = [r for r in ranking if r["flagged"]]
     groups: list[list[str]] = []

@@ -133,6 +133,9 @@ class Score:
         pattern: ``(n,)`` the fitted linearised effect ``P J_e delta``, um (compare with the
             refitted residual);
         basis: ``(n, rank)`` W-orthonormal basis of ``sqrt(W) P J_e`` (for confusions).
+        lr, lr_value: for one-parameter effects, the largest chi-square drop over a ladder of
+            finite magnitudes (likelihood ratio, calibrated parameters refitted) and the
+            magnitude that gave it; where it exceeds the score, statistic/p-value use it.
     """
 
     effect: str
@@ -145,6 +148,8 @@ class Score:
     chi2_after: float
     pattern: np.ndarray
     basis: np.ndarray = field(repr=False)
+    lr: float | None = None
+    lr_value: float | None = None
 
 
 def score_test(name: str, r: np.ndarray, J_theta: np.ndarray, J_eff: np.ndarray,

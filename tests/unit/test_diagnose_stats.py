@@ -101,3 +101,20 @@ def test_predictive_check_rejects_bad_shapes():
         predictive_check(np.zeros(3), np.zeros((5, 4)), np.ones(5))
     with pytest.raises(ValueError, match="sigma"):
         predictive_check(np.zeros(3), np.zeros((5, 3)), np.zeros(5))
+
+
+def test_likelihood_ratio_ladder_is_bounded_by_the_score_for_a_linear_effect():
+    """For a linear effect the chi-square drop at any magnitude is at most the score statistic
+    (the drop at the optimal magnitude) and equals it at that magnitude."""
+    from solderpyro.diagnose.run import likelihood_ratio
+
+    rng = np.random.default_rng(6)
+    Jt, Je = _linear(rng, k=1)
+    w = np.full(14, 4.0)
+    y = Jt @ rng.standard_normal(4) + 0.8 * Je[:, 0] + 0.5 * rng.standard_normal(14)
+    sc = score_test("e", y, Jt, Je, w)
+    mags = np.array([0.0, 0.5 * sc.delta[0], sc.delta[0], 2.0 * sc.delta[0]])
+    lr = likelihood_ratio(misfit(y, Jt, w).chi2, y, mags[:, None] * Je[:, 0][None], Jt, w)
+    assert lr[0] == pytest.approx(0.0, abs=1e-9)
+    assert lr[2] == pytest.approx(sc.statistic, rel=1e-9)
+    assert np.all(lr <= sc.statistic + 1e-9)
