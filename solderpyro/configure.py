@@ -30,7 +30,18 @@ def compose(overrides: list[str] | None = None, config_name: str = "config"):
 
     if not CONFIG_DIR.is_dir():
         raise FileNotFoundError(f"config directory not found: {CONFIG_DIR}")
+    from hydra.core.global_hydra import GlobalHydra
+
     try:
+        if GlobalHydra.instance().is_initialized():  # inside a @hydra.main script
+            saved = GlobalHydra.instance().hydra
+            GlobalHydra.instance().clear()
+            try:
+                with initialize_config_dir(str(CONFIG_DIR), version_base=None):
+                    return _compose(config_name, overrides=list(overrides or []))
+            finally:
+                if saved is not None:
+                    GlobalHydra.instance().initialize(saved)
         with initialize_config_dir(str(CONFIG_DIR), version_base=None):
             return _compose(config_name, overrides=list(overrides or []))
     except (HydraException, OmegaConfBaseException) as e:

@@ -47,7 +47,8 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     Args:
         setup: typed problem (:func:`solderpyro.configure.build`).
         effect: registry name.
-        target_rms: the RMS change (um) of V_A, V_B at the extended times to reach.
+        target_rms: the RMS change (um) of V_A, V_B at the extended times to reach (at the
+            configured output times when the cycle is shorter than the reference one).
         anand: Anand constants (default :data:`TRUTH`, others from the config).
     Returns:
         ``(values (n_p,), rms_um)``; the largest ladder value when none reaches the target.
@@ -56,14 +57,15 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     from solderpyro.fem.solver import SpecimenSolver
     from solderpyro.params import anand_tensor
 
-    fx = effect_set((effect,), EXTENDED_TIMES, setup.effect_bounds)
+    times = EXTENDED_TIMES if max(EXTENDED_TIMES) <= setup.problem.cycle.end else setup.times
+    fx = effect_set((effect,), times, setup.effect_bounds)
     eff = fx.effects[0]
     lad = _ladder(eff, seed)
     rows = np.vstack([np.asarray(eff.off, float)[None], lad])
     a = anand_tensor(anand or TRUTH, base=setup.anand, dtype=torch.float64)
     P = torch.cat([a.expand(len(rows), -1), torch.tensor(rows)], 1)
     solver = SpecimenSolver(setup.problem, dtype=setup.dtype, effects=fx)
-    V = solver.solve(P, EXTENDED_TIMES).V.detach().numpy()
+    V = solver.solve(P, times).V.detach().numpy()
     rms = np.sqrt(((V[1:] - V[:1]) ** 2).mean((1, 2)))
     ok = np.flatnonzero(rms >= target_rms)
     k = int(ok[0]) if len(ok) else len(rms) - 1

@@ -184,3 +184,21 @@ def test_calibrate_full_field_tiny(tmp_path):
         assert z["process"].shape[1] == len(m) and z["theta"].shape[1] == 4
     html = (out / "report.html").read_text()
     assert "<table>" in html and 'src="fig10_predictive.png"' in html
+
+
+def test_hidden_effect_case_script_runs_tiny(tmp_path):
+    """The walkthrough script: hidden thermal lag -> calibrate -> diagnose -> add -> compare."""
+    r = subprocess.run([sys.executable, str(ROOT / "experiments" / "hidden_effect_case.py"),
+                        *TINY, "+case.effect=thermal_lag", "+case.field=false", "+case.draws=1",
+                        "+case.candidates=[thermal_lag,cte_temperature]",
+                        "calibration.runs=12", "calibration.chains=1", "calibration.warmup=80",
+                        "calibration.draws=80", f"calibration.store={tmp_path / 'store'}",
+                        f"hydra.run.dir={tmp_path / 'run'}"],
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    run = tmp_path / "run"
+    assert (run / "base" / "diagnosis.json").exists()
+    dg = json.loads((run / "base" / "diagnosis.json").read_text())
+    assert dg["misfit"] is True
+    added = [p.name for p in run.glob("with_*")]
+    assert len(added) == 1 and (run / added[0] / "comparison.md").exists()
