@@ -226,7 +226,8 @@ def cmd_sensitivity(a, overrides) -> int:
     res = run_sensitivity(setup, a.out, n_runs=a.runs, grad_points=a.grad_points,
                           grad_batch=a.grad_batch, times=times, store_root=a.store,
                           seed=a.seed, n_sobol=a.sobol_samples, n_boot=a.bootstrap,
-                          bounds=bounds, batch_size=a.batch, progress=not a.quiet, command=cmd)
+                          bounds=bounds, batch_size=a.batch, refits=a.refits,
+                          progress=not a.quiet, command=cmd)
     print(f"\n{'parameter':>9} {'DGSM':>9} {'S1':>7} {'ST':>7} {'ST 95 %':>15} rank")
     for r in sorted(res.rows, key=lambda r: r["rank"]):
         print(f"{r['parameter']:>9} {r['dgsm']:9.3g} {r['S1']:7.3f} {r['ST']:7.3f} "
@@ -339,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--grad-points", type=int, default=32, help="LHS points of the DGSM, each "
                    "an FE solve with autograd (>= 2)")
     v.add_argument("--grad-batch", type=int, default=16, help="members per autograd FE solve "
-                   "(memory: ~0.3 GB per member on the default mesh)")
+                   "(memory: ~0.5 GB per member on the default mesh)")
     v.add_argument("--times", default=None, help="seed (600,2700,4800,7800 s) | extended "
                    "(+ dwell ends) | t1,t2,... in s (default: config loading.output_times)")
     v.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
@@ -351,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "intervals (>= 10)")
     v.add_argument("--box", default="", help="override bounds of the nine-constant box, e.g. "
                    "A=1e5:1e8,h0=500:3000 (defaults: docs/sensitivity.md)")
+    v.add_argument("--refits", type=int, default=5, help="GP refits, each without 1/REFITS "
+                   "of the runs, for the surrogate's standard error of S_T (0: none)")
     v.add_argument("--batch", type=int, default=64, help="FE runs per batched DOE solve")
     v.add_argument("--quiet", action="store_true", help="no progress bars")
     q = sub.add_parser("compare", help="before/after of two calibrations on the same data "
