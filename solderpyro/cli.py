@@ -200,7 +200,7 @@ def cmd_diagnose(a, overrides) -> int:
 
     cands = tuple(_names(a.effects)) if a.effects else None
     dg = diagnose(a.run_dir, candidates=cands, n_draws=a.draws, seed=a.seed,
-                  progress=not a.quiet)
+                  progress=not a.quiet, refit=not a.no_refit)
     print(f"\nverdict: {dg.verdict}\n")
     print(f"{'effect':26s} {'evidence':>9s} {'score':>9s} {'dof':>4s} {'ident.':>7s}  flagged")
     for r in dg.ranking:
@@ -329,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "its finite-difference Jacobians are evaluated (the first is the draw "
                    "nearest the posterior median)")
     g.add_argument("--seed", type=int, default=0, help="random seed (draw choice, replicates)")
+    g.add_argument("--no-refit", action="store_true", help="test at the posterior draw itself, "
+                   "not at the FE's best fit started from it (Levenberg-Marquardt, ~8 FE "
+                   "solves)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
     v = sub.add_parser("sensitivity", help="rank the nine Anand constants by their influence "
                        "on V_A, V_B over a prior box: DGSM through the FE (autograd) and Sobol "
