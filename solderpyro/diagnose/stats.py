@@ -98,6 +98,7 @@ class Misfit:
         chi2: ``r' P' W P r``; dof: ``n - rank(J_theta)``; p_value: ``P(chi2_dof >= chi2)``.
         rms: root mean square of the refitted residual, um; rms_noise: the noise sd, um.
         residual: ``(n,)`` the refitted residual ``P r``, um.
+        chi2_refit: the baseline chi-square after a full (nonlinear) FE refit, when done.
     """
 
     chi2: float
@@ -106,6 +107,7 @@ class Misfit:
     rms: float
     rms_noise: float
     residual: np.ndarray
+    chi2_refit: float | None = None
 
 
 def misfit(r: np.ndarray, J_theta: np.ndarray, w: np.ndarray) -> Misfit:
@@ -125,7 +127,7 @@ class Score:
 
     Attributes:
         effect: name; statistic: S; dof: rank of the projected information; p_value;
-        evidence: ``-log10 p`` (capped at 300);
+        evidence: ``-log10 p``, computed in log space (:func:`evidence`);
         identifiable: share ``|P J_e|_W / |J_e|_W`` of the effect's signature that the calibrated
             parameters cannot mimic (0: fully confounded with them, 1: orthogonal);
         delta: ``(k,)`` linearised estimate of the effect's parameters (from "off");
@@ -136,6 +138,7 @@ class Score:
         lr, lr_value: for one-parameter effects, the largest chi-square drop over a ladder of
             finite magnitudes (likelihood ratio, calibrated parameters refitted) and the
             magnitude that gave it; where it exceeds the score, statistic/p-value use it.
+        profile_chi2: chi-square of the FE refitted with the effect on (when done).
     """
 
     effect: str
@@ -150,6 +153,7 @@ class Score:
     basis: np.ndarray = field(repr=False)
     lr: float | None = None
     lr_value: float | None = None
+    profile_chi2: float | None = None
 
 
 def score_test(name: str, r: np.ndarray, J_theta: np.ndarray, J_eff: np.ndarray,
@@ -182,8 +186,22 @@ def score_test(name: str, r: np.ndarray, J_theta: np.ndarray, J_eff: np.ndarray,
         pattern = Je @ delta
     ident = float(np.linalg.norm(A) / full) if full > 0 else 0.0
     chi2 = float((w * rt**2).sum())
-    ev = min(300.0, -np.log10(max(p, 1e-300)))
+    ev = evidence(S, k)
     return Score(name, S, k, p, ev, ident, delta, chi2 - S, pattern, q)
+
+
+def evidence(statistic: float, dof: int) -> float:
+    """``-log10 P(chi2_dof >= statistic)``, exact in the far tail (no underflow to 0 at 1e-300:
+    strong effects stay ordered by their evidence). 0 for ``dof = 0``."""
+    if dof <= 0:
+        return 0.0
+    ls = float(stats.chi2.logsf(statistic, dof))
+    if not np.isfinite(ls):  # far tail: log Q(k/2, x/2) ~ (k/2 - 1) log(x/2) - x/2 - lgamma(k/2)
+        from scipy.special import gammaln
+
+        x, a = 0.5 * statistic, 0.5 * dof
+        ls = (a - 1.0) * np.log(x) - x - float(gammaln(a))
+    return float(-ls / np.log(10.0))
 
 
 def confusion(a: Score, b: Score) -> float:

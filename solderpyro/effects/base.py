@@ -10,7 +10,10 @@ seam                   hook
 temperature history    :meth:`Effect.temperature` (member temperature at a time of the cycle)
 initial state          :meth:`Effect.stress_free` + :meth:`Effect.pre_history` (a simulated
                        history before t = 0; V is then reported relative to the state at t = 0)
-material law           :meth:`Effect.thermal_strain`, :meth:`Effect.modulus`
+material law           :meth:`Effect.thermal_strain`, :meth:`Effect.modulus`,
+                       :meth:`Effect.back_stress_modulus` (solder back stress),
+                       :meth:`Effect.plastic_band` + :meth:`Effect.yield_stress` (a band of
+                       a linear region made elasto-plastic)
 observation operator   :meth:`Effect.observe` (on the solver's V after the FE solve)
 =====================  =========================================================================
 
@@ -33,6 +36,30 @@ import torch
 
 from ..fem.loading import ThermalCycle
 from ..params import Box
+
+
+@dataclass(frozen=True)
+class PlasticBand:
+    """Elements of a linear elastic material next to the solder made elasto-plastic.
+
+    The elements of ``material`` lying within ``depth`` mm of the nonlinear (solder) region
+    follow rate-independent J2 plasticity with linear isotropic hardening
+    (:func:`solderpyro.materials.j2.j2_update`); the rest of that material stays elastic and
+    condensed. The yield stress comes per member from :meth:`Effect.yield_stress`.
+
+    Attributes:
+        material: key of the linear material (e.g. ``"copper"``).
+        depth: band depth, mm (every node of a band element within it).
+        H: linear isotropic hardening modulus, MPa.
+        elastic_limit: yield stresses >= this (MPa) mean an elastic band: those members are
+            solved on the baseline path; the solver warns when the band's elastic stress
+            reaches it there.
+    """
+
+    material: str
+    depth: float
+    H: float
+    elastic_limit: float
 
 
 @dataclass(frozen=True)
@@ -131,6 +158,21 @@ class Effect:
         """Solder Young's modulus ``(b,)`` MPa at ``T`` ``(b,)`` degC from the baseline's ``E``."""
         return E
 
+    def back_stress_modulus(self, C_k: torch.Tensor | None,
+                            q: torch.Tensor) -> torch.Tensor | None:
+        """Prager modulus ``(b,)`` MPa of the solder's back stress (``dX = 2/3 C_k deps_p``),
+        from the baseline's ``C_k`` (None: no back stress, the isotropic Anand model)."""
+        return C_k
+
+    def plastic_band(self) -> PlasticBand | None:
+        """A band of a linear material made elasto-plastic (a setting), or None."""
+        return None
+
+    def yield_stress(self, q: torch.Tensor) -> torch.Tensor | None:
+        """Yield stress ``(b,)`` MPa of the :meth:`plastic_band`'s material per member; ``inf``
+        for a member whose band stays elastic (it is then solved on the baseline path)."""
+        return None
+
     def observe(self, V: torch.Tensor, x: torch.Tensor, x_O: float,
                 q: torch.Tensor) -> torch.Tensor:
         """Observed ``V`` ``(b, n_time, n_out)`` um from the FE's; ``x`` ``(n_out,)`` mm are the
@@ -165,7 +207,7 @@ class EffectSet:
         keys = [e.name for e in self.effects]
         if len(set(keys)) != len(keys):
             raise ValueError(f"effects listed twice: {keys}")
-        for hook in ("temperature", "pre_history"):  # these replace rather than compose
+        for hook in ("temperature", "pre_history", "plastic_band"):  # replace, not compose
             who = [e.name for e in self.effects if _overrides(e, hook)]
             if len(who) > 1:
                 raise ValueError(f"effects {who} both override {hook}(); only one may")
@@ -272,6 +314,34 @@ class EffectSet:
         for e, qe in zip(self.effects, self.split(q), strict=True):
             E = e.modulus(E, T, qe)
         return E
+
+    @property
+    def kinematic(self) -> bool:
+        """Whether an effect gives the solder a back stress (the state then carries ``X``)."""
+        return any(_overrides(e, "back_stress_modulus") for e in self.effects)
+
+    def back_stress_modulus(self, q: torch.Tensor) -> torch.Tensor | None:
+        """Prager modulus ``(b,)`` MPa of the solder per member, or None (no back stress)."""
+        C_k = None
+        for e, qe in zip(self.effects, self.split(q), strict=True):
+            C_k = e.back_stress_modulus(C_k, qe)
+        return C_k
+
+    def plastic_band(self) -> PlasticBand | None:
+        """The one elasto-plastic band of a linear material, or None."""
+        for e in self.effects:
+            band = e.plastic_band()
+            if band is not None:
+                return band
+        return None
+
+    def yield_stress(self, q: torch.Tensor) -> torch.Tensor | None:
+        """Yield stress ``(b,)`` MPa of the band per member (``inf``: elastic), or None."""
+        for e, qe in zip(self.effects, self.split(q), strict=True):
+            sy = e.yield_stress(qe)
+            if sy is not None:
+                return sy
+        return None
 
     def observe(self, V: torch.Tensor, x: torch.Tensor, x_O: float,
                 q: torch.Tensor) -> torch.Tensor:

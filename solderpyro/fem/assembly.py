@@ -31,12 +31,15 @@ class Condensed:
         g: ``{material: (n_r,)}`` condensed thermal force per unit free thermal strain.
         H: ``(n_out, n_r)`` observation map (V at points) on the retained dofs, mm/mm.
         h: ``{material: (n_out,)}`` observation offset per unit free thermal strain of material.
+        Hx, hx: the same for the ``extra`` operator of :func:`condense` (None without one).
     """
 
     S: np.ndarray
     g: dict
     H: np.ndarray
     h: dict
+    Hx: np.ndarray | None = None
+    hx: dict | None = None
 
 
 def linear_system(mesh, problem, lin_elems: np.ndarray):
@@ -73,13 +76,15 @@ def linear_system(mesh, problem, lin_elems: np.ndarray):
 
 
 def condense(K: sp.csr_matrix, loads: dict, obs: sp.csr_matrix, r: np.ndarray,
-             c: np.ndarray) -> Condensed:
+             c: np.ndarray, extra: sp.csr_matrix | None = None) -> Condensed:
     """Condense the free dofs ``c`` onto ``r``.
 
     Args:
         K: ``(n_dof, n_dof)`` sparse linear stiffness; loads: ``{material: (n_dof,)}``.
         obs: ``(n_out, n_dof)`` sparse observation operator.
         r, c: retained and condensed free dof indices.
+        extra: optional ``(n_x, n_dof)`` operator mapped like ``obs`` (into ``Hx``, ``hx``),
+            e.g. the dofs of elements whose stresses are recovered.
     """
     Krr = K[r][:, r].toarray()
     Krc = K[r][:, c]
@@ -96,4 +101,9 @@ def condense(K: sp.csr_matrix, loads: dict, obs: sp.csr_matrix, r: np.ndarray,
         y = lu.solve(f[c])
         g[key] = f[r] - Krc @ y
         h[key] = Hc @ y
-    return Condensed(S, g, H, h)
+    if extra is None:
+        return Condensed(S, g, H, h)
+    Ec = extra[:, c]
+    Hx = extra[:, r].toarray() - Ec @ X
+    hx = {key: Ec @ lu.solve(f[c]) for key, f in loads.items()}
+    return Condensed(S, g, H, h, Hx, hx)

@@ -79,6 +79,21 @@ def qm6_stiffness(xy: np.ndarray, D: np.ndarray) -> np.ndarray:
         xy: ``(n_elem, 4, 2)`` node coordinates; D: ``(3, 3)`` in-plane stiffness (Mandel), MPa.
     """
     B, wdet = q4_kinematics(xy)
+    G = qm6_modes(xy, wdet)  # (e, q, 3, 4)
+    Kuu = np.einsum("eqia,ij,eqjb,eq->eab", B, D, B, wdet)
+    Kua = np.einsum("eqia,ij,eqjb,eq->eab", B, D, G, wdet)
+    Kaa = np.einsum("eqia,ij,eqjb,eq->eab", G, D, G, wdet)
+    return Kuu - Kua @ np.linalg.solve(Kaa, np.swapaxes(Kua, 1, 2))
+
+
+def qm6_modes(xy: np.ndarray, wdet: np.ndarray) -> np.ndarray:
+    """Strain matrices ``(n_elem, n_qp, 3, 4)`` of QM6's four incompatible modes (Taylor's
+    correction: Jacobian at the centre, scaled by ``det J0 / det J``, so they integrate to zero).
+
+    Args:
+        xy: ``(n_elem, 4, 2)`` node coordinates, mm; wdet: ``(n_elem, n_qp)`` from
+            :func:`q4_kinematics`.
+    """
     dN = _dN_dxi(np.zeros((1, 2)))[0]
     J0 = np.einsum("ak,ekb->eab", dN, xy)
     det0 = np.linalg.det(J0)
@@ -87,11 +102,7 @@ def qm6_stiffness(xy: np.ndarray, D: np.ndarray) -> np.ndarray:
     dP[:, 0, 0] = -2 * r
     dP[:, 1, 1] = -2 * s
     dPdx = np.linalg.solve(J0[:, None], np.broadcast_to(dP, (len(xy), 4, 2, 2)))
-    G = _bmat(dPdx) * (det0[:, None] / (wdet / W))[..., None, None]  # (e, q, 3, 4)
-    Kuu = np.einsum("eqia,ij,eqjb,eq->eab", B, D, B, wdet)
-    Kua = np.einsum("eqia,ij,eqjb,eq->eab", B, D, G, wdet)
-    Kaa = np.einsum("eqia,ij,eqjb,eq->eab", G, D, G, wdet)
-    return Kuu - Kua @ np.linalg.solve(Kaa, np.swapaxes(Kua, 1, 2))
+    return _bmat(dPdx) * (det0[:, None] / (wdet / W))[..., None, None]
 
 
 def edofs(elems: np.ndarray) -> np.ndarray:

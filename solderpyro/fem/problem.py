@@ -54,7 +54,7 @@ class AnandSolder(Elastic):
         return self.E
 
     def update(self, eps, state, p, T_C, T_ref_C, dt, guess=None, tangent=True, *,
-               eps_th=None, E=None):
+               eps_th=None, E=None, C_k=None):
         """Gauss-point update; see :func:`solderpyro.materials.integrate.return_map_3d`.
 
         Args:
@@ -64,6 +64,8 @@ class AnandSolder(Elastic):
             eps_th, E: optional free thermal strain and Young's modulus (MPa), float or
                 ``(b, 1, 1)``, replacing :meth:`thermal_strain` and :meth:`modulus` (physical
                 effects computed per batch member, see :mod:`solderpyro.effects`).
+            C_k: optional Prager modulus of a back stress (MPa), float or ``(b, 1, 1)``; the
+                state then carries the back stress ``X`` (:mod:`solderpyro.materials.kinematic`).
         """
         from ..materials.integrate import return_map_3d
 
@@ -72,7 +74,7 @@ class AnandSolder(Elastic):
         if E is None:
             E = self.modulus(T_C)
         return return_map_3d(eps, state, p, T_C + 273.15, dt, eps_th, E, self.nu,
-                             guess=guess, tangent=tangent)
+                             guess=guess, tangent=tangent, C_k=C_k)
 
 
 #: Material laws by config name (``materials.<key>.law``); effects register theirs here.

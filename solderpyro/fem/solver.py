@@ -17,12 +17,17 @@ so outputs are differentiable with respect to the Anand constants.
 Physical effects (:mod:`solderpyro.effects`): ``effects=(...)`` appends the effects' parameters
 to the nine constants of each member. They enter through :class:`~solderpyro.effects.EffectSet`
 only (temperature history, stress-free temperature and pre-history, thermal strains, solder
-modulus, observation), so temperature and thermal strains become per-member tensors; the solver
-core never names an effect. Without effects the solver runs the baseline path unchanged.
+modulus, the solder's back stress, an elasto-plastic band of a linear region, observation), so
+temperature and thermal strains become per-member tensors; the solver core never names an
+effect. A back stress adds ``X`` to the Gauss-point state. A plastic band
+(:mod:`solderpyro.fem.band`) needs a second discretisation whose retained system includes the
+band: it is built once, and each member is solved on it only if its band may yield, else on the
+baseline one. Without effects the solver runs the baseline path unchanged.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,7 +37,8 @@ import scipy.sparse as sp
 import torch
 
 from ..effects import Effect, EffectSet
-from ..materials.elastic import IP, ZZ, condense_zz
+from ..effects.base import PlasticBand
+from ..materials.elastic import IP, ZZ, condense_zz, plane_elastic
 from ..materials.integrate import (
     PointState,
     Tangent3D,
@@ -42,7 +48,15 @@ from ..materials.integrate import (
 )
 from ..params import ANAND_NAMES
 from .assembly import condense, linear_system
-from .elements import bbar, edofs, q4_kinematics
+from .band import (
+    BandData,
+    adjacent_elements,
+    band_elements,
+    band_update,
+    elastic_stress_operator,
+    mode_correction,
+)
+from .elements import bbar, edofs, q4_kinematics, qm6_modes
 from .loading import ThermalCycle, time_grid
 from .mesh import build_mesh, locate
 from .problem import Problem
@@ -83,6 +97,9 @@ class _Thermo:
             modulus, MPa. Floats in the baseline model; ``(b, 1, 1)`` per member with effects.
         eps_lin: free thermal strains of the linear materials, ``(n_mat,)`` or ``(b, n_mat)``.
         per_member: whether the fields are per batch member (then :meth:`index` selects rows).
+        C_k: the solder's Prager modulus ``(b, 1, 1)`` MPa, or None (no back stress).
+        band: ``(eps_th, sigma_y)``, each ``(b, 1, 1)``, of an elasto-plastic band's material
+            (free thermal strain, yield stress MPa), or None (no band).
     """
 
     T: Any
@@ -90,11 +107,15 @@ class _Thermo:
     E: Any
     eps_lin: torch.Tensor
     per_member: bool = False
+    C_k: Any = None
+    band: Any = None
 
     def index(self, idx) -> _Thermo:
         if not self.per_member:
             return self
-        return _Thermo(self.T[idx], self.eps_th[idx], self.E[idx], self.eps_lin[idx], True)
+        return _Thermo(self.T[idx], self.eps_th[idx], self.E[idx], self.eps_lin[idx], True,
+                       None if self.C_k is None else self.C_k[idx],
+                       None if self.band is None else tuple(a[idx] for a in self.band))
 
 
 class SpecimenSolver:
@@ -107,11 +128,17 @@ class SpecimenSolver:
         effects: physical effects switched on (names of :data:`solderpyro.effects.EFFECTS`,
             :class:`~solderpyro.effects.Effect` instances, or an
             :class:`~solderpyro.effects.EffectSet`); their parameters follow the nine Anand
-            constants in ``params``, in this order (see :meth:`param_names`).
+            constants in ``params``, in this order (see :meth:`param_names`). An effect with a
+            :class:`~solderpyro.effects.base.PlasticBand` (``copper_plasticity``) gets a second,
+            banded discretisation; each member is solved on the banded one only if its band
+            may yield (:meth:`~solderpyro.effects.Effect.yield_stress` finite), else on the
+            baseline one.
+        _band: internal: build the banded discretisation of this band.
     """
 
     def __init__(self, problem: Problem, field_points=None, dtype=torch.float64,
-                 device="cpu", effects: EffectSet | Sequence[str | Effect] = ()) -> None:
+                 device="cpu", effects: EffectSet | Sequence[str | Effect] = (),
+                 _band: PlasticBand | None = None) -> None:
         self.problem = problem
         self.effects: EffectSet | None = (effects if isinstance(effects, EffectSet)
                                           else EffectSet(effects) if effects else None)
@@ -130,10 +157,16 @@ class SpecimenSolver:
             raise ValueError("exactly one nonlinear material is supported")
         self.solder_key = keys.pop()
         self.solder = problem.materials[self.solder_key]
+        spec = None if self.effects is None else self.effects.plastic_band()
+        el_b = np.zeros(0, dtype=int) if spec is None else self._band_elements(spec, nonlin)
+        el_all = el_nl  # the nonlinear elements: the solder, then a band's
+        if _band is not None:
+            el_lin = np.setdiff1d(el_lin, el_b)
+            el_all = np.concatenate([el_nl, el_b])
         fixed = self._dirichlet()
         n_dof = 2 * mesh.n_node
         free = np.setdiff1d(np.arange(n_dof), fixed)
-        nl_dofs = np.unique(edofs(mesh.elems[el_nl]))
+        nl_dofs = np.unique(edofs(mesh.elems[el_all]))
         r = np.intersect1d(free, nl_dofs)
         c = np.setdiff1d(free, r)
         self.n_r = len(r)
@@ -146,7 +179,15 @@ class SpecimenSolver:
         self.x_out = torch.as_tensor(pts[:, 0].copy(), **self.tkw)  # (n_out,) mm
         Hobs = self._observation(pts)
         K, loads = linear_system(mesh, problem, el_lin)
-        cond = condense(K, loads, Hobs, r, c)
+        # elastic elements whose stress is checked: the band itself on the baseline path, the
+        # ring of elastic elements around it on the banded one
+        el_p = el_b if _band is None else adjacent_elements(mesh, el_b, _band.material)
+        probe = None
+        if spec is not None and len(el_p):
+            ed_p = edofs(mesh.elems[el_p]).ravel()
+            probe = sp.csr_matrix((np.ones(len(ed_p)), (np.arange(len(ed_p)), ed_p)),
+                                  shape=(len(ed_p), n_dof))
+        cond = condense(K, loads, Hobs, r, c, probe)
         t = lambda a: torch.as_tensor(np.ascontiguousarray(a), **self.tkw)  # noqa: E731
         self.S = t(cond.S)
         self.lin_keys = list(cond.g)
@@ -157,10 +198,12 @@ class SpecimenSolver:
         # B-matrix column, so it contributes nothing to strains, forces or tangents
         gmap = np.full(n_dof, -1)
         gmap[r] = np.arange(self.n_r)
-        ed = gmap[edofs(mesh.elems[el_nl])]
-        B, wdet = q4_kinematics(mesh.nodes[mesh.elems[el_nl]])
-        if problem.plane == "strain":
-            B = bbar(B, wdet)
+        ed = gmap[edofs(mesh.elems[el_all])]
+        B, wdet = q4_kinematics(mesh.nodes[mesh.elems[el_all]])
+        n_s = len(el_nl)
+        if problem.plane == "strain":  # the solder's only: a band keeps B (and its modes)
+            B = bbar(B, wdet) if _band is None else np.concatenate(
+                [bbar(B[:n_s], wdet[:n_s]), B[n_s:]])
         B = B * (ed >= 0)[:, None, None, :]
         self.edof = torch.as_tensor(np.maximum(ed, 0), device=self.tkw["device"])
         self.B, self.wdet = t(B), t(wdet)  # (n_e, n_qp, 3, 8), (n_e, n_qp)
@@ -170,6 +213,16 @@ class SpecimenSolver:
         self.BweT = self.Bw.reshape(n_e, -1, 8).transpose(1, 2).contiguous()  # (n_e, 8, n_qp*3)
         self.kidx = (self.edof[:, :, None] * self.n_r + self.edof[:, None, :]).reshape(-1)
         self.el_solder = el_nl
+        self.n_s = n_s  # solder elements come first in the element arrays
+        self.band = None if _band is None else self._band_data(_band, el_b, wdet[n_s:])
+        self._banded: SpecimenSolver | None = None
+        self._peak: torch.Tensor | None = None  # the last _run's checked stresses, (b,) MPa
+        self.band_spec = spec
+        self._probe = (None if probe is None or spec is None
+                       else self._probe_operator(spec, el_p, cond))
+        if spec is not None and _band is None:
+            self._banded = SpecimenSolver(problem, field_points, dtype, device,
+                                          self.effects or (), _band=spec)
         self.stats = {"factor": 0, "iter": 0}
         self._fcache: dict[str, torch.Tensor] | None = None
 
@@ -183,6 +236,47 @@ class SpecimenSolver:
         return [*ANAND_NAMES, *fx.names]
 
     # ------------------------------------------------------------------ set-up helpers
+    def _band_elements(self, spec: PlasticBand, nonlin: np.ndarray) -> np.ndarray:
+        """Element indices of the band ``spec`` (``nonlin`` ``(n_layer,)``: nonlinear layers)."""
+        mats = self.problem.materials
+        if spec.material not in mats or mats[spec.material].nonlinear:
+            raise ValueError(f"plastic band: {spec.material!r} is not a linear material of the "
+                             f"problem ({', '.join(mats)})")
+        el_b = band_elements(self.mesh, spec.material, nonlin, spec.depth)
+        if len(el_b) == 0:
+            raise ValueError(f"plastic band: no element of {spec.material!r} lies within "
+                             f"{spec.depth} mm of the solder")
+        return el_b
+
+    def _band_data(self, spec: PlasticBand, el_b: np.ndarray, wdet_b: np.ndarray) -> BandData:
+        """Material and incompatible modes of the band elements ``el_b`` (``wdet_b``
+        ``(n_eb, n_qp)``)."""
+        mat, pr = self.problem.materials[spec.material], self.problem
+        G = Gw = None
+        if pr.incompatible_modes:
+            g = qm6_modes(self.mesh.nodes[self.mesh.elems[el_b]], wdet_b)
+            G = torch.as_tensor(g, **self.tkw)
+            Gw = torch.as_tensor(g * wdet_b[..., None, None], **self.tkw)
+        return BandData(G, Gw, mat.E, mat.nu, spec.H, pr.plane, spec.material)
+
+    def _probe_operator(self, spec: PlasticBand, el_b: np.ndarray, cond):
+        """``(M_r (n_r, n_p), M_th (n_mat, n_p))``: in-plane stresses of the elastic (condensed)
+        elements ``el_b`` at their points (``n_p = n_el*n_qp*3``),
+        ``sigma = u @ M_r + eps_lin @ M_th``."""
+        mat, pr = self.problem.materials[spec.material], self.problem
+        D, d_th = (a.numpy() for a in plane_elastic(mat.E, mat.nu, pr.plane,
+                                                     dtype=torch.float64))
+        P = elastic_stress_operator(self.mesh.nodes[self.mesh.elems[el_b]], D,
+                                    pr.incompatible_modes)  # (n_eb, n_qp, 3, 8)
+        n_eb = len(el_b)
+        Pm = np.zeros((P.shape[0] * P.shape[1] * 3, n_eb * 8))  # block diagonal
+        for e in range(n_eb):
+            Pm[e * 12:(e + 1) * 12, e * 8:(e + 1) * 8] = P[e].reshape(12, 8)
+        M_th = np.stack([Pm @ cond.hx[k] - (d_th[None, :] * (k == spec.material)).repeat(
+            4 * n_eb, 0).ravel() for k in self.lin_keys])
+        t = lambda a: torch.as_tensor(np.ascontiguousarray(a), **self.tkw)  # noqa: E731
+        return t((Pm @ cond.Hx).T), t(M_th)
+
     def _dirichlet(self) -> np.ndarray:
         mesh, (x0, y0) = self.mesh, self.problem.origin
         on_axis = np.nonzero(np.abs(mesh.nodes[:, 0] - x0) < 1e-9)[0]
@@ -239,7 +333,15 @@ class SpecimenSolver:
                                for k in self.lin_keys], -1)  # (b, n_mat)
         eps_th = fx.thermal_strain(self.solder, T, T_ref, q)
         E = fx.modulus(self.solder, T, q)
-        return _Thermo(T[:, None, None], eps_th[:, None, None], E[:, None, None], eps_lin, True)
+        C_k = fx.back_stress_modulus(q)  # (b,) or None
+        band = None
+        if self.band is not None:
+            eb = fx.thermal_strain(mats[self.band.material], T, T_ref, q)
+            sy = fx.yield_stress(q)
+            assert sy is not None
+            band = (eb[:, None, None], sy[:, None, None])
+        return _Thermo(T[:, None, None], eps_th[:, None, None], E[:, None, None], eps_lin, True,
+                       None if C_k is None else C_k[:, None, None], band)
 
     def _strain(self, u):
         """In-plane strains ``(b, n_e, n_qp, 3)``: one small matrix product per element, with
@@ -260,12 +362,18 @@ class SpecimenSolver:
         eliminated with the Newton update of eps_zz, so the global iteration drives it to zero).
         With ``condense=False`` the in-plane tangent ``C_ip`` is not formed (None); the Newton
         loop condenses ``C3`` only for the members it refactors (:meth:`_condense`).
+        With a band (:meth:`_material_band`) the arrays cover the band's points too.
         """
+        if self.band is not None:
+            return self._material_band(u, ezz, st, p, T_C, dt, tangent, guess, C3_fixed,
+                                       condense)
         eps = self._strain(u)
         if ezz is None:
             ezz = torch.zeros_like(eps[..., 0])
         th = self._as_thermo(T_C)
         kw = {"eps_th": th.eps_th, "E": th.E} if th.per_member else {}
+        if th.C_k is not None:
+            kw["C_k"] = th.C_k
         sig, st1, C3, dep, x = self.solder.update(
             _full_strain(eps, ezz), st, p[:, None, None, :N_ANAND], th.T, self.problem.T_ref_C,
             dt, guess=guess, tangent="factored" if tangent else False, **kw)
@@ -280,8 +388,40 @@ class SpecimenSolver:
             C = self._condense(C3)
         return sig_ip, C, szz, C3, st1, dep, x
 
+    def _material_band(self, u, ezz, st, p, T_C, dt, tangent, guess, C3_fixed, condense):
+        """:meth:`_material` with an elasto-plastic band: the solder's points as there (``ezz``,
+        ``szz`` are the solder's), then the band's (:func:`~.band.band_update`, which solves
+        its own ``eps_zz`` and modes). ``C3`` is a :class:`_BandTangent`; ``sigma_ip``,
+        ``dep``, the state and ``x`` cover all points (solder elements first)."""
+        n = self.n_s
+        eps = self._strain(u)
+        if ezz is None:
+            ezz = torch.zeros_like(eps[:, :n, :, 0])
+        th = self._as_thermo(T_C)
+        kw = {"eps_th": th.eps_th, "E": th.E}
+        if th.C_k is not None:
+            kw["C_k"] = th.C_k
+        st_s, st_b = _split_state(st, n)
+        sig, st1, C3, dep, x = self.solder.update(
+            _full_strain(eps[:, :n], ezz), st_s, p[:, None, None, :N_ANAND], th.T,
+            self.problem.T_ref_C, dt, guess=None if guess is None else guess[:, :n],
+            tangent="factored" if tangent else False, **kw)
+        sig_ip, szz = sig[..., IP], sig[..., ZZ]
+        C3 = C3 if C3_fixed is None else C3_fixed.solder
+        if self.problem.plane == "stress":
+            cz = _col_zz(C3)
+            sig_ip = sig_ip - cz[..., IP] / cz[..., ZZ, None] * szz[..., None]
+        sb, Cb, st1b, dgb, xb = band_update(self.band, eps[:, n:], st_b, *th.band,
+                                            None if guess is None else guess[:, n:], tangent)
+        C3m = _BandTangent(C3, Cb) if tangent else None
+        C = self._condense(C3m) if tangent and condense else None
+        return (torch.cat([sig_ip, sb], 1), C, szz, C3m, _cat_state(st1, st1b),
+                torch.cat([dep, dgb], 1), torch.cat([x, xb], 1))
+
     def _condense(self, C3):
         """In-plane tangent ``(..., 3, 3)`` from the 3-D one (plane stress or strain)."""
+        if isinstance(C3, _BandTangent):
+            return torch.cat([self._condense(C3.solder), C3.band], 1)
         return condense_zz(C3.full() if isinstance(C3, Tangent3D) else C3, self.problem.plane)
 
     def _residual(self, u, sigma, fext):
@@ -296,6 +436,9 @@ class SpecimenSolver:
         CB = C @ self.B  # (b, n_e, n_qp, 3, 8)
         Ke = (self.Bw.transpose(-1, -2) @ CB).sum(2)  # (b, n_e, 8, 8)
         n = self.n_r
+        if self.band is not None and self.band.G is not None:  # condense the band's modes
+            Ke[:, self.n_s:] -= mode_correction(self.band, self.B[self.n_s:],
+                                                self.Bw[self.n_s:], C[:, self.n_s:])
         K = torch.empty(b, n, n, **self.tkw) if out is None else out
         K.copy_(self.S.expand(b, n, n))  # into existing memory: no fresh 47 MB pages per call
         K.view(b, n * n).index_add_(1, self.kidx, Ke.reshape(b, -1))
@@ -323,8 +466,9 @@ class SpecimenSolver:
         Returns:
             ``(u1, st1, ok (b,), dep_max (b,))``.
         """
-        needs_grad = torch.is_grad_enabled() and (p.requires_grad or u.requires_grad
-                                                  or st.s.requires_grad)
+        needs_grad = torch.is_grad_enabled() and (
+            p.requires_grad or u.requires_grad or st.s.requires_grad
+            or (st.X is not None and st.X.requires_grad))
         T1 = self._as_thermo(T1)
         fext = (T1.eps_lin @ self.G).expand(u.shape[0], -1)  # (b, n_r)
         ok = torch.zeros(u.shape[0], dtype=torch.bool, device=u.device)
@@ -336,7 +480,10 @@ class SpecimenSolver:
                 uk = uk + du0.detach()
             ezz = None
             if ps:
-                ezz = ezz_predictor(self._strain(uk), st0, T1.eps_th, T1.E, sol.nu)
+                e0, s0 = self._strain(uk), st0
+                if self.band is not None:
+                    e0, s0 = e0[:, :self.n_s], _split_state(st0, self.n_s)[0]
+                ezz = ezz_predictor(e0, s0, T1.eps_th, T1.E, sol.nu)
             fref = fext.abs().amax(1) + 1e-12
             b = uk.shape[0]
             x = None
@@ -449,8 +596,27 @@ class SpecimenSolver:
     def _dezz(self, du, szz, C3):
         """Newton update of eps_zz that accompanies a displacement update ``du`` (plane stress)."""
         deps = self._strain(du)  # linear in u
+        if isinstance(C3, _BandTangent):  # the solder's points only
+            deps, C3 = deps[:, :self.n_s], C3.solder
         rz = C3.row_zz() if isinstance(C3, Tangent3D) else C3[..., ZZ, :]
         return -(szz + (rz[..., IP] * deps).sum(-1)) / rz[..., ZZ]
+
+    def _band_vm(self, u, th: _Thermo) -> torch.Tensor:
+        """Largest von Mises stress ``(b,)`` MPa at the points of the checked elastic elements
+        (:meth:`_probe_operator`); in plane strain with ``sigma_zz = nu (sigma_xx + sigma_yy)
+        - E eps_th``."""
+        assert self._probe is not None and self.band_spec is not None
+        M_r, M_th = self._probe
+        with torch.no_grad():
+            sig = (u.detach() @ M_r + th.eps_lin.detach() @ M_th).reshape(u.shape[0], -1, 3)
+            sx, sy, txy = sig[..., 0], sig[..., 1], sig[..., 2] * 0.5 ** 0.5
+            sz = torch.zeros_like(sx)
+            if self.problem.plane == "strain":
+                mat = self.problem.materials[self.band_spec.material]
+                eps = th.eps_lin[..., self.lin_keys.index(self.band_spec.material)]
+                sz = mat.nu * (sx + sy) - mat.E * torch.as_tensor(eps).reshape(-1, 1)
+            j2 = 0.5 * ((sx - sy) ** 2 + (sy - sz) ** 2 + (sz - sx) ** 2) + 3.0 * txy * txy
+            return j2.sqrt().amax(1)
 
     @staticmethod
     def _fint_scale(sig):
@@ -483,8 +649,13 @@ class SpecimenSolver:
         """
         times = sorted(float(t) for t in times)
         params, grid, t_zero = self._prepare(params, times)
+        extra: dict = {}
         try:
-            out, alive, reasons, nsub = self._run(params, grid, times, t_zero, progress)
+            if self._banded is None:
+                out, alive, reasons, nsub = self._run(params, grid, times, t_zero, progress)
+            else:
+                out, alive, reasons, nsub = self._run_split(params, grid, times, t_zero,
+                                                            progress, extra)
             if self._fx is not None:
                 out = self._fx.observe(out, self.x_out, self.problem.origin[0],
                                        params[:, N_ANAND:])
@@ -492,7 +663,52 @@ class SpecimenSolver:
             self._fcache = None  # free the factors
             self._fx = None
         return SolveResult(torch.tensor(times, **self.tkw), list(self.names), out, alive,
-                           reasons, len(grid) - 1, nsub)
+                           reasons, len(grid) - 1, nsub, extra)
+
+    def _run_split(self, params, grid, times, t_zero, progress, extra):
+        """:meth:`_run` with an elasto-plastic band: members whose band may yield (finite
+        yield stress) on the banded discretisation, the others on this (baseline) one, so
+        each member's result depends on its own parameters only. ``extra`` receives, ``(B,)``
+        MPa, the largest von Mises stress over the grid steps of the band's (elastic) points
+        for the baseline members (``band_elastic_vm``; a warning when it reaches the band's
+        elastic limit: the off value would not be elastic) and of the elastic elements around
+        the band for the banded members (``outside_band_vm``; a warning when it reaches the
+        member's yield stress: the band is too shallow); NaN for the other members."""
+        fx, spec, banded = self._fx, self.band_spec, self._banded
+        assert fx is not None and spec is not None and banded is not None
+        sy = fx.yield_stress(params[:, N_ANAND:])  # (B,)
+        assert sy is not None
+        plastic = torch.isfinite(sy.detach())
+        nan = torch.full((len(params),), float("nan"), **self.tkw)
+        parts, peak_e, peak_b = [], nan, nan.clone()
+        ie, ib = torch.nonzero(~plastic).squeeze(1), torch.nonzero(plastic).squeeze(1)
+        if len(ie):
+            parts.append(self._run(params[ie], grid, times, t_zero, progress))
+            peak_e[ie] = self._peak
+            if bool((self._peak >= spec.elastic_limit).any()):
+                warnings.warn(f"the elastic stress of the {spec.material} band reaches "
+                              f"{self._peak.max().item():.1f} MPa >= its elastic limit "
+                              f"{spec.elastic_limit:g} MPa: members at the off value would "
+                              "yield; raise the limit", RuntimeWarning, stacklevel=3)
+        if len(ib):
+            banded._fx = fx
+            try:
+                parts.append(banded._run(params[ib], grid, times, t_zero, progress))
+            finally:
+                banded._fx, banded._fcache = None, None
+            if banded._peak is not None:
+                peak_b[ib] = banded._peak
+                if bool((banded._peak >= sy.detach()[ib]).any()):
+                    warnings.warn(f"the {spec.material} outside the plastic band reaches its "
+                                  "yield stress (yielding there is not modelled): deepen the "
+                                  f"band (depth {spec.depth:g} mm)", RuntimeWarning,
+                                  stacklevel=3)
+        extra["band_elastic_vm"], extra["outside_band_vm"] = peak_e, peak_b
+        inv = torch.argsort(torch.cat([ie, ib]))
+        out = torch.cat([o[0] for o in parts])[inv]
+        alive = torch.cat([o[1] for o in parts])[inv]
+        reasons = [r for o in parts for r in o[2]]
+        return out, alive, [reasons[i] for i in inv.tolist()], sum(o[3] for o in parts)
 
     def _prepare(self, params, times: list[float]):
         """Validate ``params``, bind the effects to ``times`` and build the time grid.
@@ -527,7 +743,12 @@ class SpecimenSolver:
         b = params.shape[0]
         cyc = self.problem.cycle
         u = torch.zeros(b, self.n_r, **self.tkw)
-        st = initial_state((b, *self.wdet.shape), params[:, 0, None, None], **self.tkw)
+        kin = self._fx is not None and self._fx.kinematic
+        st = initial_state((b, *self.wdet.shape), params[:, 0, None, None], kinematic=kin,
+                           **self.tkw)
+        if self.band is not None:  # the band's s is its equivalent plastic strain
+            st.s[:, self.n_s:] = 0.0
+        peak = None if self._probe is None else torch.zeros(b, **self.tkw)
         out = torch.full((b, len(times), len(self.names)), float("nan"), **self.tkw)
         alive = torch.ones(b, dtype=torch.bool, device=u.device)
         reasons = [""] * b
@@ -559,6 +780,8 @@ class SpecimenSolver:
             u, st = _scatter(u, u_a, idx), _scatter_state(st, st_a, idx)
             alive = alive.clone()
             alive[idx] = ok
+            if peak is not None:
+                peak = torch.maximum(peak, self._band_vm(u, self._thermo(t1, params)))
             if t_zero and t1 == 0.0:  # the Moire reference image: V relative to this state;
                 V0 = self.observe(u, self._thermo(0.0, params))  # the cycle starts afresh
                 vel, rate_prev = torch.zeros_like(u), float("nan")
@@ -568,6 +791,7 @@ class SpecimenSolver:
                 v = v if V0 is None else v - V0
                 v = torch.where(alive[:, None], v, torch.full_like(v, float("nan")))
                 outs.append(v)
+        self._peak = peak
         for i in range(len(outs)):
             out = out.clone()
             out[:, i] = outs[i]
@@ -589,8 +813,9 @@ class SpecimenSolver:
         ua, sa, oka, da = self.step(u, st, p, self._thermo(t0 + g * h, p), g * h,
                                     du0=None if du0 is None else g * du0, gid=gid)
         k = (1.0 - g) / g
+        X2 = None if sa.X is None else (sa.X if st.X is None else st.X + k * (sa.X - st.X))
         st2 = PointState(st.eps_p + k * (sa.eps_p - st.eps_p), st.s + k * (sa.s - st.s),
-                         sa.eps_zz)
+                         sa.eps_zz, X2)
         ub, sb, okb, db = self.step(ua, st2, p, self._thermo(t1, p), g * h, du0=k * (ua - u),
                                     gid=gid)
         return ub, sb, oka & okb, torch.maximum(da, db)
@@ -631,13 +856,41 @@ def _col_zz(C3):
     return C3.col_zz() if isinstance(C3, Tangent3D) else C3[..., :, ZZ]
 
 
+@dataclass
+class _BandTangent:
+    """Tangents of the solder's points (3-D, as from the Anand update) and of a band's points
+    (in-plane ``(b, n_eb, n_qp, 3, 3)``, already condensed on their eps_zz)."""
+
+    solder: Any
+    band: torch.Tensor
+
+    def index(self, idx) -> _BandTangent:
+        return _BandTangent(self.solder.index(idx) if isinstance(self.solder, Tangent3D)
+                            else self.solder[idx], self.band[idx])
+
+
+def _split_state(st: PointState, n: int) -> tuple[PointState, PointState]:
+    """The solder's (first ``n`` elements) and the band's part of a state ``(b, n_e, n_qp)``."""
+    X = (None, None) if st.X is None else (st.X[:, :n], st.X[:, n:])
+    return (PointState(st.eps_p[:, :n], st.s[:, :n], st.eps_zz[:, :n], X[0]),
+            PointState(st.eps_p[:, n:], st.s[:, n:], st.eps_zz[:, n:], X[1]))
+
+
+def _cat_state(a: PointState, b: PointState) -> PointState:
+    """Inverse of :func:`_split_state` (the band keeps a zero back stress)."""
+    X = None if a.X is None else torch.cat([a.X, torch.zeros_like(b.eps_p)], 1)
+    return PointState(torch.cat([a.eps_p, b.eps_p], 1), torch.cat([a.s, b.s], 1),
+                      torch.cat([a.eps_zz, b.eps_zz], 1), X)
+
+
 def _rows(a, idx):
     """``a[idx]`` (tensor, ``PointState`` or ``Tangent3D``) for sorted, unique member indices
     ``idx``; ``a`` itself (no copy) when they are all of its members."""
     if isinstance(a, _Thermo):
         return a if not a.per_member or len(idx) == a.eps_lin.shape[0] else a.index(idx)
-    if isinstance(a, PointState | Tangent3D):
-        n = a.s.shape[0] if isinstance(a, PointState) else a.K.shape[0]
+    if isinstance(a, PointState | Tangent3D | _BandTangent):
+        n = (a.s.shape[0] if isinstance(a, PointState) else a.K.shape[0]
+             if isinstance(a, Tangent3D) else a.band.shape[0])
         return a if len(idx) == n else a.index(idx)
     return a if len(idx) == a.shape[0] else a[idx]
 
@@ -656,11 +909,19 @@ def _put(ev, sub, idx):
         elif isinstance(a, PointState):
             out.append(_scatter_state(a, b, idx))
         elif isinstance(a, Tangent3D):
-            out.append(Tangent3D(*(_scatter(getattr(a, f), getattr(b, f), idx)
-                                   for f in ("K", "g2", "coef", "nb"))))
+            out.append(_scatter_tangent(a, b, idx))
+        elif isinstance(a, _BandTangent):
+            sol = (_scatter_tangent(a.solder, b.solder, idx) if isinstance(a.solder, Tangent3D)
+                   else _scatter(a.solder, b.solder, idx))
+            out.append(_BandTangent(sol, _scatter(a.band, b.band, idx)))
         else:
             out.append(_scatter(a, b, idx))
     return tuple(out)
+
+
+def _scatter_tangent(full: Tangent3D, part: Tangent3D, idx) -> Tangent3D:
+    return Tangent3D(*(_scatter(getattr(full, f), getattr(part, f), idx)
+                       for f in ("K", "g2", "coef", "nb")))
 
 
 def _scatter(full, part, idx):
@@ -672,5 +933,6 @@ def _scatter(full, part, idx):
 
 
 def _scatter_state(full: PointState, part: PointState, idx) -> PointState:
+    X = None if full.X is None else _scatter(full.X, part.X, idx)
     return PointState(_scatter(full.eps_p, part.eps_p, idx), _scatter(full.s, part.s, idx),
-                      _scatter(full.eps_zz, part.eps_zz, idx))
+                      _scatter(full.eps_zz, part.eps_zz, idx), X)

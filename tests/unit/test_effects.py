@@ -19,7 +19,7 @@ from solderpyro.params import ANAND_NAMES, ParameterSpace, anand_tensor
 from solderpyro.store import RunRecord, RunStore, config_hash, param_hash, run_doe
 
 CONTRACT = ("modulus_temperature", "stress_free_temperature", "thermal_lag", "cte_temperature",
-            "moire_rigid_motion")
+            "moire_rigid_motion", "kinematic_hardening", "copper_plasticity")
 SHORT = ThermalCycle((0.0, 600.0, 1500.0), (25.0, 75.0, 75.0))
 LAYERS = (Layer("copper", "copper", -4.0, 0.0, 4, 0.25, "top"),
           Layer("solder", "solder", 0.0, 0.5, 2),
@@ -30,7 +30,8 @@ F64 = torch.float64
 #: an interior point of each effect's box (and of moire's first offset and second rotation)
 INTERIOR = {"modulus_temperature": [3e-3], "stress_free_temperature": [120.0],
             "thermal_lag": [60.0], "cte_temperature": [1.5e-3],
-            "moire_rigid_motion": [0.3, -0.2, 20.0, -10.0]}
+            "moire_rigid_motion": [0.3, -0.2, 20.0, -10.0], "kinematic_hardening": [500.0],
+            "copper_plasticity": [10.0]}
 
 
 def small_problem(**kw):
@@ -140,11 +141,32 @@ def test_batch_invariance_with_mixed_effect_values(baseline):
         assert (batch.V[i] - baseline[0]).abs().max() > 0.1  # the members really differ
 
 
+def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
+    """kinematic_hardening and copper_plasticity together, members on both discretisations
+    (off copper: baseline path; yielding copper, 10-12 MPa: banded) and with back stress: every
+    member equals its single run to 1e-10 um, the all-off member is the baseline to 1e-12 um
+    (batched products round differently; its single run is bit-identical, see the off test),
+    and the copper really yields (V moves by > 0.01 um)."""
+    solver = SpecimenSolver(small_problem(), effects=("kinematic_hardening", "copper_plasticity"))
+    P = with_anand([[0.0, 400.0], [800.0, 400.0], [0.0, 10.0], [1500.0, 12.0]])
+    P[3, :9] = anand_tensor({"s0": 9.0, "xi": 3.0, "m": 0.1}, dtype=F64)
+    batch = solver.solve(P, TIMES)
+    assert bool(batch.ok.all()) and (batch.V[0] - baseline[0]).abs().max() <= 1e-12
+    for i in range(1, len(P)):
+        single = solver.solve(P[i:i + 1], TIMES).V[0]
+        assert torch.allclose(batch.V[i], single, rtol=0, atol=1e-10), (i, batch.V[i] - single)
+    assert (batch.V[2] - baseline[0]).abs().max() > 0.01
+
+
 # ------------------------------------------------------------------ (c) gradients
 
 #: columns checked (moire: its first offset and its last rotation) and their FD steps
 FD_COLS = {"tau": 0.03, "k_E": 5e-7, "T_sf": 0.016, "c_alpha": 3e-7, "moire_c_1": 2e-4,
-           "moire_w_2": 1e-2}
+           "moire_w_2": 1e-2, "C_k": 0.2}
+#: one-sided differences at the off value, which is the box's lower edge for these
+ONE_SIDED = ("tau", "C_k")
+#: all effects but copper_plasticity, whose derivative at its off value is 0 (tested apart)
+SMOOTH = tuple(k for k in CONTRACT if k != "copper_plasticity")
 
 
 def test_effect_gradients_match_finite_differences():
@@ -154,34 +176,62 @@ def test_effect_gradients_match_finite_differences():
     one-sided difference gives the one-sided derivative a score test at the off value uses.
     A fixed random projection of the outputs is differentiated (one backward pass); a wrong
     component of the Jacobian would show in it. Steps ~1e-4 of each box width: the FD
-    truncation error is then < 1e-7 relative and the Newton noise (rtol 1e-10) far smaller."""
-    fx = EffectSet(CONTRACT).bind(TIMES)
+    truncation error is then < 1e-7 relative and the Newton noise (rtol 1e-10) far smaller.
+    C_k = 0 is the box's lower edge as tau = 0 (C_k < 0 is rejected): one-sided there."""
+    fx = EffectSet(SMOOTH).bind(TIMES)
     solver = SpecimenSolver(small_problem(), effects=fx)
-    q = torch.tensor([fx.off, [v for k in CONTRACT for v in INTERIOR[k]]], dtype=F64)
+    q = torch.tensor([fx.off, [v for k in SMOOTH for v in INTERIOR[k]]], dtype=F64)
     P = with_anand(q).requires_grad_(True)
     w = torch.tensor([0.8, -0.3, 0.5, 1.1], dtype=F64)  # projection of the 4 outputs
     y = solver.solve(P, TIMES).V.reshape(2, -1) @ w  # (2,)
     grad = torch.autograd.grad(y.sum(), P)[0]  # rows are independent members
-    rows, meta = [], []
-    for name, h in FD_COLS.items():
-        c = 9 + fx.names.index(name)
+    rows, meta = [P[0].detach().clone()], []  # row 0: f(0) for the one-sided differences,
+    for name, h in FD_COLS.items():  # from the same no-grad solve (the graph's correction
+        c = 9 + fx.names.index(name)  # step moves V by ~1e-11 um, which 3/(2h) would amplify)
         for i in range(2):
-            for st in (1.0, 2.0) if name == "tau" and i == 0 else (1.0, -1.0):
+            for st in (1.0, 2.0) if name in ONE_SIDED and i == 0 else (1.0, -1.0):
                 r = P[i].detach().clone()
                 r[c] += st * h
                 rows.append(r)
             meta.append((name, c, i, h))
-    yh = (solver.solve(torch.stack(rows), TIMES).V.reshape(len(rows), -1) @ w).reshape(-1, 2)
-    y0 = y.detach()
+    yall = solver.solve(torch.stack(rows), TIMES).V.reshape(len(rows), -1) @ w
+    y0, yh = yall[0], yall[1:].reshape(-1, 2)
     for (name, c, i, h), (ya, yb) in zip(meta, yh, strict=True):
-        if name == "tau" and i == 0:  # (-3 f(0) + 4 f(h) - f(2h)) / 2h
-            fd = (-3.0 * y0[i] + 4.0 * ya - yb) / (2.0 * h)
+        if name in ONE_SIDED and i == 0:  # (-3 f(0) + 4 f(h) - f(2h)) / 2h
+            fd = (-3.0 * y0 + 4.0 * ya - yb) / (2.0 * h)
         else:
             fd = (ya - yb) / (2.0 * h)
         g = grad[i, c]
         print(f"{name:10s} member {i}: autograd {g.item(): .9e}  FD {fd.item(): .9e}")
         assert fd.abs() > 1e-6 * abs(1.0 / h)  # the effect acts (not a 0 == 0 check)
         assert torch.allclose(g, fd, rtol=1e-5, atol=0.0), (name, i, g, fd)
+
+
+def test_copper_plasticity_gradient_matches_finite_differences():
+    """d(V)/d(sigma_y_cu) through the banded FE (J2 return, local mode solve, global implicit
+    correction) against central differences at 10 MPa, where the small problem's copper yields
+    (its largest elastic von Mises stress is ~16 MPa). Rate-independent plasticity makes V
+    piecewise smooth in sigma_y (a point switching between elastic and plastic in some step
+    is a kink), so the step must not straddle a switch: h = 2.5e-3 MPa agrees with autograd to
+    ~1e-8 (h = 0.04 MPa: 5e-5, h = 0.2 MPa: 2e-2, all converging to the autograd value). At
+    the off value (400 MPa, the baseline path) the derivative is exactly 0, and so is the
+    one-sided difference towards the banded path up to the Newton tolerance."""
+    solver = SpecimenSolver(small_problem(), effects=("copper_plasticity",))
+    P = with_anand([[400.0], [10.0]]).requires_grad_(True)
+    w = torch.tensor([0.8, -0.3, 0.5, 1.1], dtype=F64)
+    y = solver.solve(P, TIMES).V.reshape(2, -1) @ w
+    g = torch.autograd.grad(y.sum(), P)[0][:, 9]
+    h, h0 = 2.5e-3, 0.04
+    rows = P.detach()[[0, 0, 0, 1, 1]].clone()
+    rows[:, 9] += torch.tensor([0.0, -h0, -2.0 * h0, h, -h], dtype=F64)
+    yh = solver.solve(rows, TIMES).V.reshape(5, -1) @ w
+    fd0 = -(-3.0 * yh[0] + 4.0 * yh[1] - yh[2]) / (2.0 * h0)
+    fd1 = (yh[3] - yh[4]) / (2.0 * h)
+    print(f"off: autograd {g[0].item():.3e} FD {fd0.item():.3e}; 10 MPa: autograd "
+          f"{g[1].item():.9e} FD {fd1.item():.9e}")
+    assert g[0].item() == 0.0 and abs(fd0.item()) < 1e-6
+    assert abs(fd1.item()) > 1e-3  # the copper yields: V depends on sigma_y
+    assert torch.allclose(g[1], fd1, rtol=1e-6, atol=0.0), (g[1], fd1)
 
 
 # ------------------------------------------------------------------ model, config, store
@@ -215,7 +265,7 @@ def test_config_effects_and_boxes():
     assert s.effect_box.names[0] == "tau" and s.effect_box.upper[0] == 120.0
     assert s.effect_box.dim == 1 + 2 * 7
     with pytest.raises(ValueError, match="config effects: unknown effect 'lag'; valid effects: "
-                                         "cte_temperature, .*thermal_lag"):
+                                         "copper_plasticity, cte_temperature, .*thermal_lag"):
         build(compose(["effects=[lag]"]))
     with pytest.raises(ValueError, match="effect_box.thermal_lag: .*lower 9 must be < upper 1"):
         build(compose(["effect_box.thermal_lag.tau=[9,1]"]))
