@@ -81,7 +81,8 @@ def main() -> None:
             data = make_dataset(base, None if h == "none" else h, d / "data.csv",
                                 kind == "field", times, seed=1)
             meta = read_measurements(data).meta
-            _calibrate(ov, data, d / "base", a)
+            if not (d / "base" / "draws.npz").exists():  # a rerun re-diagnoses finished ones
+                _calibrate(ov, data, d / "base", a)
             dg = diagnose(d / "base", n_draws=2, progress=False)
             rec = {"kind": kind, "hidden": h, "hidden_values": meta.get("hidden_values"),
                    "hidden_rms_point_um": meta.get("hidden_rms_point_um"),
@@ -92,7 +93,8 @@ def main() -> None:
                                            if r["effect"] == h), None)}
             top = next((r["effect"] for r in dg.ranking if r["flagged"]), None)
             if top is not None:
-                _calibrate([*ov, f"effects=[{top}]"], data, d / f"with_{top}", a)
+                if not (d / f"with_{top}" / "draws.npz").exists():
+                    _calibrate([*ov, f"effects=[{top}]"], data, d / f"with_{top}", a)
                 cmp = compare(d / "base", d / f"with_{top}")
                 truth = dict(TRUTH)
                 if h == top and meta.get("hidden_values"):
