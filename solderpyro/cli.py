@@ -183,7 +183,8 @@ def cmd_calibrate(a, overrides) -> int:
         raise ValueError(f"--runs must be at least 5, got {a.runs}")
     res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,
                              store_root=a.store, batch_size=a.batch, nuts=_nuts_args(a),
-                             progress=not a.quiet, exact=a.exact,
+                             progress=not a.quiet, exact=a.exact, refine=a.refine,
+                             refine_rounds=a.refine_rounds,
                              record={"overrides": list(overrides), "data": str(a.data)},
                              **setup.surrogate)
     print(f"\nreport:  {res.out / 'report.html'}\nsummary: {res.out / 'summary.csv'}")
@@ -317,6 +318,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--exact", type=int, default=0, metavar="N",
                    help="surrogate vs exact: reweight N posterior draws by the FE likelihood "
                    "(N more FE runs; writes exact_check.csv and a report section)")
+    c.add_argument("--refine", type=int, default=0, metavar="N",
+                   help="after the first posterior, add N FE runs (Latin hypercube) where the "
+                   "posterior lies, refit the surrogate on all runs and sample again")
+    c.add_argument("--refine-rounds", type=int, default=1, help="rounds of --refine")
     _add_nuts(c)
     g = sub.add_parser("diagnose", help="does the calibrated model fit the data, and which "
                        "physical effect is missing? Posterior predictive checks, a misfit test "

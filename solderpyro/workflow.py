@@ -233,7 +233,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                        batch_size: int = 64, nuts: dict[str, Any] | None = None,
                        progress: bool = True, kernel: str = "gaussian", ard: bool = True,
                        mean: str = "constant", exact: int = 0,
-                       record: dict[str, Any] | None = None) -> SpecimenCalibration:
+                       record: dict[str, Any] | None = None, refine: int = 0,
+                       refine_rounds: int = 1) -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
 
     Args:
@@ -247,6 +248,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
             (:func:`exact_check`) and write ``exact_check.csv``.
         record: how the run was asked for (e.g. ``{"overrides": [...]}``), kept in
             ``run.json`` so that ``solderpyro diagnose`` can rebuild the model.
+        refine: FE runs added per refinement round: a Latin hypercube over the region the
+            posterior occupies (its 0.5-99.5 % range widened by half its width, inside the
+            prior box); the surrogate is refitted on all runs and NUTS rerun. 0: none.
+        refine_rounds: how many such rounds.
 
     Returns:
         :class:`SpecimenCalibration`; writes summary.csv, posterior.nc, figures, report.md.
@@ -304,6 +309,31 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         emulator = ObservedEmulator(emulator, gp_box.dim, observation_offset(
             fx_obs, setup.problem, doe.names, len(doe.times), ti, oi))
     post, inp = calibrate_emulator(emulator, y_obs, space, priors=pr, **nk)
+    X, Y, okk = theta, y_sim[:n_runs], ok
+    for rnd in range(refine_rounds if refine > 0 else 0):
+        tf = post.flat("t")[:, :gp_box.dim]
+        ql, qh = torch.quantile(tf, 0.005, 0), torch.quantile(tf, 0.995, 0)
+        wd = qh - ql
+        lo = torch.maximum(ql - 0.5 * wd, torch.tensor(gp_box.lower, dtype=tf.dtype))
+        hi = torch.minimum(qh + 0.5 * wd, torch.tensor(gp_box.upper, dtype=tf.dtype))
+        local = Box(gp_box.names, tuple(lo.tolist()), tuple(hi.tolist()), gp_box.log_scale,
+                    gp_box.units)
+        th_new = lhs(local, refine, seed + 1 + rnd)
+        log.info("refine round %d: %d FE runs where the posterior lies (%s)", rnd + 1, refine,
+                 ", ".join(f"{n} {a:.4g}-{b:.4g}" for n, a, b in zip(
+                     gp_box.names, local.lower, local.upper, strict=True)))
+        d2 = run_doe(solver, store, h, fe_params(setup, th_new), times, batch_size, progress)
+        X, Y = torch.cat([X, th_new]), torch.cat([Y, d2.V[:, ti, oi]])
+        okk = torch.cat([okk, d2.ok])
+        gp = GPSurrogate(gp_box, output=output, kernel=kernel, ard=ard, mean=mean)
+        gp.fit(X[okk], Y[okk])
+        loo = gp.loo()
+        problems = gp.check(loo)
+        emulator = GPEmulator(gp)
+        if fx_obs is not None:
+            emulator = ObservedEmulator(emulator, gp_box.dim, observation_offset(
+                fx_obs, setup.problem, doe.names, len(doe.times), ti, oi))
+        post, inp = calibrate_emulator(emulator, y_obs, space, priors=pr, **nk)
     rows = [r for r in post.summary()]
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)

@@ -125,9 +125,10 @@ def test_demo_command_runs_tiny(tmp_path):
     assert n_stored == 11  # 10 LHS runs + the Liu 2008 run, nothing lost
     out = tmp_path / "again"
     assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(out),
-                 "--store", str(tmp_path / "store"), "--exact", "6", *CAL_TINY, *TINY]) == 0
-    # all DOE runs reused; only the 6 exact-check runs are new
-    assert len(list((tmp_path / "store").glob("*/runs/*.json"))) == n_stored + 6
+                 "--store", str(tmp_path / "store"), "--exact", "6", "--refine", "5",
+                 *CAL_TINY, *TINY]) == 0
+    # all DOE runs reused; only the 5 refinement runs and the 6 exact-check runs are new
+    assert len(list((tmp_path / "store").glob("*/runs/*.json"))) == n_stored + 5 + 6
     ex = (out / "exact_check.csv").read_text().splitlines()
     assert ex[0].startswith("parameter,surrogate_q2.5") and len(ex) == 6
     assert 1.0 <= float(ex[1].split(",")[-1]) <= 6.0  # Kish ESS of 6 weights
