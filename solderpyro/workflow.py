@@ -304,11 +304,14 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     nk.update(nuts or {})
     log.info("NUTS: %d chains x %d draws (modular KOH, code uncertainty from the GP)",
              nk["chains"], nk["draws"])
-    emulator: Any = GPEmulator(gp)
-    if fx_obs is not None:  # additive observation effects applied after the surrogate
-        emulator = ObservedEmulator(emulator, gp_box.dim, observation_offset(
+    def emulate(gp: GPSurrogate) -> Any:
+        if fx_obs is None:
+            return GPEmulator(gp)
+        # additive observation effects applied after the surrogate
+        return ObservedEmulator(GPEmulator(gp), gp_box.dim, observation_offset(
             fx_obs, setup.problem, doe.names, len(doe.times), ti, oi))
-    post, inp = calibrate_emulator(emulator, y_obs, space, priors=pr, **nk)
+
+    post, inp = calibrate_emulator(emulate(gp), y_obs, space, priors=pr, **nk)
     X, Y, okk = theta, y_sim[:n_runs], ok
     for rnd in range(refine_rounds if refine > 0 else 0):
         tf = post.flat("t")[:, :gp_box.dim]
@@ -329,11 +332,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         gp.fit(X[okk], Y[okk])
         loo = gp.loo()
         problems = gp.check(loo)
-        emulator = GPEmulator(gp)
-        if fx_obs is not None:
-            emulator = ObservedEmulator(emulator, gp_box.dim, observation_offset(
-                fx_obs, setup.problem, doe.names, len(doe.times), ti, oi))
-        post, inp = calibrate_emulator(emulator, y_obs, space, priors=pr, **nk)
+        post, inp = calibrate_emulator(emulate(gp), y_obs, space, priors=pr, **nk)
     rows = [r for r in post.summary()]
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)

@@ -279,7 +279,7 @@ def fe_best_fit(setup: Any, theta0: np.ndarray, run_effects: tuple[str, ...],
                 meas: Any, sigma: float, iters: int = 4, rel: float = 1e-3
                 ) -> tuple[np.ndarray, list[float]]:
     """The FE's own best fit near ``theta0``: Levenberg-Marquardt on the calibrated parameters
-    with finite-difference Jacobians through the FE, inside the prior box.
+    through the FE, inside the prior box (:func:`profile_fits` with no candidate).
 
     The surrogate's posterior median can sit where the GP, not the FE, fits best; the misfit and
     score tests are then taken at this point, so a surrogate error is not mistaken for a missing
@@ -290,61 +290,8 @@ def fe_best_fit(setup: Any, theta0: np.ndarray, run_effects: tuple[str, ...],
     Returns:
         ``(theta (n_cal,), chi2 history)``.
     """
-    from solderpyro.effects import effect_set
-    from solderpyro.fem.problem import reference_grid
-    from solderpyro.fem.solver import SpecimenSolver
-    from solderpyro.workflow import calibration_box, fe_params, observation_index
-
-    field = any(p not in setup.problem.points for p in meas.points())
-    times = tuple(float(t) for t in meas.times())
-    fx = effect_set(run_effects, times, setup.effect_bounds) if run_effects else None
-    box = calibration_box(setup, fx)
-    solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                            dtype=setup.dtype, device=setup.device, effects=fx or ())
-    lo, hi = np.asarray(box.lower, float), np.asarray(box.upper, float)
-    y = np.asarray(meas.value_um, float)
-    ti = oi = None
-
-    def run(rows: np.ndarray) -> np.ndarray:
-        nonlocal ti, oi
-        res = solver.solve(fe_params(setup, torch.tensor(rows, dtype=torch.float64)), times)
-        if ti is None:
-            ti, oi = observation_index(meas, tuple(res.times.tolist()), tuple(res.names))
-        V = res.V.detach().numpy()[:, ti, oi]
-        V[~res.ok.numpy()] = np.nan
-        return V
-
-    th = np.clip(np.asarray(theta0, float), lo, hi)
-    h = rel * (hi - lo)
-    hist = []
-    lam = 1e-2
-    for _ in range(iters):
-        rows = [th] + [np.clip(th + s * h * e, lo, hi) for e in np.eye(len(th)) for s in (1, -1)]
-        V = run(np.array(rows))
-        r = y - V[0]
-        chi2 = float(((r / sigma) ** 2).sum())
-        hist.append(chi2)
-        J = np.stack([(V[1 + 2 * j] - V[2 + 2 * j]) / (rows[1 + 2 * j][j] - rows[2 + 2 * j][j])
-                      for j in range(len(th))], 1) * (hi - lo)  # per unit of the box
-        if not np.all(np.isfinite(J)):
-            break
-        A, g = J.T @ J / sigma**2, J.T @ r / sigma**2
-        trials = []
-        for lm in (lam, 10 * lam, 100 * lam):
-            du = np.linalg.solve(A + lm * np.diag(np.diag(A) + 1e-12), g)
-            trials.append(np.clip(th + du * (hi - lo), lo, hi))
-        Vt = run(np.array(trials))
-        c2 = np.array([((y - v) ** 2).sum() / sigma**2 for v in Vt])
-        c2 = np.where(np.isfinite(c2), c2, np.inf)
-        k = int(np.argmin(c2))
-        if not c2[k] < chi2:
-            lam *= 1e3
-            continue
-        th, lam = trials[k], max(lam * (0.1 if k == 0 else 10.0 ** k), 1e-6)
-        if chi2 - c2[k] < 1e-3 * max(chi2, 1.0):
-            hist.append(float(c2[k]))
-            break
-    return th, hist
+    fit = profile_fits(setup, theta0, run_effects, (), {}, meas, sigma, iters, rel)["baseline"]
+    return fit["x"], fit["history"]
 
 
 def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
@@ -363,7 +310,8 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         start: per candidate with one parameter, its start value (e.g. the best ladder
             magnitude; a threshold effect does not move from "off" by its gradient).
     Returns:
-        ``{name: {"chi2": float, "x": (n_col,) row, "iters": int}}`` with ``"baseline"``.
+        ``{name: {"chi2": float, "x": (n_col,) row, "iters": int, "history": [chi2, ...]}}``
+        with ``"baseline"``.
     """
     from solderpyro.effects import effect_set
     from solderpyro.fem.problem import reference_grid
@@ -396,7 +344,7 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         x = x0.copy()
         if m in start and len(free) == n_cal + 1:
             x[free[-1]] = start[m]
-        state[m] = {"x": x, "lam": 1e-2, "chi2": np.inf, "iters": 0}
+        state[m] = {"x": x, "lam": 1e-2, "chi2": np.inf, "iters": 0, "history": []}
     idx: dict[str, Any] = {}
 
     def run(rows: list[np.ndarray]) -> np.ndarray:
@@ -429,6 +377,7 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
             st, i0 = state[m], where[m]
             r = y - V[i0]
             st["chi2"] = float(((r / sigma) ** 2).sum())
+            st["history"].append(st["chi2"])
             dx = np.array([rows[i0 + 1 + k][j] - st["x"][j] for k, j in enumerate(free)])
             J = (V[i0 + 1:i0 + 1 + len(free)] - V[i0]).T / dx * (hi_a[free] - lo_a[free])
             if not (np.all(np.isfinite(J)) and np.isfinite(st["chi2"])):
@@ -455,8 +404,11 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
                 st["iters"] += 1
             else:
                 st["lam"] *= 1e3
-    return {m: {"chi2": st["chi2"], "x": st["x"], "iters": st["iters"]}
-            for m, st in state.items()}
+    for st in state.values():
+        if not st["history"] or st["chi2"] < st["history"][-1]:
+            st["history"].append(st["chi2"])
+    return {m: {"chi2": st["chi2"], "x": st["x"], "iters": st["iters"],
+                "history": st["history"]} for m, st in state.items()}
 
 
 def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_draws: int = 3,
