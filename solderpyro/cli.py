@@ -139,7 +139,7 @@ def _demo_calibration(a, setup, out: Path) -> int:
     inside = {r["parameter"]: float(r["q2.5"]) <= DEMO_TRUTH[str(r["parameter"])]
               <= float(r["q97.5"]) for r in res.summary if r["parameter"] in DEMO_TRUTH}
     print(f"\ntruth {DEMO_TRUTH}; inside the 95 % interval: {inside}")
-    print(f"report:  {res.out / 'report.md'}")
+    print(f"report:  {res.out / 'report.html'}")
     return 0
 
 
@@ -311,7 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "(run store), GP surrogate, KOH with NUTS, report")
     c.add_argument("--data", required=True, help="measurement CSV (shared/data-format.md); "
                    "points A, B or grid labels g_ii_jj, any output times")
-    c.add_argument("--out", required=True, help="run directory (report.md, summary.csv, ...)")
+    c.add_argument("--out", required=True,
+                   help="run directory (report.html, report.md, summary.csv, ...)")
     c.add_argument("--runs", type=int, default=50, help="Latin hypercube FE runs (seed: 50)")
     c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
     c.add_argument("--batch", type=int, default=64, help="FE runs per batched solve")
