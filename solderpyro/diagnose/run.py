@@ -484,7 +484,11 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
 
 def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
              per_draw: list[list[Score]], sigma: float, n_cand: int) -> Diagnosis:
-    bad = mf.p_value < ALPHA
+    # misfit: the global chi-square test, or a targeted one (an identifiable candidate's test
+    # at the Bonferroni level over the candidates; far more powerful against that effect)
+    targeted = [s for s in scores if s.p_value < ALPHA / max(n_cand, 1)
+                and s.identifiable >= MIN_IDENTIFIABLE]
+    bad = mf.p_value < ALPHA or bool(targeted)
     base_chi2 = mf.chi2_refit if mf.chi2_refit is not None else mf.chi2
     order = sorted(range(len(scores)), key=lambda i: -scores[i].evidence)
     ranking: list[dict[str, Any]] = []
@@ -521,6 +525,13 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
         verdict = (f"the model fits: chi2 = {mf.chi2:.1f} on {mf.dof} dof (p = {mf.p_value:.2g})"
                    f", RMS residual {mf.rms:.3g} um against noise {sigma:.3g} um; no effect is "
                    "flagged")
+    elif mf.p_value >= ALPHA:
+        top = flagged[0]
+        verdict = (f"misfit found by a targeted test: the global chi2 = {mf.chi2:.1f} on "
+                   f"{mf.dof} dof (p = {mf.p_value:.2g}, RMS {mf.rms:.3g} um vs noise "
+                   f"{sigma:.3g} um) hides it, but {top['effect']} explains a share of it far "
+                   f"beyond chance (score {top['statistic']:.1f} on {top['dof']} dof, "
+                   f"p = {top['p_value']:.2g})")
     elif not flagged:
         verdict = (f"misfit (chi2 = {mf.chi2:.1f} on {mf.dof} dof, p = {mf.p_value:.2g}; RMS "
                    f"{mf.rms:.3g} um vs noise {sigma:.3g} um) that no candidate effect explains:"
