@@ -93,7 +93,7 @@ def plot_ranking(meas: Any, residual: np.ndarray, scores: list[Any], sigma: floa
     ax0.barh([s.effect for s in scores][::-1], ev[::-1], color="C1")
     ax0.axvline(-np.log10(0.01 / max(len(scores), 1)), color="k", ls="--", lw=0.8,
                 label="1 % (Bonferroni)")
-    ax0.set_xlabel("evidence: -log10 p of the score test")
+    ax0.set_xlabel("evidence: -log10 p (score test, or likelihood ratio of the FE refit)")
     ax0.legend(fontsize=8)
     for i, s in enumerate(scores[:k]):
         ax = fig.add_subplot(k + 1, 1, i + 2)
