@@ -16,7 +16,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from solderpyro.configure import build
+from solderpyro.configure import build, task_overrides
 from solderpyro.io.measurements import read_measurements
 from solderpyro.workflow import calibrate_specimen, output_points
 
@@ -37,17 +37,9 @@ def main(cfg: DictConfig) -> None:
                              batch_size=int(c.batch),
                              nuts=dict(chains=int(c.chains), warmup=int(c.warmup),
                                        draws=int(c.draws)),
-                             record={"overrides": _task_overrides(), "data": str(cfg.data.path)},
+                             record={"overrides": task_overrides(), "data": str(cfg.data.path)},
                              **setup.surrogate)
     log.info("report: %s", res.out / "report.html")
-
-
-def _task_overrides() -> list[str]:
-    """The command line's config overrides (kept in run.json for ``solderpyro diagnose``)."""
-    from hydra.core.hydra_config import HydraConfig
-
-    return [o for o in HydraConfig.get().overrides.task
-            if not o.startswith(("data.", "calibration.", "hydra."))]
 
 
 if __name__ == "__main__":

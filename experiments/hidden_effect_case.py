@@ -21,7 +21,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from solderpyro.configure import build
+from solderpyro.configure import build, compose, task_overrides
 from solderpyro.diagnose import diagnose
 from solderpyro.diagnose.compare import compare
 from solderpyro.diagnose.hidden import make_dataset
@@ -29,13 +29,6 @@ from solderpyro.io.measurements import read_measurements
 from solderpyro.workflow import calibrate_specimen, output_points
 
 log = logging.getLogger(__name__)
-
-
-def _task_overrides() -> list[str]:
-    from hydra.core.hydra_config import HydraConfig
-
-    return [o for o in HydraConfig.get().overrides.task
-            if not o.startswith(("case.", "+case.", "calibration.", "hydra.", "data."))]
 
 
 @hydra.main(config_path="../configs", config_name="config", version_base=None)
@@ -51,7 +44,7 @@ def main(cfg: DictConfig) -> None:
     meas = read_measurements(data, valid_points=output_points(setup.problem))
     log.info("hidden effect %s: %s", effect, meas.meta.get("hidden_values", "-"))
     c = cfg.calibration
-    ov = _task_overrides()
+    ov = task_overrides()
     kw = dict(n_runs=int(c.runs), seed=int(c.seed),
               store_root=hydra.utils.to_absolute_path(c.store), batch_size=int(c.batch),
               nuts=dict(chains=int(c.chains), warmup=int(c.warmup), draws=int(c.draws)),
@@ -66,7 +59,6 @@ def main(cfg: DictConfig) -> None:
         log.info("no effect flagged: nothing to add")
         return
     ov2 = [o for o in ov if not o.startswith("effects=")] + [f"effects=[{top}]"]
-    from solderpyro.configure import compose
 
     setup2 = build(compose(ov2))
     calibrate_specimen(setup2, meas, out / f"with_{top}", record={"overrides": ov2}, **kw)

@@ -48,6 +48,16 @@ def compose(overrides: list[str] | None = None, config_name: str = "config"):
         raise ValueError(f"bad config override in {overrides}: {e}") from None
 
 
+def task_overrides() -> list[str]:
+    """Inside a ``@hydra.main`` script: the command line's overrides of the model (what
+    ``run.json`` keeps so that ``solderpyro diagnose`` rebuilds the same model), without the
+    script's own settings (``data.``, ``calibration.``, ``case.``, ``hydra.``)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return [o for o in HydraConfig.get().overrides.task
+            if not o.startswith(("data.", "calibration.", "case.", "+case.", "hydra."))]
+
+
 @dataclass(frozen=True)
 class Setup:
     """Typed objects built from a config."""

@@ -152,7 +152,7 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
     from solderpyro.effects import effect_set
     from solderpyro.fem.problem import reference_grid
     from solderpyro.fem.solver import SpecimenSolver
-    from solderpyro.workflow import calibration_box
+    from solderpyro.workflow import calibration_box, fe_params
 
     fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
     cands = {e.name: e for e in fx_all.effects if e.name in candidates}
@@ -161,7 +161,6 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
     cols = _fd_design(list(cal.names), list(cal.lower), list(cal.upper), cands, rel)
     n_cal = cal.dim
     off = np.array([v for e in cands.values() for v in e.off], float)
-    sp = setup.space
     solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
                             dtype=setup.dtype, device=setup.device, effects=fx_all)
     rows = []
@@ -191,7 +190,7 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
             r[j] = v
             rows.append(r)
     P = torch.tensor(np.array(rows), dtype=torch.float64)
-    full = torch.cat([sp.full(P[:, :sp.n_theta]), P[:, sp.n_theta:]], 1)
+    full = fe_params(setup, P)
     log.info("diagnose: %d FE runs (%d draws x %d Jacobian columns, candidates: %s)",
              len(rows), len(theta), len(cols.names), ", ".join(candidates) or "none")
     res = solver.solve(full, times, progress=progress)
@@ -219,6 +218,7 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         VL[ename] = (vals, V[i:i + len(vals)])
         i += len(vals)
     return {"V": Vb, "J": J, "cols": cols, "names": list(res.names), "n_cal": n_cal,
+            "solver": solver,
             "ladder": VL,
             "times": tuple(float(t) for t in res.times)}
 
@@ -296,7 +296,8 @@ def fe_best_fit(setup: Any, theta0: np.ndarray, run_effects: tuple[str, ...],
 
 def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
                  candidates: tuple[str, ...], start: dict[str, float], meas: Any,
-                 sigma: float, iters: int = 5, rel: float = 1e-3) -> dict[str, dict[str, Any]]:
+                 sigma: float, iters: int = 5, rel: float = 1e-3, solver: Any = None
+                 ) -> dict[str, dict[str, Any]]:
     """Refit the FE with each candidate effect switched on (its parameters and the calibrated
     ones free), all candidates in one batched solve per step (Levenberg-Marquardt, forward
     differences, inside the boxes), and the baseline alongside.
@@ -309,6 +310,8 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         theta: ``(n_cal,)`` start of the calibrated parameters (physical units).
         start: per candidate with one parameter, its start value (e.g. the best ladder
             magnitude; a threshold effect does not move from "off" by its gradient).
+        solver: a :class:`~solderpyro.fem.solver.SpecimenSolver` already set up for these
+            effects and outputs (e.g. :func:`fe_jacobians`'s), to skip setting up another.
     Returns:
         ``{name: {"chi2": float, "x": (n_col,) row, "iters": int, "history": [chi2, ...]}}``
         with ``"baseline"``.
@@ -331,8 +334,9 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         off += list(e.off)
         owner += [e.name] * e.n_params
     lo_a, hi_a = np.array(lo, float), np.array(hi, float)
-    solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                            dtype=setup.dtype, device=setup.device, effects=fx_all)
+    if solver is None:
+        solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
+                                dtype=setup.dtype, device=setup.device, effects=fx_all)
     y = np.asarray(meas.value_um, float)
     ow = np.array(owner)
     models = {"baseline": np.arange(n_cal)}
@@ -464,7 +468,8 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         # likelihood ratio where it is the larger statistic
         start = {sc.effect: sc.lr_value for sc in scores
                  if sc.lr_value is not None and (sc.lr or 0.0) > 0.0}
-        fits = profile_fits(setup, thetas[0], run_effects, candidates, start, meas, sigma)
+        fits = profile_fits(setup, thetas[0], run_effects, candidates, start, meas, sigma,
+                            solver=fe["solver"])
         base = min(fits["baseline"]["chi2"], mf.chi2)
         log.info("diagnose: profile refits, baseline chi2 %.1f; %s", base, ", ".join(
             f"{m} {f['chi2']:.1f}" for m, f in fits.items() if m != "baseline"))
