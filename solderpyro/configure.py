@@ -204,8 +204,9 @@ def _surrogate(cfg) -> dict:
     """GP settings from the ``surrogate`` group (absent in older configs: the defaults)."""
     sc = cfg.get("surrogate") or {}
     out = {"kernel": str(sc.get("kernel", "gaussian")), "ard": bool(sc.get("ard", True)),
-           "mean": str(sc.get("mean", "constant"))}
-    for key, ok in (("kernel", ("gaussian", "matern52")), ("mean", ("constant", "linear"))):
+           "mean": str(sc.get("mean", "constant")), "output": str(sc.get("output", "pca"))}
+    for key, ok in (("kernel", ("gaussian", "matern52")), ("mean", ("constant", "linear")),
+                    ("output", ("pca", "batched"))):
         if out[key] not in ok:
             raise ValueError(f"config surrogate.{key} must be one of {ok}, got {out[key]!r}")
     return out

@@ -232,7 +232,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                        seed: int = 0, store_root: str | Path = "runs/store",
                        batch_size: int = 64, nuts: dict[str, Any] | None = None,
                        progress: bool = True, kernel: str = "gaussian", ard: bool = True,
-                       mean: str = "constant", exact: int = 0,
+                       mean: str = "constant", output: str = "pca", exact: int = 0,
                        record: dict[str, Any] | None = None, refine: int = 0,
                        refine_rounds: int = 1) -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
@@ -244,6 +244,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         store_root: the run store shared by calibrations of the same problem.
         nuts: options of :func:`~solderpyro.calibration.mcmc.run_nuts`.
         kernel, ard, mean: the GP surrogate's settings (see :class:`GPSurrogate`).
+        output: ``"pca"`` (GPs on principal components of the observed outputs: surrogate
+            errors correlated across outputs, as the FE's are) or ``"batched"`` (one GP per
+            output; a single observed output always uses it).
         exact: if > 0, reweight that many surrogate draws by the exact FE likelihood
             (:func:`exact_check`) and write ``exact_check.csv``.
         record: how the run was asked for (e.g. ``{"overrides": [...]}``), kept in
@@ -286,7 +289,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         raise RuntimeError(f"only {int(ok.sum())} of {n_runs} FE runs converged: "
                            f"{sorted(set(r for r in doe.reasons if r))[:3]}")
     y_obs = torch.tensor(np.array(meas.value_um), dtype=torch.float64)
-    output = "batched" if y_obs.shape[0] <= 16 else "pca"
+    if output not in ("pca", "batched"):
+        raise ValueError(f"calibrate_specimen output must be 'pca' or 'batched', got {output!r}")
+    output = output if y_obs.shape[0] > 1 else "batched"
     log.info("surrogate: %s GP on %d runs, %d observed outputs", output, int(ok.sum()),
              y_obs.shape[0])
     gp = GPSurrogate(gp_box, output=output, kernel=kernel, ard=ard, mean=mean)

@@ -35,16 +35,19 @@ from solderpyro.diagnose.stats import (
     predictive_check,
     score_test,
 )
+from solderpyro.fit import lm_fit
 
 log = logging.getLogger("solderpyro")
 
 #: significance of the misfit test and (Bonferroni over candidates) of each effect
 ALPHA = 0.01
-#: an effect whose signature the calibrated parameters can mimic to within this share
-#: cannot be identified from the data
-MIN_IDENTIFIABLE = 0.05
-#: canonical correlation above which two effects cannot be told apart
-MAX_CONFUSION = 0.9
+#: an effect whose signature the calibrated parameters mimic to within this share is not
+#: flagged however large its statistic: below it the linearised projection (finite-difference
+#: Jacobians, steps 1e-3 of the box) is not accurate enough to trust what is left
+MIN_IDENTIFIABLE = 0.01
+#: two significant effects whose best fits differ by less than this chi-square cannot be told
+#: apart by the data (a likelihood ratio below 20, "strong" on the Kass-Raftery scale)
+APART_CHI2 = float(2.0 * np.log(20.0))
 #: magnitudes (share of the way from "off" to the box's far edge) of the likelihood-ratio ladder
 LADDER = (0.15, 0.4, 1.0)
 
@@ -59,11 +62,12 @@ class Diagnosis:
     check: dict
     indistinguishable: list[list[str]]
     suggestions: list[str]
+    separation: dict | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"misfit": self.misfit, "verdict": self.verdict, "ranking": self.ranking,
                 "check": self.check, "indistinguishable": self.indistinguishable,
-                "suggestions": self.suggestions}
+                "suggestions": self.suggestions, "separation": self.separation}
 
 
 def load_run(run_dir: str | Path) -> dict[str, Any]:
@@ -343,16 +347,16 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
     for c in candidates:
         models[c] = np.concatenate([np.arange(n_cal), n_cal + np.flatnonzero(ow == c)])
     x0 = np.concatenate([np.asarray(theta, float), np.array(off, float)])
-    state: dict[str, dict[str, Any]] = {}
+    starts = []
     for m, free in models.items():
         x = x0.copy()
         if m in start and len(free) == n_cal + 1:
             x[free[-1]] = start[m]
-        state[m] = {"x": x, "lam": 1e-2, "chi2": np.inf, "iters": 0, "history": []}
+        starts.append(x)
     idx: dict[str, Any] = {}
 
-    def run(rows: list[np.ndarray]) -> np.ndarray:
-        P = torch.tensor(np.array(rows), dtype=torch.float64)
+    def run(rows: np.ndarray) -> np.ndarray:
+        P = torch.tensor(rows, dtype=torch.float64)
         res = solver.solve(fe_params(setup, P), times)
         if "ti" not in idx:
             idx["ti"], idx["oi"] = observation_index(meas, tuple(res.times.tolist()),
@@ -361,58 +365,10 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         V[~res.ok.numpy()] = np.nan
         return V
 
-    h_all = rel * (hi_a - lo_a)
-    for _ in range(iters):
-        rows: list[np.ndarray] = []
-        where = {}
-        for m, free in models.items():
-            x = state[m]["x"]
-            where[m] = len(rows)
-            rows.append(x)
-            for j in free:
-                sgn = 1.0 if x[j] + h_all[j] <= hi_a[j] else -1.0
-                xj = x.copy()
-                xj[j] += sgn * h_all[j]
-                rows.append(xj)
-        V = run(rows)
-        trials: list[np.ndarray] = []
-        tw = {}
-        for m, free in models.items():
-            st, i0 = state[m], where[m]
-            r = y - V[i0]
-            st["chi2"] = float(((r / sigma) ** 2).sum())
-            st["history"].append(st["chi2"])
-            dx = np.array([rows[i0 + 1 + k][j] - st["x"][j] for k, j in enumerate(free)])
-            J = (V[i0 + 1:i0 + 1 + len(free)] - V[i0]).T / dx * (hi_a[free] - lo_a[free])
-            if not (np.all(np.isfinite(J)) and np.isfinite(st["chi2"])):
-                continue
-            A, g = J.T @ J / sigma**2, J.T @ r / sigma**2
-            tw[m] = len(trials)
-            for lm in (st["lam"], 10 * st["lam"], 100 * st["lam"]):
-                du = np.linalg.solve(A + lm * np.diag(np.diag(A) + 1e-12), g)
-                xt = st["x"].copy()
-                xt[free] = np.clip(xt[free] + du * (hi_a[free] - lo_a[free]), lo_a[free],
-                                   hi_a[free])
-                trials.append(xt)
-        if not trials:
-            break
-        Vt = run(trials)
-        for m, i0 in tw.items():
-            st = state[m]
-            c2 = np.array([((y - v) ** 2).sum() / sigma**2 for v in Vt[i0:i0 + 3]])
-            c2 = np.where(np.isfinite(c2), c2, np.inf)
-            k = int(np.argmin(c2))
-            if c2[k] < st["chi2"]:
-                st["x"], st["chi2"] = trials[i0 + k], float(c2[k])
-                st["lam"] = max(st["lam"] * (0.1 if k == 0 else 10.0 ** k), 1e-6)
-                st["iters"] += 1
-            else:
-                st["lam"] *= 1e3
-    for st in state.values():
-        if not st["history"] or st["chi2"] < st["history"][-1]:
-            st["history"].append(st["chi2"])
-    return {m: {"chi2": st["chi2"], "x": st["x"], "iters": st["iters"],
-                "history": st["history"]} for m, st in state.items()}
+    out = lm_fit(run, np.array(starts), lo_a, hi_a, y, sigma, list(models.values()), iters,
+                 rel)
+    return {m: {"chi2": f.chi2, "x": f.x, "iters": f.iters, "history": f.history}
+            for m, f in zip(models, out, strict=True)}
 
 
 def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_draws: int = 3,
@@ -463,7 +419,8 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     J = fe["J"][:, ti, oi, :]
     lad = {k: (v, VL[:, ti, oi]) for k, (v, VL) in fe["ladder"].items()}
     mf, scores, per_draw = analyse(y, V, J, fe["cols"], sigma, lad)
-    if refit and mf.p_value < ALPHA and candidates:
+    fits = None
+    if refit and candidates and (mf.p_value < ALPHA or _targeted(scores, len(candidates))):
         # a misfit: refit the FE with each candidate on (no linearisation) and use the
         # likelihood ratio where it is the larger statistic
         start = {sc.effect: sc.lr_value for sc in scores
@@ -483,16 +440,123 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
                 sc.chi2_after = fits[sc.effect]["chi2"]
         mf.chi2_refit = base
     diag = _verdict(mf, pc, scores, per_draw, sigma, len(candidates))
+    if diag.indistinguishable and fits is not None:
+        group = diag.indistinguishable[0]
+        diag.separation = separation(setup, run_effects, candidates, fits, group, meas, sigma)
+        diag.suggestions.insert(0, diag.separation["advice"])
     _write(d, diag, meas, mf, pc, scores, V[0], sigma)
     return diag
+
+
+def _targeted(scores: list[Score], n_cand: int) -> list[Score]:
+    """Candidates whose own test is significant at the Bonferroni level over the candidates
+    (and whose signature the calibrated parameters do not mimic entirely)."""
+    return [s for s in scores if s.p_value < ALPHA / max(n_cand, 1)
+            and s.identifiable >= MIN_IDENTIFIABLE]
+
+
+def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],
+               fits: dict[str, dict[str, Any]], group: list[str], meas: Any,
+               sigma: float) -> dict[str, Any]:
+    """Which measurement would tell the effects in ``group`` apart?
+
+    Each effect's profile fit (:func:`profile_fits`: the FE with that effect on, refitted to the
+    data) explains the data about equally well. The FE is run at each fit over a richer set of
+    outputs (V at the points and on the 31 x 18 grid, at the measured and the extended times);
+    for each candidate measurement (what it adds to the data) the fits' predictions are
+    compared: where they differ by many noise sd, that measurement separates them.
+
+    Args:
+        fits: :func:`profile_fits`'s output (rows laid out as calibrated parameters, then the
+            candidates' parameters bound to the measured times); group: effect names (>= 2).
+        meas: the data; sigma: noise sd, um.
+    Returns:
+        ``{"effects", "options": [{"measurement", "n_new", "rms_diff_um", "max_diff_um",
+        "time_s", "point", "xy_mm", "chi2_apart"}, ...] best first, "advice"}``; chi2_apart is
+        ``sum((V_a - V_b)^2) / sigma^2`` of the worst-separated pair over the new values (the
+        expected chi-square by which the right effect would win; APART_CHI2 is needed).
+    """
+    from solderpyro.effects import effect_set
+    from solderpyro.fem.loading import EXTENDED_TIMES
+    from solderpyro.fem.problem import reference_grid
+    from solderpyro.fem.solver import SpecimenSolver
+    from solderpyro.workflow import fe_params
+
+    t_meas = tuple(sorted(float(t) for t in meas.times()))
+    t_ext = tuple(t for t in EXTENDED_TIMES if t <= setup.problem.cycle.end)
+    t_u = tuple(sorted(set(t_meas) | set(t_ext)))
+    names = tuple(run_effects) + tuple(candidates)
+    fx_m = effect_set(names, t_meas, setup.effect_bounds)
+    fx_u = effect_set(names, t_u, setup.effect_bounds)
+    n_a = setup.space.dim
+    X = torch.tensor(np.array([fits[g]["x"] for g in group]), dtype=torch.float64)
+    rows = torch.cat([X[:, :n_a], fx_m.rebind_params(X[:, n_a:], t_meas, t_u)], 1)
+    grid = reference_grid()
+    solver = SpecimenSolver(setup.problem, grid, dtype=setup.dtype, device=setup.device,
+                            effects=fx_u)
+    res = solver.solve(fe_params(setup, rows), t_u)
+    V = res.V.detach().cpu().numpy()  # (g, T, n_out)
+    times = [float(t) for t in res.times.tolist()]
+    out_names = list(res.names)
+    xy = {n: tuple(float(v) for v in p) for n, p in setup.problem.points.items()}
+    xy.update({n: (float(p[0]), float(p[1])) for n, p in zip(grid[0], grid[1], strict=True)})
+    measured = {(float(t), str(n)) for t, n in zip(meas.time_s, meas.point, strict=True)}
+    on_grid = np.array([n in set(grid[0]) for n in out_names])
+    pts = ~on_grid
+    opts = [("V at the points at the extended times", t_ext, pts),
+            ("full-field V (31 x 18 grid) at the measured times", t_meas, on_grid),
+            ("full-field V (31 x 18 grid) at the extended times", t_ext, on_grid)]
+    options: list[dict[str, Any]] = []
+    for label, ts, cols in opts:
+        mask = np.zeros(V.shape[1:], dtype=bool)
+        for i, t in enumerate(times):
+            if any(abs(t - s) < 1e-6 for s in ts):
+                mask[i] = cols
+        for i, t in enumerate(times):
+            for j, n in enumerate(out_names):
+                if (t, n) in measured:
+                    mask[i, j] = False
+        if not mask.any():
+            continue
+        worst: dict[str, Any] | None = None
+        for a in range(len(group)):
+            for b in range(a + 1, len(group)):
+                dV = np.where(mask, V[a] - V[b], 0.0)
+                c2 = float((dV**2).sum() / sigma**2)
+                if worst is None or c2 < worst["chi2_apart"]:
+                    ti, oj = (int(v) for v in np.unravel_index(int(np.argmax(np.abs(dV))),
+                                                                dV.shape))
+                    worst = {"measurement": label, "n_new": int(mask.sum()),
+                             "pair": [group[a], group[b]],
+                             "rms_diff_um": float(np.sqrt((dV[mask] ** 2).mean())),
+                             "max_diff_um": float(np.abs(dV[ti, oj])), "time_s": times[ti],
+                             "point": out_names[oj], "xy_mm": list(xy.get(out_names[oj], ())),
+                             "chi2_apart": c2}
+        if worst is not None:
+            options.append(worst)
+    options.sort(key=lambda o: -o["chi2_apart"])
+    who = " from ".join([", ".join(group[:-1]), group[-1]]) if len(group) > 1 else group[0]
+    if options and options[0]["chi2_apart"] >= APART_CHI2:
+        o = options[0]
+        advice = (f"to tell {who} apart, measure {o['measurement']}: their best fits to these "
+                  f"data differ there by up to {o['max_diff_um']:.3g} um "
+                  f"({o['max_diff_um'] / sigma:.1f} noise sd) at t = {o['time_s']:g} s, point "
+                  f"{o['point']} {tuple(round(v, 2) for v in o['xy_mm'])} mm; expected "
+                  f"chi-square between them {o['chi2_apart']:.0f} (>= {APART_CHI2:.1f} "
+                  "decides)")
+    else:
+        advice = (f"{who}: no measurement tried (points at the extended times, the full field "
+                  "at the measured and extended times) separates their best fits by the "
+                  f"chi-square {APART_CHI2:.1f} needed; another test (a different temperature "
+                  "cycle or dwell) is needed")
+    return {"effects": list(group), "options": options, "advice": advice}
 
 
 def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
              per_draw: list[list[Score]], sigma: float, n_cand: int) -> Diagnosis:
     # misfit: the global chi-square test, or a targeted one (an identifiable candidate's test
     # at the Bonferroni level over the candidates; far more powerful against that effect)
-    targeted = [s for s in scores if s.p_value < ALPHA / max(n_cand, 1)
-                and s.identifiable >= MIN_IDENTIFIABLE]
+    targeted = _targeted(scores, n_cand)
     bad = mf.p_value < ALPHA or bool(targeted)
     base_chi2 = mf.chi2_refit if mf.chi2_refit is not None else mf.chi2
     order = sorted(range(len(scores)), key=lambda i: -scores[i].evidence)
@@ -514,14 +578,21 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
             "delta": [float(v) for v in s.delta], "flagged": bool(flag),
             "likelihood_ratio": s.lr, "best_magnitude": s.lr_value,
             "evidence_over_draws": [round(float(e), 3) for e in ev_draws]})
+    if scores:
+        top_s = scores[order[0]]
+        for r, i in zip(ranking, order, strict=True):
+            # how alike the signatures are after the calibrated parameters took their share
+            r["correlation_with_top"] = round(confusion(top_s, scores[i]), 4)
     flagged = [r for r in ranking if r["flagged"]]
+    # cannot tell apart: flagged effects whose best fits are within APART_CHI2 of each other
+    # (the data prefer neither by a likelihood ratio of 20), whatever their signatures look like
     groups: list[list[str]] = []
-    by = {s.effect: s for s in scores}
     for r in flagged:
         if any(r["effect"] in g for g in groups):
             continue
         g = [r["effect"]] + [q["effect"] for q in flagged if q is not r
-                             and confusion(by[r["effect"]], by[q["effect"]]) > MAX_CONFUSION]
+                             and not any(q["effect"] in h for h in groups)
+                             and abs(q["chi2_after"] - r["chi2_after"]) < APART_CHI2]
         if len(g) > 1:
             groups.append(g)
     confounded = [r["effect"] for r in ranking if bad and r["identifiable"] < MIN_IDENTIFIABLE]
@@ -552,10 +623,12 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
 
         if _st.chi2.sf(left, max(mf.dof - top["dof"], 1)) < ALPHA:
             verdict += "; a misfit remains after it: more than one effect, or an unknown one"
-        if groups and top["effect"] in groups[0]:
-            verdict += (f". The data cannot tell apart: {', '.join(groups[0])}")
-            suggestions.append("measure where the candidates differ: full-field V (the 31 x 18 "
-                               "grid) or more times (the dwell ends), see diagnosis.md")
+    if bad and flagged and groups and flagged[0]["effect"] in groups[0]:
+        verdict += (f". The data cannot tell apart: {', '.join(groups[0])} (their best fits "
+                    f"differ by less than chi2 {APART_CHI2:.1f}, a likelihood ratio of 20); "
+                    "do not pick one on these data")
+        suggestions.append("measure where the candidates differ (see 'separation' in "
+                           "diagnosis.json): the full-field V or more times")
     if confounded:
         suggestions.append(f"not identifiable from these data (confounded with the calibrated "
                            f"parameters): {', '.join(confounded)}")

@@ -104,6 +104,13 @@ class Effect:
         """This effect for the sorted output times ``times`` (s); most effects ignore them."""
         return self
 
+    def rebind_params(self, q: torch.Tensor, times_from: Sequence[float],
+                      times_to: Sequence[float]) -> torch.Tensor:
+        """Parameters ``q (b, n_p)`` fitted with outputs at ``times_from`` (s) carried to the
+        effect bound to ``times_to`` (e.g. to predict other times from a fit). Effects whose
+        parameters do not depend on the output times return ``q`` unchanged."""
+        return q
+
     def with_box(self, bounds: Mapping[str, Sequence[float]]) -> Effect:
         """A copy whose prior box has ``bounds`` ``{param: (lower, upper)}`` replaced.
 
@@ -248,6 +255,15 @@ class EffectSet:
         """The set for output times ``times`` (s; sorted here)."""
         ts = tuple(sorted(float(t) for t in times))
         return EffectSet([e.bind(ts) for e in self.effects])
+
+    def rebind_params(self, q: torch.Tensor, times_from: Sequence[float],
+                      times_to: Sequence[float]) -> torch.Tensor:
+        """``q (b, n_params)`` of this set bound to ``times_from`` -> ``(b, n_params')`` of the
+        set bound to ``times_to`` (:meth:`Effect.rebind_params` per effect)."""
+        t0 = tuple(sorted(float(t) for t in times_from))
+        t1 = tuple(sorted(float(t) for t in times_to))
+        return torch.cat([e.rebind_params(qe, t0, t1)
+                          for e, qe in zip(self.effects, self.split(q), strict=True)], 1)
 
     def settings(self) -> list[dict[str, Any]]:
         """Per effect, what the outputs depend on (for the run-store hash)."""

@@ -66,6 +66,20 @@ class MoireRigidMotion(Effect):
     def bind(self, times: Sequence[float]) -> Effect:
         return dataclasses.replace(self, n_images=len(times))
 
+    def rebind_params(self, q: torch.Tensor, times_from: Sequence[float],
+                      times_to: Sequence[float]) -> torch.Tensor:
+        """Each image's ``c_k, w_k`` go to the same time in ``times_to``; an image at a time
+        that was not observed gets no rigid motion (0). ``(b, 2 n_from) -> (b, 2 n_to)``."""
+        n0, n1 = len(times_from), len(times_to)
+        if q.shape[1] != 2 * n0:
+            raise ValueError(f"moire_rigid_motion: {q.shape[1]} parameters for {n0} images")
+        out = q.new_zeros(q.shape[0], 2 * n1)
+        for j, t in enumerate(times_to):
+            hit = [i for i, s in enumerate(times_from) if abs(float(s) - float(t)) < 1e-6]
+            if hit:
+                out[:, j], out[:, n1 + j] = q[:, hit[0]], q[:, n0 + hit[0]]
+        return out
+
     def with_box(self, bounds: Mapping[str, Sequence[float]]) -> Effect:
         """Keys ``c`` (um) and ``w`` (urad) set the bounds of all images at once."""
         c, w = self.c_range, self.w_range

@@ -66,3 +66,34 @@ def test_calibrate_with_the_effect_and_compare(runs):
 def test_diagnose_rejects_a_directory_without_a_run(tmp_path, capsys):
     assert main(["diagnose", str(tmp_path)]) == 2
     assert "run.json" in capsys.readouterr().err
+
+
+def test_separation_finds_where_two_fits_differ(tmp_path):
+    """Two 'fits' that differ only by a Moire offset c_1 = 0.2 um in the first image: on the
+    grid at that time they differ by exactly 0.2 um everywhere, nowhere else; the measured
+    values (A, B) are left out of every option; identical fits separate nowhere."""
+    from solderpyro.diagnose.run import APART_CHI2, separation
+    from solderpyro.io.measurements import read_measurements
+
+    torch.set_num_threads(1)
+    setup = build(compose(TINY))
+    meas = read_measurements(make_dataset(setup, None, tmp_path / "c.csv", False, TIMES))
+    cands = ("thermal_lag", "moire_rigid_motion")
+    theta = np.array([12.92, 10586.0, 2.04, 0.1])
+    x = np.concatenate([theta, [0.0], np.zeros(6)])
+    shifted = x.copy()
+    shifted[5] = 0.2  # moire_c_1 (the 600 s image)
+    fits = {"thermal_lag": {"x": x}, "moire_rigid_motion": {"x": shifted}}
+    sep = separation(setup, (), cands, fits, list(cands), meas, 0.05)
+    assert {o["measurement"] for o in sep["options"]} == {
+        "full-field V (31 x 18 grid) at the measured times",
+        "full-field V (31 x 18 grid) at the extended times"}  # A, B at 600 s were measured
+    for o in sep["options"]:
+        assert o["n_new"] in (558, 3 * 558)
+        assert o["chi2_apart"] == pytest.approx(558 * (0.2 / 0.05) ** 2, rel=1e-9)
+        assert o["max_diff_um"] == pytest.approx(0.2, rel=1e-9) and o["time_s"] == 600.0
+    assert "measure full-field V" in sep["advice"]
+    same = separation(setup, (), cands, {"thermal_lag": {"x": x}, "moire_rigid_motion":
+                                         {"x": x}}, list(cands), meas, 0.05)
+    assert all(o["chi2_apart"] < APART_CHI2 * 1e-9 for o in same["options"])
+    assert "no measurement tried" in same["advice"]

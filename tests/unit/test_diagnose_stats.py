@@ -118,3 +118,40 @@ def test_likelihood_ratio_ladder_is_bounded_by_the_score_for_a_linear_effect():
     assert lr[0] == pytest.approx(0.0, abs=1e-9)
     assert lr[2] == pytest.approx(sc.statistic, rel=1e-9)
     assert np.all(lr <= sc.statistic + 1e-9)
+
+
+def _verdict_of(y, Jt, effects, w):
+    """The diagnosis verdict of a linear model: ``effects`` ``{name: J_e (n, 1)}``."""
+    from solderpyro.diagnose.run import _verdict
+
+    r = y - Jt @ np.linalg.lstsq(Jt, y, rcond=None)[0]
+    scores = [score_test(e, r, Jt, Je, w) for e, Je in effects.items()]
+    pc = predictive_check(y, np.tile(y, (50, 1)), np.ones(50))
+    return _verdict(misfit(r, Jt, w), pc, scores, [scores], 1.0, len(scores))
+
+
+def test_two_effects_that_explain_the_data_equally_are_not_told_apart():
+    """The hidden effect a and a near-twin b (signatures 0.995 correlated after projection):
+    both explain the misfit, their fits differ by less than APART_CHI2, so the verdict groups
+    them instead of naming one; an unrelated effect c is not flagged. With a distinct twin
+    (correlation ~0) a is named alone."""
+    from solderpyro.diagnose.run import APART_CHI2
+
+    rng = np.random.default_rng(7)
+    n = 60
+    Jt = np.column_stack([np.ones(n), np.linspace(0, 1, n)])
+    s = np.sin(np.linspace(0, 3 * np.pi, n))[:, None]
+    y = Jt @ np.array([1.0, 2.0]) + 4.0 * s[:, 0] + rng.standard_normal(n)
+    near = s + 0.01 * rng.standard_normal((n, 1))
+    far = np.cos(np.linspace(0, 7 * np.pi, n))[:, None]
+    c = rng.standard_normal((n, 1))
+    dg = _verdict_of(y, Jt, {"a": s, "b": near, "c": c}, np.ones(n))
+    assert dg.misfit
+    chi = {r["effect"]: r["chi2_after"] for r in dg.ranking}
+    assert abs(chi["a"] - chi["b"]) < APART_CHI2
+    assert dg.indistinguishable == [sorted(["a", "b"], key=lambda e: chi[e])]
+    assert "cannot tell apart" in dg.verdict
+    assert not next(r for r in dg.ranking if r["effect"] == "c")["flagged"]
+    dg2 = _verdict_of(y, Jt, {"a": s, "b": far, "c": c}, np.ones(n))
+    assert dg2.ranking[0]["effect"] == "a" and dg2.indistinguishable == []
+    assert "cannot tell apart" not in dg2.verdict

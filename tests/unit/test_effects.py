@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from solderpyro.configure import build, compose
-from solderpyro.effects import EFFECTS, Effect, EffectSet, effect_box, get_effect
+from solderpyro.effects import EFFECTS, Effect, EffectSet, effect_box, effect_set, get_effect
 from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import Problem
@@ -306,3 +306,17 @@ def test_store_hash_separates_effects_and_records_round_trip(tmp_path):
     assert param_hash(P[1]) != param_hash(P[0]) and param_hash(P[0, :9]) != param_hash(P[0])
     with pytest.raises(ValueError, match=r"shape \(n, 10\)"):
         run_doe(fake, store, h, P[:, :9], SEED_TIMES, progress=False, param_names=names)
+
+
+def test_rebind_params_carries_each_image_to_its_time():
+    """Moire c_k, w_k follow their image's time to a new set of output times (0 where an
+    image was not observed); effects without per-time parameters pass through unchanged."""
+    t0, t1 = (600.0, 2700.0), (600.0, 2400.0, 2700.0)
+    fx = effect_set(("thermal_lag", "moire_rigid_motion"), t0)
+    q = torch.tensor([[50.0, 0.1, 0.2, 3.0, 4.0]])  # tau, c_1, c_2, w_1, w_2
+    out = fx.rebind_params(q, t0, t1)
+    fx1 = effect_set(("thermal_lag", "moire_rigid_motion"), t1)
+    assert out.shape == (1, fx1.n_params)
+    got = dict(zip(fx1.names, out[0].tolist(), strict=True))
+    assert got == {"tau": 50.0, "moire_c_1": 0.1, "moire_c_2": 0.0, "moire_c_3": 0.2,
+                   "moire_w_1": 3.0, "moire_w_2": 0.0, "moire_w_3": 4.0}

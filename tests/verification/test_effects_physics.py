@@ -2,6 +2,7 @@
 forms, ODE integration and superposition, and of its size at the top of its prior box."""
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -158,14 +159,14 @@ def test_cte_temperature_free_expansion_is_the_integral(effects):
 def test_modulus_temperature_elastic_solution_uses_E_of_T():
     """Elastic solder, heated 25 -> 75 degC: the response depends on the current temperature
     only, so the effect's V must equal the baseline's with the solder modulus replaced by
-    E25 (1 - k (75 - 25)) (1e-9 um), and differ from the baseline's with E25."""
+    E25 exp(-k (75 - 25)) (1e-9 um), and differ from the baseline's with E25."""
     prob = small_problem(cycle=ThermalCycle((0.0, 1.0), (25.0, 75.0)),
                          stepping=TimeStepping(dT_max=1e3, dwell_dt0=1.0, dt_max=1.0))
     k = torch.tensor([[0.0], [4e-3]], dtype=F64)
     V = SpecimenSolver(prob, effects=("modulus_temperature",)).solve(rows(k, ELASTIC), [1.0]).V
     sol = prob.materials["solder"]
     for i in range(2):
-        E = sol.E * (1.0 - k[i, 0].item() * 50.0)
+        E = sol.E * math.exp(-k[i, 0].item() * 50.0)
         mats = {**prob.materials, "solder": AnandSolder(E, sol.nu, sol.alpha)}
         ref = SpecimenSolver(dataclasses.replace(prob, materials=mats)).solve(
             anand_tensor(ELASTIC, dtype=F64)[None], [1.0]).V[0]
@@ -308,9 +309,10 @@ def test_each_effect_changes_point_data_at_the_top_of_its_box():
     differences), Liu's constants, V_A and V_B at the seven extended times: each effect at the
     edge of its box farthest from its off value (the upper edge, except copper_plasticity's
     lower 15 MPa; the others off) changes the noise-free data by > 0.3 um RMS, except
-    modulus_temperature, whose physically plausible box (E(125 degC) >= E25/2) moves the data
-    by only ~0.04 um RMS, and copper_plasticity, whose copper yields only in a small zone at
-    Liu's constants (~0.2 um; docs/effects.md): these are asserted as the measured sizes.
+    modulus_temperature (E(125 degC) = E25/10 at the top of its box moves the data by only
+    ~0.31 um at Liu's fast-creeping constants) and copper_plasticity, whose copper yields only
+    in a small zone at Liu's constants (~0.2 um; docs/effects.md): these are asserted as the
+    measured sizes.
     The copper around the plastic band stays below 15 MPa (the band is deep enough)."""
     prob = build(compose(["mesh=coarse"])).problem
     fx = EffectSet(list(EFFECTS)).bind(EXTENDED_TIMES)
@@ -329,7 +331,7 @@ def test_each_effect_changes_point_data_at_the_top_of_its_box():
     print("\nRMS change of V_A, V_B at the box's far edge (um):", rms)
     for name, r in rms.items():
         if name == "modulus_temperature":
-            assert 0.02 < r < 0.1, r
+            assert 0.25 < r < 0.4, r
         elif name == "copper_plasticity":
             assert 0.1 < r < 0.4, r
         else:

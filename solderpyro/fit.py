@@ -1,0 +1,136 @@
+"""Least-squares fits through the FE: a batched, bounded Levenberg-Marquardt.
+
+Used where the exact model (not the surrogate) must say where the data are fitted best: the
+FE anchor of a calibration's refinement (:func:`solderpyro.workflow.calibrate_specimen`) and the
+profile refits of the diagnosis (:func:`solderpyro.diagnose.run.profile_fits`). Several starts
+(or models with different free parameters) advance together, so every FE call is one batch.
+
+Units: parameters in their physical units, predictions and data in um, sigma in um.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class LMFit:
+    """One start's result.
+
+    Attributes:
+        x: ``(p,)`` parameters at the end (physical units).
+        chi2: ``sum((y - f(x))^2) / sigma^2`` there.
+        free: indices of the parameters that were fitted.
+        J: ``(n, len(free))`` forward-difference Jacobian of f with respect to the free
+            parameters scaled to the unit box (``df / du``, um), at the last point where it was
+            evaluated (the last accepted step's start; None if never).
+        iters: accepted steps; history: chi-square at each evaluation.
+    """
+
+    x: np.ndarray
+    chi2: float
+    free: np.ndarray
+    J: np.ndarray | None = None
+    iters: int = 0
+    history: list[float] = field(default_factory=list)
+
+    def laplace_sd(self, lo: np.ndarray, hi: np.ndarray, sigma: float) -> np.ndarray:
+        """Marginal sd ``(len(free),)`` of the free parameters (physical units) under the
+        Laplace approximation ``(J' J / sigma^2)^-1`` (pseudo-inverse: a direction the data do
+        not constrain gets the box width)."""
+        w = (np.asarray(hi) - np.asarray(lo))[self.free]
+        if self.J is None:
+            return w.copy()
+        A = self.J.T @ self.J / sigma**2
+        cov = np.linalg.pinv(A, rcond=1e-10)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * w
+        return np.minimum(np.where(np.isfinite(sd), sd, w), w)
+
+
+def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
+           lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, y: np.ndarray,
+           sigma: float,
+           free: Sequence[np.ndarray] | None = None, iters: int = 5, rel: float = 1e-3,
+           lam0: float = 1e-2) -> list[LMFit]:
+    """Bounded Levenberg-Marquardt from ``S`` starts at once, forward differences.
+
+    Each iteration makes two calls of ``fun``: the points and their difference steps (``S``
+    starts x ``(1 + n_free)`` rows), then three trial steps per start (damping lam, 10 lam,
+    100 lam); the best trial is taken if it lowers chi-square. Steps are clipped to the box.
+
+    Args:
+        fun: ``rows (N, p) -> (N, n)`` predictions (um; NaN rows where the model failed).
+        x0: ``(S, p)`` starts, physical units, inside ``[lo, hi]``.
+        lo, hi: ``(p,)`` box.
+        y: ``(n,)`` data, um; sigma: noise sd, um.
+        free: per start, the indices it fits (default: all ``p``).
+        iters: iterations; rel: difference step as a share of the box width.
+    Returns:
+        ``S`` :class:`LMFit`, in the order of ``x0``.
+    """
+    x0 = np.atleast_2d(np.asarray(x0, float))
+    lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)
+    if x0.shape[1] != lo_a.shape[0] or hi_a.shape != lo_a.shape:
+        raise ValueError(f"lm_fit: x0 has {x0.shape[1]} columns, lo/hi {lo_a.shape}/"
+                         f"{hi_a.shape}")
+    if not sigma > 0:
+        raise ValueError(f"lm_fit: sigma must be > 0, got {sigma}")
+    y = np.asarray(y, float)
+    S = x0.shape[0]
+    frees = [np.arange(x0.shape[1])] * S if free is None else [np.asarray(f, int) for f in free]
+    fits = [LMFit(x0[s].copy(), np.inf, frees[s]) for s in range(S)]
+    lam = np.full(S, lam0)
+    h_all = rel * (hi_a - lo_a)
+    width = hi_a - lo_a
+    for _ in range(iters):
+        rows: list[np.ndarray] = []
+        where = []
+        for ft in fits:
+            where.append(len(rows))
+            rows.append(ft.x)
+            for j in ft.free:
+                sgn = 1.0 if ft.x[j] + h_all[j] <= hi_a[j] else -1.0
+                xj = ft.x.copy()
+                xj[j] += sgn * h_all[j]
+                rows.append(xj)
+        V = fun(np.array(rows))
+        trials: list[np.ndarray] = []
+        tw: dict[int, int] = {}
+        for s, ft in enumerate(fits):
+            i0, fr = where[s], ft.free
+            r = y - V[i0]
+            ft.chi2 = float(((r / sigma) ** 2).sum())
+            ft.history.append(ft.chi2)
+            dx = np.array([rows[i0 + 1 + k][j] - ft.x[j] for k, j in enumerate(fr)])
+            J = (V[i0 + 1:i0 + 1 + len(fr)] - V[i0]).T / dx * width[fr]
+            if not (np.all(np.isfinite(J)) and np.isfinite(ft.chi2)):
+                continue
+            ft.J = J
+            A, g = J.T @ J / sigma**2, J.T @ r / sigma**2
+            tw[s] = len(trials)
+            for lm in (lam[s], 10 * lam[s], 100 * lam[s]):
+                du = np.linalg.solve(A + lm * np.diag(np.diag(A) + 1e-12), g)
+                xt = ft.x.copy()
+                xt[fr] = np.clip(xt[fr] + du * width[fr], lo_a[fr], hi_a[fr])
+                trials.append(xt)
+        if not trials:
+            break
+        Vt = fun(np.array(trials))
+        for s, i0 in tw.items():
+            ft = fits[s]
+            c2 = np.array([((y - v) ** 2).sum() / sigma**2 for v in Vt[i0:i0 + 3]])
+            c2 = np.where(np.isfinite(c2), c2, np.inf)
+            k = int(np.argmin(c2))
+            if c2[k] < ft.chi2:
+                ft.x, ft.chi2 = trials[i0 + k], float(c2[k])
+                lam[s] = max(lam[s] * (0.1 if k == 0 else 10.0 ** k), 1e-6)
+                ft.iters += 1
+            else:
+                lam[s] *= 1e3
+    for ft in fits:
+        if not ft.history or ft.chi2 < ft.history[-1]:
+            ft.history.append(ft.chi2)
+    return fits

@@ -1,0 +1,53 @@
+"""The batched Levenberg-Marquardt of solderpyro.fit: exact answers on small problems."""
+
+import numpy as np
+import pytest
+
+from solderpyro.fit import lm_fit
+
+X = np.linspace(0.0, 3.0, 11)
+
+
+def _exp(rows):
+    return rows[:, :1] * np.exp(-rows[:, 1:2] * X[None])  # (N, 11)
+
+
+def test_lm_recovers_a_nonlinear_fit_from_several_starts_at_once():
+    """Noise-free y = 5 exp(-0.7 x): every start reaches (5, 0.7) to 1e-5 and chi2 ~ 0; a
+    start whose 'free' set omits b keeps b and fits a alone (the profile of a)."""
+    y = 5.0 * np.exp(-0.7 * X)
+    x0 = np.array([[2.0, 0.2], [8.0, 1.5], [3.0, 1.0]])
+    fits = lm_fit(_exp, x0, [0.1, 0.01], [10.0, 3.0], y, 0.1,
+                  free=[np.array([0, 1]), np.array([0, 1]), np.array([0])], iters=40)
+    for f in fits[:2]:
+        assert f.x == pytest.approx([5.0, 0.7], abs=1e-5) and f.chi2 < 1e-8
+    assert fits[2].x[1] == 1.0  # b held
+    a_hat = (y * np.exp(-X)).sum() / np.exp(-2 * X).sum()  # least squares in a at b = 1
+    assert fits[2].x[0] == pytest.approx(a_hat, rel=1e-6)
+
+
+def test_lm_stays_in_the_box_and_laplace_sd_matches_linear_regression():
+    """A linear model y = c0 + c1 x: the Laplace sd equals the least-squares standard errors;
+    with the optimum of c1 outside the box the fit stops on the bound."""
+    rng = np.random.default_rng(0)
+    y = 1.0 + 2.0 * X + 0.1 * rng.standard_normal(X.size)
+
+    def lin(rows):
+        return rows[:, :1] + rows[:, 1:2] * X[None]
+
+    lo, hi = np.array([-5.0, -5.0]), np.array([5.0, 5.0])
+    f = lm_fit(lin, np.array([[0.0, 0.0]]), lo, hi, y, 0.1, iters=30)[0]
+    A = np.column_stack([np.ones_like(X), X])
+    beta = np.linalg.lstsq(A, y, rcond=None)[0]
+    se = 0.1 * np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
+    assert f.x == pytest.approx(beta, abs=1e-6)
+    assert f.laplace_sd(lo, hi, 0.1) == pytest.approx(se, rel=1e-4)
+    g = lm_fit(lin, np.array([[0.0, 0.0]]), lo, [5.0, 1.5], y, 0.1, iters=30)[0]
+    assert g.x[1] == 1.5 and g.chi2 > f.chi2
+
+
+def test_lm_rejects_bad_input():
+    with pytest.raises(ValueError, match="sigma"):
+        lm_fit(_exp, np.array([[1.0, 1.0]]), [0, 0], [2, 2], np.zeros(11), 0.0)
+    with pytest.raises(ValueError, match="columns"):
+        lm_fit(_exp, np.array([[1.0, 1.0, 1.0]]), [0, 0], [2, 2], np.zeros(11), 1.0)
