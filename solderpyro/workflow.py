@@ -228,6 +228,70 @@ def save_run(out: Path, meas: Measurements, space: Box, effects: tuple[str, ...]
     (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
 
 
+def _posterior_region(t: torch.Tensor, box: Box) -> Box:
+    """The region the posterior draws ``t (n, d)`` occupy: their 0.5-99.5 % range widened by
+    half its width on each side, inside ``box``."""
+    ql, qh = torch.quantile(t, 0.005, 0), torch.quantile(t, 0.995, 0)
+    wd = qh - ql
+    lo = torch.maximum(ql - 0.5 * wd, torch.tensor(box.lower, dtype=t.dtype))
+    hi = torch.minimum(qh + 0.5 * wd, torch.tensor(box.upper, dtype=t.dtype))
+    return Box(box.names, tuple(lo.tolist()), tuple(hi.tolist()), box.log_scale, box.units)
+
+
+def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
+              ti: np.ndarray, oi: np.ndarray, y_obs: torch.Tensor, sigma: float, space: Box,
+              n_fe: int, start: torch.Tensor, X: torch.Tensor, Y: torch.Tensor,
+              obs_offset: Any = None, iters: int = 5, n_sd: float = 4.0) -> dict[str, Any]:
+    """The FE's own best fit to the data, and the box around it where a refinement puts runs.
+
+    A surrogate posterior can sit where the GP, not the FE, fits (a GP error that the code
+    variance does not cover). Levenberg-Marquardt through the FE (:func:`solderpyro.fit.lm_fit`)
+    from the posterior median and from the stored run that fits best finds where the exact
+    model fits; runs in ``x* +- n_sd`` Laplace sd (at least 2 % of the box width) make the
+    surrogate accurate there, so the next posterior is the FE's.
+
+    Args:
+        solver: set up for the FE-side effects; times, ti, oi: outputs and the observation
+            index (:func:`observation_index`); y_obs: ``(n_obs,)`` um; sigma: noise sd, um.
+        space: all calibrated parameters (FE-side first, ``n_fe`` of them, then
+            observation-side); start: ``(space.dim,)`` posterior median.
+        X, Y: ``(n_runs, n_fe)`` stored runs and ``(n_runs, n_obs)`` their outputs, um.
+        obs_offset: ``q -> (n_obs,)`` additive observation effects (None: none).
+    Returns:
+        ``{"x": (space.dim,) best fit, "chi2", "chi2_start": chi2 at the posterior median,
+        "box": Box over the FE-side parameters}``.
+    """
+    from solderpyro.fit import lm_fit
+
+    y = y_obs.detach().cpu().numpy()
+    lo, hi = np.array(space.lower, float), np.array(space.upper, float)
+
+    def fun(rows: np.ndarray) -> np.ndarray:
+        P = torch.tensor(rows[:, :n_fe], dtype=torch.float64)
+        res = solver.solve(fe_params(setup, P), times)
+        V = res.V.detach().cpu().numpy()[:, ti, oi]
+        if obs_offset is not None:
+            V = V + np.stack([obs_offset(torch.tensor(r[n_fe:])).detach().numpy()
+                              for r in rows])
+        V[~res.ok.cpu().numpy()] = np.nan
+        return V
+
+    s0 = start.detach().cpu().numpy().astype(float)
+    c2 = (((Y - y_obs) / sigma) ** 2).sum(1)
+    best_run = X[int(torch.argmin(c2))].detach().cpu().numpy()
+    s1 = s0.copy()
+    s1[:n_fe] = best_run
+    fits = lm_fit(fun, np.stack([s0, s1]), lo, hi, y, sigma, iters=iters)
+    best = min(fits, key=lambda f: f.chi2)
+    sd = np.maximum(best.laplace_sd(lo, hi, sigma), 0.02 * (hi - lo))[:n_fe]
+    x_fe = best.x[:n_fe]
+    box = Box(space.names[:n_fe], tuple(np.maximum(x_fe - n_sd * sd, lo[:n_fe]).tolist()),
+              tuple(np.minimum(x_fe + n_sd * sd, hi[:n_fe]).tolist()),
+              space.log_scale[:n_fe], space.units[:n_fe])
+    return {"x": best.x, "chi2": float(best.chi2), "chi2_start": float(fits[0].history[0]),
+            "box": box}
+
+
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs: int = 50,
                        seed: int = 0, store_root: str | Path = "runs/store",
                        batch_size: int = 64, nuts: dict[str, Any] | None = None,
@@ -251,9 +315,11 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
             (:func:`exact_check`) and write ``exact_check.csv``.
         record: how the run was asked for (e.g. ``{"overrides": [...]}``), kept in
             ``run.json`` so that ``solderpyro diagnose`` can rebuild the model.
-        refine: FE runs added per refinement round: a Latin hypercube over the region the
-            posterior occupies (its 0.5-99.5 % range widened by half its width, inside the
-            prior box); the surrogate is refitted on all runs and NUTS rerun. 0: none.
+        refine: FE runs added per refinement round: half a Latin hypercube around the FE's
+            own best fit (:func:`fe_anchor`: Levenberg-Marquardt through the FE, +- 4 Laplace
+            sd), half over the region the posterior occupies (its 0.5-99.5 % range widened by
+            half its width); inside the prior box; the surrogate is refitted on all runs and
+            NUTS rerun. 0: none.
         refine_rounds: how many such rounds.
 
     Returns:
@@ -318,18 +384,25 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
 
     post, inp = calibrate_emulator(emulate(gp), y_obs, space, priors=pr, **nk)
     X, Y, okk = theta, y_sim[:n_runs], ok
+    fe_fit: dict[str, Any] | None = None
     for rnd in range(refine_rounds if refine > 0 else 0):
-        tf = post.flat("t")[:, :gp_box.dim]
-        ql, qh = torch.quantile(tf, 0.005, 0), torch.quantile(tf, 0.995, 0)
-        wd = qh - ql
-        lo = torch.maximum(ql - 0.5 * wd, torch.tensor(gp_box.lower, dtype=tf.dtype))
-        hi = torch.minimum(qh + 0.5 * wd, torch.tensor(gp_box.upper, dtype=tf.dtype))
-        local = Box(gp_box.names, tuple(lo.tolist()), tuple(hi.tolist()), gp_box.log_scale,
-                    gp_box.units)
-        th_new = lhs(local, refine, seed + 1 + rnd)
-        log.info("refine round %d: %d FE runs where the posterior lies (%s)", rnd + 1, refine,
-                 ", ".join(f"{n} {a:.4g}-{b:.4g}" for n, a, b in zip(
-                     gp_box.names, local.lower, local.upper, strict=True)))
+        tf = post.flat("t")
+        sig = pr.sigma_known or float(post.flat("sigma").median())
+        fe_fit = fe_anchor(solver, setup, times, ti, oi, y_obs, sig, space, gp_box.dim,
+                           tf.median(0).values, X[okk], Y[okk],
+                           obs_offset=None if fx_obs is None else observation_offset(
+                               fx_obs, setup.problem, doe.names, len(doe.times), ti, oi))
+        log.info("refine round %d: FE chi2 at the posterior median %.1f, the FE's best fit "
+                 "%.1f (n = %d)", rnd + 1, fe_fit["chi2_start"], fe_fit["chi2"], len(y_obs))
+        th_new = torch.cat([
+            lhs(fe_fit["box"], refine // 2, seed + 1 + rnd),
+            lhs(_posterior_region(tf[:, :gp_box.dim], gp_box), refine - refine // 2,
+                seed + 101 + rnd)])
+        log.info("refine round %d: %d FE runs around the FE's best fit (%s) and %d where the "
+                 "posterior lies", rnd + 1, refine // 2, ", ".join(
+                     f"{n} {a:.4g}-{b:.4g}" for n, a, b in zip(
+                         gp_box.names, fe_fit["box"].lower, fe_fit["box"].upper, strict=True)),
+                 refine - refine // 2)
         d2 = run_doe(solver, store, h, fe_params(setup, th_new), times, batch_size, progress)
         X, Y = torch.cat([X, th_new]), torch.cat([Y, d2.V[:, ti, oi]])
         okk = torch.cat([okk, d2.ok])
@@ -348,7 +421,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
              y_liu, pr,
              {**(record or {}), "n_runs": n_runs, "seed": seed, "store": str(store_root),
               "kernel": kernel, "ard": ard, "mean": mean, "surrogate_output": output,
-              "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95)})
+              "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
+              **({"fe_best_fit": {"x": fe_fit["x"].tolist(), "chi2": fe_fit["chi2"],
+                                  "chi2_at_posterior_median": fe_fit["chi2_start"]}}
+                 if fe_fit is not None else {})})
     ex = None
     if exact > 0:
         log.info("exact check: reweighting %d surrogate draws by the FE likelihood", exact)

@@ -507,6 +507,7 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
             ("full-field V (31 x 18 grid) at the measured times", t_meas, on_grid),
             ("full-field V (31 x 18 grid) at the extended times", t_ext, on_grid)]
     options: list[dict[str, Any]] = []
+    seen: list[np.ndarray] = []
     for label, ts, cols in opts:
         mask = np.zeros(V.shape[1:], dtype=bool)
         for i, t in enumerate(times):
@@ -516,8 +517,9 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
             for j, n in enumerate(out_names):
                 if (t, n) in measured:
                     mask[i, j] = False
-        if not mask.any():
-            continue
+        if not mask.any() or any(np.array_equal(mask, m) for m in seen):
+            continue  # nothing new, or the same values as an option already listed
+        seen.append(mask)
         worst: dict[str, Any] | None = None
         for a in range(len(group)):
             for b in range(a + 1, len(group)):

@@ -133,9 +133,40 @@ def test_demo_command_runs_tiny(tmp_path):
     assert ex[0].startswith("parameter,surrogate_q2.5") and len(ex) == 6
     assert 1.0 <= float(ex[1].split(",")[-1]) <= 6.0  # Kish ESS of 6 weights
     assert "Surrogate vs exact" in (out / "report.md").read_text()
+    fit = json.loads((out / "run.json").read_text())["fe_best_fit"]
+    assert fit["chi2"] <= fit["chi2_at_posterior_median"] + 1e-9  # LM never goes uphill
     rows = (out / "summary.csv").read_text().splitlines()
     assert rows[0] == "parameter,q2.5,median,mean,q97.5"
     assert [r.split(",")[0] for r in rows[1:]] == ["s0", "QR", "xi", "m", "sigma"]
+
+
+def test_fe_anchor_finds_the_truth_from_a_far_start():
+    """Noise-free data at a known theta: from a start across the box (and a stored run far
+    away), the FE's Levenberg-Marquardt fit gets chi2 near 0 and its refinement box holds the
+    truth."""
+    import torch
+
+    from solderpyro.fem.solver import SpecimenSolver
+    from solderpyro.workflow import fe_anchor, fe_params
+
+    torch.set_num_threads(1)
+    setup = build(compose(TINY))
+    sp = setup.space
+    solver = SpecimenSolver(setup.problem, dtype=setup.dtype)
+    truth = torch.tensor([[12.92, 10586.0, 2.04, 0.1]], dtype=torch.float64)
+    res = solver.solve(fe_params(setup, truth), setup.times)
+    n_t, n_o = res.V.shape[1:]
+    ti, oi = np.repeat(np.arange(n_t), n_o), np.tile(np.arange(n_o), n_t)
+    y = res.V[0, ti, oi]
+    far = torch.tensor([8.0, 12000.0, 3.5, 0.2], dtype=torch.float64)
+    X = torch.tensor([[20.0, 8000.0, 4.0, 0.4]], dtype=torch.float64)
+    Y = solver.solve(fe_params(setup, X), setup.times).V[:, ti, oi]
+    fit = fe_anchor(solver, setup, setup.times, ti, oi, y, 0.05, sp, sp.dim, far, X, Y,
+                    iters=12)
+    assert fit["chi2"] < 1.0 < fit["chi2_start"]  # chi2 < 1: within 0.05 um x sqrt(1/n)
+    b = fit["box"]
+    assert all(lo <= t <= hi for lo, t, hi in zip(b.lower, truth[0].tolist(), b.upper,
+                                                    strict=True))
 
 
 def test_calibrate_rejects_points_not_in_the_model(tmp_path, capsys):
