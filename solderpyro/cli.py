@@ -320,8 +320,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="surrogate vs exact: reweight N posterior draws by the FE likelihood "
                    "(N more FE runs; writes exact_check.csv and a report section)")
     c.add_argument("--refine", type=int, default=0, metavar="N",
-                   help="after the first posterior, add N FE runs (Latin hypercube) where the "
-                   "posterior lies, refit the surrogate on all runs and sample again")
+                   help="after the first posterior, add N FE runs (Latin hypercubes): half "
+                   "around the FE's own best fit (Levenberg-Marquardt through the FE from the "
+                   "posterior median and the best stored run, +-4 Laplace sd), half where the "
+                   "posterior lies; refit the surrogate on all runs and sample again")
     c.add_argument("--refine-rounds", type=int, default=1, help="rounds of --refine")
     _add_nuts(c)
     g = sub.add_parser("diagnose", help="does the calibrated model fit the data, and which "
