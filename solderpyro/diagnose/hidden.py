@@ -40,6 +40,13 @@ def _ladder(eff: Any, seed: int) -> np.ndarray:
     return off[None] + np.asarray(FRACTIONS)[:, None] * d[None]
 
 
+def _ladder_times(setup: Any) -> tuple[float, ...]:
+    """The times at which :func:`hidden_values` measures an effect's size (s)."""
+    if max(EXTENDED_TIMES) <= setup.problem.cycle.end:
+        return tuple(EXTENDED_TIMES)
+    return tuple(setup.times)
+
+
 def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 0,
                   anand: dict[str, float] | None = None) -> tuple[np.ndarray, float]:
     """The effect's hidden parameter values and their RMS change of the point data.
@@ -57,7 +64,7 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     from solderpyro.fem.solver import SpecimenSolver
     from solderpyro.params import anand_tensor
 
-    times = EXTENDED_TIMES if max(EXTENDED_TIMES) <= setup.problem.cycle.end else setup.times
+    times = _ladder_times(setup)
     fx = effect_set((effect,), times, setup.effect_bounds)
     eff = fx.effects[0]
     lad = _ladder(eff, seed)
@@ -102,6 +109,10 @@ def make_dataset(setup: Any, effect: str | None, path: str | Path, field: bool,
             values, rms = hidden_values(setup, effect, seed=seed, anand=truth)
             meta["hidden_rms_point_um"] = f"{rms:.4g}"
         fx = effect_set((effect,), times, setup.effect_bounds)
+        if np.asarray(values).size != fx.n_params:  # per-image values sized at other times
+            t_l = _ladder_times(setup)
+            values = effect_set((effect,), t_l, setup.effect_bounds).rebind_params(
+                torch.as_tensor(np.asarray(values, float))[None], t_l, times)[0].numpy()
         meta["hidden_values"] = str(dict(zip(fx.names, np.asarray(values).tolist(),
                                              strict=True)))
         a = torch.cat([a, torch.tensor(np.asarray(values, float))[None]], 1)

@@ -97,3 +97,22 @@ def test_separation_finds_where_two_fits_differ(tmp_path):
                                          {"x": x}}, list(cands), meas, 0.05)
     assert all(o["chi2_apart"] < APART_CHI2 * 1e-9 for o in same["options"])
     assert "no measurement tried" in same["advice"]
+
+
+def test_hidden_moire_dataset_at_other_times_than_its_ladder(tmp_path):
+    """The hidden values of a per-image effect are sized at the ladder's times; a dataset at
+    fewer times keeps each image's offset and rotation (regression: it used to fail)."""
+    import ast
+
+    from solderpyro.io.measurements import read_measurements
+
+    torch.set_num_threads(1)
+    setup = build(compose(TINY))
+    full = read_measurements(make_dataset(setup, "moire_rigid_motion", tmp_path / "a.csv",
+                                          False, TIMES)).meta
+    sub = read_measurements(make_dataset(setup, "moire_rigid_motion", tmp_path / "b.csv",
+                                         False, (600.0, 1500.0))).meta
+    a, b = ast.literal_eval(full["hidden_values"]), ast.literal_eval(sub["hidden_values"])
+    assert len(a) == 6 and len(b) == 4
+    assert (b["moire_c_1"], b["moire_c_2"]) == (a["moire_c_1"], a["moire_c_3"])
+    assert (b["moire_w_1"], b["moire_w_2"]) == (a["moire_w_1"], a["moire_w_3"])
