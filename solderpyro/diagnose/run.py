@@ -537,7 +537,7 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
         if worst is not None:
             options.append(worst)
     options.sort(key=lambda o: -o["chi2_apart"])
-    who = " from ".join([", ".join(group[:-1]), group[-1]]) if len(group) > 1 else group[0]
+    who = " and ".join([", ".join(group[:-1]), group[-1]]) if len(group) > 1 else group[0]
     if options and options[0]["chi2_apart"] >= APART_CHI2:
         o = options[0]
         advice = (f"to tell {who} apart, measure {o['measurement']}: their best fits to these "
