@@ -495,6 +495,12 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
     solver = SpecimenSolver(setup.problem, grid, dtype=setup.dtype, device=setup.device,
                             effects=fx_u)
     res = solver.solve(fe_params(setup, rows), t_u)
+    if not bool(res.ok.all()):
+        bad = [g for g, ok in zip(group, res.ok.tolist(), strict=True) if not ok]
+        return {"effects": list(group), "options": [],
+                "advice": f"the FE at the best fit of {', '.join(bad)} did not converge on the "
+                          f"extended outputs ({next(r for r in res.reasons if r)}); no separation "
+                          "computed"}
     V = res.V.detach().cpu().numpy()  # (g, T, n_out)
     times = [float(t) for t in res.times.tolist()]
     out_names = list(res.names)
