@@ -375,12 +375,14 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     nk.update(nuts or {})
     log.info("NUTS: %d chains x %d draws (modular KOH, code uncertainty from the GP)",
              nk["chains"], nk["draws"])
+    # additive observation effects, applied after the surrogate (and after the FE in fe_anchor)
+    obs_off = None if fx_obs is None else observation_offset(
+        fx_obs, setup.problem, doe.names, len(doe.times), ti, oi)
+
     def emulate(gp: GPSurrogate) -> Any:
-        if fx_obs is None:
+        if obs_off is None:
             return GPEmulator(gp)
-        # additive observation effects applied after the surrogate
-        return ObservedEmulator(GPEmulator(gp), gp_box.dim, observation_offset(
-            fx_obs, setup.problem, doe.names, len(doe.times), ti, oi))
+        return ObservedEmulator(GPEmulator(gp), gp_box.dim, obs_off)
 
     post, inp = calibrate_emulator(emulate(gp), y_obs, space, priors=pr, **nk)
     X, Y, okk = theta, y_sim[:n_runs], ok
@@ -390,8 +392,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         sig = pr.sigma_known or float(post.flat("sigma").median())
         fe_fit = fe_anchor(solver, setup, times, ti, oi, y_obs, sig, space, gp_box.dim,
                            tf.median(0).values, X[okk], Y[okk],
-                           obs_offset=None if fx_obs is None else observation_offset(
-                               fx_obs, setup.problem, doe.names, len(doe.times), ti, oi))
+                           obs_offset=obs_off)
         log.info("refine round %d: FE chi2 at the posterior median %.1f, the FE's best fit "
                  "%.1f (n = %d)", rnd + 1, fe_fit["chi2_start"], fe_fit["chi2"], len(y_obs))
         th_new = torch.cat([
