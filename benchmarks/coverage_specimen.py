@@ -1,7 +1,9 @@
 """Coverage of the specimen calibration's 95 % intervals over synthetic datasets (issue 5).
 
 Usage: python benchmarks/coverage_specimen.py [--datasets 20] [--runs 50] [--chains 2]
-       [--warmup 300] [--draws 500] [--output batched|pca] [--var-explained 0.999]
+       [--warmup 300] [--draws 500] [--output batched|pca] [--kernel gaussian|matern52]
+       [--inputs raw|flow_stress]
+       [--var-explained 0.999]
        [--refine N --work runs/coverage] [--only i,j,...]
        [--store runs/store] [--out benchmarks/results_coverage.json]
 
@@ -27,6 +29,7 @@ from solderpyro.design import lhs
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.store import RunStore, run_doe
 from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate.features import FlowStressInputs
 
 
 def _workflow(setup, tv, y, i, a):
@@ -64,9 +67,13 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=300)
     ap.add_argument("--draws", type=int, default=500)
     ap.add_argument("--noise", type=float, default=0.05)
-    ap.add_argument("--output", default="batched", choices=("batched", "pca"),
+    ap.add_argument("--output", default="pca", choices=("batched", "pca"),
                     help="surrogate layout: one GP per output, or GPs on principal components "
                          "(their errors are correlated across outputs, as the FE's are)")
+    ap.add_argument("--kernel", default=None, choices=("gaussian", "matern52"),
+                    help="GP correlation (default: the config's surrogate.kernel)")
+    ap.add_argument("--inputs", default=None, choices=("raw", "flow_stress"),
+                    help="GP inputs (default: the config's surrogate.inputs)")
     ap.add_argument("--var-explained", type=float, default=0.999,
                     help="PCA: share of the standardized output variance the kept PCs explain")
     ap.add_argument("--refine", type=int, default=0,
@@ -87,7 +94,13 @@ def main() -> None:
     theta = lhs(sp, a.runs, 0)
     doe = run_doe(solver, store, h, sp.full(theta), times)
     y_sim = doe.V.reshape(doe.V.shape[0], -1)  # (n_runs, n_time * n_out)
-    gp = GPSurrogate(sp, output=a.output, ard=True, var_explained=a.var_explained).fit(
+    kernel = a.kernel or setup.surrogate["kernel"]
+    inputs = a.inputs or setup.surrogate["inputs"]
+    setup.surrogate.update(kernel=kernel, output=a.output, inputs=inputs)  # for --refine
+    feats = FlowStressInputs(sp, sp.defaults, setup.surrogate["inputs_T_C"],
+                             setup.surrogate["inputs_rate"]) if inputs == "flow_stress" else None
+    gp = GPSurrogate(sp, output=a.output, kernel=kernel, ard=True, inputs=feats,
+                     var_explained=a.var_explained).fit(
         theta[doe.ok], y_sim[doe.ok])
     truths = lhs(sp, a.datasets, 12345)  # prior draws, stratified
     tv = run_doe(solver, store, h, sp.full(truths), times)
@@ -119,6 +132,7 @@ def main() -> None:
         with open(a.out + ".partial", "w") as f:  # nothing computed is lost on a crash
             json.dump({"per_dataset": rows}, f)
     res = {"datasets": a.datasets, "runs": a.runs, "noise_um": a.noise, "output": a.output,
+           "kernel": kernel, "inputs": inputs,
            "refine": a.refine,
            "n_pc": int(gp.basis.shape[1]),
            "coverage": dict(zip(sp.names, hits[sorted(only)].mean(0).tolist(), strict=True)),

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -203,10 +204,24 @@ def _effects(cfg) -> tuple[tuple[str, ...], dict[str, dict[str, tuple[float, flo
 def _surrogate(cfg) -> dict:
     """GP settings from the ``surrogate`` group (absent in older configs: the defaults)."""
     sc = cfg.get("surrogate") or {}
-    out = {"kernel": str(sc.get("kernel", "gaussian")), "ard": bool(sc.get("ard", True)),
-           "mean": str(sc.get("mean", "constant")), "output": str(sc.get("output", "pca"))}
+    out: dict[str, Any] = {
+        "kernel": str(sc.get("kernel", "gaussian")), "ard": bool(sc.get("ard", True)),
+        "mean": str(sc.get("mean", "constant")), "output": str(sc.get("output", "pca")),
+        "inputs": str(sc.get("inputs", "raw"))}
     for key, ok in (("kernel", ("gaussian", "matern52")), ("mean", ("constant", "linear")),
-                    ("output", ("pca", "batched"))):
+                    ("output", ("pca", "batched")), ("inputs", ("raw", "flow_stress"))):
         if out[key] not in ok:
             raise ValueError(f"config surrogate.{key} must be one of {ok}, got {out[key]!r}")
+    for key, default in (("inputs_T_C", 125.0), ("inputs_rate", 1e-5)):
+        try:
+            out[key] = float(sc.get(key, default))
+        except (TypeError, ValueError):
+            raise ValueError(f"config surrogate.{key} must be a number, got "
+                             f"{sc.get(key)!r}") from None
+    if not out["inputs_rate"] > 0:
+        raise ValueError(f"config surrogate.inputs_rate must be > 0 (1/s), got "
+                         f"{out['inputs_rate']}")
+    if not out["inputs_T_C"] > -273.15:
+        raise ValueError(f"config surrogate.inputs_T_C must be above -273.15 degC, got "
+                         f"{out['inputs_T_C']}")
     return out

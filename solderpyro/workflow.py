@@ -298,7 +298,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                        progress: bool = True, kernel: str = "gaussian", ard: bool = True,
                        mean: str = "constant", output: str = "pca", exact: int = 0,
                        record: dict[str, Any] | None = None, refine: int = 0,
-                       refine_rounds: int = 1) -> SpecimenCalibration:
+                       refine_rounds: int = 1, inputs: str = "raw", inputs_T_C: float = 125.0,
+                       inputs_rate: float = 1e-5) -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
 
     Args:
@@ -321,6 +322,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
             half its width); inside the prior box; the surrogate is refitted on all runs and
             NUTS rerun. 0: none.
         refine_rounds: how many such rounds.
+        inputs: ``"raw"`` (the GP sees the box's unit cube) or ``"flow_stress"`` (s0 and QR
+            replaced by the log flow stresses at ``inputs_T_C`` degC and ``inputs_rate`` 1/s,
+            :class:`~solderpyro.surrogate.features.FlowStressInputs`; 4.7x smaller held-out
+            error at 50 runs on the reference case, docs/calibration.md).
 
     Returns:
         :class:`SpecimenCalibration`; writes summary.csv, posterior.nc, figures, report.md.
@@ -360,7 +365,17 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     output = output if y_obs.shape[0] > 1 else "batched"
     log.info("surrogate: %s GP on %d runs, %d observed outputs", output, int(ok.sum()),
              y_obs.shape[0])
-    gp = GPSurrogate(gp_box, output=output, kernel=kernel, ard=ard, mean=mean)
+    if inputs not in ("raw", "flow_stress"):
+        raise ValueError(f"calibrate_specimen inputs must be 'raw' or 'flow_stress', got "
+                         f"{inputs!r}")
+    feats = None
+    if inputs == "flow_stress":
+        from solderpyro.surrogate.features import FlowStressInputs
+
+        feats = FlowStressInputs(gp_box, setup.space.defaults, inputs_T_C, inputs_rate)
+        log.info("surrogate: %s", feats.describe())
+    gopts: dict[str, Any] = dict(output=output, kernel=kernel, ard=ard, mean=mean, inputs=feats)
+    gp = GPSurrogate(gp_box, **gopts)
     gp.fit(theta[ok], y_sim[:n_runs][ok])
     loo = gp.loo()
     problems = gp.check(loo)
@@ -407,7 +422,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         d2 = run_doe(solver, store, h, fe_params(setup, th_new), times, batch_size, progress)
         X, Y = torch.cat([X, th_new]), torch.cat([Y, d2.V[:, ti, oi]])
         okk = torch.cat([okk, d2.ok])
-        gp = GPSurrogate(gp_box, output=output, kernel=kernel, ard=ard, mean=mean)
+        gp = GPSurrogate(gp_box, **gopts)
         gp.fit(X[okk], Y[okk])
         loo = gp.loo()
         problems = gp.check(loo)
@@ -422,6 +437,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
              y_liu, pr,
              {**(record or {}), "n_runs": n_runs, "seed": seed, "store": str(store_root),
               "kernel": kernel, "ard": ard, "mean": mean, "surrogate_output": output,
+              "surrogate_inputs": inputs, **({"inputs_T_C": inputs_T_C,
+                                               "inputs_rate": inputs_rate} if feats else {}),
               "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
               **({"fe_best_fit": {"x": fe_fit["x"].tolist(), "chi2": fe_fit["chi2"],
                                   "chi2_at_posterior_median": fe_fit["chi2_start"]}}

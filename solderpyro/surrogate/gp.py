@@ -8,7 +8,9 @@ Three output layouts, one code path (GPs on coefficients, a fixed basis back to 
 - ``"pca"``: principal components of the standardized outputs (Higdon et al. 2008), a GP per
   kept component; basis = the first k right singular vectors, plus the truncation variance.
 
-Transforms are explicit: inputs go to the unit cube through :class:`solderpyro.params.Box`,
+Transforms are explicit: inputs go to the unit cube through :class:`solderpyro.params.Box`
+(or, with ``inputs=``, through a physics-informed map such as
+:class:`solderpyro.surrogate.features.FlowStressInputs`, scaled to [0, 1] over the box),
 outputs are standardized per column by :class:`Standardizer`. Hyperparameters are fitted by
 maximizing the exact marginal likelihood (L-BFGS, several restarts, best kept per GP). After the
 fit, predictions run through plain torch (:meth:`GPSurrogate.mean_cov`): differentiable in the
@@ -18,6 +20,7 @@ inputs and cheap enough to sit inside an MCMC likelihood.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gpytorch
@@ -98,11 +101,16 @@ class GPSurrogate:
         var_explained: fraction of the standardized output variance the kept PCs explain.
         nugget: lower bound of the GP noise variance (standardized units), for conditioning.
         restarts: L-BFGS restarts from different initial lengthscales.
+        inputs: optional differentiable map of physical inputs ``(..., d) -> (..., d')`` that
+            the GP sees instead of the box's unit cube (e.g. ``FlowStressInputs``); its values
+            are rescaled to [0, 1] over the range they take on the box (a 1024-point LHS and
+            the training runs).
     """
 
     def __init__(self, box: Box, output: str = "scalar", kernel: str = "gaussian",
                  mean: str = "constant", ard: bool = False, n_pc: int | None = None,
-                 var_explained: float = 0.999, nugget: float = 1e-6, restarts: int = 3) -> None:
+                 var_explained: float = 0.999, nugget: float = 1e-6, restarts: int = 3,
+                 inputs: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
         for name, val, ok in (("output", output, ("scalar", "batched", "pca")),
                               ("kernel", kernel, ("gaussian", "matern52")),
                               ("mean", mean, ("constant", "linear"))):
@@ -113,6 +121,7 @@ class GPSurrogate:
         self.box, self.output, self.kernel, self.mean = box, output, kernel, mean
         self.ard, self.n_pc, self.var_explained = ard, n_pc, var_explained
         self.nugget, self.restarts = nugget, restarts
+        self.inputs = inputs
         self.model: _BatchGP | None = None
 
     # ------------------------------------------------------------------ fitting
@@ -132,7 +141,14 @@ class GPSurrogate:
         ys = self.std.forward(y)  # (n, n_y)
         self.basis, self.resid_var = self._basis(ys)  # (n_y, k), (n_y,)
         z = (ys @ self.basis).T.contiguous()  # (k, n)
-        u = self.box.to_unit(x)
+        if self.inputs is not None:  # the map's range over the box, for the [0, 1] scaling
+            from solderpyro.design import lhs
+
+            with torch.no_grad():
+                f = self.inputs(torch.cat([x, lhs(self.box, 1024, 0).to(x)]))
+            self._in_lo = f.min(0).values
+            self._in_span = (f.max(0).values - self._in_lo).clamp_min(1e-12)
+        u = self._unit(x)
         self.model = _BatchGP(u.expand(z.shape[0], *u.shape), z, self.kernel, self.mean,
                               self.ard, self.nugget)
         _fit_mll(self.model, self.restarts)
@@ -199,6 +215,12 @@ class GPSurrogate:
             self._kinv_diag = torch.cholesky_inverse(self._chol).diagonal(dim1=-2, dim2=-1)
             self._z = zt
 
+    def _unit(self, x: torch.Tensor) -> torch.Tensor:
+        """Physical inputs ``(..., d)`` -> the GP's inputs ``(..., d')`` in about [0, 1]."""
+        if self.inputs is None:
+            return self.box.to_unit(x)
+        return (self.inputs(x) - self._in_lo) / self._in_span
+
     def _corr(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         if self.kernel == "gaussian":
             return gaussian(a, b, 0.5 / self._ls.square())
@@ -217,7 +239,8 @@ class GPSurrogate:
 
     # --------------------------------------------------------------- prediction
     def _coef(self, x: torch.Tensor, full_cov: bool) -> tuple[torch.Tensor, torch.Tensor]:
-        u = self.box.to_unit(x).expand(self._u.shape[0], *x.shape)  # (k, n*, d)
+        u = self._unit(x)
+        u = u.expand(self._u.shape[0], *u.shape)  # (k, n*, d')
         ks = self._os[:, None, None] * self._corr(u, self._u)  # (k, n*, n)
         mean = self._prior_mean(u) + (ks * self._alpha[:, None, :]).sum(-1)  # (k, n*)
         v = torch.linalg.solve_triangular(self._chol, ks.transpose(-1, -2), upper=False)
