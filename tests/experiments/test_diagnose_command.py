@@ -39,7 +39,12 @@ def test_diagnosis_contract_and_hidden_effect_found(runs):
     assert ev == sorted(ev, reverse=True) and {r["effect"] for r in dg["ranking"]} == {
         "thermal_lag", "cte_temperature"}
     assert all(isinstance(r["evidence"], float) for r in dg["ranking"])
-    assert dg["ranking"][0]["effect"] == "thermal_lag"
+    # 6 values: the hidden effect is first, or the data cannot tell it from the first (the FE
+    # refits with either effect on fit to chi2 < 6 apart) and the tool says so, never picking
+    # another effect alone
+    top = dg["ranking"][0]["effect"]
+    assert top == "thermal_lag" or any({top, "thermal_lag"} <= set(g)
+                                       for g in dg["indistinguishable"]), dg["verdict"]
     for f in ("diagnosis.md", "diagnosis.html", "diagnosis_residuals.png",
               "diagnosis_ranking.png"):
         assert (runs / "lag" / f).stat().st_size > 100, f
