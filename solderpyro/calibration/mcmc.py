@@ -141,7 +141,8 @@ def format_summary(rows: Sequence[dict], columns: Sequence[str] = SUMMARY_COLUMN
 def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warmup: int = 500,
              draws: int = 1000, seed: int = 0, jit: bool = True, target_accept: float = 0.8,
              max_tree_depth: int = 10, progress: bool = True, threads: int | None = 1,
-             full_mass: bool = False) -> tuple[dict[str, torch.Tensor], list[int], float]:
+             full_mass: bool = False, init: str = "sir", init_draws: int = 256
+             ) -> tuple[dict[str, torch.Tensor], list[int], float]:
     """Run NUTS chains one after another (each seeded ``seed + chain``).
 
     KOH likelihoods work on matrices of tens to hundreds of rows, where torch's intra-op
@@ -155,24 +156,34 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         jit: compile the potential with the PyTorch JIT (falls back to eager if tracing fails).
         full_mass: adapt a dense mass matrix (pays off for correlated posteriors such as the
             full joint's sigma_c / theta / t: 1.7x the ESS per second there).
+        init: where the chains start. ``"sir"``: at points resampled, in proportion to their
+            likelihood, from ``init_draws`` draws of the prior (:func:`sir_inits`), so that
+            chains start where the posterior has its mass and a chain is not left in a minor
+            mode that NUTS cannot leave; ``"uniform"``: Pyro's default (uniform in
+            (-2, 2) on the unconstrained scale).
 
     Returns:
         samples ``site -> (chain, draw, ...)`` (the sampler's sites), divergences per chain,
         wall seconds.
     """
-    for nm, v in (("chains", chains), ("warmup", warmup), ("draws", draws)):
+    for nm, v in (("chains", chains), ("warmup", warmup), ("draws", draws),
+                  ("init_draws", init_draws)):
         if not isinstance(v, int) or v < (0 if nm == "warmup" else 1):
             raise ValueError(f"run_nuts {nm} must be a positive integer, got {v!r}")
+    if init not in ("sir", "uniform"):
+        raise ValueError(f"run_nuts init must be 'sir' or 'uniform', got {init!r}")
     per_chain, divs = [], []
     t0 = time.perf_counter()
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)
     try:
+        inits = sir_inits(model, args, chains, init_draws, seed) if init == "sir" \
+            else [None] * chains
         for c in range(chains):
             pyro.set_rng_seed(seed + c)
             mcmc = _one_chain(model, args, warmup, draws, jit, target_accept, max_tree_depth,
-                              progress, c, full_mass)
+                              progress, c, full_mass, inits[c])
             per_chain.append({k: v.detach() for k, v in mcmc.get_samples().items()})
             d = mcmc.diagnostics()
             divs.append(sum(len(v) for k, v in d.get("divergences", {}).items()))
@@ -183,11 +194,54 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
     return samples, divs, seconds
 
 
+def sir_inits(model: Callable[..., None], args: tuple, chains: int, n: int = 256,
+              seed: int = 0) -> list[dict[str, torch.Tensor] | None]:
+    """Chain starting points by sampling-importance-resampling from the prior.
+
+    ``n`` draws of the model's latent sites from their priors are weighted by the likelihood of
+    the observed sites (so the weighted draws approximate the posterior) and ``chains`` of them
+    are picked by systematic resampling: chains start in the modes in rough proportion to their
+    posterior mass. Costs ``n`` model evaluations without gradients.
+
+    Args:
+        model: the Pyro model (observed sites carry ``obs=``); args: its arguments.
+        chains: how many starting points. n: prior draws. seed: random seed.
+    Returns:
+        one ``{site: value}`` per chain (constrained values), or ``None`` entries when no draw
+        has a finite likelihood (then Pyro's default initialisation is used).
+    """
+    from pyro import poutine
+
+    pyro.set_rng_seed(seed + 7919)
+    pts: list[dict[str, torch.Tensor]] = []
+    logw = []
+    with torch.no_grad():
+        for _ in range(n):
+            tr = poutine.trace(model).get_trace(*args)
+            tr.compute_log_prob()
+            pts.append({k: torch.as_tensor(nd["value"]) for k, nd in tr.nodes.items()
+                        if nd["type"] == "sample" and not nd["is_observed"]})
+            logw.append(float(sum(nd["log_prob_sum"] for nd in tr.nodes.values()
+                                  if nd["type"] == "sample" and nd["is_observed"])))
+    lw = np.array(logw, dtype=float)
+    lw[~np.isfinite(lw)] = -np.inf
+    if not np.isfinite(lw).any():
+        return [None] * chains
+    w = np.exp(lw - lw.max())
+    cdf = np.cumsum(w / w.sum())
+    u = (np.random.default_rng(seed).random() + np.arange(chains)) / chains
+    return [pts[int(min(np.searchsorted(cdf, ui), n - 1))] for ui in u]
+
+
 def _one_chain(model: Callable[..., None], args: tuple, warmup: int, draws: int, jit: bool,
                target_accept: float, max_tree_depth: int, progress: bool, chain: int,
-               full_mass: bool = False) -> MCMC:
+               full_mass: bool = False, init: dict[str, torch.Tensor] | None = None) -> MCMC:
+    from pyro.infer.autoguide.initialization import init_to_uniform, init_to_value
+
+    strategy = init_to_uniform if init is None else init_to_value(values=init)
     kernel = NUTS(model, jit_compile=jit, ignore_jit_warnings=True, full_mass=full_mass,
-                  target_accept_prob=target_accept, max_tree_depth=max_tree_depth)
+                  target_accept_prob=target_accept, max_tree_depth=max_tree_depth,
+                  init_strategy=strategy)
     mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup, disable_progbar=not progress)
     try:
         mcmc.run(*args)
@@ -196,7 +250,7 @@ def _one_chain(model: Callable[..., None], args: tuple, warmup: int, draws: int,
             raise
         warnings.warn(f"JIT failed for chain {chain} ({exc}); running eagerly", stacklevel=3)
         kernel = NUTS(model, target_accept_prob=target_accept, max_tree_depth=max_tree_depth,
-                      full_mass=full_mass)
+                      full_mass=full_mass, init_strategy=strategy)
         mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup, disable_progbar=not progress)
         mcmc.run(*args)
     return mcmc
