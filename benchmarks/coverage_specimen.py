@@ -119,7 +119,7 @@ def main() -> None:
             pr = Priors(sigma_known=a.noise)  # the data state their noise, as the demo's do
             post, _ = calibrate_modular(gp, y, sp, priors=pr, chains=a.chains,
                                         warmup=a.warmup, draws=a.draws, seed=i,
-                                        progress=False)
+                                        progress=False, init="sir")  # as calibrate_specimen
             t = post.flat("t").numpy()
             lo, hi = np.quantile(t, 0.025, axis=0), np.quantile(t, 0.975, axis=0)
         hits[i] = (lo <= truths[i].numpy()) & (truths[i].numpy() <= hi)

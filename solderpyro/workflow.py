@@ -386,7 +386,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         log.info("noise: sigma_um from the data (%.3g um), known to ~10 %%", pr.sigma_known)
     else:
         pr = Priors(sigma_max=max(10 * float(sig.max()) if sig.size else 0.0, 0.5 * yr, 1e-3))
-    nk: dict[str, Any] = dict(chains=4, warmup=500, draws=1000, seed=seed, progress=progress)
+    # chains start at likelihood-resampled prior draws: the specimen posterior can have minor
+    # modes (the demo's data: one at m = 0.49) that a chain started at random never leaves
+    nk: dict[str, Any] = dict(chains=4, warmup=500, draws=1000, seed=seed, progress=progress,
+                              init="sir")
     nk.update(nuts or {})
     log.info("NUTS: %d chains x %d draws (modular KOH, code uncertainty from the GP)",
              nk["chains"], nk["draws"])

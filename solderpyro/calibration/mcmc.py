@@ -141,7 +141,7 @@ def format_summary(rows: Sequence[dict], columns: Sequence[str] = SUMMARY_COLUMN
 def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warmup: int = 500,
              draws: int = 1000, seed: int = 0, jit: bool = True, target_accept: float = 0.8,
              max_tree_depth: int = 10, progress: bool = True, threads: int | None = 1,
-             full_mass: bool = False, init: str = "sir", init_draws: int = 256
+             full_mass: bool = False, init: str = "uniform", init_draws: int = 256
              ) -> tuple[dict[str, torch.Tensor], list[int], float]:
     """Run NUTS chains one after another (each seeded ``seed + chain``).
 
@@ -156,11 +156,11 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         jit: compile the potential with the PyTorch JIT (falls back to eager if tracing fails).
         full_mass: adapt a dense mass matrix (pays off for correlated posteriors such as the
             full joint's sigma_c / theta / t: 1.7x the ESS per second there).
-        init: where the chains start. ``"sir"``: at points resampled, in proportion to their
-            likelihood, from ``init_draws`` draws of the prior (:func:`sir_inits`), so that
-            chains start where the posterior has its mass and a chain is not left in a minor
-            mode that NUTS cannot leave; ``"uniform"``: Pyro's default (uniform in
-            (-2, 2) on the unconstrained scale).
+        init: where the chains start. ``"uniform"`` (default): Pyro's default (uniform in
+            (-2, 2) on the unconstrained scale); ``"sir"``: at points resampled, in proportion
+            to their likelihood, from ``init_draws`` draws of the prior (:func:`sir_inits`), so
+            that chains start where the posterior has its mass and a chain is not left in a
+            minor mode that NUTS cannot leave (the specimen calibration's default).
 
     Returns:
         samples ``site -> (chain, draw, ...)`` (the sampler's sites), divergences per chain,
