@@ -29,7 +29,7 @@ from solderpyro.design import lhs
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.store import RunStore, run_doe
 from solderpyro.surrogate import GPSurrogate
-from solderpyro.surrogate.features import FlowStressInputs
+from solderpyro.surrogate.features import input_map
 
 
 def _workflow(setup, tv, y, i, a):
@@ -97,8 +97,8 @@ def main() -> None:
     kernel = a.kernel or setup.surrogate["kernel"]
     inputs = a.inputs or setup.surrogate["inputs"]
     setup.surrogate.update(kernel=kernel, output=a.output, inputs=inputs)  # for --refine
-    feats = FlowStressInputs(sp, sp.defaults, setup.surrogate["inputs_T_C"],
-                             setup.surrogate["inputs_rate"]) if inputs == "flow_stress" else None
+    feats = input_map(inputs, sp, sp.defaults, setup.surrogate["inputs_T_C"],
+                      setup.surrogate["inputs_rate"])
     gp = GPSurrogate(sp, output=a.output, kernel=kernel, ard=True, inputs=feats,
                      var_explained=a.var_explained).fit(
         theta[doe.ok], y_sim[doe.ok])

@@ -365,14 +365,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     output = output if y_obs.shape[0] > 1 else "batched"
     log.info("surrogate: %s GP on %d runs, %d observed outputs", output, int(ok.sum()),
              y_obs.shape[0])
-    if inputs not in ("raw", "flow_stress"):
-        raise ValueError(f"calibrate_specimen inputs must be 'raw' or 'flow_stress', got "
-                         f"{inputs!r}")
-    feats = None
-    if inputs == "flow_stress":
-        from solderpyro.surrogate.features import FlowStressInputs
+    from solderpyro.surrogate.features import input_map
 
-        feats = FlowStressInputs(gp_box, setup.space.defaults, inputs_T_C, inputs_rate)
+    feats = input_map(inputs, gp_box, setup.space.defaults, inputs_T_C, inputs_rate)
+    if feats is not None:
         log.info("surrogate: %s", feats.describe())
     gopts: dict[str, Any] = dict(output=output, kernel=kernel, ard=ard, mean=mean, inputs=feats)
     gp = GPSurrogate(gp_box, **gopts)

@@ -33,6 +33,33 @@ from solderpyro.params import Box
 #: Anand constants the flow stresses are built from (the four replaced/used + the fixed three).
 NEEDED = ("s0", "QR", "xi", "m")
 FIXABLE = ("A", "s_hat", "n")
+#: Values of the config key ``surrogate.inputs``.
+INPUTS = ("raw", "flow_stress")
+
+
+def check_reference(T_ref_C: float, rate_ref: float) -> None:
+    """Validate the reference state of :class:`FlowStressInputs` (degC, 1/s); the error names
+    the config key (``surrogate.inputs_T_C`` / ``surrogate.inputs_rate``)."""
+    if not math.isfinite(T_ref_C) or T_ref_C <= -273.15:
+        raise ValueError(f"surrogate.inputs_T_C must be above -273.15 degC, got {T_ref_C}")
+    if not math.isfinite(rate_ref) or rate_ref <= 0:
+        raise ValueError(f"surrogate.inputs_rate must be a positive rate in 1/s, got "
+                         f"{rate_ref}")
+
+
+def input_map(inputs: str, box: Box, fixed: Mapping[str, float], T_ref_C: float = 125.0,
+              rate_ref: float = 1e-5) -> FlowStressInputs | None:
+    """The GP input map named by the config key ``surrogate.inputs``.
+
+    Args:
+        inputs: ``"raw"`` (None: the GP sees the box's unit cube) or ``"flow_stress"``.
+        box, fixed, T_ref_C, rate_ref: as :class:`FlowStressInputs`.
+    Raises:
+        ValueError naming ``surrogate.inputs`` for any other name.
+    """
+    if inputs not in INPUTS:
+        raise ValueError(f"surrogate.inputs must be one of {INPUTS}, got {inputs!r}")
+    return FlowStressInputs(box, fixed, T_ref_C, rate_ref) if inputs == "flow_stress" else None
 
 
 def log_asinh_exp(w: torch.Tensor) -> torch.Tensor:
@@ -69,11 +96,7 @@ class FlowStressInputs:
             raise ValueError(f"surrogate.inputs=flow_stress needs {', '.join(NEEDED)} among the "
                              f"calibrated parameters; missing {', '.join(missing)} (use "
                              f"surrogate.inputs=raw)")
-        if not math.isfinite(T_ref_C) or T_ref_C <= -273.15:
-            raise ValueError(f"surrogate.inputs_T_C must be above -273.15 degC, got {T_ref_C}")
-        if not math.isfinite(rate_ref) or rate_ref <= 0:
-            raise ValueError(f"surrogate.inputs_rate must be a positive rate in 1/s, got "
-                             f"{rate_ref}")
+        check_reference(T_ref_C, rate_ref)
         for k in FIXABLE:
             if k not in box.names and k not in fixed:
                 raise ValueError(f"surrogate.inputs=flow_stress: no value for the fixed "

@@ -10,7 +10,7 @@ from solderpyro.design import lhs
 from solderpyro.materials.anand import saturation
 from solderpyro.params import LIU2008, Box, ParameterSpace, anand_tensor
 from solderpyro.surrogate import GPSurrogate
-from solderpyro.surrogate.features import FlowStressInputs, log_asinh_exp
+from solderpyro.surrogate.features import FlowStressInputs, input_map, log_asinh_exp
 
 SEED = ParameterSpace.seed()
 
@@ -85,6 +85,9 @@ def test_missing_parameter_and_bad_reference_are_named():
         FlowStressInputs(SEED, {"s_hat": 13.79, "n": 0.07})
     with pytest.raises(ValueError, match="surrogate.inputs"):
         build(compose(["surrogate.inputs=logs"]))
+    with pytest.raises(ValueError, match="surrogate.inputs"):
+        input_map("logs", SEED, LIU2008)
+    assert input_map("raw", SEED, LIU2008) is None
     with pytest.raises(ValueError, match="surrogate.inputs_rate"):
         build(compose(["surrogate.inputs_rate=-1"]))
 
