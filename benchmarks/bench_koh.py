@@ -1,7 +1,7 @@
-"""NUTS efficiency of solderpyro's Pyro calibrations against NumPyro on the same models.
+"""NUTS efficiency of solderpyro's calibrations (Pyro and fast samplers) against NumPyro.
 
 Usage: python benchmarks/bench_koh.py [--chains 4] [--warmup 500] [--draws 1000]
-       [--out benchmarks/results_koh.json] [--no-numpyro]
+       [--out benchmarks/results_koh.json] [--no-numpyro] [--no-pyro]
 
 Cases (identical data, priors and likelihood on both sides):
 - direct: the seed's mathematical example, t and sigma (Table I's posterior);
@@ -9,9 +9,12 @@ Cases (identical data, priors and likelihood on both sides):
   m = 50 LHS runs, n = 8 observations and 4 calibration parameters of
   y = t1 exp(-t2 x) + t3 sin(pi t4 x), x in [0, 1].
 Effective samples per second = min over parameters of ArviZ's bulk ESS / wall time (warm-up,
-sampling and JIT compilation included). Both run their chains one after another on one CPU
-thread. solderpyro's joint adapts a dense mass matrix (its default); NumPyro runs with both
-its default diagonal and a dense mass matrix, and the ratio is taken against the faster.
+sampling and JIT compilation included). All run their chains one after another on one CPU
+thread. solderpyro runs each case twice, with ``sampler="pyro"`` (Pyro's NUTS, TorchScript
+potential, autograd) and ``sampler="fast"`` (solderpyro.calibration.nuts on the analytic
+densities of solderpyro.calibration.fastkoh); its joint adapts a dense mass matrix (its
+default); NumPyro runs with both its default diagonal and a dense mass matrix, and the ratios
+are taken against the faster.
 NumPyro is the optional `bench` extra (pip install -e .[bench]).
 """
 
@@ -27,6 +30,7 @@ import warnings
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
 os.environ.setdefault("JAX_ENABLE_X64", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # one BLAS thread (NumPy, torch) as one XLA one
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -139,6 +143,12 @@ def raw_cols(post) -> dict[str, np.ndarray]:
     return flatten_sites(post.raw)
 
 
+def _row(post) -> dict:
+    mn, eps = ess_per_s(raw_cols(post), post.seconds)
+    return dict(min_ess=mn, ess_per_s=eps, seconds=post.seconds,
+                divergences=sum(post.divergences))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--chains", type=int, default=4)
@@ -146,6 +156,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-numpyro", action="store_true")
+    ap.add_argument("--no-pyro", action="store_true", help="skip the (slow) Pyro sampler")
     ap.add_argument("--out", default="benchmarks/results_koh.json")
     a = ap.parse_args()
     nuts = dict(chains=a.chains, warmup=a.warmup, draws=a.draws, seed=a.seed, progress=False)
@@ -153,20 +164,17 @@ def main() -> None:
                  "chains": a.chains, "warmup": a.warmup, "draws": a.draws}
     x, y = make_data(0)
     pr_d = Priors(sigma_max=5.0)
-    post, _ = calibrate_direct(code, x, y, T_BOX, pr_d, **nuts)
-    res["direct_pyro"] = dict(zip(("min_ess", "ess_per_s"), ess_per_s(raw_cols(post),
-                                                                      post.seconds),
-                                  strict=True), seconds=post.seconds)
     data = joint_data()
     pr_j = Priors(sigma_max=1.0, sigma_c_max=10.0 * float(data.y_sim.std()))
-    post, inp = calibrate_joint(data, pr_j, **nuts)
-    res["joint_pyro"] = dict(zip(("min_ess", "ess_per_s"), ess_per_s(raw_cols(post),
-                                                                     post.seconds),
-                                 strict=True), seconds=post.seconds,
-                             divergences=sum(post.divergences))
-    q = {r["parameter"]: (r["q2.5"], r["q97.5"]) for r in post.summary()}
-    res["joint_truth_in_95"] = {k: bool(q[k][0] <= float(v) <= q[k][1])
-                                for k, v in zip(J_BOX.names, J_TRUE, strict=True)}
+    for sampler in ("fast",) + (() if a.no_pyro else ("pyro",)):
+        post, _ = calibrate_direct(code, x, y, T_BOX, pr_d, sampler=sampler, **nuts)
+        res[f"direct_{sampler}"] = _row(post)
+        post, _ = calibrate_joint(data, pr_j, sampler=sampler, **nuts)
+        res[f"joint_{sampler}"] = _row(post)
+        q = {r["parameter"]: (r["q2.5"], r["q97.5"]) for r in post.summary()}
+        res[f"joint_{sampler}_truth_in_95"] = {k: bool(q[k][0] <= float(v) <= q[k][1])
+                                               for k, v in zip(J_BOX.names, J_TRUE,
+                                                               strict=True)}
     if not a.no_numpyro:
         cols, sec = numpyro_direct(X_OBS, y, 5.0, a.chains, a.warmup, a.draws, a.seed)
         res["direct_numpyro"] = dict(zip(("min_ess", "ess_per_s"), ess_per_s(cols, sec),
@@ -179,8 +187,10 @@ def main() -> None:
         res["joint_numpyro"] = max(res["joint_numpyro_diag"], res["joint_numpyro_dense"],
                                    key=lambda r: r["ess_per_s"])
         for case in ("direct", "joint"):
-            res[f"{case}_ratio_pyro_over_numpyro"] = (res[f"{case}_pyro"]["ess_per_s"]
-                                                      / res[f"{case}_numpyro"]["ess_per_s"])
+            for sampler in ("fast", "pyro"):
+                if f"{case}_{sampler}" in res:
+                    res[f"{case}_ratio_{sampler}_over_numpyro"] = (
+                        res[f"{case}_{sampler}"]["ess_per_s"] / res[f"{case}_numpyro"]["ess_per_s"])
     print(json.dumps(res, indent=2))
     with open(a.out, "w") as f:
         json.dump(res, f, indent=2)

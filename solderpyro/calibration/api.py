@@ -4,6 +4,11 @@
 - :func:`calibrate_modular`: a fitted GP, hyperparameters fixed, code uncertainty propagated.
 - :func:`calibrate_joint`: the seed's full joint over runs and observations (Eq. 5-8).
 
+NUTS runs through :func:`~solderpyro.calibration.mcmc.run_nuts`; ``sampler="fast"`` (a keyword
+passed on to it) samples the direct and the full-joint posteriors with the NumPy NUTS of
+:mod:`~solderpyro.calibration.nuts` on analytic gradients (:mod:`~solderpyro.calibration.fastkoh`),
+the same posterior several times faster; the default ``sampler="pyro"`` covers every mode.
+
 Each returns draws in physical units: ``t`` ``(chain, draw, n_theta)`` labelled with the theta
 box's names, ``sigma``, and for the joint mode ``beta`` (output units), ``sigma_c`` and ``corr``
 (Eq. 4's theta on the unit cube); ``sigma_delta``/``corr_delta`` with a discrepancy.
@@ -53,7 +58,9 @@ def calibrate_direct(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
 
     Args:
         x_obs: ``(n_obs, n_x)``; theta_box: calibration parameters and their flat-prior box.
-        nuts: passed to :func:`~solderpyro.calibration.mcmc.run_nuts`.
+        nuts: passed to :func:`~solderpyro.calibration.mcmc.run_nuts`; ``sampler="fast"``
+            (no discrepancy, default priors) samples with the NumPy NUTS on the analytic
+            gradient (one torch backward pass through ``f`` per gradient).
 
     Returns:
         the posterior and the model inputs (for :func:`predict_observation_model`).
@@ -107,6 +114,9 @@ def calibrate_joint(data: CalibrationData, priors: Priors | None = None,
     """The seed's full joint KOH calibration (t, sigma, beta, sigma_c, theta sampled together).
 
     NUTS adapts a dense mass matrix here unless ``full_mass=False`` is passed.
+    ``sampler="fast"`` (passed on to :func:`~solderpyro.calibration.mcmc.run_nuts`) samples
+    with the NumPy NUTS on the analytic gradient: Gaussian kernel, constant mean, no
+    discrepancy and the default priors only (NotImplementedError otherwise).
 
     Returns:
         the posterior (beta drawn from its exact Gaussian conditional per draw, output units)

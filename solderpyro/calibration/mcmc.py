@@ -1,4 +1,5 @@
-"""NUTS through Pyro: several chains, diagnostics, ArviZ export, the seed's table layout."""
+"""NUTS through Pyro (or the NumPy sampler of :mod:`.nuts`): several chains, diagnostics,
+ArviZ export, the seed's table layout."""
 
 from __future__ import annotations
 
@@ -141,8 +142,8 @@ def format_summary(rows: Sequence[dict], columns: Sequence[str] = SUMMARY_COLUMN
 def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warmup: int = 500,
              draws: int = 1000, seed: int = 0, jit: bool = True, target_accept: float = 0.8,
              max_tree_depth: int = 10, progress: bool = True, threads: int | None = 1,
-             full_mass: bool = False, init: str = "uniform", init_draws: int = 256
-             ) -> tuple[dict[str, torch.Tensor], list[int], float]:
+             full_mass: bool = False, init: str = "uniform", init_draws: int = 256,
+             sampler: str = "pyro") -> tuple[dict[str, torch.Tensor], list[int], float]:
     """Run NUTS chains one after another (each seeded ``seed + chain``).
 
     KOH likelihoods work on matrices of tens to hundreds of rows, where torch's intra-op
@@ -161,6 +162,16 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             to their likelihood, from ``init_draws`` draws of the prior (:func:`sir_inits`), so
             that chains start where the posterior has its mass and a chain is not left in a
             minor mode that NUTS cannot leave (the specimen calibration's default).
+        sampler: ``"pyro"`` (default): Pyro's NUTS on the model's autograd potential.
+            ``"fast"``: the NumPy NUTS of :func:`~solderpyro.calibration.nuts.sample_nuts` (the
+            same algorithm and Stan-style warm-up) on the analytic log density and gradient of
+            :mod:`~solderpyro.calibration.fastkoh`, the same posterior on the same
+            unconstrained scale; measured 3-4x (direct) and 11-15x (full joint) the effective
+            samples per second of ``"pyro"``, 2-3x NumPyro's (BENCHMARKS.md, issue 4).
+            Supports :func:`~.koh.observation_model` with the direct (function) emulator and
+            :func:`~.koh.joint_model` with the default priors, the Gaussian kernel, a constant
+            mean and no discrepancy; anything else raises NotImplementedError. ``jit`` and
+            ``progress`` do not apply to it.
 
     Returns:
         samples ``site -> (chain, draw, ...)`` (the sampler's sites), divergences per chain,
@@ -172,6 +183,11 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             raise ValueError(f"run_nuts {nm} must be a positive integer, got {v!r}")
     if init not in ("sir", "uniform"):
         raise ValueError(f"run_nuts init must be 'sir' or 'uniform', got {init!r}")
+    if sampler not in ("pyro", "fast"):
+        raise ValueError(f"run_nuts sampler must be 'pyro' or 'fast', got {sampler!r}")
+    if sampler == "fast":
+        return _run_fast(model, args, chains, warmup, draws, seed, target_accept,
+                         max_tree_depth, threads, full_mass, init, init_draws)
     per_chain, divs = [], []
     t0 = time.perf_counter()
     old_threads = torch.get_num_threads()
@@ -192,6 +208,43 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
     seconds = time.perf_counter() - t0
     samples = {k: torch.stack([pc[k] for pc in per_chain]) for k in per_chain[0]}
     return samples, divs, seconds
+
+
+def _run_fast(model: Callable[..., None], args: tuple, chains: int, warmup: int, draws: int,
+              seed: int, target_accept: float, max_tree_depth: int, threads: int | None,
+              full_mass: bool, init: str, init_draws: int
+              ) -> tuple[dict[str, torch.Tensor], list[int], float]:
+    """``run_nuts(sampler="fast")``: :func:`~.nuts.sample_nuts` on the model's
+    :class:`~.fastkoh.FlatModel`, draws mapped back to the model's sites."""
+    from contextlib import nullcontext
+
+    from solderpyro.calibration.fastkoh import flat_model
+    from solderpyro.calibration.nuts import sample_nuts
+
+    t0 = time.perf_counter()
+    fm = flat_model(model, args)
+    limit: Any = nullcontext()
+    if threads is not None:
+        try:  # BLAS threads: as for torch, one is fastest on these small matrices
+            from threadpoolctl import threadpool_limits
+            limit = threadpool_limits(threads)
+        except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
+            pass
+    old_threads = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        with limit:
+            q0 = None
+            if init == "sir":
+                pts = sir_inits(model, args, chains, init_draws, seed)
+                if all(v is not None for v in pts):
+                    q0 = np.stack([fm.to_unconstrained(v) for v in pts if v is not None])
+            res = sample_nuts(fm.logp_and_grad, fm.dim, chains, warmup, draws, seed, q0,
+                              target_accept, max_tree_depth, dense_mass=full_mass)
+    finally:
+        torch.set_num_threads(old_threads)
+    return fm.to_samples(res.draws), res.divergences, time.perf_counter() - t0
 
 
 def sir_inits(model: Callable[..., None], args: tuple, chains: int, n: int = 256,

@@ -1,0 +1,396 @@
+"""A lean No-U-Turn sampler in NumPy for small, cheap log densities.
+
+The algorithm is Stan's (Hoffman & Gelman 2014 as revised by Betancourt 2017): a trajectory is
+doubled forwards or backwards at random; a point is drawn from it by multinomial sampling
+(uniform progressive sampling within a subtree, biased progressive sampling at the top); the
+doubling stops at the generalized U-turn criterion ``v_- . rho > 0 and v_+ . rho > 0``
+(``rho`` the summed momenta, ``v = M^-1 p`` at the two ends), checked on every merged subtree
+and, as Stan does since 2.21, also across the two halves of every merge (the left half plus the
+first point of the right one, and the last point of the left half plus the right one); a
+leapfrog step whose energy error exceeds ``max_energy_error`` is divergent and ends the
+trajectory. Warm-up is Stan's: dual-averaging step size (target acceptance 0.8, gamma 0.05,
+t0 10, kappa 0.75) and a diagonal or dense mass matrix estimated in windows (75 initial
+iterations, then windows of 25, 50, 100, ... up to 50 before the end of warm-up), regularized
+towards 1e-3 I as Stan does, the step size re-initialized after each update.
+
+Everything works on a flat unconstrained vector ``q (d,)`` and a user function
+``logp_and_grad(q) -> (log density (float), gradient (d,))``; per leapfrog step the sampler
+adds a few NumPy operations on ``(d,)`` vectors (~10-20 us), so a cheap analytic gradient
+(:mod:`solderpyro.calibration.fastkoh`) makes the whole step a fraction of a millisecond.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+LogpGrad = Callable[[np.ndarray], tuple[float, np.ndarray]]
+
+_LOG_08 = math.log(0.8)
+
+
+@dataclass
+class NutsResult:
+    """Draws and diagnostics of :func:`sample_nuts`.
+
+    Attributes:
+        draws: ``(chains, draws, d)`` unconstrained draws after warm-up.
+        divergences: divergent transitions after warm-up, per chain.
+        seconds: wall time of everything (warm-up and sampling, all chains).
+        step_size: adapted step size per chain.
+        inv_metric: adapted inverse mass matrix per chain, ``(d,)`` (diagonal) or ``(d, d)``.
+        accept_prob: mean acceptance statistic of the kept draws, per chain.
+        n_leapfrog: gradient evaluations per chain (warm-up included).
+        tree_depth: ``(chains, draws)`` tree depth of each kept draw.
+    """
+
+    draws: np.ndarray
+    divergences: list[int] = field(default_factory=list)
+    seconds: float = float("nan")
+    step_size: list[float] = field(default_factory=list)
+    inv_metric: list[np.ndarray] = field(default_factory=list)
+    accept_prob: list[float] = field(default_factory=list)
+    n_leapfrog: list[int] = field(default_factory=list)
+    tree_depth: np.ndarray | None = None
+
+
+class _Metric:
+    """Euclidean metric: momentum sampling and velocities ``M^-1 p``."""
+
+    def __init__(self, inv_metric: np.ndarray) -> None:
+        self.inv = inv_metric
+        self.dense = inv_metric.ndim == 2
+        if self.dense:
+            # M = inv^-1 = L^-T L^-1 with inv = L L^T: p = L^-T z has covariance M
+            self.chol = np.linalg.cholesky(inv_metric)
+            self.chol_t_inv = np.linalg.inv(self.chol.T)
+        else:
+            self.sd_inv = 1.0 / np.sqrt(inv_metric)
+
+    def sample_p(self, rng: np.random.Generator, d: int) -> np.ndarray:
+        z = rng.standard_normal(d)
+        return self.chol_t_inv @ z if self.dense else z * self.sd_inv
+
+    def velocity(self, p: np.ndarray) -> np.ndarray:
+        return self.inv @ p if self.dense else self.inv * p
+
+
+def _logaddexp(a: float, b: float) -> float:
+    if a > b:
+        return a + math.log1p(math.exp(b - a))
+    if b == -math.inf:
+        return b
+    return b + math.log1p(math.exp(a - b))
+
+
+class _Chain:
+    """One chain's NUTS transitions (state: position, log density, gradient)."""
+
+    def __init__(self, f: LogpGrad, q: np.ndarray, lp: float, g: np.ndarray,
+                 rng: np.random.Generator, metric: _Metric, step: float, max_depth: int,
+                 max_energy_error: float) -> None:
+        self.f, self.q, self.lp, self.g = f, q, lp, g
+        self.rng, self.metric, self.step = rng, metric, step
+        self.max_depth, self.max_de = max_depth, max_energy_error
+        self.n_grad = 0
+
+    # -------------------------------------------------------------- step-size heuristic
+    def init_step(self) -> None:
+        """Stan's heuristic: double or halve the step until one leapfrog's acceptance crosses
+        0.8 (momentum resampled each try)."""
+        d = self.q.shape[0]
+        direction = 0
+        for _ in range(100):
+            p = self.metric.sample_p(self.rng, d)
+            v = self.metric.velocity(p)
+            h0 = -self.lp + 0.5 * float(p @ v)
+            eps = self.step
+            p1 = p + 0.5 * eps * self.g
+            q1 = self.q + eps * self.metric.velocity(p1)
+            lp1, g1 = self.f(q1)
+            self.n_grad += 1
+            p1 = p1 + 0.5 * eps * g1
+            h = -lp1 + 0.5 * float(p1 @ self.metric.velocity(p1))
+            dh = h0 - h if math.isfinite(h) else -math.inf
+            if direction == 0:
+                direction = 1 if dh > _LOG_08 else -1
+            if direction == 1 and not dh > _LOG_08:
+                break
+            if direction == -1 and not dh < _LOG_08:
+                break
+            self.step = eps * 2.0 if direction == 1 else eps * 0.5
+            if self.step > 1e7 or self.step < 1e-300:
+                raise RuntimeError(f"NUTS step-size search failed (step {self.step:g}): the "
+                                   "posterior is improper or the gradient is wrong")
+
+    # ------------------------------------------------------------------- one transition
+    def transition(self) -> tuple[float, int, bool, int]:
+        """One NUTS iteration; updates the state. Returns (acceptance statistic, tree depth,
+        divergent, leapfrog steps)."""
+        f, rng, metric, max_de = self.f, self.rng, self.metric, self.max_de
+        vel = metric.velocity
+        p0 = metric.sample_p(rng, self.q.shape[0])
+        v0 = vel(p0)
+        h0 = -self.lp + 0.5 * float(p0 @ v0)
+        state0 = (self.q, p0, self.g, self.lp, v0)
+        eps_abs = self.step
+        rand = rng.random
+        exp = math.exp
+        n_grad = 0
+
+        def crit(va: np.ndarray, vb: np.ndarray, rho: np.ndarray) -> bool:
+            return bool(va @ rho > 0.0) and bool(vb @ rho > 0.0)
+
+        def turning(lt: tuple, rt: tuple, rho: np.ndarray) -> bool:
+            # lt / rt: (minus, plus, rho, ...) of the earlier / later half in time
+            if not crit(lt[0][4], rt[1][4], rho):
+                return True
+            if not crit(lt[0][4], rt[0][4], lt[2] + rt[0][1]):
+                return True
+            return not crit(lt[1][4], rt[1][4], rt[2] + lt[1][1])
+
+        # a tree: (minus end, plus end, rho, proposal, log weight, turning, divergent,
+        #          sum of acceptance probabilities, leapfrog steps)
+        def build(state: tuple, depth: int, eps: float) -> tuple:
+            nonlocal n_grad
+            if depth == 0:
+                q, p, g, _, _ = state
+                p = p + (0.5 * eps) * g
+                q = q + eps * vel(p)
+                lp, g = f(q)
+                n_grad += 1
+                p = p + (0.5 * eps) * g
+                v = vel(p)
+                h = -lp + 0.5 * float(p @ v)
+                de = h - h0 if h == h else math.inf  # NaN -> infinite energy error
+                new = (q, p, g, lp, v)
+                return (new, new, p, new, -de, False, de > max_de,
+                        1.0 if de <= 0.0 else exp(-de), 1)
+            t1 = build(state, depth - 1, eps)
+            if t1[5] or t1[6]:
+                return t1
+            t2 = build(t1[1] if eps > 0 else t1[0], depth - 1, eps)
+            acc, nl = t1[7] + t2[7], t1[8] + t2[8]
+            if t2[5] or t2[6]:
+                return (t1[0], t1[1], t1[2], t1[3], t1[4], t2[5], t2[6], acc, nl)
+            lw = _logaddexp(t1[4], t2[4])
+            prop = t2[3] if rand() < exp(t2[4] - lw) else t1[3]
+            lt, rt = (t1, t2) if eps > 0 else (t2, t1)
+            rho = lt[2] + rt[2]
+            return (lt[0], rt[1], rho, prop, lw, turning(lt, rt, rho), False, acc, nl)
+
+        minus = plus = state0
+        whole = (minus, plus, p0, state0, 0.0, False, False, 0.0, 0)
+        prop = state0
+        lw = 0.0
+        sum_acc, n_leap, depth, divergent = 0.0, 0, 0, False
+        while depth < self.max_depth:
+            forward = rand() > 0.5
+            eps = eps_abs if forward else -eps_abs
+            t = build(whole[1] if forward else whole[0], depth, eps)
+            depth += 1
+            sum_acc += t[7]
+            n_leap += t[8]
+            if t[6]:
+                divergent = True
+                break
+            if t[5]:
+                break
+            if t[4] > lw or rand() < exp(t[4] - lw):
+                prop = t[3]
+            lw = _logaddexp(lw, t[4])
+            lt, rt = (whole, t) if forward else (t, whole)
+            rho = lt[2] + rt[2]
+            whole = (lt[0], rt[1], rho, prop, lw, False, False, 0.0, 0)
+            if turning(lt, rt, rho):
+                break
+        self.q, self.lp, self.g = prop[0], prop[3], prop[2]
+        self.n_grad += n_grad
+        return sum_acc / max(n_leap, 1), depth, divergent, n_leap
+
+
+class _DualAveraging:
+    """Stan's step-size adaptation (Nesterov dual averaging)."""
+
+    def __init__(self, step: float, delta: float, gamma: float = 0.05, t0: float = 10.0,
+                 kappa: float = 0.75) -> None:
+        self.delta, self.gamma, self.t0, self.kappa = delta, gamma, t0, kappa
+        self.restart(step)
+
+    def restart(self, step: float) -> None:
+        self.mu = math.log(10.0 * step)
+        self.counter, self.s_bar, self.x_bar = 0, 0.0, 0.0
+
+    def learn(self, accept: float) -> float:
+        self.counter += 1
+        accept = min(1.0, accept)
+        eta = 1.0 / (self.counter + self.t0)
+        self.s_bar = (1.0 - eta) * self.s_bar + eta * (self.delta - accept)
+        x = self.mu - self.s_bar * math.sqrt(self.counter) / self.gamma
+        x_eta = self.counter ** (-self.kappa)
+        self.x_bar = (1.0 - x_eta) * self.x_bar + x_eta * x
+        return math.exp(x)
+
+    def final(self) -> float:
+        return math.exp(self.x_bar)
+
+
+class _Windows:
+    """Stan's windowed metric adaptation schedule (75 / 25, 50, ... / 50)."""
+
+    def __init__(self, n_warmup: int, init_buffer: int = 75, term_buffer: int = 50,
+                 base_window: int = 25) -> None:
+        self.n = n_warmup
+        self.active = n_warmup >= 20
+        if init_buffer + base_window + term_buffer > n_warmup:
+            init_buffer = int(0.15 * n_warmup)
+            term_buffer = int(0.1 * n_warmup)
+            base_window = n_warmup - (init_buffer + term_buffer)
+        self.init_buffer, self.term_buffer = init_buffer, term_buffer
+        self.counter, self.size = 0, base_window
+        self.next_window = init_buffer + base_window - 1
+
+    def in_window(self) -> bool:
+        return (self.active and self.counter >= self.init_buffer
+                and self.counter < self.n - self.term_buffer and self.counter != self.n)
+
+    def window_ends(self) -> bool:
+        return self.active and self.counter == self.next_window and self.counter != self.n
+
+    def compute_next(self) -> None:
+        last = self.n - self.term_buffer - 1
+        if self.next_window == last:
+            return
+        self.size *= 2
+        self.next_window = self.counter + self.size
+        if self.next_window != last and self.next_window + 2 * self.size >= self.n - \
+                self.term_buffer:
+            self.next_window = last
+
+
+def _check_logp(f: LogpGrad, q: np.ndarray, name: str) -> tuple[float, np.ndarray]:
+    lp, g = f(q)
+    lp = float(lp)
+    g = np.asarray(g, dtype=float)
+    if g.shape != q.shape:
+        raise ValueError(f"logp_and_grad returned a gradient of shape {g.shape} for {name} of "
+                         f"shape {q.shape}")
+    if not math.isfinite(lp) or not np.all(np.isfinite(g)):
+        raise ValueError(f"{name}: the log density or its gradient is not finite there "
+                         f"(logp={lp})")
+    return lp, g
+
+
+def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int = 500,
+                draws: int = 1000, seed: int = 0, init: np.ndarray | None = None,
+                target_accept: float = 0.8, max_tree_depth: int = 10,
+                dense_mass: bool = False, max_energy_error: float = 1000.0,
+                init_radius: float = 2.0, init_tries: int = 100) -> NutsResult:
+    """Run NUTS chains one after another, chain ``c`` seeded with ``seed + c``.
+
+    Args:
+        logp_and_grad: ``q (dim,)`` -> (log density up to a constant (float), its gradient
+            ``(dim,)``), on the unconstrained scale (log-Jacobians included).
+        dim: the dimension ``d`` of the unconstrained vector.
+        chains, warmup, draws: chain count, warm-up iterations and kept draws per chain.
+        init: starting points ``(dim,)`` (all chains) or ``(chains, dim)``; None: uniform in
+            ``(-init_radius, init_radius)`` per coordinate (Pyro's default), redrawn up to
+            ``init_tries`` times until the log density and its gradient are finite.
+        target_accept: the dual-averaging target of the mean acceptance statistic.
+        max_tree_depth: at most ``2**max_tree_depth - 1`` leapfrog steps per iteration.
+        dense_mass: adapt a dense inverse mass matrix (else diagonal).
+        max_energy_error: an energy error above this is a divergence.
+
+    Returns:
+        :class:`NutsResult` with draws ``(chains, draws, dim)``.
+
+    Raises:
+        ValueError: bad sizes or a given ``init`` where the log density is not finite.
+    """
+    for nm, v, lo in (("dim", dim, 1), ("chains", chains, 1), ("warmup", warmup, 0),
+                      ("draws", draws, 1), ("max_tree_depth", max_tree_depth, 1)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+            raise ValueError(f"sample_nuts {nm} must be an integer >= {lo}, got {v!r}")
+    if not 0.0 < target_accept < 1.0:
+        raise ValueError(f"sample_nuts target_accept must be in (0, 1), got {target_accept}")
+    inits: np.ndarray | None = None
+    if init is not None:
+        inits = np.asarray(init, dtype=float)
+        if inits.shape == (dim,):
+            inits = np.tile(inits, (chains, 1))
+        if inits.shape != (chains, dim):
+            raise ValueError(f"sample_nuts init must have shape ({dim},) or ({chains}, {dim}), "
+                             f"got {np.shape(init)}")
+    t0 = time.perf_counter()
+    out = np.empty((chains, draws, dim))
+    depth_out = np.empty((chains, draws), dtype=np.int64)
+    res = NutsResult(out, tree_depth=depth_out)
+    for c in range(chains):
+        rng = np.random.default_rng(seed + c)
+        if inits is not None:
+            q = inits[c].copy()
+            lp, g = _check_logp(logp_and_grad, q, f"init[{c}]")
+        else:
+            for k in range(init_tries):
+                q = rng.uniform(-init_radius, init_radius, dim)
+                try:
+                    lp, g = _check_logp(logp_and_grad, q, "init")
+                    break
+                except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                    if k == init_tries - 1:
+                        raise ValueError(f"no finite log density at {init_tries} random "
+                                         "initial points: give init") from None
+        _run_chain(logp_and_grad, q, lp, g, rng, warmup, draws, target_accept, max_tree_depth,
+                   dense_mass, max_energy_error, res, c)
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
+def _run_chain(f: LogpGrad, q: np.ndarray, lp: float, g: np.ndarray, rng: np.random.Generator,
+               warmup: int, draws: int, target_accept: float, max_depth: int, dense: bool,
+               max_de: float, res: NutsResult, c: int) -> None:
+    d = q.shape[0]
+    metric = _Metric(np.eye(d) if dense else np.ones(d))
+    ch = _Chain(f, q, lp, g, rng, metric, 1.0, max_depth, max_de)
+    ch.init_step()
+    da = _DualAveraging(ch.step, target_accept)
+    win = _Windows(warmup)
+    window: list[np.ndarray] = []
+    for _ in range(warmup):
+        acc, _, _, _ = ch.transition()
+        ch.step = da.learn(acc)
+        if win.in_window():
+            window.append(ch.q)
+        if win.window_ends():
+            win.compute_next()
+            x = np.asarray(window)
+            n = x.shape[0]
+            if dense:
+                cov = np.atleast_2d(np.cov(x, rowvar=False))
+                inv = (n / (n + 5.0)) * cov + 1e-3 * (5.0 / (n + 5.0)) * np.eye(d)
+            else:
+                inv = (n / (n + 5.0)) * x.var(axis=0, ddof=1) + 1e-3 * (5.0 / (n + 5.0))
+            window = []
+            ch.metric = _Metric(inv)
+            ch.init_step()
+            da.restart(ch.step)
+        win.counter += 1
+    if warmup > 0:
+        ch.step = da.final()
+    n_div, acc_sum = 0, 0.0
+    for i in range(draws):
+        acc, depth, div, _ = ch.transition()
+        res.draws[c, i] = ch.q
+        assert res.tree_depth is not None
+        res.tree_depth[c, i] = depth
+        n_div += int(div)
+        acc_sum += acc
+    res.divergences.append(n_div)
+    res.step_size.append(ch.step)
+    res.inv_metric.append(ch.metric.inv)
+    res.accept_prob.append(acc_sum / draws)
+    res.n_leapfrog.append(ch.n_grad)

@@ -1,0 +1,342 @@
+"""The NumPy NUTS (calibration.nuts) and the analytic KOH densities (calibration.fastkoh).
+
+Statistical checks compare with references within Monte Carlo error: standard errors come
+from ArviZ's ESS (bulk ESS of the mean, quantile ESS of quantiles) and tolerances are 4.5 of
+them, so a correct sampler fails one comparison with probability ~7e-6 (< 1e-3 over all of
+them) while a bias of a few standard errors is caught. Every check runs on fixed seeds.
+"""
+
+import importlib.util
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from solderpyro.calibration import CalibrationData, Priors, calibrate_direct, calibrate_joint
+from solderpyro.calibration.emulators import FunctionEmulator
+from solderpyro.calibration.fastkoh import direct_flat, flat_model, joint_flat
+from solderpyro.calibration.koh import (
+    joint_model,
+    observation_model,
+    prepare_joint,
+    prepare_observation,
+)
+from solderpyro.calibration.mcmc import run_nuts
+from solderpyro.calibration.nuts import sample_nuts
+from solderpyro.examples.seed_math import LHS_T, SIGMA_MAX, X_BOX, code, lhs_runs, make_data
+from solderpyro.params import Box
+
+DT = torch.float64
+T_BOX = Box(("t",), (0.0,), (2.0,))
+TOL = 4.5  # standard errors
+
+
+def _stats_module():
+    """tests/verification/test_calibration_stats.py (its grid posterior and MCSE helpers)."""
+    path = Path(__file__).parents[1] / "verification" / "test_calibration_stats.py"
+    spec = importlib.util.spec_from_file_location("_calibration_stats_helpers", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _az():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        import arviz as az
+    return az
+
+
+def _mean_se(a: np.ndarray) -> float:
+    """Monte Carlo standard error of the mean of ``a (chain, draw)``, from the bulk ESS."""
+    return float(a.std() / math.sqrt(float(_az().ess(a, method="bulk"))))
+
+
+# ----------------------------------------------------------------- the sampler on Gaussians
+def _gaussian(d: int, seed: int):
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((d, d))
+    sd = np.exp(rng.uniform(-1.0, 1.5, d))  # scales over a factor ~12
+    cor = a @ a.T + 0.3 * np.eye(d)
+    cor /= np.sqrt(np.outer(np.diag(cor), np.diag(cor)))
+    cov = cor * np.outer(sd, sd)
+    mu = rng.standard_normal(d) * 3.0
+    prec = np.linalg.inv(cov)
+
+    def f(q):
+        r = q - mu
+        g = -prec @ r
+        return 0.5 * float(r @ g), g
+
+    return f, mu, cov
+
+
+@pytest.mark.parametrize("d,dense", [(2, False), (5, False), (5, True)])
+def test_gaussian_mean_and_covariance_within_mcse(d, dense):
+    """Mean and every covariance entry of a correlated Gaussian (correlations up to ~0.9)
+    within 4.5 Monte Carlo standard errors; no divergences; R-hat near 1."""
+    f, mu, cov = _gaussian(d, seed=d)
+    res = sample_nuts(f, d, chains=4, warmup=500, draws=1000, seed=11, dense_mass=dense)
+    x = res.draws  # (chain, draw, d)
+    assert res.draws.shape == (4, 1000, d)
+    assert sum(res.divergences) == 0
+    xm = x.reshape(-1, d).mean(0)
+    for i in range(d):
+        assert abs(xm[i] - mu[i]) < TOL * _mean_se(x[..., i]), ("mean", i, xm[i], mu[i])
+        for j in range(i, d):
+            prod = (x[..., i] - mu[i]) * (x[..., j] - mu[j])  # unbiased for cov[i, j]
+            assert abs(prod.mean() - cov[i, j]) < TOL * _mean_se(prod), ("cov", i, j)
+    rhat = [float(_az().rhat(x[..., i])) for i in range(d)]
+    assert max(rhat) < 1.01, rhat
+    assert all(0.6 < a < 0.99 for a in res.accept_prob), res.accept_prob
+
+
+def _banana_loggamma(q):
+    """x ~ N(0, 1), y | x ~ N(x^2 / 2, 0.5^2), z = log g with g ~ Gamma(2, 1):
+    E[y] = 0.5, Var(y) = 0.75, E[z] = digamma(2), Var(z) = trigamma(2)."""
+    x, y, z = q
+    r = (y - 0.5 * x * x) / 0.25
+    lp = -0.5 * x * x - 0.5 * r * (y - 0.5 * x * x) + 2.0 * z - math.exp(z)
+    return lp, np.array([-x + r * x, -r, 2.0 - math.exp(z)])
+
+
+def test_non_gaussian_moments_within_mcse():
+    """A curved (banana) and a skewed (log-Gamma) target: E and Var of y and z, E[x^2] within
+    4.5 MCSEs. The Gaussian checks are insensitive to some sampling errors (a Hamiltonian flow
+    keeps a Gaussian whatever point of the orbit is taken); these are not."""
+    from scipy.special import digamma, polygamma
+
+    res = sample_nuts(_banana_loggamma, 3, chains=4, warmup=500, draws=1500, seed=3)
+    x, y, z = (res.draws[..., i] for i in range(3))
+    mz, vz = float(digamma(2.0)), float(polygamma(1, 2.0))
+    for nm, a, ref in (("E y", y, 0.5), ("Var y", (y - 0.5) ** 2, 0.75),
+                       ("E x^2", x * x, 1.0), ("E z", z, mz), ("Var z", (z - mz) ** 2, vz)):
+        assert abs(a.mean() - ref) < TOL * _mean_se(a), (nm, a.mean(), ref, _mean_se(a))
+
+
+def test_sampler_is_reproducible_and_chains_differ():
+    f, _, _ = _gaussian(2, seed=2)
+    a = sample_nuts(f, 2, chains=2, warmup=50, draws=20, seed=5)
+    b = sample_nuts(f, 2, chains=2, warmup=50, draws=20, seed=5)
+    np.testing.assert_array_equal(a.draws, b.draws)
+    assert not np.allclose(a.draws[0], a.draws[1])
+    c = sample_nuts(f, 2, chains=1, warmup=50, draws=20, seed=6)  # chain 1 = seed 5 + 1
+    np.testing.assert_array_equal(a.draws[1], c.draws[0])
+
+
+# ------------------------------------------------------------------- the direct posterior
+def test_direct_fast_matches_grid_posterior():
+    """The seed's direct example (t, sigma; flat priors): the 2.5 / 50 / 97.5 % quantiles of
+    the fast sampler agree with a brute-force grid posterior within 4 quantile MCSEs (the
+    same check and tolerance as the Pyro path's test in tests/verification)."""
+    stats = _stats_module()
+    x, y = make_data(0)
+    post, _ = calibrate_direct(code, x, y, stats.T_BOX, Priors(sigma_max=stats.SIGMA_MAX),
+                               chains=2, warmup=400, draws=2000, seed=1, progress=False,
+                               sampler="fast")
+    grid = stats._grid_quantiles(x, y)
+    cols = post.columns()
+    for name in ("t", "sigma"):
+        for p, ref in zip(stats.PROBS, grid[name], strict=True):
+            est = float(np.quantile(cols[name].reshape(-1), p))
+            se = stats._mcse(post, name, p)
+            assert abs(est - ref) < 4 * se + 1e-3, (name, p, est, ref, se)
+    assert sum(post.divergences) == 0
+
+
+def test_fast_results_have_pyro_layout():
+    """Same sites, shapes and dtypes as Pyro's NUTS; summaries and ArviZ export work."""
+    x, y = make_data(0)
+    kw = dict(chains=2, warmup=30, draws=15, seed=0, progress=False)
+    fast, _ = calibrate_direct(code, x, y, T_BOX, Priors(sigma_max=5.0), sampler="fast", **kw)
+    pyro_, _ = calibrate_direct(code, x, y, T_BOX, Priors(sigma_max=5.0), **kw)
+    for part in ("samples", "raw"):
+        a, b = getattr(fast, part), getattr(pyro_, part)
+        assert sorted(a) == sorted(b)
+        for k in a:
+            assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype, (part, k)
+    assert [r["parameter"] for r in fast.summary()] == [r["parameter"]
+                                                        for r in pyro_.summary()]
+    assert fast.to_inference_data().posterior["t"].shape == (2, 15)
+    assert len(fast.divergences) == 2 and fast.seconds > 0
+
+
+# ------------------------------------------------- densities: identical to Pyro's, gradients
+def _seed_joint_data(n_lhs: int = 5) -> CalibrationData:
+    x, y = make_data(0)
+    xs, ts, ys = lhs_runs(n_lhs, 0)
+    return CalibrationData.create(xs, ts, ys, x, y, ["x"], ["t"], theta_box=LHS_T, x_box=X_BOX)
+
+
+def _multi_joint_data(m: int = 12, n: int = 5) -> CalibrationData:
+    """Two x and three t inputs, so that ARD, x columns and several t are all exercised."""
+    from scipy.stats import qmc
+
+    tb = Box(("a", "b", "c"), (0.5, 0.5, 0.1), (1.5, 3.0, 1.0), log_scale=(False, True, False))
+    xb = Box(("x1", "x2"), (0.0, 0.0), (1.0, 2.0))
+    u = torch.as_tensor(qmc.LatinHypercube(d=5, seed=3).random(m), dtype=DT)
+    xs, ts = xb.from_unit(u[:, :2]), tb.from_unit(u[:, 2:])
+
+    def f(xx, tt):
+        return tt[..., 0] * torch.exp(-tt[..., 1] * xx[:, 0]) + tt[..., 2] * xx[:, 1]
+
+    ys = torch.stack([f(xs[i:i + 1], ts[i])[0] for i in range(m)])
+    xo = xb.from_unit(torch.as_tensor(qmc.LatinHypercube(d=2, seed=4).random(n), dtype=DT))
+    yo = f(xo, torch.tensor([1.0, 1.5, 0.5], dtype=DT)) + 0.05 * torch.linspace(-1, 1, n)
+    return CalibrationData.create(xs, ts, ys, xo, yo, list(xb.names), list(tb.names),
+                                  theta_box=tb, x_box=xb)
+
+
+def _cases():
+    x, y = make_data(0)
+    logbox = Box(("t",), (0.05,), (3.0,), log_scale=(True,))
+    out = []
+    for box in (T_BOX, logbox):
+        for pr in (Priors(sigma_max=5.0), Priors(sigma_known=0.6)):
+            inp = prepare_observation(y, FunctionEmulator(code, x), box, x)
+            out.append((f"direct-{box.log_scale}-{pr.sigma_known}", observation_model,
+                        (inp, pr)))
+    for data, ard in ((_seed_joint_data(), False), (_multi_joint_data(), False),
+                      (_multi_joint_data(), True)):
+        for pr in (Priors(), Priors(sigma_known=0.05, sigma_c_max=7.0, corr_range=(0.1, 20))):
+            inp = prepare_joint(data, ard=ard, nugget=1e-4)
+            out.append((f"joint-{data.theta_box.dim}-{ard}-{pr.sigma_known}", joint_model,
+                        (inp, pr)))
+    return out
+
+
+CASES = _cases()
+
+
+@pytest.mark.parametrize("name,model,args", CASES, ids=[c[0] for c in CASES])
+def test_log_density_equals_pyro_potential(name, model, args):
+    """At random unconstrained points the fast log density is exactly Pyro's
+    -potential_energy (priors, transforms and log-Jacobians included) up to one constant."""
+    from pyro.infer.mcmc.util import initialize_model
+
+    fm = flat_model(model, args)
+    _, potential, _, _ = initialize_model(model, args)
+    rng = np.random.default_rng(0)
+    diffs = []
+    for _ in range(6):
+        q = rng.uniform(-2.0, 2.0, fm.dim)
+        lp, _ = fm.logp_and_grad(q)
+        params = {}
+        for s in fm.sites:
+            v = torch.tensor(q[s.offset:s.offset + s.size], dtype=DT)
+            params[s.name] = v if s.vector else v[0]
+        diffs.append(lp + float(potential(params)))
+    assert np.ptp(diffs) < 1e-9 * max(1.0, abs(diffs[0])), (name, diffs)
+
+
+@pytest.mark.parametrize("name,model,args", CASES, ids=[c[0] for c in CASES])
+def test_analytic_gradient_matches_finite_differences(name, model, args):
+    """Every partial derivative against a 4th-order central difference (float64, rel 1e-6)."""
+    fm = flat_model(model, args)
+    rng = np.random.default_rng(1)
+    h = 1e-4
+    for _ in range(3):
+        q = rng.uniform(-1.5, 1.5, fm.dim)
+        _, g = fm.logp_and_grad(q)
+        fd = np.empty(fm.dim)
+        for i in range(fm.dim):
+            e = np.zeros(fm.dim)
+            e[i] = h
+            f = [fm.logp_and_grad(q + k * e)[0] for k in (-2, -1, 1, 2)]
+            fd[i] = (f[0] - 8 * f[1] + 8 * f[2] - f[3]) / (12 * h)
+        np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6 * max(1.0, np.abs(g).max()),
+                                   err_msg=name)
+
+
+def test_constrained_round_trip():
+    fm = flat_model(*CASES[-1][1:])
+    q = np.random.default_rng(2).uniform(-3, 3, fm.dim)
+    samples = fm.to_samples(q[None, None])
+    back = fm.to_unconstrained({k: v[0, 0] for k, v in samples.items()})
+    np.testing.assert_allclose(back, q, rtol=1e-9, atol=1e-9)
+
+
+# ---------------------------------------------------------------------- the joint posterior
+def _compare_posteriors(fast, ref, names, probs=(0.025, 0.5, 0.975)):
+    az = _az()
+    fi, ri = fast.to_inference_data(), ref.to_inference_data()
+    fc, rc = fast.columns(), ref.columns()
+    for nm in names:
+        a, b = fc[nm], rc[nm]
+        se = math.hypot(_mean_se(a), _mean_se(b))
+        assert abs(a.mean() - b.mean()) < TOL * se, ("mean", nm, a.mean(), b.mean(), se)
+        for p in probs:
+            qa, qb = float(np.quantile(a, p)), float(np.quantile(b, p))
+            se = math.hypot(float(az.mcse(fi, var_names=[nm], method="quantile", prob=p)[nm]),
+                            float(az.mcse(ri, var_names=[nm], method="quantile", prob=p)[nm]))
+            assert abs(qa - qb) < TOL * se, ("quantile", nm, p, qa, qb, se)
+
+
+def test_joint_fast_matches_pyro_on_seed_example():
+    """The seed's full joint with 10 runs and 11 observations (t, sigma, sigma_c, theta, beta):
+    mean and 2.5 / 50 / 97.5 % quantiles of every parameter agree with Pyro's NUTS."""
+    data = _seed_joint_data(10)
+    pr = Priors(sigma_max=SIGMA_MAX)
+    fast, _ = calibrate_joint(data, pr, chains=4, warmup=400, draws=1500, seed=2,
+                              progress=False, sampler="fast")
+    ref, _ = calibrate_joint(data, pr, chains=2, warmup=150, draws=250, seed=2,
+                             progress=False)  # Pyro: ~10 s
+    _compare_posteriors(fast, ref, ["t", "sigma", "sigma_c", "theta", "beta"])
+
+
+@pytest.mark.slow
+def test_joint_fast_matches_pyro_on_benchmark_case():
+    """The benchmark's joint case (m = 50, n = 8, 4 calibration parameters), as above."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
+    from bench_koh import joint_data
+
+    data = joint_data()
+    pr = Priors(sigma_max=1.0, sigma_c_max=10.0 * float(data.y_sim.std()))
+    fast, _ = calibrate_joint(data, pr, chains=4, warmup=500, draws=2000, seed=3,
+                              progress=False, sampler="fast")
+    ref, _ = calibrate_joint(data, pr, chains=2, warmup=400, draws=800, seed=3,
+                             progress=False)
+    _compare_posteriors(fast, ref, ["t1", "t2", "t3", "t4", "sigma", "sigma_c", "theta"])
+
+
+# ---------------------------------------------------------------------------- bad input
+def test_bad_input_raises_naming_the_argument():
+    f, _, _ = _gaussian(2, seed=2)
+    with pytest.raises(ValueError, match="init"):
+        sample_nuts(f, 2, init=np.zeros(3))
+    with pytest.raises(ValueError, match="init"):
+        sample_nuts(lambda q: (-math.inf, -q), 2, init=np.zeros(2))
+    with pytest.raises(ValueError, match="init"):
+        sample_nuts(lambda q: (float("nan"), -q), 2, chains=1, warmup=5, draws=5)
+    with pytest.raises(ValueError, match="gradient"):
+        sample_nuts(lambda q: (0.0, np.zeros(3)), 2, init=np.zeros(2))
+    for kw in ({"chains": 0}, {"draws": 0}, {"warmup": -1}, {"dim": 0}):
+        args = {"dim": 2, **kw}
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            sample_nuts(f, **args)
+    x, y = make_data(0)
+    with pytest.raises(ValueError, match="sampler"):
+        calibrate_direct(code, x, y, T_BOX, sampler="numpy", chains=1, warmup=1, draws=1)
+    inp = prepare_observation(y, FunctionEmulator(code, x), T_BOX, x, discrepancy=True)
+    with pytest.raises(NotImplementedError, match="discrepancy"):
+        direct_flat(inp, Priors())
+    inp = prepare_observation(y, FunctionEmulator(code, x), T_BOX, x)
+    with pytest.raises(NotImplementedError, match="custom"):
+        direct_flat(inp, Priors(custom={"sigma": None}))
+    data = _seed_joint_data()
+    for kw, word in (({"kernel": "matern52"}, "kernel"), ({"mean": "linear"}, "mean")):
+        with pytest.raises(NotImplementedError, match=word):
+            joint_flat(prepare_joint(data, **kw), Priors())
+    with pytest.raises(NotImplementedError, match="corr_log"):
+        joint_flat(prepare_joint(data), Priors(corr_log=True))
+    with pytest.raises(NotImplementedError, match="joint_model"):
+        run_nuts(lambda: None, sampler="fast", chains=1, warmup=1, draws=1)
+    fm = joint_flat(prepare_joint(data), Priors())
+    with pytest.raises(ValueError, match="corr"):
+        fm.to_unconstrained({"t_unit": [0.5], "sigma": 1.0, "sigma_c": 1.0, "corr": [1, 2]})
