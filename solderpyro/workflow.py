@@ -238,6 +238,47 @@ def _posterior_region(t: torch.Tensor, box: Box) -> Box:
     return Box(box.names, tuple(lo.tolist()), tuple(hi.tolist()), box.log_scale, box.units)
 
 
+def fe_observed(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...], ti: np.ndarray,
+                oi: np.ndarray, rows: np.ndarray, n_fe: int, obs_offset: Any = None
+                ) -> np.ndarray:
+    """The FE's observed outputs ``(b, n_obs)`` um for parameter rows ``(b, space.dim)``
+    (FE-side parameters first, ``n_fe`` of them, then observation-side ones, which
+    ``obs_offset: q -> (n_obs,)`` adds); NaN rows for members that did not converge."""
+    P = torch.tensor(rows[:, :n_fe], dtype=torch.float64)
+    res = solver.solve(fe_params(setup, P), times)
+    V = res.V.detach().cpu().numpy()[:, ti, oi]
+    if obs_offset is not None:
+        V = V + np.stack([obs_offset(torch.tensor(r[n_fe:])).detach().numpy() for r in rows])
+    V[~res.ok.cpu().numpy()] = np.nan
+    return V
+
+
+#: the FE check warns when the FE's RMS residual at the posterior median exceeds this many
+#: noise sd (the yardstick of issue 6: a fit is at the noise level within 1.5 sd)
+FE_CHECK_RMS = 1.5
+
+
+def fe_check(V: np.ndarray, y_obs: torch.Tensor, sigma: float) -> dict[str, Any]:
+    """How well the FE itself fits at the surrogate posterior's median.
+
+    A surrogate posterior can sit where the GP, not the FE, fits the data (a GP error in a
+    region of large code variance soaks up the misfit); one FE run at the median shows it.
+
+    Args:
+        V: ``(n_obs,)`` FE outputs at the posterior median, um; y_obs: ``(n_obs,)`` um;
+        sigma: noise sd, um.
+    Returns:
+        ``{"chi2", "n", "rms_um", "rms_over_sigma", "ok"}``; ``ok`` is False when the FE's RMS
+        residual exceeds :data:`FE_CHECK_RMS` noise sd (or the FE did not converge).
+    """
+    y = y_obs.detach().cpu().numpy()
+    r = np.asarray(V, float) - y
+    rms = float(np.sqrt(np.mean(r**2))) if np.all(np.isfinite(r)) else float("nan")
+    return {"chi2": float(np.sum((r / sigma) ** 2)), "n": int(y.size), "rms_um": rms,
+            "rms_over_sigma": rms / sigma, "ok": bool(np.isfinite(rms)
+                                                      and rms <= FE_CHECK_RMS * sigma)}
+
+
 def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
               ti: np.ndarray, oi: np.ndarray, y_obs: torch.Tensor, sigma: float, space: Box,
               n_fe: int, start: torch.Tensor, X: torch.Tensor, Y: torch.Tensor,
@@ -267,14 +308,7 @@ def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
     lo, hi = np.array(space.lower, float), np.array(space.upper, float)
 
     def fun(rows: np.ndarray) -> np.ndarray:
-        P = torch.tensor(rows[:, :n_fe], dtype=torch.float64)
-        res = solver.solve(fe_params(setup, P), times)
-        V = res.V.detach().cpu().numpy()[:, ti, oi]
-        if obs_offset is not None:
-            V = V + np.stack([obs_offset(torch.tensor(r[n_fe:])).detach().numpy()
-                              for r in rows])
-        V[~res.ok.cpu().numpy()] = np.nan
-        return V
+        return fe_observed(solver, setup, times, ti, oi, rows, n_fe, obs_offset)
 
     s0 = start.detach().cpu().numpy().astype(float)
     c2 = (((Y - y_obs) / sigma) ** 2).sum(1)
@@ -426,6 +460,21 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         loo = gp.loo()
         problems = gp.check(loo)
         post, inp = calibrate_emulator(emulate(gp), y_obs, space, priors=pr, **nk)
+    # the FE at the posterior median: does the exact model fit where the surrogate says it does?
+    sig_fe = pr.sigma_known or float(post.flat("sigma").median())
+    med = post.flat("t").median(0).values.detach().cpu().numpy()[None]
+    chk = fe_check(fe_observed(solver, setup, times, ti, oi, med, gp_box.dim, obs_off)[0],
+                   y_obs, sig_fe)
+    log.info("FE check: RMS residual of the FE at the posterior median %.4g um (%.2f noise sd)",
+             chk["rms_um"], chk["rms_over_sigma"])
+    if not chk["ok"]:
+        msg = (f"the FE itself misfits at the posterior median: RMS residual "
+               f"{chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.1f} noise sd (chi2 "
+               f"{chk['chi2']:.0f} on {chk['n']} values): the posterior sits where the "
+               f"surrogate, not the FE, fits; do not trust its intervals (more runs, --refine, "
+               f"or a narrower prior box)")
+        log.warning(msg)
+        problems = [*problems, msg]
     rows = [r for r in post.summary()]
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
@@ -439,6 +488,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
               "surrogate_inputs": inputs, **({"inputs_T_C": inputs_T_C,
                                                "inputs_rate": inputs_rate} if feats else {}),
               "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
+              "fe_check": chk,
               **({"fe_best_fit": {"x": fe_fit["x"].tolist(), "chi2": fe_fit["chi2"],
                                   "chi2_at_posterior_median": fe_fit["chi2_start"]}}
                  if fe_fit is not None else {})})

@@ -20,24 +20,27 @@ from solderpyro.fem.loading import EXTENDED_TIMES
 
 #: Anand constants of the synthetic truths (the demo's): s0 MPa, QR K, xi, m
 TRUTH = {"s0": 12.92, "QR": 10586.0, "xi": 2.04, "m": 0.1}
-FRACTIONS = (0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
+#: shares of the way from "off" toward the box's far edge (on the box's unit-cube scale, so
+#: logarithmic for a log-scale parameter); the last ones stop short of the edge so that a
+#: hidden value found there is still inside the box, where a central interval can cover it
+FRACTIONS = (0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 0.9, 1.0)
 
 
 def _ladder(eff: Any, seed: int) -> np.ndarray:
-    """``(len(FRACTIONS), n_p)`` candidate values from "off" toward the box's far side; a
-    multi-parameter effect gets one fixed random direction (seeded)."""
+    """``(len(FRACTIONS), n_p)`` candidate values from "off" toward the box's far side, on the
+    box's unit-cube scale; a multi-parameter effect gets one fixed random direction (seeded)."""
     b = eff.params
-    off = np.asarray(eff.off, float)
-    lo, hi = np.asarray(b.lower, float), np.asarray(b.upper, float)
-    far = np.where(hi - off >= off - lo, hi, lo)
+    off = b.to_unit(torch.as_tensor(eff.off, dtype=torch.float64)).numpy()
+    far = np.where(1.0 - off >= off, 1.0, 0.0)
     if len(off) > 1:
         u = np.random.default_rng(seed).uniform(0.3, 1.0, len(off))
         u *= np.random.default_rng(seed + 1).choice([-1.0, 1.0], len(off))
-        far = np.where(u > 0, hi, lo)
+        far = np.where(u > 0, 1.0, 0.0)
         d = np.abs(u) * (far - off)
     else:
         d = far - off
-    return off[None] + np.asarray(FRACTIONS)[:, None] * d[None]
+    lad = off[None] + np.asarray(FRACTIONS)[:, None] * d[None]
+    return b.from_unit(torch.as_tensor(lad)).numpy()
 
 
 def _ladder_times(setup: Any) -> tuple[float, ...]:

@@ -54,7 +54,13 @@ class CopperPlasticity(Effect):
                              f"{self.depth}, {self.H}, {self.sigma_off}")
 
     def default_box(self) -> Box:
-        return Box(("sigma_y_cu",), (15.0,), (self.sigma_off,), units=("MPa",))
+        # log scale: the copper yields only below ~28 MPa at the reference cycle, so a design
+        # uniform in sigma_y_cu would put 97 % of its runs where the copper is elastic (16 % of
+        # a log-uniform one lie below 25 MPa). Lower edge 15 MPa: below ~14 MPa the copper just
+        # outside the 1.75 mm band reaches its yield stress too (measured 13.0-14.6 MPa at
+        # s0=12.92, Q/R=10586, xi=2.04, m=0.1), which the band does not model.
+        return Box(("sigma_y_cu",), (15.0,), (self.sigma_off,), log_scale=(True,),
+                   units=("MPa",))
 
     @property
     def off(self) -> tuple[float, ...]:

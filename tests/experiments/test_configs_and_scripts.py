@@ -133,8 +133,16 @@ def test_demo_command_runs_tiny(tmp_path):
     assert ex[0].startswith("parameter,surrogate_q2.5") and len(ex) == 6
     assert 1.0 <= float(ex[1].split(",")[-1]) <= 6.0  # Kish ESS of 6 weights
     assert "Surrogate vs exact" in (out / "report.md").read_text()
-    fit = json.loads((out / "run.json").read_text())["fe_best_fit"]
+    info = json.loads((out / "run.json").read_text())
+    fit = info["fe_best_fit"]
     assert fit["chi2"] <= fit["chi2_at_posterior_median"] + 1e-9  # LM never goes uphill
+    # the FE check at the posterior median: its chi2 and RMS describe the same residuals, and
+    # the report warns exactly when the FE misfits by more than 1.5 noise sd
+    chk = info["fe_check"]
+    assert chk["n"] == len(read_measurements(tmp_path / "data.csv"))
+    assert chk["chi2"] == pytest.approx(chk["n"] * chk["rms_over_sigma"] ** 2, rel=1e-9)
+    assert chk["ok"] == (chk["rms_over_sigma"] <= 1.5)
+    assert ("the FE itself misfits" in (out / "report.md").read_text()) == (not chk["ok"])
     rows = (out / "summary.csv").read_text().splitlines()
     assert rows[0] == "parameter,q2.5,median,mean,q97.5"
     assert [r.split(",")[0] for r in rows[1:]] == ["s0", "QR", "xi", "m", "sigma"]
