@@ -6,7 +6,8 @@ from __future__ import annotations
 import csv
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -190,10 +191,7 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
                          max_tree_depth, threads, full_mass, init, init_draws)
     per_chain, divs = [], []
     t0 = time.perf_counter()
-    old_threads = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
-    try:
+    with _torch_threads(threads):
         inits = sir_inits(model, args, chains, init_draws, seed) if init == "sir" \
             else [None] * chains
         for c in range(chains):
@@ -203,11 +201,21 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             per_chain.append({k: v.detach() for k, v in mcmc.get_samples().items()})
             d = mcmc.diagnostics()
             divs.append(sum(len(v) for k, v in d.get("divergences", {}).items()))
-    finally:
-        torch.set_num_threads(old_threads)
     seconds = time.perf_counter() - t0
     samples = {k: torch.stack([pc[k] for pc in per_chain]) for k in per_chain[0]}
     return samples, divs, seconds
+
+
+@contextmanager
+def _torch_threads(threads: int | None) -> Iterator[None]:
+    """torch's intra-op threads set to ``threads`` (None: left alone), restored on exit."""
+    old = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 def _run_fast(model: Callable[..., None], args: tuple, chains: int, warmup: int, draws: int,
@@ -216,8 +224,6 @@ def _run_fast(model: Callable[..., None], args: tuple, chains: int, warmup: int,
               ) -> tuple[dict[str, torch.Tensor], list[int], float]:
     """``run_nuts(sampler="fast")``: :func:`~.nuts.sample_nuts` on the model's
     :class:`~.fastkoh.FlatModel`, draws mapped back to the model's sites."""
-    from contextlib import nullcontext
-
     from solderpyro.calibration.fastkoh import flat_model
     from solderpyro.calibration.nuts import sample_nuts
 
@@ -230,20 +236,14 @@ def _run_fast(model: Callable[..., None], args: tuple, chains: int, warmup: int,
             limit = threadpool_limits(threads)
         except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
             pass
-    old_threads = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
-    try:
-        with limit:
-            q0 = None
-            if init == "sir":
-                pts = sir_inits(model, args, chains, init_draws, seed)
-                if all(v is not None for v in pts):
-                    q0 = np.stack([fm.to_unconstrained(v) for v in pts if v is not None])
-            res = sample_nuts(fm.logp_and_grad, fm.dim, chains, warmup, draws, seed, q0,
-                              target_accept, max_tree_depth, dense_mass=full_mass)
-    finally:
-        torch.set_num_threads(old_threads)
+    with _torch_threads(threads), limit:
+        q0 = None
+        if init == "sir":
+            pts = sir_inits(model, args, chains, init_draws, seed)
+            if all(v is not None for v in pts):
+                q0 = np.stack([fm.to_unconstrained(v) for v in pts if v is not None])
+        res = sample_nuts(fm.logp_and_grad, fm.dim, chains, warmup, draws, seed, q0,
+                          target_accept, max_tree_depth, dense_mass=full_mass)
     return fm.to_samples(res.draws), res.divergences, time.perf_counter() - t0
 
 

@@ -21,8 +21,8 @@ from solderpyro.fem.loading import EXTENDED_TIMES
 #: Anand constants of the synthetic truths (the demo's): s0 MPa, QR K, xi, m
 TRUTH = {"s0": 12.92, "QR": 10586.0, "xi": 2.04, "m": 0.1}
 #: shares of the way from "off" toward the box's far edge (on the box's unit-cube scale, so
-#: logarithmic for a log-scale parameter); the last ones stop short of the edge so that a
-#: hidden value found there is still inside the box, where a central interval can cover it
+#: logarithmic for a log-scale parameter); the 0.9 rung gives an effect that reaches the target
+#: size before the edge a value inside the box, where a central interval can cover it
 FRACTIONS = (0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 0.9, 1.0)
 
 
