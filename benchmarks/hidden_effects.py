@@ -37,9 +37,11 @@ def _calibrate(overrides, data, out, a):
     meas = read_measurements(data, valid_points=output_points(setup.problem))
     nuts = dict(chains=a.chains, warmup=a.warmup, draws=a.draws)
     store = a.store or a.work + "/store"
+    extra = dict(refine=a.refine, refine_rounds=a.refine_rounds, local=a.local) \
+        if "effects=" in " ".join(overrides) else {}  # refinement: the "add it" fits only
     return calibrate_specimen(setup, meas, out, n_runs=a.runs, store_root=store, nuts=nuts,
                               progress=False, record={"overrides": overrides},
-                              **setup.surrogate)
+                              **extra, **setup.surrogate)
 
 
 def _covered(run_dir: Path, truth: dict) -> dict:
@@ -62,6 +64,13 @@ def main() -> None:
     ap.add_argument("--work", default="runs/hidden")
     ap.add_argument("--store", default="", help="FE run store (default: WORK/store)")
     ap.add_argument("--out", default="benchmarks/results_hidden.json")
+    ap.add_argument("--refine", type=int, default=0,
+                    help="FE runs per refinement round of the 'add it' calibrations")
+    ap.add_argument("--refine-rounds", type=int, default=1)
+    ap.add_argument("--local", action="store_true",
+                    help="refine in the local region (calibrate --local)")
+    ap.add_argument("--with-dir", default="with_{e}",
+                    help="directory name of an 'add it' calibration ({e}: the effect)")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(1)
@@ -104,15 +113,18 @@ def main() -> None:
                 group = next((g for g in dg.indistinguishable if top in g), [top])
                 refits = {}
                 for e in group:
-                    if not (d / f"with_{e}" / "draws.npz").exists():
-                        _calibrate([*ov, f"effects=[{e}]"], data, d / f"with_{e}", a)
-                    cmp = compare(d / "base", d / f"with_{e}")
+                    wd = d / a.with_dir.format(e=e)
+                    if not (wd / "draws.npz").exists():
+                        _calibrate([*ov, f"effects=[{e}]"], data, wd, a)
+                    cmp = compare(d / "base", wd)
                     truth = dict(TRUTH)
                     if h == e and meta.get("hidden_values"):
                         truth.update(ast.literal_eval(meta["hidden_values"]))
                     refits[e] = {"rms_after_um": cmp["after"]["rms_um"],
                                  "elpd_gain": cmp["elpd_gain"],
-                                 "covered_after": _covered(d / f"with_{e}", truth)}
+                                 "covered_after": _covered(wd, truth),
+                                 "fe_check": json.loads((wd / "run.json").read_text())
+                                 .get("fe_check")}
                 best = max(refits, key=lambda e: refits[e]["elpd_gain"])
                 rec.update({"added": best, "rms_before_um": cmp["before"]["rms_um"],
                             **refits[best]})

@@ -181,10 +181,15 @@ def cmd_calibrate(a, overrides) -> int:
     meas = read_measurements(a.data, valid_points=output_points(setup.problem))
     if a.runs < 5:
         raise ValueError(f"--runs must be at least 5, got {a.runs}")
+    if a.local and a.refine < 1:
+        raise ValueError("--local needs --refine N (the FE runs placed in the local region)")
+    if not a.local_sd > 0:
+        raise ValueError(f"--local-sd must be > 0, got {a.local_sd}")
     res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,
                              store_root=a.store, batch_size=a.batch, nuts=_nuts_args(a),
                              progress=not a.quiet, exact=a.exact, refine=a.refine,
-                             refine_rounds=a.refine_rounds,
+                             refine_rounds=a.refine_rounds, local=a.local,
+                             local_sd=a.local_sd,
                              record={"overrides": list(overrides), "data": str(a.data)},
                              **setup.surrogate)
     print(f"\nreport:  {res.out / 'report.html'}\nsummary: {res.out / 'summary.csv'}")
@@ -332,6 +337,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "posterior median and the best stored run, +-4 Laplace sd), half where the "
                    "posterior lies; refit the surrogate on all runs and sample again")
     c.add_argument("--refine-rounds", type=int, default=1, help="rounds of --refine")
+    c.add_argument("--local", action="store_true",
+                   help="with --refine: put all N runs in a local region aligned with the "
+                   "posterior (+-LOCAL_SD sd of a Gaussian around the FE's best fit from "
+                   "several starts; later rounds: around the last posterior), fit a GP there "
+                   "and sample the prior truncated to it; for full-field data whose "
+                   "posterior the global surrogate puts in the wrong place (FE check warning)")
+    c.add_argument("--local-sd", type=float, default=3.5,
+                   help="half-width of the --local region in sd (default 3.5)")
     _add_nuts(c)
     g = sub.add_parser("diagnose", help="does the calibrated model fit the data, and which "
                        "physical effect is missing? Posterior predictive checks, a misfit test "

@@ -64,8 +64,11 @@ def plot_model_vs_data(meas: Measurements, curves: dict[str, tuple[Any, Any, Any
 
 def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: list[str],
           bands, y_liu: torch.Tensor, doe, ti, oi, nuts: dict[str, Any],
-          exact: list[dict] | None = None) -> Path:
-    """Write the figures and ``report.md`` into ``out``; returns the report path."""
+          exact: list[dict] | None = None, notes: list[str] | None = None) -> Path:
+    """Write the figures and ``report.md`` into ``out``; returns the report path.
+
+    ``notes``: more lines for the report's opening list (e.g. the FE check, a local region).
+    """
     def save(fig, name: str) -> str:
         fig.savefig(out / name, dpi=120)
         plt.close(fig)
@@ -94,7 +97,7 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
              f"warm-up; divergences per chain {post.divergences}; {post.seconds:.0f} s",
              f"- RMSE model vs data: Liu 2008 constants {rmse_liu:.3g} um -> posterior "
              f"median {rmse_post:.3g} um; {inside:.0%} of the measurements inside the 95 % "
-             "predictive band", "",
+             "predictive band", *[f"- {n}" for n in notes or []], "",
              "## Posterior (seed Table V layout)", "",
              "| parameter | 2.5 % | median | mean | 97.5 % | R-hat | ESS |",
              "|---|---|---|---|---|---|---|"]

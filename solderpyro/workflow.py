@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.stats import qmc
 
 from solderpyro.calibration import Priors, calibrate_emulator, predict_observation_model
 from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
@@ -30,7 +31,7 @@ from solderpyro.effects import EffectSet, effect_set
 from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.io.measurements import Measurements
-from solderpyro.params import LIU2008, Box, anand_tensor
+from solderpyro.params import LIU2008, Box, LocalBox, anand_tensor
 from solderpyro.store import RunStore, run_doe
 from solderpyro.surrogate import GPSurrogate, LooResult
 
@@ -296,14 +297,18 @@ def fe_check(V: np.ndarray, y_obs: torch.Tensor, sigma: float) -> dict[str, Any]
 def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
               ti: np.ndarray, oi: np.ndarray, y_obs: torch.Tensor, sigma: float, space: Box,
               n_fe: int, start: torch.Tensor, X: torch.Tensor, Y: torch.Tensor,
-              obs_offset: Any = None, iters: int = 5, n_sd: float = 4.0) -> dict[str, Any]:
-    """The FE's own best fit to the data, and the box around it where a refinement puts runs.
+              obs_offset: Any = None, iters: int = 5, n_sd: float = 4.0,
+              extra: np.ndarray | None = None, n_best_runs: int = 4) -> dict[str, Any]:
+    """The FE's own best fit to the data, and the region around it where a refinement puts
+    runs.
 
     A surrogate posterior can sit where the GP, not the FE, fits (a GP error that the code
     variance does not cover). Levenberg-Marquardt through the FE (:func:`solderpyro.fit.lm_fit`)
-    from the posterior median and from the stored run that fits best finds where the exact
-    model fits; runs in ``x* +- n_sd`` Laplace sd (at least 2 % of the box width) make the
-    surrogate accurate there, so the next posterior is the FE's.
+    from several starts at once (the posterior median, the ``n_best_runs`` stored runs that fit
+    best, and ``extra``, e.g. posterior draws) finds where the exact model fits: the FE's
+    chi-square can have several minima (a stress-free temperature trades off against s0: on
+    the hidden-effect data, one at the truth and one at s0 = 8.5 MPa, 48 higher, behind a
+    barrier of +840), and a single start finds the one its basin holds.
 
     Args:
         solver: set up for the FE-side effects; times, ti, oi: outputs and the observation
@@ -312,9 +317,14 @@ def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
             observation-side); start: ``(space.dim,)`` posterior median.
         X, Y: ``(n_runs, n_fe)`` stored runs and ``(n_runs, n_obs)`` their outputs, um.
         obs_offset: ``q -> (n_obs,)`` additive observation effects (None: none).
+        n_sd: half-width of the returned box in Laplace sd (at least 2 % of the box width).
+        extra: ``(k, space.dim)`` more starts (physical units), or None.
     Returns:
         ``{"x": (space.dim,) best fit, "chi2", "chi2_start": chi2 at the posterior median,
-        "box": Box over the FE-side parameters}``.
+        "box": Box over the FE-side parameters, "cov_unit": (space.dim, space.dim) Laplace
+        covariance on ``space``'s unit scale (log where flagged; a direction the data do not
+        constrain gets a prior sd of half the box), "minima": [(chi2, x), ...] the distinct
+        minima the starts reached, best first}``.
     """
     from solderpyro.fit import lm_fit
 
@@ -325,19 +335,111 @@ def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
         return fe_observed(solver, setup, times, ti, oi, rows, n_fe, obs_offset)
 
     s0 = start.detach().cpu().numpy().astype(float)
+    starts = [s0]
     c2 = (((Y - y_obs) / sigma) ** 2).sum(1)
-    best_run = X[int(torch.argmin(c2))].detach().cpu().numpy()
-    s1 = s0.copy()
-    s1[:n_fe] = best_run
-    fits = lm_fit(fun, np.stack([s0, s1]), lo, hi, y, sigma, iters=iters)
-    best = min(fits, key=lambda f: f.chi2)
+    for i in torch.argsort(c2)[:n_best_runs].tolist():
+        s1 = s0.copy()
+        s1[:n_fe] = X[i].detach().cpu().numpy()
+        starts.append(s1)
+    if extra is not None:
+        starts += [np.clip(np.asarray(r, float), lo, hi) for r in np.atleast_2d(extra)]
+    fits = lm_fit(fun, np.stack(starts), lo, hi, y, sigma, iters=iters)
+    order = sorted(range(len(fits)), key=lambda k: fits[k].chi2)
+    best = fits[order[0]]
+    minima: list[tuple[float, list[float]]] = []
+    w = hi - lo
+    for k in order:  # distinct minima: 2 % of the box apart in some coordinate
+        f = fits[k]
+        if np.isfinite(f.chi2) and all((np.abs(f.x - np.array(m[1])) / w).max() > 0.02
+                                       for m in minima):
+            minima.append((float(f.chi2), f.x.tolist()))
     sd = np.maximum(best.laplace_sd(lo, hi, sigma), 0.02 * (hi - lo))[:n_fe]
     x_fe = best.x[:n_fe]
     box = Box(space.names[:n_fe], tuple(np.maximum(x_fe - n_sd * sd, lo[:n_fe]).tolist()),
               tuple(np.minimum(x_fe + n_sd * sd, hi[:n_fe]).tolist()),
               space.log_scale[:n_fe], space.units[:n_fe])
     return {"x": best.x, "chi2": float(best.chi2), "chi2_start": float(fits[0].history[0]),
-            "box": box}
+            "box": box, "cov_unit": laplace_cov_unit(best, space, sigma), "minima": minima}
+
+
+def laplace_cov_unit(fit: Any, space: Box, sigma: float) -> np.ndarray:
+    """Laplace covariance ``(space.dim, space.dim)`` of an :class:`~solderpyro.fit.LMFit` on
+    ``space``'s unit scale (log where flagged): ``(J_u' J_u / sigma^2 + 4 I)^-1``, the ``4 I``
+    a prior sd of half the box so that a direction the data do not constrain spans the box.
+
+    Args:
+        fit: with ``J (n_obs, dim)``, df/du on the linear unit scale, um (None: the prior).
+        sigma: noise sd, um.
+    """
+    p = space.dim
+    if fit.J is None or fit.J.shape[1] != p:
+        return np.eye(p) * 0.25
+    lo, hi = np.array(space.lower, float), np.array(space.upper, float)
+    x = np.asarray(fit.x, float)
+    # d(linear unit)/d(log unit) = x log(hi/lo) / (hi - lo) where the scale is logarithmic
+    dudv = np.where(np.array(space.log_scale, bool),
+                    x * np.log(np.where(lo > 0, hi / np.where(lo > 0, lo, 1.0), 1.0)) / (hi - lo),
+                    1.0)
+    J = fit.J * dudv[None]
+    return np.linalg.inv(J.T @ J / sigma**2 + 4.0 * np.eye(p))
+
+
+def local_region(space: Box, center: np.ndarray, cov_unit: np.ndarray, half: float
+                 ) -> LocalBox:
+    """The +-``half`` sd parallelepiped (:class:`~solderpyro.params.LocalBox`) of
+    ``N(center, cov_unit)`` inside ``space`` (center physical, ``(dim,)``; ``cov_unit`` on
+    ``space``'s unit scale, ``(dim, dim)``); the covariance is symmetrised and its eigenvalues
+    floored at 1e-12 so a near-singular Laplace covariance still gives a valid region."""
+    c = 0.5 * (cov_unit + cov_unit.T)
+    ev, V = np.linalg.eigh(c)
+    c = (V * np.maximum(ev, 1e-12)) @ V.T
+    return LocalBox.gaussian(space, np.clip(center, space.lower, space.upper),
+                             torch.tensor(c), half)
+
+
+def region_faces(region: LocalBox, t: torch.Tensor, edge: float = 0.02,
+                 share: float = 0.005) -> list[int]:
+    """Directions ``k`` of ``region`` whose faces the draws ``t (n, dim)`` (physical) reach:
+    more than ``share`` of them within ``edge`` of ``u_k = 0`` or ``1``."""
+    u = region.to_unit(t.to(torch.float64))
+    near = (u < edge) | (u > 1.0 - edge)
+    return [k for k in range(region.dim) if float(near[:, k].double().mean()) > share]
+
+
+def region_design(region: LocalBox, n: int, seed: int) -> torch.Tensor:
+    """``(n, dim)`` FE runs (physical) spread over ``region`` and inside its prior box.
+
+    A Latin hypercube on the parallelepiped, with the points outside the prior box dropped
+    (clipping them instead would move them many sd along the thin directions, out of the
+    region the GP serves); the hypercube is enlarged until ``n`` remain, and ``n`` are taken
+    at random (seeded) when more do.
+    """
+    outer = region.outer
+    m = n
+    for _ in range(12):
+        u = torch.as_tensor(qmc.LatinHypercube(d=region.dim, seed=seed).random(m))
+        x = region.from_unit(u)
+        v = outer.to_unit(x)
+        inside = ((v >= 0.0) & (v <= 1.0)).all(1)
+        if int(inside.sum()) >= n:
+            x = x[inside]
+            keep = np.sort(np.random.default_rng(seed).choice(len(x), n, replace=False))
+            lo = torch.tensor(outer.lower, dtype=x.dtype)
+            hi = torch.tensor(outer.upper, dtype=x.dtype)
+            return torch.minimum(torch.maximum(x[keep], lo), hi)  # rounding at log bounds
+        m = int(np.ceil(1.5 * m * n / max(int(inside.sum()), 1)))
+    raise RuntimeError(f"the local region holds too little of the prior box to place {n} "
+                       f"runs in it (centre {region.center}): widen --local-sd")
+
+
+def marginal_region(region: LocalBox, n: int) -> LocalBox:
+    """The first ``n`` coordinates' region: the marginal of ``region``'s Gaussian."""
+    B = torch.tensor(region.basis, dtype=torch.float64)
+    cov = (B @ B.T)[:n, :n]
+    outer = Box(region.names[:n], region.outer.lower[:n], region.outer.upper[:n],
+                region.outer.log_scale[:n], region.outer.units[:n])
+    ctr = region.outer.from_unit(torch.tensor(region.center, dtype=torch.float64))[:n]
+    return LocalBox.gaussian(outer, ctr.tolist(), cov, 1.0)
 
 
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs: int = 50,
@@ -347,7 +449,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                        mean: str = "constant", output: str = "pca", exact: int = 0,
                        record: dict[str, Any] | None = None, refine: int = 0,
                        refine_rounds: int = 1, inputs: str = "raw", inputs_T_C: float = 125.0,
-                       inputs_rate: float = 1e-5) -> SpecimenCalibration:
+                       inputs_rate: float = 1e-5, local: bool = False,
+                       local_sd: float = 3.5) -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
 
     Args:
@@ -370,6 +473,18 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
             half its width); inside the prior box; the surrogate is refitted on all runs and
             NUTS rerun. 0: none.
         refine_rounds: how many such rounds.
+        local: with ``refine``, each round samples a local region instead of the whole box:
+            the +-``local_sd`` sd parallelepiped of a Gaussian around the FE's best fit
+            (multi-start Levenberg-Marquardt through the FE, Laplace covariance; later rounds:
+            the previous posterior's median and covariance, its sd widened 1.5x if it
+            reached the region's faces), aligned with the posterior's principal directions. All
+            ``refine`` runs go there (a Latin hypercube on the parallelepiped), a GP on the
+            runs in and near it (whitened inputs) replaces the global one, and the prior is
+            truncated to it. For many observations (full-field data), where a global GP's
+            error of a few hundredths of a um costs thousands of nats and its code variance
+            in far corners soaks up misfit; the FE check shows whether the region holds a
+            fit, and a warning names directions whose faces the last posterior reaches.
+        local_sd: the region's half-width in sd.
         inputs: ``"raw"`` (the GP sees the box's unit cube) or ``"flow_stress"`` (s0 and QR
             replaced by the log flow stresses at ``inputs_T_C`` degC and ``inputs_rate`` 1/s,
             :class:`~solderpyro.surrogate.features.FlowStressInputs`; 4.7x smaller held-out
@@ -449,31 +564,91 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     post, inp = calibrate_emulator(emulate(gp), y_obs, space, priors=pr, **nk)
     X, Y, okk = theta, y_sim[:n_runs], ok
     fe_fit: dict[str, Any] | None = None
+    region: LocalBox | None = None
+    local_info: dict[str, Any] = {}
     for rnd in range(refine_rounds if refine > 0 else 0):
         tf = post.flat("t")
         sig = pr.sigma_known or float(post.flat("sigma").median())
-        fe_fit = fe_anchor(solver, setup, times, ti, oi, y_obs, sig, space, gp_box.dim,
-                           tf.median(0).values, X[okk], Y[okk],
-                           obs_offset=obs_off)
-        log.info("refine round %d: FE chi2 at the posterior median %.1f, the FE's best fit "
-                 "%.1f (n = %d)", rnd + 1, fe_fit["chi2_start"], fe_fit["chi2"], len(y_obs))
-        th_new = torch.cat([
-            lhs(fe_fit["box"], refine // 2, seed + 1 + rnd),
-            lhs(_posterior_region(tf[:, :gp_box.dim], gp_box), refine - refine // 2,
-                seed + 101 + rnd)])
-        log.info("refine round %d: %d FE runs around the FE's best fit (%s) and %d where the "
-                 "posterior lies", rnd + 1, refine // 2, ", ".join(
-                     f"{n} {a:.4g}-{b:.4g}" for n, a, b in zip(
-                         gp_box.names, fe_fit["box"].lower, fe_fit["box"].upper, strict=True)),
-                 refine - refine // 2)
+        if local and region is not None:  # later local rounds: the last posterior's shape
+            faces = region_faces(region, tf)
+            u = space.to_unit(tf.to(torch.float64)).numpy()
+            cov = np.cov(u.T).reshape(space.dim, space.dim) * (1.5**2 if faces else 1.0)
+            region = local_region(space, tf.median(0).values.numpy(), cov, local_sd)
+            log.info("refine round %d: local region from the last posterior (faces reached "
+                     "along %s)", rnd + 1, faces or "none")
+        else:
+            pick = np.linspace(0, len(tf) - 1, 3).round().astype(int)
+            fe_fit = fe_anchor(solver, setup, times, ti, oi, y_obs, sig, space, gp_box.dim,
+                               tf.median(0).values, X[okk], Y[okk], obs_offset=obs_off,
+                               iters=8 if local else 5,
+                               extra=tf[pick].numpy() if local else None,
+                               n_best_runs=4 if local else 1)
+            log.info("refine round %d: FE chi2 at the posterior median %.1f, the FE's best "
+                     "fit %.1f (n = %d)", rnd + 1, fe_fit["chi2_start"], fe_fit["chi2"],
+                     len(y_obs))
+            if len(fe_fit["minima"]) > 1:
+                log.info("refine round %d: the FE's chi2 has %d distinct minima from the "
+                         "starts: %s", rnd + 1, len(fe_fit["minima"]),
+                         ", ".join(f"{c:.1f}" for c, _ in fe_fit["minima"]))
+            if local:
+                region = local_region(space, fe_fit["x"], fe_fit["cov_unit"], local_sd)
+        if local:
+            assert region is not None
+            reg_fe = marginal_region(region, gp_box.dim)
+            th_new = region_design(reg_fe, refine, seed + 1 + rnd)
+            log.info("refine round %d: %d FE runs in the +-%g sd region around %s (bounding "
+                     "box %s)", rnd + 1, refine, local_sd, ", ".join(
+                         f"{n}={v:.4g}" for n, v in zip(space.names, region.outer.from_unit(
+                             torch.tensor(region.center)).tolist(), strict=True)), ", ".join(
+                         f"{n} {a:.4g}-{b:.4g}" for n, a, b in zip(
+                             reg_fe.names, reg_fe.lower, reg_fe.upper, strict=True)))
+        else:
+            assert fe_fit is not None
+            th_new = torch.cat([
+                lhs(fe_fit["box"], refine // 2, seed + 1 + rnd),
+                lhs(_posterior_region(tf[:, :gp_box.dim], gp_box), refine - refine // 2,
+                    seed + 101 + rnd)])
+            log.info("refine round %d: %d FE runs around the FE's best fit (%s) and %d where "
+                     "the posterior lies", rnd + 1, refine // 2, ", ".join(
+                         f"{n} {a:.4g}-{b:.4g}" for n, a, b in zip(
+                             gp_box.names, fe_fit["box"].lower, fe_fit["box"].upper,
+                             strict=True)), refine - refine // 2)
         d2 = run_doe(solver, store, h, fe_params(setup, th_new), times, batch_size, progress)
         X, Y = torch.cat([X, th_new]), torch.cat([Y, d2.V[:, ti, oi]])
         okk = torch.cat([okk, d2.ok])
-        gp = GPSurrogate(gp_box, **gopts)
-        gp.fit(X[okk], Y[okk])
+        if local:
+            assert region is not None
+            # the runs in and near the region (a margin of a quarter of its width)
+            ur = reg_fe.to_unit(X)
+            near = okk & ((ur > -0.25) & (ur < 1.25)).all(1)
+            gp = GPSurrogate(reg_fe, **{**gopts, "inputs": None})
+            gp.fit(X[near], Y[near])
+            log.info("refine round %d: local GP on %d runs (whitened inputs)", rnd + 1,
+                     int(near.sum()))
+            fit_space: Box = region
+        else:
+            gp = GPSurrogate(gp_box, **gopts)
+            gp.fit(X[okk], Y[okk])
+            fit_space = space
         loo = gp.loo()
         problems = gp.check(loo)
-        post, inp = calibrate_emulator(emulate(gp), y_obs, space, priors=pr, **nk)
+        post, inp = calibrate_emulator(emulate(gp), y_obs, fit_space, priors=pr, **nk)
+    if region is not None:
+        faces = region_faces(region, post.flat("t"))
+        local_info = {"local_region": {
+            "center": region.outer.from_unit(torch.tensor(region.center)).tolist(),
+            "half_width_sd": local_sd, "basis_unit": [list(b) for b in region.basis],
+            "bounding_lower": list(region.lower), "bounding_upper": list(region.upper),
+            "faces_reached": [int(k) for k in faces]}}
+        if fe_fit is not None:
+            local_info["fe_minima"] = fe_fit["minima"]
+        if faces:
+            msg = (f"the posterior reaches the faces of the local region along {len(faces)} "
+                   f"of its {region.dim} directions ({faces}): the prior truncation there "
+                   f"may cut posterior mass; add a --refine-rounds round (the next region "
+                   f"widens along them) or raise --local-sd")
+            log.warning(msg)
+            problems = [*problems, msg]
     # the FE at a few posterior draws: does the exact model fit where the surrogate says so?
     sig_fe = pr.sigma_known or float(post.flat("sigma").median())
     draws = post.flat("t").detach().cpu().numpy()
@@ -486,8 +661,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         msg = (f"the FE itself misfits at every one of {chk['draws']} posterior draws: best "
                f"RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.1f} noise sd "
                f"(chi2 {chk['chi2']:.0f} on {chk['n']} values): the posterior sits where the "
-               f"surrogate, not the FE, fits; do not trust its intervals (more runs, --refine, "
-               f"or a narrower prior box)")
+               f"surrogate, not the FE, fits; do not trust its intervals ("
+               + ("more rounds, or a wider --local-sd" if local and refine else
+                  "for full-field data: --refine 40 --local --refine-rounds 2; else more "
+                  "runs or --refine") + ")")
         log.warning(msg)
         problems = [*problems, msg]
     rows = [r for r in post.summary()]
@@ -503,7 +680,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
               "surrogate_inputs": inputs, **({"inputs_T_C": inputs_T_C,
                                                "inputs_rate": inputs_rate} if feats else {}),
               "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
-              "fe_check": chk,
+              "fe_check": chk, **local_info,
               **({"fe_best_fit": {"x": fe_fit["x"].tolist(), "chi2": fe_fit["chi2"],
                                   "chi2_at_posterior_median": fe_fit["chi2_start"]}}
                  if fe_fit is not None else {})})
@@ -519,6 +696,23 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         write_summary(ex, out / "exact_check.csv", tuple(ex[0]))
     from solderpyro import report
 
-    report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk, ex)
+    notes = [f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), best "
+             f"RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} noise sd "
+             f"(chi2 {chk['chi2']:.0f} on {chk['n']} values)"]
+    if region is not None:
+        assert local_info
+        notes.append(
+            f"local region (--local): the prior truncated to the +-{local_sd:g} sd "
+            f"parallelepiped of a Gaussian around " + ", ".join(
+                f"{n} = {v:.4g}" for n, v in zip(space.names,
+                                                 local_info["local_region"]["center"],
+                                                 strict=True))
+            + "; the surrogate is a GP on the runs in and near it")
+    if fe_fit is not None and len(fe_fit["minima"]) > 1:
+        notes.append("the FE's chi-square has several minima from the Levenberg-Marquardt "
+                     "starts: " + ", ".join(f"{c:.1f}" for c, _ in fe_fit["minima"][:5])
+                     + " (the best anchors the refinement)")
+    report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk, ex,
+                 notes)
     print(format_summary(rows))
     return SpecimenCalibration(out, post, rows, loo, int(ok.sum()), int((~ok).sum()))

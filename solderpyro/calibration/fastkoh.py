@@ -192,7 +192,8 @@ def direct_flat(inp: ObsInputs, priors: Priors | None = None) -> FlatModel:
     pr = priors or Priors()
     _unsupported(pr, {"emulators other than FunctionEmulator (the direct mode)":
                       not isinstance(inp.emulator, FunctionEmulator),
-                      "discrepancy=True": inp.discrepancy})
+                      "discrepancy=True": inp.discrepancy,
+                      "a LocalBox prior": hasattr(inp.theta_box, "log_support")})
     em = inp.emulator
     assert isinstance(em, FunctionEmulator)
     y_t = inp.y_obs
@@ -253,7 +254,8 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None) -> FlatModel:
     _unsupported(pr, {f"kernel={inp.kernel!r}": inp.kernel != "gaussian",
                       f"mean={inp.mean!r}": inp.mean != "constant",
                       "discrepancy=True": inp.discrepancy,
-                      "Priors.corr_log=True": pr.corr_log})
+                      "Priors.corr_log=True": pr.corr_log,
+                      "a LocalBox prior": hasattr(inp.data.theta_box, "log_support")})
     d = inp.data
     u_sim = inp.u_sim.detach().cpu().numpy().astype(float)  # (m, n_x + p)
     u_xo = inp.u_xobs.detach().cpu().numpy().astype(float)  # (n, n_x)

@@ -148,6 +148,27 @@ def test_demo_command_runs_tiny(tmp_path):
     rows = (out / "summary.csv").read_text().splitlines()
     assert rows[0] == "parameter,q2.5,median,mean,q97.5"
     assert [r.split(",")[0] for r in rows[1:]] == ["s0", "QR", "xi", "m", "sigma"]
+    # --local: all 6 runs in the region around the FE's best fit; every draw inside it
+    loc = tmp_path / "local"
+    n_before = len(list((tmp_path / "store").glob("*/runs/*.json")))
+    assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(loc),
+                 "--store", str(tmp_path / "store"), "--refine", "6", "--local",
+                 *CAL_TINY, *TINY]) == 0
+    assert len(list((tmp_path / "store").glob("*/runs/*.json"))) == n_before + 6
+    info = json.loads((loc / "run.json").read_text())
+    reg = info["local_region"]
+    assert reg["half_width_sd"] == 3.5
+    np.testing.assert_allclose(reg["center"], info["fe_best_fit"]["x"], rtol=1e-9)
+    import torch
+
+    from solderpyro.params import Box, LocalBox
+    outer = Box(tuple(info["parameters"]), tuple(info["lower"]), tuple(info["upper"]))
+    lb = LocalBox(outer.names, tuple(reg["bounding_lower"]), tuple(reg["bounding_upper"]),
+                  outer=outer, center=tuple(outer.to_unit(torch.tensor(reg["center"])).tolist()),
+                  basis=tuple(map(tuple, reg["basis_unit"])))
+    u = lb.to_unit(torch.tensor(np.load(loc / "draws.npz")["theta"]))
+    assert float(u.min()) >= 0.0 and float(u.max()) <= 1.0
+    assert "local region" in (loc / "report.md").read_text()
 
 
 def test_fe_anchor_finds_the_truth_from_a_far_start():
