@@ -493,6 +493,11 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     Returns:
         :class:`SpecimenCalibration`; writes summary.csv, posterior.nc, figures, report.md.
     """
+    if local and refine < 1:
+        raise ValueError("calibrate_specimen: local=True needs refine > 0 (the FE runs placed "
+                         "in the local region)")
+    if not local_sd > 0:
+        raise ValueError(f"calibrate_specimen: local_sd must be > 0, got {local_sd}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if len(meas) == 0:
