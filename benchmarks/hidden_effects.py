@@ -32,13 +32,13 @@ from solderpyro.io.measurements import read_measurements
 from solderpyro.workflow import calibrate_specimen, output_points
 
 
-def _calibrate(overrides, data, out, a):
+def _calibrate(overrides, data, out, a, refit=False):
     setup = build(compose(overrides))
     meas = read_measurements(data, valid_points=output_points(setup.problem))
     nuts = dict(chains=a.chains, warmup=a.warmup, draws=a.draws)
     store = a.store or a.work + "/store"
-    extra = dict(refine=a.refine, refine_rounds=a.refine_rounds, local=a.local) \
-        if "effects=" in " ".join(overrides) else {}  # refinement: the "add it" fits only
+    # refinement: the "add it" fits only
+    extra = dict(refine=a.refine, refine_rounds=a.refine_rounds, local=a.local) if refit else {}
     return calibrate_specimen(setup, meas, out, n_runs=a.runs, store_root=store, nuts=nuts,
                               progress=False, record={"overrides": overrides},
                               **extra, **setup.surrogate)
@@ -115,7 +115,7 @@ def main() -> None:
                 for e in group:
                     wd = d / a.with_dir.format(e=e)
                     if not (wd / "draws.npz").exists():
-                        _calibrate([*ov, f"effects=[{e}]"], data, wd, a)
+                        _calibrate([*ov, f"effects=[{e}]"], data, wd, a, refit=True)
                     cmp = compare(d / "base", wd)
                     truth = dict(TRUTH)
                     if h == e and meta.get("hidden_values"):

@@ -377,9 +377,10 @@ def laplace_cov_unit(fit: Any, space: Box, sigma: float) -> np.ndarray:
     lo, hi = np.array(space.lower, float), np.array(space.upper, float)
     x = np.asarray(fit.x, float)
     # d(linear unit)/d(log unit) = x log(hi/lo) / (hi - lo) where the scale is logarithmic
-    dudv = np.where(np.array(space.log_scale, bool),
-                    x * np.log(np.where(lo > 0, hi / np.where(lo > 0, lo, 1.0), 1.0)) / (hi - lo),
-                    1.0)
+    # (Box guarantees lo > 0 there; elsewhere the ratio is replaced by e, whose log is unused)
+    logm = np.array(space.log_scale, bool)
+    dudv = np.where(logm, x * np.log(np.where(logm, hi / np.where(logm, lo, 1.0), np.e))
+                    / (hi - lo), 1.0)
     J = fit.J * dudv[None]
     return np.linalg.inv(J.T @ J / sigma**2 + 4.0 * np.eye(p))
 
@@ -430,6 +431,12 @@ def region_design(region: LocalBox, n: int, seed: int) -> torch.Tensor:
         m = int(np.ceil(1.5 * m * n / max(int(inside.sum()), 1)))
     raise RuntimeError(f"the local region holds too little of the prior box to place {n} "
                        f"runs in it (centre {region.center}): widen --local-sd")
+
+
+def _box_text(box: Box) -> str:
+    """``"s0 5-11.8, QR 7476-1.3e+04, ..."``: a box's bounds for the log."""
+    return ", ".join(f"{n} {a:.4g}-{b:.4g}"
+                     for n, a, b in zip(box.names, box.lower, box.upper, strict=True))
 
 
 def marginal_region(region: LocalBox, n: int) -> LocalBox:
@@ -604,9 +611,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
             log.info("refine round %d: %d FE runs in the +-%g sd region around %s (bounding "
                      "box %s)", rnd + 1, refine, local_sd, ", ".join(
                          f"{n}={v:.4g}" for n, v in zip(space.names, region.outer.from_unit(
-                             torch.tensor(region.center)).tolist(), strict=True)), ", ".join(
-                         f"{n} {a:.4g}-{b:.4g}" for n, a, b in zip(
-                             reg_fe.names, reg_fe.lower, reg_fe.upper, strict=True)))
+                             torch.tensor(region.center)).tolist(), strict=True)),
+                     _box_text(reg_fe))
         else:
             assert fe_fit is not None
             th_new = torch.cat([
@@ -614,10 +620,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                 lhs(_posterior_region(tf[:, :gp_box.dim], gp_box), refine - refine // 2,
                     seed + 101 + rnd)])
             log.info("refine round %d: %d FE runs around the FE's best fit (%s) and %d where "
-                     "the posterior lies", rnd + 1, refine // 2, ", ".join(
-                         f"{n} {a:.4g}-{b:.4g}" for n, a, b in zip(
-                             gp_box.names, fe_fit["box"].lower, fe_fit["box"].upper,
-                             strict=True)), refine - refine // 2)
+                     "the posterior lies", rnd + 1, refine // 2, _box_text(fe_fit["box"]),
+                     refine - refine // 2)
         d2 = run_doe(solver, store, h, fe_params(setup, th_new), times, batch_size, progress)
         X, Y = torch.cat([X, th_new]), torch.cat([Y, d2.V[:, ti, oi]])
         okk = torch.cat([okk, d2.ok])
