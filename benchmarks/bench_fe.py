@@ -1,24 +1,28 @@
 """FE throughput on the reference case: batched solves vs sequential single runs.
 
 Usage: python benchmarks/bench_fe.py [--sizes 1,8,64,256] [--sequential 64] [--lhs 50]
-       [--device cpu|cuda] [--threads N] [--out benchmarks/results_fe.json]
+       [--device cpu|cuda] [--threads N] [--no-native] [--out benchmarks/results_fe.json]
 
 Every batch is a Latin hypercube over the seed box (s0, QR, xi, m) with Liu's other constants,
 through the full cycle at the default mesh and steps, outputs at the seed times. The ratio
 "batched vs sequential" is measured in the same run on the same parameter sets, so it is
-robust to the machine's load; absolute times are not.
+robust to the machine's load; absolute times are not. The JSON records whether the native CPU
+kernels ran (``--no-native``: the torch path, as ``SOLDERPYRO_NATIVE=0``) and the load average
+before and after.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 
 import torch
 from scipy.stats import qmc
 
+from solderpyro import _native
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.problem import Problem
 from solderpyro.fem.solver import SpecimenSolver
@@ -52,15 +56,20 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0,
                     help="torch intra-op threads (0: torch's default); 1 is the robust choice "
                          "on a machine shared with other jobs")
+    ap.add_argument("--no-native", action="store_true",
+                    help="the torch path only (no compiled kernels)")
     ap.add_argument("--out", default="benchmarks/results_fe.json")
     a = ap.parse_args()
+    if a.no_native:
+        os.environ["SOLDERPYRO_NATIVE"] = "0"
     if a.threads:
         torch.set_num_threads(a.threads)
     dtype = getattr(torch, a.dtype)
     solver = SpecimenSolver(Problem(), dtype=dtype, device=a.device)
     res = {"device": a.device, "dtype": a.dtype, "threads": torch.get_num_threads(),
            "machine": platform.processor() or platform.machine(), "torch": torch.__version__,
-           "n_retained_dofs": solver.n_r, "rows": []}
+           "n_retained_dofs": solver.n_r, "native": _native.library() is not None,
+           "simd_width": _native.simd_width(), "loadavg_before": os.getloadavg(), "rows": []}
     if a.device.startswith("cuda"):
         res["gpu"] = torch.cuda.get_device_name()
     for B in [int(b) for b in a.sizes.split(",") if b]:
@@ -81,6 +90,8 @@ def main() -> None:
         w, ok = timed(solver, p)
         res["lhs"] = {"n": a.lhs, "wall_s": w, "all_ok": ok}
         print(f"seed-style LHS of {a.lhs} runs through the full cycle: {w:.1f} s, ok={ok}")
+    res["loadavg_after"] = os.getloadavg()
+    print(f"load average before {res['loadavg_before']}, after {res['loadavg_after']}")
     with open(a.out, "w") as f:
         json.dump(res, f, indent=1)
 

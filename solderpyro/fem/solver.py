@@ -23,10 +23,19 @@ effect. A back stress adds ``X`` to the Gauss-point state. A plastic band
 (:mod:`solderpyro.fem.band`) needs a second discretisation whose retained system includes the
 band: it is built once, and each member is solved on it only if its band may yield, else on the
 baseline one. Without effects the solver runs the baseline path unchanged.
+
+Native path (CPU, float64, no autograd; :mod:`solderpyro._native`): one C call per Newton
+evaluation does the strains, the Anand update, the plane-stress condensation and the internal
+forces (:meth:`SpecimenSolver._material_fused`), and the retained tangent is assembled, factored
+and solved in its bordered-band form (:mod:`solderpyro.fem.bordered`) instead of dense; the
+algorithm and its decisions are the same, results agree to rounding (~1e-13 um). Everything else
+(other devices, autograd's correction step, ``SOLDERPYRO_NATIVE=0``, no compiler) runs the torch
+code.
 """
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -36,6 +45,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from .. import _native
 from ..effects import Effect, EffectSet
 from ..effects.base import PlasticBand
 from ..materials.elastic import IP, ZZ, condense_zz, plane_elastic
@@ -56,10 +66,11 @@ from .band import (
     elastic_stress_operator,
     mode_correction,
 )
+from .bordered import BorderedBand
 from .elements import bbar, edofs, q4_kinematics, qm6_modes
 from .loading import ThermalCycle, time_grid
 from .mesh import build_mesh, locate
-from .problem import Problem
+from .problem import AnandSolder, Problem
 
 SDIRK_GAMMA = 1.0 - 0.5 ** 0.5
 N_ANAND = len(ANAND_NAMES)
@@ -212,6 +223,15 @@ class SpecimenSolver:
         self.Be = self.B.reshape(n_e, -1, 8)  # (n_e, n_qp*3, 8)
         self.BweT = self.Bw.reshape(n_e, -1, 8).transpose(1, 2).contiguous()  # (n_e, 8, n_qp*3)
         self.kidx = (self.edof[:, :, None] * self.n_r + self.edof[:, None, :]).reshape(-1)
+        # native bordered-band factorization (CPU float64; the dense torch path otherwise)
+        self._bb: BorderedBand | None = None
+        self._edof32 = torch.as_tensor(np.maximum(ed, 0).astype(np.int32))  # fused native path
+        dof_D = np.nonzero(np.abs(cond.S).max(1) > 0)[0]  # where S is nonzero (the border)
+        self._S_border = (torch.as_tensor(dof_D.astype(np.int32)), self.S[dof_D][:, dof_D].cpu()
+                          .contiguous())
+        if self.tkw["device"].type == "cpu" and dtype == torch.float64:
+            bb = BorderedBand(cond.S, ed, self.B, self.Bw)
+            self._bb = bb if bb.worthwhile() else None
         self.el_solder = el_nl
         self.n_s = n_s  # solder elements come first in the element arrays
         self.band = None if _band is None else self._band_data(_band, el_b, wdet[n_s:])
@@ -367,6 +387,10 @@ class SpecimenSolver:
         if self.band is not None:
             return self._material_band(u, ezz, st, p, T_C, dt, tangent, guess, C3_fixed,
                                        condense)
+        if tangent and not condense and C3_fixed is None:
+            fused = self._material_fused(u, ezz, st, p, T_C, dt, guess)
+            if fused is not None:
+                return fused[:-1]
         eps = self._strain(u)
         if ezz is None:
             ezz = torch.zeros_like(eps[..., 0])
@@ -387,6 +411,33 @@ class SpecimenSolver:
         if tangent and condense:
             C = self._condense(C3)
         return sig_ip, C, szz, C3, st1, dep, x
+
+    def _material_fused(self, u, ezz, st, p, T_C, dt, guess):
+        """:meth:`_material` (with the factored tangent, not condensed) and the internal forces
+        ``(b, n_r)`` appended, in one native call (:func:`solderpyro._native.solder_eval`); None
+        where that path does not apply (another device or dtype, autograd, a band, or a solder
+        law that overrides :meth:`~solderpyro.fem.problem.AnandSolder.update`)."""
+        sol = self.solder
+        if (self.band is not None or type(sol).update is not AnandSolder.update
+                or self.tkw["device"].type != "cpu"
+                or not _native.usable(u, ezz, st.eps_p, st.s, st.X, p, guess)):
+            return None
+        th = self._as_thermo(T_C)
+        if not _native.usable(*(a for a in (th.T, th.eps_th, th.E, th.C_k))):
+            return None
+        T0 = self.problem.T_ref_C  # what AnandSolder.update passes to return_map_3d
+        eps_th = th.eps_th if th.per_member else sol.thermal_strain(th.T, T0)
+        E = th.E if th.per_member else sol.modulus(th.T)
+        C_k = th.C_k
+        if C_k is not None and not isinstance(C_k, torch.Tensor) and C_k == 0:
+            C_k = None
+        ps = self.problem.plane == "stress"
+        sig_ip, szz, eps_p, s, X, dep, x, tg, f = _native.solder_eval(
+            u, ezz if ps else None, self._edof32, self.B, self.Bw, self._S_border, st,
+            p[:, None, None, :N_ANAND], th.T + 273.15, dt, eps_th, E, sol.nu, C_k, guess, ps)
+        ezz_out = ezz.clone() if ezz is not None else torch.zeros_like(szz)
+        st1 = PointState(eps_p, s, ezz_out, X)
+        return sig_ip, None, szz, Tangent3D(*tg), st1, dep, x, f
 
     def _material_band(self, u, ezz, st, p, T_C, dt, tangent, guess, C3_fixed, condense):
         """:meth:`_material` with an elasto-plastic band: the solder's points as there (``ezz``,
@@ -444,10 +495,20 @@ class SpecimenSolver:
         K.view(b, n * n).index_add_(1, self.kidx, Ke.reshape(b, -1))
         return K
 
+    def _native_linalg(self) -> bool:
+        """Whether the Newton solves use the native bordered-band factorization."""
+        return self._bb is not None and _native.enabled() and _native.library() is not None
+
     def _factor_cache(self, b):
-        """Per-member upper Cholesky factors ``U`` (``K = U^T U``) kept across iterations and
-        steps, a flag per member, and a workspace of the same size (assembly, gathers)."""
+        """Per-member factors kept across iterations and steps, a flag per member, and (dense
+        path) a workspace of the same size (assembly, gathers). Native path: ``F`` ``(b, nbuf)``
+        bordered-band factors (:class:`~.bordered.BorderedBand`); dense path: upper Cholesky
+        factors ``U`` ``(b, n_r, n_r)`` (``K = U^T U``)."""
         n = self.n_r
+        if self._native_linalg():
+            assert self._bb is not None
+            return {"F": torch.zeros(b, self._bb.nbuf, **self.tkw),
+                    "have": torch.zeros(b, dtype=torch.bool, device=self.tkw["device"])}
         return {"U": torch.zeros(b, n, n, **self.tkw),
                 "have": torch.zeros(b, dtype=torch.bool, device=self.tkw["device"]),
                 "ws": torch.empty(b, n, n, **self.tkw)}
@@ -491,7 +552,9 @@ class SpecimenSolver:
             cache = self._fcache
             if cache is None or gid is None:
                 cache, gid = self._factor_cache(b), torch.arange(b, device=uk.device)
-            Uc, ws = cache["U"], cache["ws"]
+            native = "F" in cache
+            Uc = cache["F"] if native else cache["U"]
+            ws = Uc if native else cache["ws"]  # assembly / gather workspace (dense path)
             whole = len(gid) == Uc.shape[0]  # gid is sorted and unique: the identity
             have = cache["have"][gid]
             info = torch.zeros(b, dtype=torch.int32, device=uk.device)
@@ -511,7 +574,12 @@ class SpecimenSolver:
                 need = (~have | (rn > 0.1 * rprev)) & ~conv
                 ni = torch.nonzero(need).squeeze(1)
                 k = len(ni)
-                if k:
+                if k and native:
+                    ii = self._factor_native(Uc, gid[ni], _rows(C3, ni))
+                    info[ni] = ii
+                    have[ni] = ii == 0
+                    self.stats["factor"] += k
+                elif k:
                     Kw = self._tangent(self._condense(_rows(C3, ni)), out=ws[:k])
                     if whole and k == b:  # factor straight into the cache
                         _, ii = torch.linalg.cholesky_ex(Kw, upper=True, out=(Uc, info))
@@ -529,23 +597,28 @@ class SpecimenSolver:
                 na = len(act)
                 if na == 0:
                     break
-                if whole and na == b:
-                    Ua = Uc
-                else:
-                    Ua = torch.index_select(Uc, 0, gid[act], out=ws[:na])
                 self.stats["member_iter"] = self.stats.get("member_iter", 0) + na
-                du = _chol_solve(Ua, -_rows(R, act))
-                bad[act] = ~torch.isfinite(du).all(1)
-                bad_a = _rows(bad, act)
-                du = torch.where(bad_a[:, None], torch.zeros_like(du), du)
+                if native:
+                    assert self._bb is not None
+                    du = self._bb.solve(Uc, gid[act], -_rows(R, act))
+                else:
+                    Ua = Uc if whole and na == b else torch.index_select(Uc, 0, gid[act],
+                                                                         out=ws[:na])
+                    du = _chol_solve(Ua, -_rows(R, act))
+                fin = torch.isfinite(du).all(1)
+                bad[act] = ~fin
+                if not bool(fin.all()):  # a non-finite update: the member stays where it is
+                    act, du = act[fin], du[fin]
+                    if len(act) == 0:
+                        continue
                 dz = self._dezz(du, _rows(szz, act), _rows(C3, act)) if ps else None
                 ua, za, eva = self._line_search(
                     _rows(uk, act), None if ezz is None else _rows(ezz, act), du, dz,
-                    _take(ev, act), _take((st0,), act)[0], _rows(p0, act), _rows(T1, act), dt,
-                    _rows(fext, act), _rows(fref, act), bad_a)
-                uk = _scatter(uk, ua, act)
-                ezz = None if ezz is None else _scatter(ezz, za, act)
-                ev = _put(ev, eva, act)
+                    _rows(rn, act), _rows(x, act), _take((st0,), act)[0], _rows(p0, act),
+                    _rows(T1, act), dt, _rows(fext, act), _rows(fref, act), inplace=native)
+                uk = _scatter(uk, ua, act, native)
+                ezz = None if ezz is None else _scatter(ezz, za, act, native)
+                ev = _put(ev, eva, act, native)
             dep_max = dep.amax((1, 2))
             cache["have"][gid] = have
             Kt = self._tangent(self._condense(C3)) if needs_grad else None  # (b, n_r, n_r)
@@ -561,31 +634,65 @@ class SpecimenSolver:
                                            C3_fixed=C3)
         return uk, st1, ok, dep_max
 
+    def _factor_native(self, F, slots, C3):
+        """Assemble and factor (bordered band) the tangents ``C3`` (factored, full, or with a
+        band) of ``k`` members into the rows ``slots`` of ``F``; returns ``info`` ``(k,)``."""
+        bb = self._bb
+        assert bb is not None
+        ps = self.problem.plane == "stress"
+        if isinstance(C3, _BandTangent):
+            dKe = None
+            if self.band is not None and self.band.G is not None:
+                dKe = mode_correction(self.band, self.B[self.n_s:], self.Bw[self.n_s:],
+                                      C3.band)
+            if isinstance(C3.solder, Tangent3D):
+                t = C3.solder
+                return bb.factor(F, slots, (t.K, t.g2, t.coef, t.nb), C3.band, self.n_s, dKe,
+                                 ps)
+            Cip = torch.cat([condense_zz(C3.solder, self.problem.plane), C3.band], 1)
+            return bb.factor(F, slots, None, Cip, 0, dKe, ps)
+        if isinstance(C3, Tangent3D):
+            return bb.factor(F, slots, (C3.K, C3.g2, C3.coef, C3.nb), None, self.n_s, None, ps)
+        return bb.factor(F, slots, None, self._condense(C3), 0, None, ps)
+
     def _eval(self, u, ezz, st, p, T1, dt, guess, fext, fref):
-        sig, C, szz, C3, st1, dep, x = self._material(u, ezz, st, p, T1, dt, guess=guess,
-                                                      condense=False)
-        R = self._residual(u, sig, fext)
+        fused = self._material_fused(u, ezz, st, p, T1, dt, guess)
+        if fused is not None:
+            sig, C, szz, C3, st1, dep, x, f = fused
+            R = f - fext  # f = S u + internal forces
+        else:
+            sig, C, szz, C3, st1, dep, x = self._material(u, ezz, st, p, T1, dt, guess=guess,
+                                                          condense=False)
+            R = self._residual(u, sig, fext)
         rn = R.abs().amax(1) / (fref + self._fint_scale(sig))
         rn = torch.where(torch.isfinite(rn), rn, torch.full_like(rn, float("inf")))
         return sig, C, szz, C3, st1, dep, x, R, rn
 
-    def _line_search(self, u, ezz, du, dz, ev, st, p, T1, dt, fext, fref, frozen, n_max=8):
-        """Backtracking on the residual norm, per member (a full step is taken when it helps)."""
-        rn0 = ev[-1]
+    def _line_search(self, u, ezz, du, dz, rn0, x0, st, p, T1, dt, fext, fref, n_max=8,
+                     inplace=False):
+        """Backtracking on the residual norm, per member (a full step is taken when it helps).
+
+        ``rn0`` ``(b,)``: the members' residual norms before the step; ``x0``: their last local
+        solution (warm start). Returns ``(u, ezz, ev)`` at each member's accepted step (the
+        last halving is accepted unconditionally). ``inplace``: the evaluations' arrays may be
+        written in place (native path: fresh, contiguous arrays).
+        """
         alpha = torch.ones_like(rn0)
-        accepted = frozen.clone()
-        u_new, z_new, ev_new = u, ezz, ev
+        accepted = torch.zeros_like(rn0, dtype=torch.bool)
+        u_new, z_new, ev_new = u, ezz, None
         for k in range(n_max):
             a = alpha[:, None]
             ut = u + a * du
             zt = ezz + a[:, :, None] * dz if dz is not None else None
-            evt = self._eval(ut, zt, st, p, T1, dt, ev[6], fext, fref)
+            evt = self._eval(ut, zt, st, p, T1, dt, x0, fext, fref)
             good = ~accepted & ((evt[-1] < rn0) | (k == n_max - 1))
+            if ev_new is None and bool(good.all()):
+                return ut, zt, evt
             u_new = torch.where(good[:, None], ut, u_new)
             if dz is not None:
                 z_new = torch.where(good[:, None, None], zt, z_new)
             gi = torch.nonzero(good).squeeze(1)
-            ev_new = _put(ev_new, _take(evt, gi), gi)
+            ev_new = evt if ev_new is None else _put(ev_new, _take(evt, gi), gi, inplace)
             accepted = accepted | good
             if bool(accepted.all()):
                 break
@@ -595,6 +702,9 @@ class SpecimenSolver:
 
     def _dezz(self, du, szz, C3):
         """Newton update of eps_zz that accompanies a displacement update ``du`` (plane stress)."""
+        if (isinstance(C3, Tangent3D) and self.band is None
+                and _native.usable(du, szz, C3.K, C3.g2, C3.coef, C3.nb)):
+            return _native.dezz(du, szz, self._edof32, self.B, (C3.K, C3.g2, C3.coef, C3.nb))
         deps = self._strain(du)  # linear in u
         if isinstance(C3, _BandTangent):  # the solder's points only
             deps, C3 = deps[:, :self.n_s], C3.solder
@@ -650,6 +760,14 @@ class SpecimenSolver:
         times = sorted(float(t) for t in times)
         params, grid, t_zero = self._prepare(params, times)
         extra: dict = {}
+        # native kernels: they get torch's threads, torch's own (small) operations run on one
+        native = self._native_linalg() and not (params.requires_grad
+                                                and torch.is_grad_enabled())
+        with _native.kernel_threads() if native else contextlib.nullcontext():
+            return self._solve(params, grid, times, t_zero, progress, extra)
+
+    def _solve(self, params, grid, times, t_zero, progress, extra) -> SolveResult:
+        """:meth:`solve` after validation (``_prepare``): the time loop(s) and the outputs."""
         try:
             if self._banded is None:
                 out, alive, reasons, nsub = self._run(params, grid, times, t_zero, progress)
@@ -900,39 +1018,46 @@ def _take(ev, idx):
     return tuple(None if a is None else _rows(a, idx) for a in ev)
 
 
-def _put(ev, sub, idx):
-    """Write the members ``idx`` of a batched result tuple from ``sub``."""
+def _put(ev, sub, idx, inplace=False):
+    """Write the members ``idx`` of a batched result tuple from ``sub`` (in place where
+    ``inplace`` and the array allows it, see :func:`_scatter`)."""
     out = []
     for a, b in zip(ev, sub, strict=True):
         if a is None:
             out.append(None)
         elif isinstance(a, PointState):
-            out.append(_scatter_state(a, b, idx))
+            out.append(_scatter_state(a, b, idx, inplace))
         elif isinstance(a, Tangent3D):
-            out.append(_scatter_tangent(a, b, idx))
+            out.append(_scatter_tangent(a, b, idx, inplace))
         elif isinstance(a, _BandTangent):
-            sol = (_scatter_tangent(a.solder, b.solder, idx) if isinstance(a.solder, Tangent3D)
-                   else _scatter(a.solder, b.solder, idx))
-            out.append(_BandTangent(sol, _scatter(a.band, b.band, idx)))
+            sol = (_scatter_tangent(a.solder, b.solder, idx, inplace)
+                   if isinstance(a.solder, Tangent3D)
+                   else _scatter(a.solder, b.solder, idx, inplace))
+            out.append(_BandTangent(sol, _scatter(a.band, b.band, idx, inplace)))
         else:
-            out.append(_scatter(a, b, idx))
+            out.append(_scatter(a, b, idx, inplace))
     return tuple(out)
 
 
-def _scatter_tangent(full: Tangent3D, part: Tangent3D, idx) -> Tangent3D:
-    return Tangent3D(*(_scatter(getattr(full, f), getattr(part, f), idx)
+def _scatter_tangent(full: Tangent3D, part: Tangent3D, idx, inplace=False) -> Tangent3D:
+    return Tangent3D(*(_scatter(getattr(full, f), getattr(part, f), idx, inplace)
                        for f in ("K", "g2", "coef", "nb")))
 
 
-def _scatter(full, part, idx):
+def _scatter(full, part, idx, inplace=False):
+    """``full`` with the rows ``idx`` replaced by ``part``: a copy, or ``full`` itself written
+    in place when ``inplace`` and ``full`` is a contiguous array (the caller owns it)."""
     if part.shape[0] == full.shape[0] and len(idx) == full.shape[0]:
         return part
+    if inplace and full.is_contiguous() and part.dtype == full.dtype:
+        return full.index_copy_(0, idx, part)
     out = full.clone()
     out[idx] = part
     return out
 
 
-def _scatter_state(full: PointState, part: PointState, idx) -> PointState:
-    X = None if full.X is None else _scatter(full.X, part.X, idx)
-    return PointState(_scatter(full.eps_p, part.eps_p, idx), _scatter(full.s, part.s, idx),
-                      _scatter(full.eps_zz, part.eps_zz, idx), X)
+def _scatter_state(full: PointState, part: PointState, idx, inplace=False) -> PointState:
+    X = None if full.X is None else _scatter(full.X, part.X, idx, inplace)
+    return PointState(_scatter(full.eps_p, part.eps_p, idx, inplace),
+                      _scatter(full.s, part.s, idx, inplace),
+                      _scatter(full.eps_zz, part.eps_zz, idx, inplace), X)

@@ -22,6 +22,11 @@ Optional linear (Prager) kinematic hardening, ``C_k`` (MPa) and the back stress 
 ``xi`` with ``3G`` replaced by ``3G + C_k`` (derivation in :mod:`.kinematic`). ``C_k = None`` and
 ``X = None`` is the isotropic model; ``C_k = 0`` gives the same numbers to the last bit.
 
+On the CPU in float64 without autograd, :func:`return_map_3d` runs the same algorithm point by
+point in C (:mod:`solderpyro._native`, compiled at first use; ``SOLDERPYRO_NATIVE=0`` or no
+compiler: this torch code), with results equal to rounding; the torch code serves every other
+device and dtype, and the implicit-function correction with the graph attached.
+
 Shapes: strains and stresses are Mandel 4-vectors ``(..., 4)`` = (xx, yy, zz, sqrt2*xy).
 """
 
@@ -31,6 +36,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .. import _native
 from .anand import hardening_residual, unpack
 from .elastic import ZZ, condense_zz
 
@@ -364,6 +370,9 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
         exact first derivatives with respect to every input, ``C_k`` and ``state.X`` included
         (one Newton step with the graph).
     """
+    if (_native.usable(eps, state.eps_p, state.s, state.X, p, T, dt, eps_th, E, nu, C_k, guess)
+            and torch.broadcast_shapes(eps.shape[:-1], state.s.shape) == eps.shape[:-1]):
+        return _return_map_native(eps, state, p, T, dt, eps_th, E, nu, guess, tangent, C_k)
     shape = eps.shape[:-1]
     tkw = dict(dtype=eps.dtype, device=eps.device)
     T, eps_th, K, G, p = _moduli(shape, tkw, T, eps_th, E, nu, p)
@@ -415,6 +424,22 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
     return sigma, PointState(state.eps_p + deps_p, s, eps[..., ZZ], X), C, dep, x
 
 
+def _return_map_native(eps, state: PointState, p, T, dt, eps_th, E, nu, guess, tangent, C_k):
+    """:func:`return_map_3d` without autograd through the fused C kernel
+    (:func:`solderpyro._native.anand_update`): the same algorithm point by point, the same
+    outputs to rounding."""
+    if C_k is not None and not isinstance(C_k, torch.Tensor) and C_k == 0:
+        C_k = None  # as _kinematic_modulus: a plain 0 is no kinematic hardening
+    sigma, eps_p, s, X, dep, x, tan = _native.anand_update(
+        eps, state.eps_p, state.s, state.X, p, T, dt, eps_th, E, nu, C_k, guess, bool(tangent))
+    C: torch.Tensor | Tangent3D | None = None
+    if tan is not None:
+        C = Tangent3D(*tan)
+        if tangent != "factored":
+            C = C.full()
+    return sigma, PointState(eps_p, s, eps[..., ZZ], X), C, dep, x
+
+
 def _kinematic_modulus(C_k, shape, tkw):
     """``C_k`` as a ``shape`` tensor, or None when absent (None or a plain number 0)."""
     if C_k is None or (not isinstance(C_k, torch.Tensor) and C_k == 0):
@@ -440,7 +465,8 @@ def ezz_predictor(eps_ip, state: PointState, eps_th, E, nu):
     Valid with kinematic hardening too: without new flow ``sigma = C_el (eps - eps_p - eps_th)``
     and the back stress does not enter the stress.
     """
-    ee = eps_ip[..., :2].sum(-1) - state.eps_p[..., :2].sum(-1) - 2 * eps_th
+    ep = state.eps_p  # two adds, not sum(-1): a reduction over a strided pair is slow on CPU
+    ee = (eps_ip[..., 0] + eps_ip[..., 1]) - (ep[..., 0] + ep[..., 1]) - 2 * eps_th
     return state.eps_p[..., ZZ] + eps_th - nu / (1.0 - nu) * ee
 
 

@@ -1,0 +1,394 @@
+"""Optional native (C) kernels of the CPU float64 no-autograd path, compiled with gcc at first use.
+
+The C sources next to this file are compiled once per source, compiler and CPU into a shared
+library in a cache directory (``$SOLDERPYRO_CACHE_DIR``, else ``$XDG_CACHE_HOME/solderpyro``,
+else ``~/.cache/solderpyro``; the file name carries a hash of all of it), and loaded with
+:mod:`ctypes`. Where no compiler is found or the build fails, :func:`library` returns None after
+one warning and the callers keep their pure-torch path, which also serves every other device,
+dtype and autograd. ``SOLDERPYRO_NATIVE=0`` switches the native kernels off.
+
+The kernels implement the same algorithms as the torch code they replace, point by point or
+member by member; results agree to rounding (tests/unit/test_native.py).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+_DIR = Path(__file__).resolve().parent
+SOURCES = ("anand.c", "linalg.c", "pool.c")
+HEADERS = ("anand_simd.h", "pool.h")
+CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fno-math-errno",
+          "-pthread")
+#: Tried in order: glibc's vector math library (the 4-lane Anand update on AVX2), then without.
+VARIANTS = ((("-DSP_MVEC",), ("-lmvec", "-lm")), ((), ("-lm",)))
+
+#: Points per element the fused element kernels handle (solder_eval, dezz).
+MAX_QP = 64
+#: Least work for which a kernel uses torch's thread count: points of a material update, members
+#: of a factorization or of a solve. Smaller calls run on one thread (a parallel region costs
+#: more than it saves there, and much more when the machine is loaded).
+PARALLEL_MIN = {"points": 16384, "factor": 8, "solve": 32}
+
+_lock = threading.Lock()
+_lib: ctypes.CDLL | None = None
+_tried = False
+
+
+def enabled() -> bool:
+    """Whether the native kernels may be used (``SOLDERPYRO_NATIVE`` is not ``0``/``off``)."""
+    return os.environ.get("SOLDERPYRO_NATIVE", "1").strip().lower() not in ("0", "off", "false",
+                                                                             "no")
+
+
+def cache_dir() -> Path:
+    """Directory of the compiled libraries."""
+    env = os.environ.get("SOLDERPYRO_CACHE_DIR")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "solderpyro"
+
+
+def _cpu_id() -> str:
+    """What ``-march=native`` depends on: the CPU's model and flags (Linux), else the platform."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = [ln for ln in f if ln.startswith(("model name", "flags"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        return platform.platform() + platform.processor()
+
+
+def _compiler() -> str | None:
+    return os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+
+
+def _build(cc: str) -> Path:
+    src = b"".join((_DIR / s).read_bytes() for s in (*SOURCES, *HEADERS))
+    ver = subprocess.run([cc, "--version"], capture_output=True, text=True, check=True).stdout
+    key = hashlib.sha256(b"\0".join([src, " ".join(CFLAGS).encode(), repr(VARIANTS).encode(),
+                                     ver.encode(), _cpu_id().encode()])).hexdigest()[:16]
+    out = cache_dir() / f"solderpyro_native_{key}.so"
+    if out.exists():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    errors = []
+    for defs, libs in VARIANTS:
+        fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+        os.close(fd)
+        try:
+            cmd = [cc, *CFLAGS, *defs, *(str(_DIR / s) for s in SOURCES), "-o", tmp, *libs]
+            r = subprocess.run(cmd, capture_output=True, text=True)
+            if r.returncode == 0:
+                ctypes.CDLL(tmp)  # loads (e.g. libmvec resolvable) before it is published
+                os.replace(tmp, out)  # atomic: concurrent builds of the same key are harmless
+                return out
+            errors.append(f"{' '.join(cmd)}:\n{r.stderr[-1500:]}")
+        except OSError as e:
+            errors.append(f"{' '.join(cmd)}: {e}")
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    raise RuntimeError("building the native kernels failed:\n" + "\n".join(errors))
+
+
+def library() -> ctypes.CDLL | None:
+    """The loaded native library, or None (disabled, no compiler, or a failed build: then one
+    warning per process names the reason and the torch path is used)."""
+    global _lib, _tried
+    if not enabled():
+        return None
+    if _tried:
+        return _lib
+    with _lock:
+        if _tried:
+            return _lib
+        try:
+            cc = _compiler()
+            if cc is None:
+                raise RuntimeError("no C compiler (gcc or $CC) found")
+            lib = ctypes.CDLL(str(_build(cc)))
+            _declare(lib)
+            _lib = lib
+        except Exception as e:  # noqa: BLE001 - any failure means: use the torch path
+            warnings.warn(f"solderpyro: native kernels unavailable, using the torch path ({e})",
+                          RuntimeWarning, stacklevel=2)
+            _lib = None
+        _tried = True
+    return _lib
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    P, L, I = ctypes.c_void_p, ctypes.c_long, ctypes.c_int
+    dims = ctypes.POINTER(ctypes.c_long)
+    for name, res, args in (
+            ("sp_anand_update", I, [L, *([P] * 13), I, *([P] * 10), I, I]),
+            ("sp_simd_width", I, []),
+            ("sp_solder_eval", I, [dims, *([P] * 17), P, P, I, *([P] * 12), I, I]),
+            ("sp_dezz", None, [dims, *([P] * 8), P]),
+            ("sp_bb_factor", None, [dims, *([P] * 7), L, P, P, P, P, P, P, L, P, I, P, L, P, I]),
+            ("sp_bb_solve", None, [dims, P, P, P, L, P, P, P, P, I])):
+        f = getattr(lib, name)
+        f.restype = res
+        f.argtypes = args
+
+
+def usable(*tensors: torch.Tensor | None) -> bool:
+    """Whether the native path applies: enabled, built, and every tensor a CPU float64 one
+    that needs no gradient (non-tensors and None are ignored)."""
+    for t in tensors:
+        if isinstance(t, torch.Tensor) and (t.device.type != "cpu" or t.dtype != torch.float64
+                                            or (t.requires_grad and torch.is_grad_enabled())):
+            return False
+    return library() is not None
+
+
+def simd_width() -> int:
+    """Lanes of the compiled Anand update: 4 with the AVX2 / libmvec path, else 1 (0: no
+    library)."""
+    lib = library()
+    return 0 if lib is None else int(lib.sp_simd_width())
+
+
+_budget = threading.local()  # thread count handed to the kernels by kernel_threads()
+
+
+def threads(kind: str, work: int) -> int:
+    """Threads for a kernel call of ``work`` items of ``kind`` (see :data:`PARALLEL_MIN`): the
+    count of :func:`kernel_threads` where active, else torch's."""
+    n = getattr(_budget, "n", None) or torch.get_num_threads()
+    return n if work >= PARALLEL_MIN[kind] else 1
+
+
+_omp: list[ctypes.CDLL | None] = []  # torch's OpenMP runtime, once looked up
+
+
+def _openmp() -> ctypes.CDLL | None:
+    """torch's OpenMP runtime when ATen's parallel backend is OpenMP, else None."""
+    if not _omp:
+        found = None
+        if "parallel backend: OpenMP" in torch.__config__.parallel_info():
+            lib = Path(torch.__file__).resolve().parent / "lib" / "libgomp.so.1"
+            for name in (str(lib), "libgomp.so.1"):
+                try:
+                    found = ctypes.CDLL(name)
+                    break
+                except OSError:
+                    continue
+        _omp.append(found)
+    return _omp[0]
+
+
+@contextmanager
+def kernel_threads() -> Iterator[None]:
+    """The native kernels keep torch's current intra-op thread count while torch's own
+    operations run on one thread inside the block (restored on exit).
+
+    Used around a solve whose heavy work is in the kernels: the remaining torch operations are
+    small, and each of their parallel regions waits for every thread of the team, which on a
+    machine shared with other jobs costs milliseconds per region; the kernels' pool
+    (``pool.c``) never waits for a thread that has not started. Only the OpenMP thread count of
+    the calling thread is changed (``omp_set_num_threads``, which ATen's OpenMP backend reads),
+    not ``torch.set_num_threads``: with torch 2.13 / MKL an explicit
+    ``torch.set_num_threads(n > 1)`` breaks batched LU solves for the rest of the process.
+    Without an OpenMP backend the block changes nothing.
+    """
+    old, prev = torch.get_num_threads(), getattr(_budget, "n", None)
+    omp = _openmp() if old > 1 else None
+    _budget.n = prev or old
+    if omp is not None:
+        omp.omp_set_num_threads(1)
+    try:
+        yield
+    finally:
+        if omp is not None:
+            omp.omp_set_num_threads(old)
+        _budget.n = prev
+
+
+def _ptr(t: torch.Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
+def _field(a, shape: tuple[int, ...], width: int = 0) -> tuple[torch.Tensor, int]:
+    """``a`` (broadcastable to ``shape``, or to ``(*shape, width)`` when ``width``) as a flat
+    contiguous float64 tensor and the divisor ``d`` such that point ``i`` reads row ``i // d``."""
+    a = torch.as_tensor(a, dtype=torch.float64)
+    lead = a.shape[:-1] if width else a.shape
+    if width and a.shape[-1] != width:
+        raise ValueError(f"expected a last dimension of {width}, got {tuple(a.shape)}")
+    n = 1
+    for d in shape:
+        n *= d
+    lead = (1,) * (len(shape) - len(lead)) + tuple(lead)
+    k = len(lead)
+    while k > 0 and lead[k - 1] == 1:
+        k -= 1
+    if tuple(lead[:k]) == tuple(shape[:k]):
+        div = 1
+        for d in shape[k:]:
+            div *= d
+        return a.reshape(-1).contiguous(), max(div, 1) if n else 1
+    full = torch.broadcast_to(a, (*shape, width) if width else shape)
+    return full.reshape(-1).contiguous(), 1
+
+
+def anand_update(eps, eps_p, s_n, X_n, p, T, dt, eps_th, E, nu, C_k, guess, tangent: bool,
+                 simd: bool = True):
+    """Backward-Euler Anand update at every point, fused (the C twin of the no-autograd path of
+    :func:`solderpyro.materials.integrate.return_map_3d`).
+
+    Args:
+        eps: total strain, Mandel ``(..., 4)``; eps_p: start-of-step inelastic strain
+            ``(..., 4)``; s_n: start-of-step resistance ``(...)``, MPa; X_n: back stress
+            ``(..., 4)`` MPa or None.
+        p: Anand constants broadcastable to ``(..., 9)``; T (K), dt (s), eps_th, E (MPa), nu:
+            broadcastable to ``(...)``; C_k: Prager modulus (MPa) broadcastable to ``(...)``,
+            or None (no kinematic hardening).
+        guess: warm start ``(..., 2)`` = (zeta, s), or None.
+        tangent: whether to return the factored tangent.
+        simd: use the 4-lane path where it is compiled in (:func:`simd_width`); False runs the
+            scalar loop (the same iterates; for tests).
+    Returns:
+        ``(sigma (..., 4), eps_p (..., 4), s (...), X (..., 4) or None, dep (...), x (..., 2),
+        tangent)`` with ``tangent = (K, g2, coef, nb (..., 4))`` (each ``(...)``) or None;
+        ``X`` is returned whenever ``C_k`` or ``X_n`` is given.
+    """
+    lib = library()
+    assert lib is not None
+    shape = tuple(eps.shape[:-1])
+    n = 1
+    for d in shape:
+        n *= d
+    tkw = dict(dtype=torch.float64, device=eps.device)
+    flat = lambda t, w: t.reshape(n, w).contiguous() if w else t.reshape(n).contiguous()  # noqa: E731
+    e4 = flat(torch.broadcast_to(eps, (*shape, 4)), 4)
+    pn = flat(torch.broadcast_to(eps_p, (*shape, 4)), 4)
+    sn = flat(torch.broadcast_to(s_n, shape), 0)
+    Xn = None if X_n is None else flat(torch.broadcast_to(X_n, (*shape, 4)), 4)
+    g = None if guess is None else flat(torch.broadcast_to(guess, (*shape, 2)), 2)
+    fields = [_field(p, shape, 9), *(_field(v, shape) for v in (T, dt, eps_th, E, nu))]
+    ck = None if C_k is None else _field(C_k, shape)
+    div = (ctypes.c_long * 7)(*[f[1] for f in fields], 1 if ck is None else ck[1])
+    sigma, ep_out = torch.empty(n, 4, **tkw), torch.empty(n, 4, **tkw)
+    s_out, dep, x = torch.empty(n, **tkw), torch.empty(n, **tkw), torch.empty(n, 2, **tkw)
+    X_out = None if (C_k is None and X_n is None) else torch.empty(n, 4, **tkw)
+    tg = (torch.empty(n, **tkw), torch.empty(n, **tkw), torch.empty(n, **tkw),
+          torch.empty(n, 4, **tkw)) if tangent else (None,) * 4
+    nt = threads("points", n)
+    lib.sp_anand_update(n, _ptr(e4), _ptr(pn), _ptr(sn), _ptr(Xn),
+                        *(_ptr(f[0]) for f in fields), None if ck is None else _ptr(ck[0]),
+                        ctypes.addressof(div),
+                        _ptr(g), int(bool(tangent)), _ptr(sigma), _ptr(ep_out), _ptr(s_out),
+                        _ptr(X_out), _ptr(dep), _ptr(x), *(_ptr(t) for t in tg), nt,
+                        int(simd))
+    r = lambda t, *w: t.reshape(*shape, *w)  # noqa: E731
+    tan = None if not tangent else (r(tg[0]), r(tg[1]), r(tg[2]), r(tg[3], 4))
+    return (r(sigma, 4), r(ep_out, 4), r(s_out), None if X_out is None else r(X_out, 4),
+            r(dep), r(x, 2), tan)
+
+
+def solder_eval(u, ezz, edof, B, Bw, S_border, state, p, T, dt, eps_th, E, nu, C_k, guess,
+                plane_stress: bool, simd: bool = True):
+    """Fused evaluation of a solder layer: strains, the Anand update (:func:`anand_update`),
+    the plane-stress condensation of the in-plane stress on eps_zz and the internal forces.
+
+    Args:
+        u: ``(b, n_r)`` retained displacements, mm.
+        ezz: ``(b, n_e, n_qp)`` out-of-plane strain (plane stress), or None (plane strain: 0).
+        edof: ``(n_e, 8)`` int32 retained dof of each element dof (a fixed dof: any index, with
+            zero columns in ``B`` and ``Bw``).
+        B, Bw: ``(n_e, n_qp, 3, 8)`` B-matrices and ``B * w det J`` (mm^2 / mm).
+        S_border: ``(dof_D (n_D,) int32, S_DD (n_D, n_D))``: the retained dofs where the condensed
+            linear stiffness ``S`` (MPa mm) is nonzero and that block; ``S u`` is added to the
+            forces.
+        state: start-of-step :class:`~solderpyro.materials.integrate.PointState`, leading shape
+            ``(b, n_e, n_qp)``.
+        p, T, dt, eps_th, E, nu, C_k, guess: as in :func:`anand_update`, broadcastable to the
+            points ``(b, n_e, n_qp)``.
+        plane_stress: condense the in-plane stress on eps_zz (else plane strain).
+    Returns:
+        ``(sigma_ip (b, n_e, n_qp, 3), sigma_zz (b, n_e, n_qp), eps_p (..., 4), s, X or None,
+        dep, x (..., 2), (K, g2, coef, nb (..., 4)), f (b, n_r))``; stresses MPa, forces
+        ``f = S u + sum_e Bw^T sigma_ip`` (N/mm) on the retained dofs.
+    """
+    lib = library()
+    assert lib is not None
+    b, n_r = u.shape
+    n_e, n_qp = B.shape[:2]
+    if n_qp > MAX_QP:
+        raise ValueError(f"at most {MAX_QP} points per element, got {n_qp}")
+    shape = (b, n_e, n_qp)
+    n = b * n_e * n_qp
+    tkw = dict(dtype=torch.float64, device=u.device)
+    flat = lambda t, *w: torch.broadcast_to(t, (*shape, *w)).reshape(n, *w).contiguous()  # noqa: E731
+    uc, edof, B, Bw = u.contiguous(), edof.contiguous(), B.contiguous(), Bw.contiguous()
+    zc = None if ezz is None else flat(ezz)
+    pn, sn = flat(state.eps_p, 4), flat(state.s)
+    Xn = None if state.X is None else flat(state.X, 4)
+    g = None if guess is None else flat(guess, 2)
+    fields = [_field(p, shape, 9), *(_field(v, shape) for v in (T, dt, eps_th, E, nu))]
+    ck = None if C_k is None else _field(C_k, shape)
+    div = (ctypes.c_long * 7)(*[f[1] for f in fields], 1 if ck is None else ck[1])
+    e = lambda *w: torch.empty(n, *w, **tkw)  # noqa: E731
+    sig, szz, ep, s_out, dep, x = e(3), e(), e(4), e(), e(), e(2)
+    X_out = None if (C_k is None and state.X is None) else e(4)
+    tg = (e(), e(), e(), e(4))
+    fint = torch.empty(b, n_r, **tkw)
+    dof_D, S_DD = (t.contiguous() for t in S_border)
+    dims = (ctypes.c_long * 5)(b, n_e, n_qp, n_r, len(dof_D))
+    rc = lib.sp_solder_eval(dims, _ptr(uc), _ptr(zc), _ptr(edof), _ptr(dof_D), _ptr(S_DD),
+                            _ptr(B), _ptr(Bw), _ptr(pn),
+                            _ptr(sn), _ptr(Xn), *(_ptr(f[0]) for f in fields),
+                            None if ck is None else _ptr(ck[0]), ctypes.addressof(div), _ptr(g),
+                            int(plane_stress), _ptr(sig), _ptr(szz), _ptr(ep), _ptr(s_out),
+                            _ptr(X_out), _ptr(dep), _ptr(x), *(_ptr(t) for t in tg), _ptr(fint),
+                            threads("points", n), int(simd))
+    if rc != 0:
+        raise RuntimeError(f"sp_solder_eval failed ({'out of memory' if rc == -1 else rc})")
+    r = lambda t, *w: t.reshape(*shape, *w)  # noqa: E731
+    return (r(sig, 3), r(szz), r(ep, 4), r(s_out), None if X_out is None else r(X_out, 4),
+            r(dep), r(x, 2), (r(tg[0]), r(tg[1]), r(tg[2]), r(tg[3], 4)), fint)
+
+
+def dezz(du, szz, edof, B, tangent):
+    """Newton update of eps_zz that accompanies ``du`` (plane stress), fused:
+    ``-(sigma_zz + C[zz, ip] . B du) / C[zz, zz]``.
+
+    Args:
+        du: ``(b, n_r)`` displacement update, mm; szz: ``(b, n_e, n_qp)`` sigma_zz, MPa.
+        edof, B: as in :func:`solder_eval`.
+        tangent: factored 3-D tangent ``(K, g2, coef (b, n_e, n_qp), nb (..., 4))``.
+    Returns:
+        ``(b, n_e, n_qp)`` eps_zz update.
+    """
+    lib = library()
+    assert lib is not None
+    b, n_r = du.shape
+    n_e, n_qp = B.shape[:2]
+    if n_qp > MAX_QP:
+        raise ValueError(f"at most {MAX_QP} points per element, got {n_qp}")
+    shape = (b, n_e, n_qp)
+    tg = [torch.broadcast_to(t, (*shape, 4) if i == 3 else shape).contiguous()
+          for i, t in enumerate(tangent)]
+    szc = torch.broadcast_to(szz, shape).contiguous()
+    out = torch.empty(shape, dtype=torch.float64, device=du.device)
+    dims = (ctypes.c_long * 4)(b, n_e, n_qp, n_r)
+    duc, edof, B = du.contiguous(), edof.contiguous(), B.contiguous()
+    lib.sp_dezz(dims, _ptr(duc), _ptr(szc), _ptr(edof), _ptr(B),
+                *(_ptr(t) for t in tg), _ptr(out))
+    return out
