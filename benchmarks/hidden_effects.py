@@ -38,7 +38,9 @@ def _calibrate(overrides, data, out, a, refit=False):
     nuts = dict(chains=a.chains, warmup=a.warmup, draws=a.draws)
     store = a.store or a.work + "/store"
     # refinement: the "add it" fits only
-    extra = dict(refine=a.refine, refine_rounds=a.refine_rounds, local=a.local) if refit else {}
+    extra = dict(refine=a.refine, refine_rounds=a.refine_rounds, local=a.local,
+                 exact=a.exact, exact_rounds=a.exact_rounds,
+                 exact_profile=a.exact_profile) if refit else {}
     return calibrate_specimen(setup, meas, out, n_runs=a.runs, store_root=store, nuts=nuts,
                               progress=False, record={"overrides": overrides},
                               **extra, **setup.surrogate)
@@ -51,6 +53,14 @@ def _covered(run_dir: Path, truth: dict) -> dict:
         rows = {r["parameter"]: r for r in csv.DictReader(fh)}
     return {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
             for k, v in truth.items() if k in rows}
+
+
+def _intervals(run_dir: Path) -> dict:
+    import csv
+
+    with open(run_dir / "summary.csv", newline="") as fh:
+        return {r["parameter"]: [float(r["q2.5"]), float(r["q97.5"])]
+                for r in csv.DictReader(fh)}
 
 
 def main() -> None:
@@ -69,6 +79,11 @@ def main() -> None:
     ap.add_argument("--refine-rounds", type=int, default=1)
     ap.add_argument("--local", action="store_true",
                     help="refine in the local region (calibrate --local)")
+    ap.add_argument("--exact", type=int, default=0,
+                    help="FE runs per round of the FE-exact posterior of the 'add it' "
+                         "calibrations (calibrate --exact)")
+    ap.add_argument("--exact-rounds", type=int, default=3)
+    ap.add_argument("--exact-profile", type=int, default=9)
     ap.add_argument("--with-dir", default="with_{e}",
                     help="directory name of an 'add it' calibration ({e}: the effect)")
     a = ap.parse_args()
@@ -120,11 +135,17 @@ def main() -> None:
                     truth = dict(TRUTH)
                     if h == e and meta.get("hidden_values"):
                         truth.update(ast.literal_eval(meta["hidden_values"]))
+                    info = json.loads((wd / "run.json").read_text())
+                    ex = info.get("exact") or {}
                     refits[e] = {"rms_after_um": cmp["after"]["rms_um"],
                                  "elpd_gain": cmp["elpd_gain"],
                                  "covered_after": _covered(wd, truth),
-                                 "fe_check": json.loads((wd / "run.json").read_text())
-                                 .get("fe_check")}
+                                 "intervals": _intervals(wd),
+                                 "fe_check": info.get("fe_check"),
+                                 "posterior": info.get("posterior", "surrogate"),
+                                 **({"exact": {k: ex.get(k) for k in (
+                                     "ess", "khat", "reliable", "fe_runs", "coordinates")}}
+                                    if ex else {})}
                 best = max(refits, key=lambda e: refits[e]["elpd_gain"])
                 rec.update({"added": best, "rms_before_um": cmp["before"]["rms_um"],
                             **refits[best]})

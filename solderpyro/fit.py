@@ -37,6 +37,22 @@ class LMFit:
     iters: int = 0
     history: list[float] = field(default_factory=list)
 
+    def jacobian_unit(self, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray,
+                      log_scale: Sequence[bool]) -> np.ndarray | None:
+        """:attr:`J` on a box's unit scale, logarithmic where ``log_scale`` says so (the scale
+        of :meth:`solderpyro.params.Box.to_unit`): ``(n, len(free))`` um, None if no J.
+
+        ``d(linear unit)/d(log unit) = x log(hi/lo) / (hi - lo)`` for a log-scale parameter.
+        """
+        if self.J is None:
+            return None
+        lo_a, hi_a = np.asarray(lo, float)[self.free], np.asarray(hi, float)[self.free]
+        logm = np.asarray(log_scale, bool)[self.free]
+        x = np.asarray(self.x, float)[self.free]
+        ratio = np.where(logm, hi_a / np.where(logm, lo_a, 1.0), np.e)  # lo > 0 where log
+        dudv = np.where(logm, x * np.log(ratio) / (hi_a - lo_a), 1.0)
+        return self.J * dudv[None]
+
     def laplace_sd(self, lo: np.ndarray, hi: np.ndarray, sigma: float) -> np.ndarray:
         """Marginal sd ``(len(free),)`` of the free parameters (physical units) under the
         Laplace approximation ``(J' J / sigma^2)^-1`` (pseudo-inverse: a direction the data do

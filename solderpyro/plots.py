@@ -106,3 +106,51 @@ def plot_validation(result, title="surrogate validation"):
     fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def plot_exact(names, theta, weights, draws, profile=None, truth=None):
+    """FE-exact vs surrogate posterior marginals, and the chi-square profile along the ridge.
+
+    Args:
+        names: ``dim`` parameter names; theta: ``(N, dim)`` importance samples (physical) with
+            normalized ``weights (N,)``; draws: ``(n, dim)`` surrogate posterior draws.
+        profile: optional ``(name, values (G,), chi2 (G,))`` of the profiled parameter.
+        truth: optional ``{name: value}`` drawn as vertical lines (synthetic data).
+    Returns:
+        the matplotlib Figure.
+    """
+    d = len(names)
+    n_p = d + (profile is not None)
+    cols = min(3, n_p)
+    rows = (n_p + cols - 1) // cols
+    fig, axs = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False)
+    axs = axs.ravel()
+    for k, nm in enumerate(names):
+        ax = axs[k]
+        lo = min(np.min(draws[:, k]), np.min(theta[weights > 1e-4 * weights.max(), k]))
+        hi = max(np.max(draws[:, k]), np.max(theta[weights > 1e-4 * weights.max(), k]))
+        bins = np.linspace(lo, hi, 31) if hi > lo else 10
+        ax.hist(theta[:, k], bins=bins, weights=weights, density=True, alpha=0.55,
+                color="C0", label="FE-exact")
+        ax.hist(draws[:, k], bins=bins, density=True, histtype="step", lw=1.5, color="C1",
+                label="surrogate")
+        if truth and nm in truth:
+            ax.axvline(truth[nm], color="k", ls="--", lw=1, label="truth")
+        ax.set_xlabel(nm)
+        ax.set_yticks([])
+    axs[0].legend(fontsize=8)
+    if profile is not None:
+        nm, v, c2 = profile
+        ax = axs[d]
+        c2 = np.asarray(c2, float)
+        ax.plot(v, c2 - np.nanmin(c2[np.isfinite(c2)]), "o-", color="C2")
+        ax.axhline(3.84, color="0.5", ls=":", lw=1, label="chi2(1) 95 %")
+        ax.set_xlabel(nm)
+        ax.set_ylabel("profile chi2 - min")
+        ax.set_yscale("symlog", linthresh=10)
+        ax.legend(fontsize=8)
+    for ax in axs[n_p:]:
+        ax.axis("off")
+    fig.suptitle("FE-exact posterior (importance sampling) vs the surrogate's")
+    fig.tight_layout()
+    return fig

@@ -64,10 +64,13 @@ def plot_model_vs_data(meas: Measurements, curves: dict[str, tuple[Any, Any, Any
 
 def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: list[str],
           bands, y_liu: torch.Tensor, doe, ti, oi, nuts: dict[str, Any],
-          exact: list[dict] | None = None, notes: list[str] | None = None) -> Path:
+          exact_rows: list[dict] | None = None, notes: list[str] | None = None,
+          exact: tuple | None = None) -> Path:
     """Write the figures and ``report.md`` into ``out``; returns the report path.
 
     ``notes``: more lines for the report's opening list (e.g. the FE check, a local region).
+    ``exact_rows`` and ``exact = (ExactPosterior, info, surrogate draws (n, dim), box)``: the
+    FE-exact posterior's section and figure (:func:`solderpyro.workflow.fe_exact`).
     """
     def save(fig, name: str) -> str:
         fig.savefig(out / name, dpi=120)
@@ -104,24 +107,15 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
     for r in rows:
         lines.append(f"| {r['parameter']} | {float(r['q2.5']):.4g} | {float(r['median']):.4g} "
                      f"| {float(r['mean']):.4g} | {float(r['q97.5']):.4g} | "
-                     f"{float(r['r_hat']):.3f} | {float(r['ess_bulk']):.0f} |")
+                     f"{_num(r['r_hat'], '.3f')} | {float(r['ess_bulk']):.0f} |")
     warn = list(problems)
     warn += [f"R-hat of {r['parameter']} is {float(r['r_hat']):.3f} (> 1.01): chains disagree"
              for r in rows if float(r["r_hat"]) > 1.01]
     if sum(post.divergences):
         warn.append(f"{sum(post.divergences)} divergent transitions")
     lines += ["", "## Warnings", ""] + ([f"- {w}" for w in warn] or ["- none"])
-    if exact:
-        lines += ["", "## Surrogate vs exact FE likelihood", "",
-                  "Importance reweighting of surrogate draws by the FE "
-                  f"likelihood (Kish ESS of the weights {exact[0]['weights_ess']:.0f}):", "",
-                  "| parameter | surrogate 2.5 / 50 / 97.5 % | exact 2.5 / 50 / 97.5 % |",
-                  "|---|---|---|"]
-        for r in exact:
-            lines.append(f"| {r['parameter']} | {r['surrogate_q2.5']:.4g} / "
-                         f"{r['surrogate_median']:.4g} / {r['surrogate_q97.5']:.4g} | "
-                         f"{r['exact_q2.5']:.4g} / {r['exact_median']:.4g} / "
-                         f"{r['exact_q97.5']:.4g} |")
+    if exact_rows and exact is not None:
+        lines += _exact_section(exact_rows, exact, save, _truth(meas))
     lines += ["", "## Figures", "",
               f"![literature constants vs data]({f8})", "",
               f"![posterior traces and marginals]({f9})", "",
@@ -135,6 +129,58 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
     p.write_text("\n".join(lines) + "\n")
     write_html(lines, out / "report.html", "solderpyro calibration report")
     return p
+
+
+def _num(v: Any, fmt: str) -> str:
+    """``v`` formatted, or an en dash when it is NaN (an R-hat of importance samples)."""
+    return "–" if not np.isfinite(float(v)) else format(float(v), fmt)
+
+
+def _truth(meas: Measurements) -> dict[str, float] | None:
+    """The true parameters a synthetic dataset's metadata state (``truth`` and
+    ``hidden_values``, as :func:`solderpyro.diagnose.hidden.make_dataset` writes), or None."""
+    import ast
+
+    out: dict[str, float] = {}
+    for key in ("truth", "hidden_values"):
+        try:
+            out.update(ast.literal_eval(meas.meta.get(key, "{}")))
+        except (ValueError, SyntaxError):
+            return None
+    return out or None
+
+
+def _exact_section(rows: list[dict], exact: tuple, save: Any,
+                   truth: dict[str, float] | None = None) -> list[str]:
+    """The report's lines on the FE-exact posterior, and its figure (``save(fig, name)``);
+    ``truth``: true values drawn in the figure (synthetic data)."""
+    from solderpyro.plots import plot_exact
+
+    ex, info, draws, space = exact
+    prof = info.get("profile")
+    fig = save(plot_exact(list(space.names), ex.samples, ex.result.weights(), draws,
+                          None if prof is None else (prof["parameter"], prof["values"],
+                                                     prof["chi2"]), truth),
+               "exact_posterior.png")
+    how = (f"{info['fe_runs']} FE runs: the FE's best fit (chi2 {info['best_fit']['chi2']:.1f})"
+           + (f", the chi-square profiled along {prof['parameter']} at {len(prof['values'])} "
+              "values" if prof else "")
+           + f", then {len(info['rounds'])} rounds of adaptive importance sampling "
+           f"({info['samples']} samples in {info['coordinates']} coordinates, FE in the "
+           "likelihood, no surrogate).")
+    verdict = (f"Kish ESS {info['ess']:.0f}, Pareto k-hat {info['khat']:.2f}: "
+               + ("**reliable; `summary.csv` is this posterior** (the surrogate's is in "
+                  "`summary_surrogate.csv`)." if info["reliable"] else
+                  "**not reliable** (k-hat > 0.7 or ESS < 50): `summary.csv` stays the "
+                  "surrogate's; run more rounds (`--exact-rounds`) or more runs per round."))
+    lines = ["", "## FE-exact posterior", "", how, "", verdict, "",
+             "| parameter | FE-exact 2.5 / 50 / 97.5 % | surrogate 2.5 / 50 / 97.5 % |",
+             "|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['parameter']} | {r['q2.5']:.4g} / {r['median']:.4g} / "
+                     f"{r['q97.5']:.4g} | {r['surrogate_q2.5']:.4g} / "
+                     f"{r['surrogate_median']:.4g} / {r['surrogate_q97.5']:.4g} |")
+    return lines + ["", f"![FE-exact vs surrogate posterior]({fig})"]
 
 
 def _inline(text: str) -> str:

@@ -23,8 +23,8 @@ from scipy.stats import qmc
 
 from solderpyro.calibration import Priors, calibrate_emulator, predict_observation_model
 from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
-from solderpyro.calibration.koh import emulator_lowrank
 from solderpyro.calibration.mcmc import Posterior, format_summary, write_summary
+from solderpyro.calibration.predictive import Bands
 from solderpyro.configure import Setup
 from solderpyro.design import lhs
 from solderpyro.effects import EffectSet, effect_set
@@ -94,63 +94,85 @@ def fe_params(setup: Setup, theta: torch.Tensor) -> torch.Tensor:
     return torch.cat([setup.space.full(theta[:, :n]), theta[:, n:]], 1)
 
 
-def weighted_quantiles(x: torch.Tensor, w: torch.Tensor, probs: tuple[float, ...]
-                       ) -> list[float]:
-    """Quantiles of ``x (n,)`` under normalized weights ``w (n,)`` (linear interpolation)."""
-    order = torch.argsort(x)
-    xs, cw = x[order], torch.cumsum(w[order], 0)
-    cw = (cw - 0.5 * w[order]) / cw[-1]
-    return [float(np.interp(p, cw.numpy(), xs.numpy())) for p in probs]
+def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
+             draws: np.ndarray | None, starts: np.ndarray, n: int, rounds: int,
+             n_profile: int = 9, seed: int = 0, n_draws: int = 1000, lm_iters: int = 4
+             ) -> tuple[Any, dict[str, Any]]:
+    """The FE-exact posterior of a specimen calibration (:mod:`solderpyro.exact`).
 
+    The FE's best fit from ``starts`` (Levenberg-Marquardt, ``lm_iters`` iterations) and its
+    Laplace covariance, the chi-square profiled along the weakest direction's coordinate over
+    ``n_profile`` grid points (0: no profile), a first proposal from those and the surrogate
+    posterior's ``draws``, then ``rounds`` AMIS rounds of ``n`` FE runs each, all in the
+    sampling coordinates ``coords`` (:func:`solderpyro.coords.sampling_coords`).
 
-def exact_check(solver: SpecimenSolver, store: RunStore, cfg_hash: str, setup: Setup,
-                times: tuple[float, ...], post: Posterior, inp: Any, ti: np.ndarray,
-                oi: np.ndarray, n: int = 64, seed: int = 0, progress: bool = True
-                ) -> list[dict]:
-    """Surrogate vs exact: reweight ``n`` surrogate-posterior draws by the FE likelihood.
-
-    For draws (t, sigma) of the surrogate posterior, the importance weight of the exact
-    posterior (the FE in the likelihood, no code uncertainty, same priors) is
-    N(y; FE(t), sigma^2 I) / N(y; mu(t), C(t) + sigma^2 I). The FE runs go through the run store.
-
+    Args:
+        fun: ``rows (b, dim) -> (b, n_obs)`` the FE's observed outputs, um (e.g.
+            :func:`fe_observed` through the run store).
+        y_obs: ``(n_obs,)`` um; priors: the calibration's (sigma's prior).
+        draws: ``(n, dim)`` surrogate posterior draws (or None); starts: ``(k, dim)`` starts of
+            the best fit (e.g. the FE check's best draws), physical units.
     Returns:
-        rows: parameter, surrogate q2.5 / median / q97.5, exact (reweighted) q2.5 / median /
-        q97.5, and the Kish effective sample size of the weights (same for every row).
+        ``(ExactPosterior, info)``; ``info`` for run.json: ESS, k-hat, reliable, the number of
+        FE runs, the coordinates, the best fit, the profile and each round's diagnostics.
     """
-    g = torch.Generator().manual_seed(seed)
-    flat_t, flat_s = post.flat("t"), post.flat("sigma")
-    idx = torch.randperm(flat_t.shape[0], generator=g)[:n]
-    t, sig = flat_t[idx], flat_s[idx]
-    doe = run_doe(solver, store, cfg_hash, fe_params(setup, t), times, progress=progress)
-    y = inp.y_obs
-    lw = torch.full((t.shape[0],), -torch.inf, dtype=torch.float64)
-    for i in range(t.shape[0]):
-        if not bool(doe.ok[i]):
-            continue
-        with torch.no_grad():
-            lr = emulator_lowrank(inp.emulator, t[i])
-            if lr is not None:
-                l_sur = torch.distributions.LowRankMultivariateNormal(
-                    lr[0], lr[1], lr[2] + sig[i] ** 2).log_prob(y)
-            else:
-                m, c = inp.emulator(t[i])
-                cs = c + sig[i] ** 2 * torch.eye(y.shape[0], dtype=y.dtype)
-                l_sur = torch.distributions.MultivariateNormal(m, cs).log_prob(y)
-            l_fe = torch.distributions.Normal(doe.V[i, ti, oi], sig[i]).log_prob(y).sum()
-        lw[i] = l_fe - l_sur
-    w = torch.exp(lw - lw.max())
-    w = w / w.sum()
-    ess = float(1.0 / (w**2).sum())
-    rows = []
-    names = calibration_box(setup, solver.effects).names
-    cols = {**{nm: t[:, j] for j, nm in enumerate(names)}, "sigma": sig}
-    for nm, x in cols.items():
-        qs = torch.quantile(x, torch.tensor([0.025, 0.5, 0.975], dtype=x.dtype)).tolist()
-        qe = weighted_quantiles(x, w, (0.025, 0.5, 0.975))
-        rows.append({"parameter": nm, "surrogate_q2.5": qs[0], "surrogate_median": qs[1],
-                     "surrogate_q97.5": qs[2], "exact_q2.5": qe[0], "exact_median": qe[1],
-                     "exact_q97.5": qe[2], "weights_ess": ess})
-    return rows
+    from solderpyro.exact import exact_posterior, fe_profile, initial_proposal, laplace_cov_w
+    from solderpyro.fit import lm_fit
+
+    space = coords.space
+    y = y_obs.detach().cpu().numpy()
+    n_fe = [0]
+
+    def counted(rows: np.ndarray) -> np.ndarray:
+        n_fe[0] += len(rows)
+        return fun(rows)
+
+    # the fits' noise sd: the stated one, else the RMS residual at the first start
+    sig = priors.sigma_known or float(np.sqrt(np.nanmean((counted(starts[:1]) - y) ** 2)))
+    fits = lm_fit(counted, starts, space.lower, space.upper, y, sig, iters=lm_iters)
+    best = min(fits, key=lambda f: f.chi2)
+    J = best.jacobian_unit(space.lower, space.upper, space.log_scale)
+    cov = (laplace_cov_w(J, coords, best.x, sig) if J is not None
+           else np.eye(space.dim) * 0.25)
+    log.info("exact: the FE's best fit chi2 %.1f at %s (%d FE runs); sampling in %s "
+             "coordinates", best.chi2, ", ".join(f"{nm}={v:.4g}" for nm, v in zip(
+                 space.names, best.x, strict=True)), n_fe[0], coords.name)
+    prof = None
+    if n_profile >= 2:
+        prof = fe_profile(counted, coords, best.x, cov, y, sig, n_grid=n_profile, iters=4)
+        log.info("exact: chi2 profile along %s: %s (%d FE runs so far)", space.names[prof.coord],
+                 ", ".join(f"{v:.4g}: {c:.1f}" for v, c in zip(prof.x[:, prof.coord],
+                                                                 prof.chi2, strict=True)),
+                 n_fe[0])
+    q0 = initial_proposal(coords, draws, (best.x, cov), prof, seed)
+
+    def on_round(r: Any) -> None:
+        h = r.history[-1]
+        log.info("exact: AMIS round %d: %d samples, ESS %.1f, Pareto k-hat %.2f (%d FE runs "
+                 "so far)", len(r.history), h["n"], h["ess"], h["khat"], n_fe[0])
+
+    ex = exact_posterior(counted, coords, y, q0, n, rounds, priors.sigma_known,
+                         priors.sigma_max, seed, n_draws, prof, on_round)
+    r = ex.result
+    info = {"ess": r.ess, "khat": r.khat, "reliable": r.reliable, "fe_runs": n_fe[0],
+            "samples": int(len(r.u)), "coordinates": coords.name, "rounds": r.history,
+            "best_fit": {"x": best.x.tolist(), "chi2": best.chi2},
+            **({"profile": {"parameter": space.names[prof.coord],
+                            "values": prof.x[:, prof.coord].tolist(),
+                            "chi2": prof.chi2.tolist()}} if prof is not None else {})}
+    return ex, info
+
+
+def exact_rows(ex: Any, surrogate: list[dict]) -> list[dict]:
+    """``exact_posterior.csv``'s rows: per parameter of ``surrogate`` (summary rows), the
+    FE-exact 2.5 / 50 / 97.5 % and mean, then the surrogate's, then the weights' Kish ESS and
+    Pareto k-hat (the same on every row)."""
+    by = {r["parameter"]: r for r in ex.rows}
+    r_ = ex.result
+    return [{**{k: by[s["parameter"]][k] for k in SUMMARY},
+             "surrogate_q2.5": float(s["q2.5"]), "surrogate_median": float(s["median"]),
+             "surrogate_q97.5": float(s["q97.5"]), "ess": r_.ess, "khat": r_.khat}
+            for s in surrogate if s["parameter"] in by]
 
 
 @dataclass
@@ -205,7 +227,8 @@ RUN_FILES = ("run.json", "data.csv", "draws.npz")
 
 def save_run(out: Path, meas: Measurements, space: Box, effects: tuple[str, ...],
              post: Posterior, bands: Any, y_obs: torch.Tensor, y_liu: torch.Tensor,
-             priors: Priors, record: dict[str, Any]) -> None:
+             priors: Priors, record: dict[str, Any],
+             draws: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """Keep what a later ``solderpyro diagnose`` needs in the run directory.
 
     Writes ``data.csv`` (the measurements, exact round trip), ``draws.npz`` (flat posterior
@@ -213,11 +236,15 @@ def save_run(out: Path, meas: Measurements, space: Box, effects: tuple[str, ...]
     predictive ``process (n_pred, n_obs)`` and ``observed (n_pred, n_obs)`` draws with their
     noise ``sigma_pred (n_pred,)``, ``y_obs`` and
     the Liu-constants model ``y_liu``, all in um) and ``run.json`` (settings, parameter box).
+    ``draws``: ``(theta (n, dim), sigma (n,))`` to save instead of ``post``'s (the FE-exact
+    posterior's resampled draws).
     """
     from solderpyro.io.measurements import write_measurements
 
     write_measurements(out / "data.csv", meas)
-    np.savez(out / "draws.npz", theta=post.flat("t").numpy(), sigma=post.flat("sigma").numpy(),
+    theta, sigma = draws if draws is not None else (post.flat("t").numpy(),
+                                                     post.flat("sigma").numpy())
+    np.savez(out / "draws.npz", theta=theta, sigma=sigma,
              names=np.array(space.names), process=bands.draws.numpy(),
              observed=bands.obs_draws.numpy(), y_obs=y_obs.numpy(), y_liu=y_liu.numpy(),
              sigma_pred=(bands.sigma if bands.sigma is not None
@@ -240,13 +267,21 @@ def _posterior_region(t: torch.Tensor, box: Box) -> Box:
 
 
 def fe_observed(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...], ti: np.ndarray,
-                oi: np.ndarray, rows: np.ndarray, n_fe: int, obs_offset: Any = None
-                ) -> np.ndarray:
+                oi: np.ndarray, rows: np.ndarray, n_fe: int, obs_offset: Any = None,
+                store: RunStore | None = None, cfg_hash: str | None = None,
+                batch_size: int = 64) -> np.ndarray:
     """The FE's observed outputs ``(b, n_obs)`` um for parameter rows ``(b, space.dim)``
     (FE-side parameters first, ``n_fe`` of them, then observation-side ones, which
-    ``obs_offset: q -> (n_obs,)`` adds); NaN rows for members that did not converge."""
-    P = torch.tensor(rows[:, :n_fe], dtype=torch.float64)
-    res = solver.solve(fe_params(setup, P), times)
+    ``obs_offset: q -> (n_obs,)`` adds); NaN rows for members that did not converge.
+
+    With ``store`` and ``cfg_hash`` the runs go through :func:`~solderpyro.store.run_doe`:
+    stored as soon as each batch of ``batch_size`` finishes, and read back when already there.
+    """
+    P = fe_params(setup, torch.tensor(np.asarray(rows)[:, :n_fe], dtype=torch.float64))
+    if store is not None and cfg_hash is not None:
+        res: Any = run_doe(solver, store, cfg_hash, P, times, batch_size, progress=False)
+    else:
+        res = solver.solve(P, times)
     V = res.V.detach().cpu().numpy()[:, ti, oi]
     if obs_offset is not None:
         V = V + np.stack([obs_offset(torch.tensor(r[n_fe:])).detach().numpy() for r in rows])
@@ -298,7 +333,8 @@ def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
               ti: np.ndarray, oi: np.ndarray, y_obs: torch.Tensor, sigma: float, space: Box,
               n_fe: int, start: torch.Tensor, X: torch.Tensor, Y: torch.Tensor,
               obs_offset: Any = None, iters: int = 5, n_sd: float = 4.0,
-              extra: np.ndarray | None = None, n_best_runs: int = 4) -> dict[str, Any]:
+              extra: np.ndarray | None = None, n_best_runs: int = 4,
+              store: RunStore | None = None, cfg_hash: str | None = None) -> dict[str, Any]:
     """The FE's own best fit to the data, and the region around it where a refinement puts
     runs.
 
@@ -319,6 +355,7 @@ def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
         obs_offset: ``q -> (n_obs,)`` additive observation effects (None: none).
         n_sd: half-width of the returned box in Laplace sd (at least 2 % of the box width).
         extra: ``(k, space.dim)`` more starts (physical units), or None.
+        store, cfg_hash: keep the Levenberg-Marquardt's FE runs in the run store.
     Returns:
         ``{"x": (space.dim,) best fit, "chi2", "chi2_start": chi2 at the posterior median,
         "box": Box over the FE-side parameters, "cov_unit": (space.dim, space.dim) Laplace
@@ -332,7 +369,7 @@ def fe_anchor(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...],
     lo, hi = np.array(space.lower, float), np.array(space.upper, float)
 
     def fun(rows: np.ndarray) -> np.ndarray:
-        return fe_observed(solver, setup, times, ti, oi, rows, n_fe, obs_offset)
+        return fe_observed(solver, setup, times, ti, oi, rows, n_fe, obs_offset, store, cfg_hash)
 
     s0 = start.detach().cpu().numpy().astype(float)
     starts = [s0]
@@ -374,14 +411,7 @@ def laplace_cov_unit(fit: Any, space: Box, sigma: float) -> np.ndarray:
     p = space.dim
     if fit.J is None or fit.J.shape[1] != p:
         return np.eye(p) * 0.25
-    lo, hi = np.array(space.lower, float), np.array(space.upper, float)
-    x = np.asarray(fit.x, float)
-    # d(linear unit)/d(log unit) = x log(hi/lo) / (hi - lo) where the scale is logarithmic
-    # (Box guarantees lo > 0 there; elsewhere the ratio is replaced by e, whose log is unused)
-    logm = np.array(space.log_scale, bool)
-    dudv = np.where(logm, x * np.log(np.where(logm, hi / np.where(logm, lo, 1.0), np.e))
-                    / (hi - lo), 1.0)
-    J = fit.J * dudv[None]
+    J = fit.jacobian_unit(space.lower, space.upper, space.log_scale)
     return np.linalg.inv(J.T @ J / sigma**2 + 4.0 * np.eye(p))
 
 
@@ -457,7 +487,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                        record: dict[str, Any] | None = None, refine: int = 0,
                        refine_rounds: int = 1, inputs: str = "raw", inputs_T_C: float = 125.0,
                        inputs_rate: float = 1e-5, local: bool = False,
-                       local_sd: float = 3.5) -> SpecimenCalibration:
+                       local_sd: float = 3.5, exact_rounds: int = 3,
+                       exact_profile: int = 9) -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
 
     Args:
@@ -470,8 +501,14 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         output: ``"pca"`` (GPs on principal components of the observed outputs: surrogate
             errors correlated across outputs, as the FE's are) or ``"batched"`` (one GP per
             output; a single observed output always uses it).
-        exact: if > 0, reweight that many surrogate draws by the exact FE likelihood
-            (:func:`exact_check`) and write ``exact_check.csv``.
+        exact: if > 0, sample the FE-exact posterior (:func:`fe_exact`, no surrogate in the
+            likelihood): ``exact_rounds`` rounds of adaptive importance sampling with
+            ``exact`` FE runs each, from a proposal built on the surrogate posterior, the FE's
+            best fit and an ``exact_profile``-point chi-square profile along the ridge (0: no
+            profile). Writes ``exact_posterior.csv`` (FE-exact vs surrogate quantiles) and
+            ``exact_samples.npz``; when the weights are reliable (Pareto k-hat <= 0.7, ESS >=
+            50), ``summary.csv``, ``draws.npz`` and the predictive are the FE-exact posterior's
+            and the surrogate's summary moves to ``summary_surrogate.csv``.
         record: how the run was asked for (e.g. ``{"overrides": [...]}``), kept in
             ``run.json`` so that ``solderpyro diagnose`` can rebuild the model.
         refine: FE runs added per refinement round: half a Latin hypercube around the FE's
@@ -505,6 +542,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                          "in the local region)")
     if not local_sd > 0:
         raise ValueError(f"calibrate_specimen: local_sd must be > 0, got {local_sd}")
+    if exact < 0 or exact == 1 or exact_rounds < 1 or exact_profile < 0 or exact_profile == 1:
+        raise ValueError(f"calibrate_specimen: need exact = 0 or >= 2, exact_rounds >= 1 and "
+                         f"exact_profile = 0 or >= 2, got exact={exact}, exact_rounds="
+                         f"{exact_rounds}, exact_profile={exact_profile}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if len(meas) == 0:
@@ -662,8 +703,13 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     sig_fe = pr.sigma_known or float(post.flat("sigma").median())
     draws = post.flat("t").detach().cpu().numpy()
     pick = np.linspace(0, len(draws) - 1, min(FE_CHECK_DRAWS, len(draws))).round().astype(int)
-    chk = fe_check(fe_observed(solver, setup, times, ti, oi, draws[pick], gp_box.dim,
-                               obs_off), y_obs, sig_fe)
+
+    def fe_fun(rows: np.ndarray) -> np.ndarray:  # every run kept in the run store
+        return fe_observed(solver, setup, times, ti, oi, rows, gp_box.dim, obs_off, store, h,
+                           batch_size)
+
+    V_chk = fe_fun(draws[pick])
+    chk = fe_check(V_chk, y_obs, sig_fe)
     log.info("FE check: best RMS residual of the FE over %d posterior draws %.4g um (%.2f "
              "noise sd)", chk["draws"], chk["rms_um"], chk["rms_over_sigma"])
     if not chk["ok"]:
@@ -673,55 +719,106 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                f"surrogate, not the FE, fits; do not trust its intervals ("
                + ("more rounds, or a wider --local-sd" if local and refine else
                   "for full-field data: --refine 40 --local --refine-rounds 2; else more "
-                  "runs or --refine") + ")")
+                  "runs or --refine") + "; --exact samples the FE's own posterior)")
         log.warning(msg)
         problems = [*problems, msg]
     rows = [r for r in post.summary()]
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
-    write_summary(rows, out / "summary.csv", SUMMARY)
     post.save(out / "posterior.nc")
     bands = predict_observation_model(post, inp, None, seed=seed)
-    save_run(out, meas, space, fx.keys if fx is not None else (), post, bands, y_obs,
-             y_liu, pr,
-             {**(record or {}), "n_runs": n_runs, "seed": seed, "store": str(store_root),
-              "kernel": kernel, "ard": ard, "mean": mean, "surrogate_output": output,
-              "surrogate_inputs": inputs, **({"inputs_T_C": inputs_T_C,
-                                               "inputs_rate": inputs_rate} if feats else {}),
-              "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
-              "fe_check": chk, **local_info,
-              **({"fe_best_fit": {"x": fe_fit["x"].tolist(), "chi2": fe_fit["chi2"],
-                                  "chi2_at_posterior_median": fe_fit["chi2_start"]}}
-                 if fe_fit is not None else {})})
-    ex = None
-    if exact > 0:
-        log.info("exact check: reweighting %d surrogate draws by the FE likelihood", exact)
-        if fx_obs is not None:  # the exact FE likelihood needs the observation effects too
-            solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                                    dtype=setup.dtype, device=setup.device, effects=fx or ())
-            h = store.register(setup.problem, times, field, setup.dtype, effects=fx or ())
-        ex = exact_check(solver, store, h, setup, times, post, inp, ti, oi, exact, seed,
-                         progress)
-        write_summary(ex, out / "exact_check.csv", tuple(ex[0]))
     from solderpyro import report
 
-    notes = [f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), best "
-             f"RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} noise sd "
-             f"(chi2 {chk['chi2']:.0f} on {chk['n']} values)"]
-    if region is not None:
-        assert local_info
-        notes.append(
-            f"local region (--local): the prior truncated to the +-{local_sd:g} sd "
-            f"parallelepiped of a Gaussian around " + ", ".join(
-                f"{n} = {v:.4g}" for n, v in zip(space.names,
-                                                 local_info["local_region"]["center"],
-                                                 strict=True))
-            + "; the surrogate is a GP on the runs in and near it")
-    if fe_fit is not None and len(fe_fit["minima"]) > 1:
-        notes.append("the FE's chi-square has several minima from the Levenberg-Marquardt "
-                     "starts: " + ", ".join(f"{c:.1f}" for c, _ in fe_fit["minima"][:5])
-                     + " (the best anchors the refinement)")
-    report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk, ex,
-                 notes)
+    def write_all(rows: list[dict], bands: Any, problems: list[str], ex: Any = None,
+                  ex_info: dict[str, Any] | None = None, ex_rows: list[dict] | None = None
+                  ) -> None:
+        """summary.csv, draws.npz, run.json and the report (the FE-exact posterior's where
+        ``ex`` is reliable); written before the FE-exact step and again after it."""
+        saved = (ex.theta, ex.sigma) if ex is not None and ex.reliable else None
+        write_summary(rows, out / "summary.csv", SUMMARY)
+        save_run(out, meas, space, fx.keys if fx is not None else (), post, bands, y_obs,
+                 y_liu, pr,
+                 {**(record or {}), "n_runs": n_runs, "seed": seed, "store": str(store_root),
+                  "kernel": kernel, "ard": ard, "mean": mean, "surrogate_output": output,
+                  "surrogate_inputs": inputs, **({"inputs_T_C": inputs_T_C,
+                                                   "inputs_rate": inputs_rate} if feats else {}),
+                  "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
+                  "fe_check": chk, **local_info,
+                  "posterior": "fe-exact" if saved is not None else "surrogate",
+                  **({"exact": ex_info} if ex_info else {}),
+                  **({"fe_best_fit": {"x": fe_fit["x"].tolist(), "chi2": fe_fit["chi2"],
+                                      "chi2_at_posterior_median": fe_fit["chi2_start"]}}
+                     if fe_fit is not None else {})}, draws=saved)
+        notes = [f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), "
+                 f"best RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} "
+                 f"noise sd (chi2 {chk['chi2']:.0f} on {chk['n']} values)"]
+        if saved is not None and ex_info:
+            notes.insert(0, f"**posterior: FE-exact** (adaptive importance sampling with the FE "
+                            f"in the likelihood, {ex_info['fe_runs']} FE runs, ESS "
+                            f"{ex_info['ess']:.0f}, Pareto k-hat {ex_info['khat']:.2f}); the "
+                            f"surrogate's is in summary_surrogate.csv")
+        if region is not None:
+            assert local_info
+            notes.append(
+                f"local region (--local): the prior truncated to the +-{local_sd:g} sd "
+                f"parallelepiped of a Gaussian around " + ", ".join(
+                    f"{n} = {v:.4g}" for n, v in zip(space.names,
+                                                     local_info["local_region"]["center"],
+                                                     strict=True))
+                + "; the surrogate is a GP on the runs in and near it")
+        if fe_fit is not None and len(fe_fit["minima"]) > 1:
+            notes.append("the FE's chi-square has several minima from the Levenberg-Marquardt "
+                         "starts: " + ", ".join(f"{c:.1f}" for c, _ in fe_fit["minima"][:5])
+                         + " (the best anchors the refinement)")
+        report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk,
+                     ex_rows, notes,
+                     exact=(ex, ex_info, draws, space) if ex is not None else None)
+
+    write_all(rows, bands, problems)  # the surrogate's results are safe before the FE-exact step
+    if exact > 0:
+        log.info("exact: the FE-exact posterior, %d rounds of %d FE runs after a best fit%s",
+                 exact_rounds, exact, f" and a {exact_profile}-point profile"
+                 if exact_profile >= 2 else "")
+        c2 = np.nansum((V_chk - y_obs.numpy()) ** 2, 1)
+        c2[~np.isfinite(V_chk).all(1)] = np.inf
+        starts = draws[pick][np.argsort(c2)[:2]]
+        if fe_fit is not None:
+            starts = np.vstack([starts, fe_fit["x"][None]])
+        from solderpyro.coords import sampling_coords
+
+        coords = sampling_coords(space, setup.space.defaults, "auto", inputs_T_C, inputs_rate)
+        try:
+            ex, ex_info = fe_exact(fe_fun, coords, y_obs, pr, draws, starts, exact,
+                                   exact_rounds, exact_profile, seed, len(draws))
+        except RuntimeError as err:  # keep the surrogate's results (and the stored runs)
+            log.warning("the FE-exact posterior failed: %s", err)
+            write_all(rows, bands, [*problems, f"the FE-exact posterior failed: {err}"])
+        else:
+            ex_rows = exact_rows(ex, rows)
+            np.savez(out / "exact_samples.npz", w=ex.result.u, theta=ex.samples,
+                     log_target=ex.result.log_target,
+                     log_q=ex.result.log_q, round=ex.result.round,
+                     weights=ex.result.weights(), names=np.array(space.names))
+            write_summary(ex_rows, out / "exact_posterior.csv", tuple(ex_rows[0]))
+            if ex.reliable:
+                write_summary(rows, out / "summary_surrogate.csv", SUMMARY)
+                by = {r["parameter"]: r for r in ex.rows}
+                rows = [{**by[r["parameter"]], "r_hat": float("nan"),
+                         "ess_bulk": ex_info["ess"], "ess_tail": ex_info["ess"]} for r in rows]
+                gen = torch.Generator().manual_seed(seed)
+                Vt, st = torch.as_tensor(ex.V), torch.as_tensor(ex.sigma)
+                bands = Bands(Vt, Vt + st[:, None] * torch.randn(
+                    Vt.shape, generator=gen, dtype=Vt.dtype), st)
+                log.info("exact: reliable (ESS %.0f, k-hat %.2f): summary.csv, draws.npz and "
+                         "the predictive are the FE-exact posterior's", ex_info["ess"],
+                         ex_info["khat"])
+            else:
+                msg = (f"the FE-exact posterior is not reliable (ESS {ex_info['ess']:.0f}, "
+                       f"Pareto k-hat {ex_info['khat']:.2f}; needs k-hat <= 0.7 and ESS >= "
+                       f"50): summary.csv stays the surrogate's; more --exact-rounds or a "
+                       f"larger --exact")
+                log.warning(msg)
+                problems = [*problems, msg]
+            write_all(rows, bands, problems, ex, ex_info, ex_rows)
     print(format_summary(rows))
     return SpecimenCalibration(out, post, rows, loo, int(ok.sum()), int((~ok).sum()))

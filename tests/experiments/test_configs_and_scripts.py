@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from scipy.stats import chi2
 
 from solderpyro.cli import main
@@ -122,19 +123,37 @@ def test_demo_command_runs_tiny(tmp_path):
     for f in ("report.md", "summary.csv", "posterior.nc", "fig8_literature.png",
               "fig9_posterior.png", "fig10_predictive.png", "surrogate_loo.png"):
         assert (cal / f).stat().st_size > 100, f
-    n_stored = len(list((tmp_path / "store").glob("*/runs/*.json")))
-    assert n_stored == 11  # 10 LHS runs + the Liu 2008 run, nothing lost
+    stored = {p.name for p in (tmp_path / "store").glob("*/runs/*.json")}
+    # 10 LHS runs + the Liu 2008 run + the FE check's 8 posterior draws: nothing lost
+    assert 11 < len(stored) <= 19
+    assert "(0 reused from the run store, 11 computed)" in (cal / "report.md").read_text()
     out = tmp_path / "again"
     assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(out),
-                 "--store", str(tmp_path / "store"), "--exact", "6", "--refine", "5",
-                 *CAL_TINY, *TINY]) == 0
-    # all DOE runs reused; only the 5 refinement runs and the 6 exact-check runs are new
-    assert len(list((tmp_path / "store").glob("*/runs/*.json"))) == n_stored + 5 + 6
-    ex = (out / "exact_check.csv").read_text().splitlines()
-    assert ex[0].startswith("parameter,surrogate_q2.5") and len(ex) == 6
-    assert 1.0 <= float(ex[1].split(",")[-1]) <= 6.0  # Kish ESS of 6 weights
-    assert "Surrogate vs exact" in (out / "report.md").read_text()
+                 "--store", str(tmp_path / "store"), "--exact", "6", "--exact-rounds", "2",
+                 "--exact-profile", "3", "--refine", "5", *CAL_TINY, *TINY]) == 0
+    assert "(11 reused from the run store, 0 computed)" in (out / "report.md").read_text()
+    # every FE run of the FE-exact step is in the store (the importance samples included)
+    from solderpyro.store import param_hash
+    from solderpyro.workflow import fe_params
+
+    smp = np.load(out / "exact_samples.npz")
+    inside = np.isfinite(smp["log_target"])
+    assert inside.sum() >= 6 and smp["theta"].shape == (12, 4)
+    rows = fe_params(build(compose(TINY)), torch.as_tensor(smp["theta"][inside]))
+    names = {p.name for p in (tmp_path / "store").glob("*/runs/*.json")}
+    assert {f"{param_hash(r)}.json" for r in rows} <= names
+    assert len(names) >= len(stored) + 5 + int(inside.sum())
+    ex = (out / "exact_posterior.csv").read_text().splitlines()
+    assert ex[0] == ("parameter,q2.5,median,mean,q97.5,surrogate_q2.5,surrogate_median,"
+                     "surrogate_q97.5,ess,khat") and len(ex) == 6
+    assert 1.0 <= float(ex[1].split(",")[-2]) <= 12.0  # Kish ESS of 12 weights
+    assert "## FE-exact posterior" in (out / "report.md").read_text()
+    assert (out / "exact_posterior.png").stat().st_size > 1000
     info = json.loads((out / "run.json").read_text())
+    ex_info = info["exact"]
+    assert info["posterior"] == ("fe-exact" if ex_info["reliable"] else "surrogate")
+    assert len(ex_info["rounds"]) == 2 and ex_info["samples"] == 12
+    assert len(ex_info["profile"]["values"]) >= 3
     fit = info["fe_best_fit"]
     assert fit["chi2"] <= fit["chi2_at_posterior_median"] + 1e-9  # LM never goes uphill
     # the FE check at the posterior median: its chi2 and RMS describe the same residuals, and
@@ -154,13 +173,12 @@ def test_demo_command_runs_tiny(tmp_path):
     assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(loc),
                  "--store", str(tmp_path / "store"), "--refine", "6", "--local",
                  *CAL_TINY, *TINY]) == 0
-    assert len(list((tmp_path / "store").glob("*/runs/*.json"))) == n_before + 6
+    # the 6 region runs, and the FE-anchor's and FE check's runs (all kept)
+    assert len(list((tmp_path / "store").glob("*/runs/*.json"))) >= n_before + 6
     info = json.loads((loc / "run.json").read_text())
     reg = info["local_region"]
     assert reg["half_width_sd"] == 3.5
     np.testing.assert_allclose(reg["center"], info["fe_best_fit"]["x"], rtol=1e-9)
-    import torch
-
     from solderpyro.params import Box, LocalBox
     outer = Box(tuple(info["parameters"]), tuple(info["lower"]), tuple(info["upper"]))
     lb = LocalBox(outer.names, tuple(reg["bounding_lower"]), tuple(reg["bounding_upper"]),
@@ -209,6 +227,21 @@ def test_calibrate_rejects_points_not_in_the_model(tmp_path, capsys):
                  "--store", str(tmp_path / "s"), *CAL_TINY, *TINY]) == 2
     err = capsys.readouterr().err
     assert "'Q'" in err and "line 3" in err
+
+
+def test_calibrate_names_bad_refinement_flags(tmp_path, capsys):
+    good = tmp_path / "good.csv"
+    good.write_text("time_s,temperature_C,point,x_mm,y_mm,quantity,value_um,sigma_um\n"
+                    "600,75,A,15,4.5,V,7.7,0.05\n")
+    for flags, name in ((["--exact", "1"], "--exact"),
+                        (["--exact", "8", "--exact-rounds", "0"], "--exact-rounds"),
+                        (["--exact", "8", "--exact-profile", "1"], "--exact-profile"),
+                        (["--local"], "--local"), (["--refine", "4", "--local", "--local-sd",
+                                                    "0"], "--local-sd")):
+        assert main(["calibrate", "--data", str(good), "--out", str(tmp_path / "o"),
+                     "--store", str(tmp_path / "s"), *flags, *CAL_TINY, *TINY]) == 2, flags
+        assert name in capsys.readouterr().err, flags
+    assert not (tmp_path / "s").exists()  # nothing was computed
 
 
 def test_calibrate_experiment_script_runs_tiny(tmp_path):

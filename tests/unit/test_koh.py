@@ -88,17 +88,6 @@ def test_posterior_netcdf_round_trip_and_summary(tmp_path):
     assert int(back.sample_stats["diverging"].values.sum()) == 1
 
 
-def test_weighted_quantiles_match_repeated_samples():
-    from solderpyro.workflow import weighted_quantiles
-
-    x = torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=DT)
-    w = torch.tensor([1.0, 1.0, 1.0, 1.0], dtype=DT) / 4
-    # equal weights: the median is the ordinary median
-    assert abs(weighted_quantiles(x, w, (0.5,))[0] - 2.5) < 1e-12
-    # integer weights == repeating samples: weight 3 on 4.0 moves the median to 4.0's side
-    w2 = torch.tensor([1.0, 1.0, 1.0, 3.0], dtype=DT) / 6
-    assert weighted_quantiles(x, w2, (0.5,))[0] > 3.0
-
 
 def test_known_sigma_prior_is_centred_on_the_stated_noise():
     import pyro
