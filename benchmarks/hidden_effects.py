@@ -40,7 +40,7 @@ def _calibrate(overrides, data, out, a, refit=False):
     # refinement: the "add it" fits only
     extra = dict(refine=a.refine, refine_rounds=a.refine_rounds, local=a.local,
                  exact=a.exact, exact_rounds=a.exact_rounds,
-                 exact_profile=a.exact_profile) if refit else {}
+                 exact_profile=a.exact_profile, profile_ci=a.profile_ci) if refit else {}
     return calibrate_specimen(setup, meas, out, n_runs=a.runs, store_root=store, nuts=nuts,
                               progress=False, record={"overrides": overrides},
                               **extra, **setup.surrogate)
@@ -84,6 +84,9 @@ def main() -> None:
                          "calibrations (calibrate --exact)")
     ap.add_argument("--exact-rounds", type=int, default=3)
     ap.add_argument("--exact-profile", type=int, default=9)
+    ap.add_argument("--profile-ci", action="store_true",
+                    help="with --exact: profile-likelihood intervals of the 'add it' fits "
+                         "(calibrate --profile-ci), and whether they hold the truth")
     ap.add_argument("--with-dir", default="with_{e}",
                     help="directory name of an 'add it' calibration ({e}: the effect)")
     a = ap.parse_args()
@@ -145,7 +148,16 @@ def main() -> None:
                                  "posterior": info.get("posterior", "surrogate"),
                                  **({"exact": {k: ex.get(k) for k in (
                                      "ess", "khat", "reliable", "fe_runs", "coordinates")}}
-                                    if ex else {})}
+                                    if ex else {}),
+                                 **({"identifiability": ex["identifiability"]["advice"]}
+                                    if ex.get("identifiability") else {}),
+                                 **({"profile_ci": {p["parameter"]: [p["lower"], p["upper"]]
+                                                    for p in ex["profile_ci"]},
+                                     "covered_profile_ci": {
+                                         p["parameter"]: p["lower"] <= truth[p["parameter"]]
+                                         <= p["upper"] for p in ex["profile_ci"]
+                                         if p["parameter"] in truth}}
+                                    if ex.get("profile_ci") else {})}
                 best = max(refits, key=lambda e: refits[e]["elpd_gain"])
                 rec.update({"added": best, "rms_before_um": cmp["before"]["rms_um"],
                             **refits[best]})

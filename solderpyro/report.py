@@ -180,7 +180,37 @@ def _exact_section(rows: list[dict], exact: tuple, save: Any,
         lines.append(f"| {r['parameter']} | {r['q2.5']:.4g} / {r['median']:.4g} / "
                      f"{r['q97.5']:.4g} | {r['surrogate_q2.5']:.4g} / "
                      f"{r['surrogate_median']:.4g} / {r['surrogate_q97.5']:.4g} |")
-    return lines + ["", f"![FE-exact vs surrogate posterior]({fig})"]
+    lines += ["", f"![FE-exact vs surrogate posterior]({fig})"]
+    pci = info.get("profile_ci")
+    if pci:
+        by = {r["parameter"]: r for r in rows}
+        lines += ["", "### Profile-likelihood 95 % confidence intervals (through the FE)", "",
+                  "Each parameter held on a grid, the others refitted by Levenberg-Marquardt "
+                  "through the FE; the interval is where the profile chi-square stays within "
+                  f"{pci[0]['delta']:.2f} of its minimum (Wilks, 1 dof). It does not depend on "
+                  "the prior box or on how wide the ridge of the other parameters is, unlike "
+                  "the posterior's interval; an end at the box's bound means the data do not "
+                  "bound the parameter there.", "",
+                  "| parameter | profile 95 % CI | posterior 95 % interval | note |",
+                  "|---|---|---|---|"]
+        for p in pci:
+            r = by.get(p["parameter"], {})
+            note = ", ".join(n for n, hit in (("reaches the lower bound", p["at_lower_bound"]),
+                                              ("reaches the upper bound", p["at_upper_bound"]),
+                                              ("profile truncated", p["truncated"])) if hit)
+            lines.append(f"| {p['parameter']} | [{p['lower']:.4g}, {p['upper']:.4g}] | "
+                         + (f"[{r['q2.5']:.4g}, {r['q97.5']:.4g}]" if r else "–")
+                         + f" | {note or '–'} |")
+    ident = info.get("identifiability")
+    if ident:
+        lines += ["", "### Identifiability: what the data leave open", "", ident["advice"]]
+        if ident.get("options"):
+            lines += ["", "| measurement to add | new values | max difference (um) | at t (s), "
+                      "point | expected chi-square between the two ends |", "|---|---|---|---|---|"]
+            for o in ident["options"]:
+                lines.append(f"| {o['measurement']} | {o['n_new']} | {o['max_diff_um']:.3g} | "
+                             f"{o['time_s']:g}, {o['point']} | {o['chi2_apart']:.0f} |")
+    return lines
 
 
 def _inline(text: str) -> str:

@@ -175,6 +175,141 @@ def exact_rows(ex: Any, surrogate: list[dict]) -> list[dict]:
             for s in surrogate if s["parameter"] in by]
 
 
+#: a parameter whose FE-exact 95 % interval spans at least this share of its prior box (on the
+#: box's unit scale) is reported as weakly identified, and a measurement that narrows it sought
+WEAK_SHARE = 0.4
+#: an interval end within this share of the box's width from a bound is set by the prior box
+EDGE_SHARE = 0.02
+
+
+def ridge_ends(x: np.ndarray, weights: np.ndarray, ssr: np.ndarray, k: int
+               ) -> tuple[int, int]:
+    """Two importance samples at the ends of parameter ``k``'s posterior that fit the data as
+    well as the posterior's bulk does.
+
+    Among the samples inside ``k``'s central 95 % interval whose sum of squared residuals is
+    at most the posterior's weighted median, the ones with the smallest and the largest
+    ``x[:, k]``: two parameter sets the data cannot tell apart, as far apart along ``k`` as the
+    posterior reaches.
+
+    Args:
+        x: ``(N, dim)`` importance samples (any units); weights: ``(N,)`` their normalized
+            weights; ssr: ``(N,)`` their sums of squared residuals, um^2 (inf where the model
+            failed); k: the parameter's column.
+    Returns:
+        the two sample indices ``(low end, high end)``.
+    Raises:
+        ValueError: when no sample qualifies (all weights zero or all fits failed), or the
+            qualifying samples do not spread along ``k``.
+    """
+    from solderpyro.exact import weighted_quantiles
+
+    x, w, ssr = np.asarray(x, float), np.asarray(weights, float), np.asarray(ssr, float)
+    ok = np.isfinite(ssr) & (w > 0)
+    if not ok.any():
+        raise ValueError("ridge_ends: no sample with a positive weight and a finite fit")
+    lo, hi = weighted_quantiles(x[ok, k], w[ok], (0.025, 0.975))
+    med = weighted_quantiles(ssr[ok], w[ok], (0.5,))[0]
+    inside = ok & (x[:, k] >= lo) & (x[:, k] <= hi)
+    good = inside & (ssr <= med)
+    idx = np.nonzero(good if good.sum() >= 2 else inside)[0]
+    i_lo, i_hi = int(idx[np.argmin(x[idx, k])]), int(idx[np.argmax(x[idx, k])])
+    if x[i_lo, k] == x[i_hi, k]:
+        raise ValueError(f"ridge_ends: the posterior has no spread in column {k} (its weight "
+                         "sits on one sample)")
+    return i_lo, i_hi
+
+
+def identifiability(setup: Setup, effects: tuple[str, ...], space: Box, rows: list[dict],
+                    ex: Any, meas: Measurements, sigma: float) -> dict[str, Any]:
+    """Which parameters do the data leave weakly identified, and what would narrow them?
+
+    A parameter whose FE-exact 95 % interval spans at least :data:`WEAK_SHARE` of its prior box
+    (unit scale) lies along a ridge of the FE's likelihood: its interval is set as much by the
+    prior box and the ridge's volume as by the data, and may miss the truth although the model
+    fits. For the weakest one, two importance samples at the ends of its interval that fit as
+    well as the posterior's bulk (:func:`ridge_ends`) are run through the FE over the outputs
+    not yet measured (:func:`solderpyro.diagnose.run.separation_options`): where they differ
+    by many noise sd, that measurement would narrow the posterior.
+
+    Args:
+        effects: the switched-on effects in the order of their parameters in ``space``.
+        space: the calibrated box; rows: the FE-exact summary rows (parameter, q2.5, q97.5).
+        ex: the :class:`~solderpyro.exact.ExactPosterior`; meas: the data; sigma: noise sd, um.
+    Returns:
+        ``{"weak": [{"parameter", "share_of_box", "bound_by_prior"}], "ends": {...},
+        "options": [...], "advice"}`` (``ends``/``options`` only when a parameter is weak).
+    """
+    from solderpyro.diagnose.run import APART_CHI2, separation_options
+
+    if not sigma > 0:
+        raise ValueError(f"identifiability: sigma must be > 0 um, got {sigma}")
+    by = {r["parameter"]: r for r in rows}
+    weak: list[dict[str, Any]] = []
+    bound_only: list[dict[str, Any]] = []
+    lo_b, hi_b = np.array(space.lower, float), np.array(space.upper, float)
+    for k, nm in enumerate(space.names):
+        q = np.array([by[nm]["q2.5"], by[nm]["q97.5"]], float)
+        if space.log_scale and space.log_scale[k]:
+            u = np.log(q / lo_b[k]) / np.log(hi_b[k] / lo_b[k])
+        else:
+            u = (q - lo_b[k]) / (hi_b[k] - lo_b[k])
+        share = float(u[1] - u[0])
+        bound = [side for side, hit in (("lower", u[0] <= EDGE_SHARE),
+                                        ("upper", u[1] >= 1 - EDGE_SHARE)) if hit]
+        if share >= WEAK_SHARE:
+            weak.append({"parameter": nm, "share_of_box": share, "bound_by_prior": bound})
+        elif bound:
+            bound_only.append({"parameter": nm, "share_of_box": share, "bound_by_prior": bound})
+    info: dict[str, Any] = {"weak": weak, "weak_share": WEAK_SHARE, "at_bound": bound_only}
+    if not weak:
+        info["advice"] = ("every parameter's 95 % interval spans less than "
+                          f"{WEAK_SHARE:.0%} of its prior box")
+        return info
+    top = max(weak, key=lambda v: v["share_of_box"])
+    nm, bound_k = top["parameter"], top["bound_by_prior"]
+    k = list(space.names).index(nm)
+    unit = f" {space.units[k]}" if space.units and space.units[k] else ""
+    head = (f"{nm} is weakly identified by these data: its 95 % interval "
+            f"[{by[nm]['q2.5']:.4g}, {by[nm]['q97.5']:.4g}]{unit} spans "
+            f"{top['share_of_box']:.0%} of its prior box"
+            + (f" and reaches its {' and '.join(bound_k)} bound" if bound_k else ""))
+    try:
+        w = ex.result.weights()
+        ssr = np.asarray(ex.result.extra["ssr"], float)
+        i_lo, i_hi = ridge_ends(ex.samples, w, ssr, k)
+        X = ex.samples[[i_lo, i_hi]]
+        chi2 = (ssr[[i_lo, i_hi]] / sigma**2).tolist()
+        labels = [f"{nm} = {X[0, k]:.4g}", f"{nm} = {X[1, k]:.4g}"]
+        info["ends"] = {"parameter": nm, "x": X.tolist(), "chi2": chi2,
+                        "names": list(space.names)}
+        options, failed = separation_options(setup, effects, X, labels, meas, sigma)
+    except (RuntimeError, ValueError) as err:
+        info["advice"] = f"{head}; no measurement computed: {err}"
+        return info
+    info["options"] = options
+    head += (f"; posterior samples at its two ends ({labels[0]} and {labels[1]}, chi2 "
+             f"{chi2[0]:.0f} and {chi2[1]:.0f} on {len(meas)} values) fit as well as the "
+             "posterior's median sample, so the interval follows the prior box and the "
+             "ridge's width and may miss the truth")
+    if failed is not None:
+        info["advice"] = (f"{head}; no measurement computed: the FE at {', '.join(failed[0])} "
+                          f"did not converge on the extended outputs ({failed[1]})")
+    elif options and options[0]["chi2_apart"] >= APART_CHI2:
+        o = options[0]
+        info["advice"] = (f"{head}. To narrow it, measure {o['measurement']}: the two differ "
+                          f"there by up to {o['max_diff_um']:.3g} um "
+                          f"({o['max_diff_um'] / sigma:.1f} noise sd) at t = {o['time_s']:g} s, "
+                          f"point {o['point']} {tuple(round(v, 2) for v in o['xy_mm'])} mm; "
+                          f"expected chi-square between them "
+                          f"{o['chi2_apart']:.0f}")
+    else:
+        info["advice"] = (f"{head}. No measurement tried (points at the extended times, the "
+                          "full field at the measured and extended times) separates them; "
+                          "another test (a different cycle or dwell) is needed")
+    return info
+
+
 @dataclass
 class SpecimenCalibration:
     """What :func:`calibrate_specimen` produced (files are in ``out``)."""
@@ -488,7 +623,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                        refine_rounds: int = 1, inputs: str = "raw", inputs_T_C: float = 125.0,
                        inputs_rate: float = 1e-5, local: bool = False,
                        local_sd: float = 3.5, exact_rounds: int = 3,
-                       exact_profile: int = 9) -> SpecimenCalibration:
+                       exact_profile: int = 9, profile_ci: bool = False
+                       ) -> SpecimenCalibration:
     """Calibrate ``setup.space`` (default s0, QR, xi, m) against ``meas``.
 
     Args:
@@ -508,7 +644,13 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
             profile). Writes ``exact_posterior.csv`` (FE-exact vs surrogate quantiles) and
             ``exact_samples.npz``; when the weights are reliable (Pareto k-hat <= 0.7, ESS >=
             50), ``summary.csv``, ``draws.npz`` and the predictive are the FE-exact posterior's
-            and the surrogate's summary moves to ``summary_surrogate.csv``.
+            and the surrogate's summary moves to ``summary_surrogate.csv``. A parameter whose
+            FE-exact interval spans >= :data:`WEAK_SHARE` of its box is reported with the
+            measurement that would narrow it (:func:`identifiability`).
+        profile_ci: with ``exact``, 95 % profile-likelihood confidence intervals of every
+            calibrated parameter through the FE (:func:`solderpyro.exact.profile_intervals`,
+            started from the FE-exact samples; every FE run kept in the store): written to
+            ``profile_ci.csv`` (with the posterior's interval beside) and run.json.
         record: how the run was asked for (e.g. ``{"overrides": [...]}``), kept in
             ``run.json`` so that ``solderpyro diagnose`` can rebuild the model.
         refine: FE runs added per refinement round: half a Latin hypercube around the FE's
@@ -542,6 +684,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                          "in the local region)")
     if not local_sd > 0:
         raise ValueError(f"calibrate_specimen: local_sd must be > 0, got {local_sd}")
+    if profile_ci and exact <= 0:
+        raise ValueError("calibrate_specimen: profile_ci=True needs exact > 0 (the profiles "
+                         "start from the FE-exact posterior's samples)")
     if exact < 0 or exact == 1 or exact_rounds < 1 or exact_profile < 0 or exact_profile == 1:
         raise ValueError(f"calibrate_specimen: need exact = 0 or >= 2, exact_rounds >= 1 and "
                          f"exact_profile = 0 or >= 2, got exact={exact}, exact_rounds="
@@ -757,6 +902,13 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                             f"in the likelihood, {ex_info['fe_runs']} FE runs, ESS "
                             f"{ex_info['ess']:.0f}, Pareto k-hat {ex_info['khat']:.2f}); the "
                             f"surrogate's is in summary_surrogate.csv")
+        ident = (ex_info or {}).get("identifiability") or {}
+        if saved is not None and ident.get("weak"):
+            notes.append("weakly identified by these data (95 % interval over >= "
+                         f"{WEAK_SHARE:.0%} of the prior box): "
+                         + ", ".join(v["parameter"] for v in ident["weak"])
+                         + "; see 'Identifiability' below for the measurement that would "
+                         "narrow them")
         if region is not None:
             assert local_info
             notes.append(
@@ -805,6 +957,15 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                 by = {r["parameter"]: r for r in ex.rows}
                 rows = [{**by[r["parameter"]], "r_hat": float("nan"),
                          "ess_bulk": ex_info["ess"], "ess_tail": ex_info["ess"]} for r in rows]
+                try:  # which parameters lie along a ridge, and what would narrow them
+                    ex_info["identifiability"] = identifiability(
+                        setup, fx.keys if fx is not None else (), space, rows, ex, meas,
+                        float(np.median(ex.sigma)))
+                except Exception as err:  # advisory: never lose the run's files over it
+                    log.warning("identifiability not computed", exc_info=True)
+                    ex_info["identifiability"] = {"weak": [], "advice": "identifiability not "
+                                                  f"computed: {err!r}"}
+                log.info("identifiability: %s", ex_info["identifiability"]["advice"])
                 gen = torch.Generator().manual_seed(seed)
                 Vt, st = torch.as_tensor(ex.V), torch.as_tensor(ex.sigma)
                 bands = Bands(Vt, Vt + st[:, None] * torch.randn(
@@ -819,6 +980,34 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                        f"larger --exact")
                 log.warning(msg)
                 problems = [*problems, msg]
+            if profile_ci:
+                write_all(rows, bands, problems, ex, ex_info, ex_rows)  # safe before the profiles
+                sig_p = float(np.median(ex.sigma))
+                log.info("profile CI: 95 %% profile-likelihood intervals of %d parameters "
+                         "through the FE (sigma %.4g um)", space.dim, sig_p)
+                from solderpyro.exact import profile_intervals
+
+                try:
+                    pci = profile_intervals(fe_fun, space, y_obs.numpy(), sig_p, ex.samples,
+                                            np.asarray(ex.result.extra["ssr"], float))
+                except (RuntimeError, ValueError) as err:
+                    log.warning("the profile-likelihood intervals failed: %s", err)
+                    problems = [*problems, f"the profile-likelihood intervals failed: {err}"]
+                else:
+                    ex_info["profile_ci"] = [p.as_dict() for p in pci]
+                    ex_info["profile_ci_sigma_um"] = sig_p
+                    by = {r["parameter"]: r for r in rows}
+                    pci_rows = [{"parameter": p.parameter, "lower": p.lower, "upper": p.upper,
+                                 "at_lower_bound": str(p.at_lower_bound).lower(),
+                                 "at_upper_bound": str(p.at_upper_bound).lower(),
+                                 "truncated": str(p.truncated).lower(),
+                                 "posterior_q2.5": by[p.parameter]["q2.5"],
+                                 "posterior_q97.5": by[p.parameter]["q97.5"]} for p in pci]
+                    write_summary(pci_rows, out / "profile_ci.csv", tuple(pci_rows[0]))
+                    for p in pci:
+                        log.info("profile CI: %s in [%.4g, %.4g]%s", p.parameter, p.lower,
+                                 p.upper, " (reaches the box's bound)"
+                                 if p.at_lower_bound or p.at_upper_bound else "")
             write_all(rows, bands, problems, ex, ex_info, ex_rows)
     print(format_summary(rows))
     return SpecimenCalibration(out, post, rows, loo, int(ok.sum()), int((~ok).sum()))

@@ -302,6 +302,18 @@ def anand_update(eps, eps_p, s_n, X_n, p, T, dt, eps_th, E, nu, C_k, guess, tang
             r(dep), r(x, 2), tan)
 
 
+def _element_call(u: torch.Tensor, B: torch.Tensor) -> tuple[ctypes.CDLL, tuple[int, int, int]]:
+    """The library and the point-array shape ``(b, n_e, n_qp)`` of an element-wise call on
+    ``u (b, n_r)`` with strain operators ``B (n_e, n_qp, ...)``; at most :data:`MAX_QP`
+    points per element (the kernels' stack buffers)."""
+    lib = library()
+    assert lib is not None
+    n_e, n_qp = B.shape[:2]
+    if n_qp > MAX_QP:
+        raise ValueError(f"at most {MAX_QP} points per element, got {n_qp}")
+    return lib, (u.shape[0], n_e, n_qp)
+
+
 def solder_eval(u, ezz, edof, B, Bw, S_border, state, p, T, dt, eps_th, E, nu, C_k, guess,
                 plane_stress: bool, simd: bool = True):
     """Fused evaluation of a solder layer: strains, the Anand update (:func:`anand_update`),
@@ -326,13 +338,9 @@ def solder_eval(u, ezz, edof, B, Bw, S_border, state, p, T, dt, eps_th, E, nu, C
         dep, x (..., 2), (K, g2, coef, nb (..., 4)), f (b, n_r))``; stresses MPa, forces
         ``f = S u + sum_e Bw^T sigma_ip`` (N/mm) on the retained dofs.
     """
-    lib = library()
-    assert lib is not None
+    lib, shape = _element_call(u, B)
     b, n_r = u.shape
-    n_e, n_qp = B.shape[:2]
-    if n_qp > MAX_QP:
-        raise ValueError(f"at most {MAX_QP} points per element, got {n_qp}")
-    shape = (b, n_e, n_qp)
+    n_e, n_qp = shape[1:]
     n = b * n_e * n_qp
     tkw = dict(dtype=torch.float64, device=u.device)
     flat = lambda t, *w: torch.broadcast_to(t, (*shape, *w)).reshape(n, *w).contiguous()  # noqa: E731
@@ -376,13 +384,9 @@ def dezz(du, szz, edof, B, tangent):
     Returns:
         ``(b, n_e, n_qp)`` eps_zz update.
     """
-    lib = library()
-    assert lib is not None
+    lib, shape = _element_call(du, B)
     b, n_r = du.shape
-    n_e, n_qp = B.shape[:2]
-    if n_qp > MAX_QP:
-        raise ValueError(f"at most {MAX_QP} points per element, got {n_qp}")
-    shape = (b, n_e, n_qp)
+    n_e, n_qp = shape[1:]
     tg = [torch.broadcast_to(t, (*shape, 4) if i == 3 else shape).contiguous()
           for i, t in enumerate(tangent)]
     szc = torch.broadcast_to(szz, shape).contiguous()

@@ -464,17 +464,72 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
     data) explains the data about equally well. The FE is run at each fit over a richer set of
     outputs (V at the points and on the 31 x 18 grid, at the measured and the extended times);
     for each candidate measurement (what it adds to the data) the fits' predictions are
-    compared: where they differ by many noise sd, that measurement separates them.
+    compared: where they differ by many noise sd, that measurement separates them
+    (:func:`separation_options`).
 
     Args:
         fits: :func:`profile_fits`'s output (rows laid out as calibrated parameters, then the
             candidates' parameters bound to the measured times); group: effect names (>= 2).
         meas: the data; sigma: noise sd, um.
     Returns:
-        ``{"effects", "options": [{"measurement", "n_new", "rms_diff_um", "max_diff_um",
-        "time_s", "point", "xy_mm", "chi2_apart"}, ...] best first, "advice"}``; chi2_apart is
-        ``sum((V_a - V_b)^2) / sigma^2`` of the worst-separated pair over the new values (the
-        expected chi-square by which the right effect would win; APART_CHI2 is needed).
+        ``{"effects", "options": [{"measurement", "n_new", "pair", "rms_diff_um",
+        "max_diff_um", "time_s", "point", "xy_mm", "chi2_apart"}, ...] best first,
+        "advice"}``; chi2_apart is ``sum((V_a - V_b)^2) / sigma^2`` of the worst-separated pair
+        over the new values (the expected chi-square by which the right effect would win;
+        APART_CHI2 is needed).
+    """
+    options: list[dict[str, Any]] = []
+    if len(group) >= 2:
+        X = np.array([fits[g]["x"] for g in group])
+        options, failed = separation_options(setup, tuple(run_effects) + tuple(candidates), X,
+                                             list(group), meas, sigma)
+        if failed is not None:
+            return {"effects": list(group), "options": [],
+                    "advice": f"the FE at the best fit of {', '.join(failed[0])} did not "
+                              f"converge on the extended outputs ({failed[1]}); no separation "
+                              "computed"}
+    who = " and ".join([", ".join(group[:-1]), group[-1]]) if len(group) > 1 else group[0]
+    if options and options[0]["chi2_apart"] >= APART_CHI2:
+        o = options[0]
+        advice = (f"to tell {who} apart, measure {o['measurement']}: their best fits to these "
+                  f"data differ there by up to {o['max_diff_um']:.3g} um "
+                  f"({o['max_diff_um'] / sigma:.1f} noise sd) at t = {o['time_s']:g} s, point "
+                  f"{o['point']} {tuple(round(v, 2) for v in o['xy_mm'])} mm; expected "
+                  f"chi-square between them {o['chi2_apart']:.0f} (>= {APART_CHI2:.1f} "
+                  "decides)")
+    else:
+        advice = (f"{who}: no measurement tried (points at the extended times, the full field "
+                  "at the measured and extended times) separates their best fits by the "
+                  f"chi-square {APART_CHI2:.1f} needed; another test (a different temperature "
+                  "cycle or dwell) is needed")
+    return {"effects": list(group), "options": options, "advice": advice}
+
+
+def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
+                       labels: list[str], meas: Any, sigma: float
+                       ) -> tuple[list[dict[str, Any]], tuple[list[str], str] | None]:
+    """Where would new measurements tell apart parameter sets that fit ``meas`` equally well?
+
+    The FE is run at each row of ``X`` over a richer set of outputs (V at the points and on
+    the 31 x 18 grid, at the measured and the extended times, one batched solve); for each
+    candidate measurement (what it adds to the data: the points at the extended times, the
+    full field at the measured times, the full field at the extended times) the rows'
+    predictions are compared pairwise over the new values only.
+
+    Args:
+        effects: the switched-on effects, in the order of their parameters in ``X``.
+        X: ``(g, dim)`` parameter rows (g >= 2): the Anand constants of ``setup.space``, then
+            the effects' parameters bound to the measured times; labels: ``g`` names of them.
+        meas: the data (which values exist already); sigma: noise sd, um.
+    Returns:
+        ``(options, failed)``: options ``[{"measurement", "n_new", "pair", "rms_diff_um",
+        "max_diff_um", "time_s", "point", "xy_mm", "chi2_apart"}, ...]`` best first, where
+        ``chi2_apart = sum((V_a - V_b)^2) / sigma^2`` over the new values of the pair that is
+        hardest to separate; failed: None, or ``(labels, reason)`` of the rows where the FE did
+        not converge (then no options).
+    Raises:
+        ValueError: fewer than two rows, a label count that differs, or a column count that is
+            not the Anand constants' plus the effects' parameters.
     """
     from solderpyro.effects import effect_set
     from solderpyro.fem.loading import EXTENDED_TIMES
@@ -482,25 +537,32 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
     from solderpyro.fem.solver import SpecimenSolver
     from solderpyro.workflow import fe_params
 
+    if len(X) < 2 or len(labels) != len(X):
+        raise ValueError(f"separation_options: need >= 2 rows and one label per row, got "
+                         f"{len(X)} rows and {len(labels)} labels")
     t_meas = tuple(sorted(float(t) for t in meas.times()))
     t_ext = tuple(t for t in EXTENDED_TIMES if t <= setup.problem.cycle.end)
     t_u = tuple(sorted(set(t_meas) | set(t_ext)))
-    names = tuple(run_effects) + tuple(candidates)
-    fx_m = effect_set(names, t_meas, setup.effect_bounds)
-    fx_u = effect_set(names, t_u, setup.effect_bounds)
     n_a = setup.space.dim
-    X = torch.tensor(np.array([fits[g]["x"] for g in group]), dtype=torch.float64)
-    rows = torch.cat([X[:, :n_a], fx_m.rebind_params(X[:, n_a:], t_meas, t_u)], 1)
+    Xt = torch.as_tensor(np.asarray(X, float), dtype=torch.float64)
+    fx_m = effect_set(tuple(effects), t_meas, setup.effect_bounds) if effects else None
+    n_cols = n_a + (fx_m.n_params if fx_m is not None else 0)
+    if Xt.ndim != 2 or Xt.shape[1] != n_cols:
+        raise ValueError(f"separation_options: X must have {n_cols} columns (the Anand "
+                         f"constants, then the parameters of {list(effects)} at the measured "
+                         f"times), got shape {tuple(Xt.shape)}")
+    if fx_m is not None:
+        fx_u = effect_set(tuple(effects), t_u, setup.effect_bounds)
+        rows = torch.cat([Xt[:, :n_a], fx_m.rebind_params(Xt[:, n_a:], t_meas, t_u)], 1)
+    else:
+        fx_u, rows = None, Xt[:, :n_a]
     grid = reference_grid()
     solver = SpecimenSolver(setup.problem, grid, dtype=setup.dtype, device=setup.device,
-                            effects=fx_u)
+                            effects=fx_u or ())
     res = solver.solve(fe_params(setup, rows), t_u)
     if not bool(res.ok.all()):
-        bad = [g for g, ok in zip(group, res.ok.tolist(), strict=True) if not ok]
-        return {"effects": list(group), "options": [],
-                "advice": f"the FE at the best fit of {', '.join(bad)} did not converge on the "
-                          f"extended outputs ({next(r for r in res.reasons if r)}); no separation "
-                          "computed"}
+        bad = [g for g, ok in zip(labels, res.ok.tolist(), strict=True) if not ok]
+        return [], (bad, next(r for r in res.reasons if r))
     V = res.V.detach().cpu().numpy()  # (g, T, n_out)
     times = [float(t) for t in res.times.tolist()]
     out_names = list(res.names)
@@ -527,15 +589,15 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
             continue  # nothing new, or the same values as an option already listed
         seen.append(mask)
         worst: dict[str, Any] | None = None
-        for a in range(len(group)):
-            for b in range(a + 1, len(group)):
+        for a in range(len(X)):
+            for b in range(a + 1, len(X)):
                 dV = np.where(mask, V[a] - V[b], 0.0)
                 c2 = float((dV**2).sum() / sigma**2)
                 if worst is None or c2 < worst["chi2_apart"]:
                     ti, oj = (int(v) for v in np.unravel_index(int(np.argmax(np.abs(dV))),
                                                                 dV.shape))
                     worst = {"measurement": label, "n_new": int(mask.sum()),
-                             "pair": [group[a], group[b]],
+                             "pair": [labels[a], labels[b]],
                              "rms_diff_um": float(np.sqrt((dV[mask] ** 2).mean())),
                              "max_diff_um": float(np.abs(dV[ti, oj])), "time_s": times[ti],
                              "point": out_names[oj], "xy_mm": list(xy.get(out_names[oj], ())),
@@ -543,21 +605,7 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
         if worst is not None:
             options.append(worst)
     options.sort(key=lambda o: -o["chi2_apart"])
-    who = " and ".join([", ".join(group[:-1]), group[-1]]) if len(group) > 1 else group[0]
-    if options and options[0]["chi2_apart"] >= APART_CHI2:
-        o = options[0]
-        advice = (f"to tell {who} apart, measure {o['measurement']}: their best fits to these "
-                  f"data differ there by up to {o['max_diff_um']:.3g} um "
-                  f"({o['max_diff_um'] / sigma:.1f} noise sd) at t = {o['time_s']:g} s, point "
-                  f"{o['point']} {tuple(round(v, 2) for v in o['xy_mm'])} mm; expected "
-                  f"chi-square between them {o['chi2_apart']:.0f} (>= {APART_CHI2:.1f} "
-                  "decides)")
-    else:
-        advice = (f"{who}: no measurement tried (points at the extended times, the full field "
-                  "at the measured and extended times) separates their best fits by the "
-                  f"chi-square {APART_CHI2:.1f} needed; another test (a different temperature "
-                  "cycle or dwell) is needed")
-    return {"effects": list(group), "options": options, "advice": advice}
+    return options, None
 
 
 def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],

@@ -130,7 +130,8 @@ def test_demo_command_runs_tiny(tmp_path):
     out = tmp_path / "again"
     assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(out),
                  "--store", str(tmp_path / "store"), "--exact", "6", "--exact-rounds", "2",
-                 "--exact-profile", "3", "--refine", "5", *CAL_TINY, *TINY]) == 0
+                 "--exact-profile", "3", "--refine", "5", "--profile-ci", *CAL_TINY,
+                 *TINY]) == 0
     assert "(11 reused from the run store, 0 computed)" in (out / "report.md").read_text()
     # every FE run of the FE-exact step is in the store (the importance samples included)
     from solderpyro.store import param_hash
@@ -153,6 +154,22 @@ def test_demo_command_runs_tiny(tmp_path):
     ex_info = info["exact"]
     assert info["posterior"] == ("fe-exact" if ex_info["reliable"] else "surrogate")
     assert len(ex_info["rounds"]) == 2 and ex_info["samples"] == 12
+    # --profile-ci: a profile-likelihood interval per calibrated parameter inside the box, each
+    # end flagged when it is the box's bound; every profile fit's FE run is in the store
+    pci = (out / "profile_ci.csv").read_text().splitlines()
+    assert pci[0] == ("parameter,lower,upper,at_lower_bound,at_upper_bound,truncated,"
+                      "posterior_q2.5,posterior_q97.5")
+    box = build(compose(TINY)).space
+    assert [r.split(",")[0] for r in pci[1:]] == list(box.names)
+    for r, lo_b, hi_b in zip(pci[1:], box.lower, box.upper, strict=True):
+        f = r.split(",")
+        lo, hi = float(f[1]), float(f[2])
+        assert lo_b - 1e-9 <= lo <= hi <= hi_b + 1e-9
+        assert f[3] in ("true", "false") and (f[3] == "true") == (abs(lo - lo_b) < 1e-6)
+        assert (f[4] == "true") == (abs(hi - hi_b) < 1e-6)
+    assert len(ex_info["profile_ci"]) == 4
+    n_prof = sum(len(p["grid"]) for p in ex_info["profile_ci"])
+    assert len(names) >= len(stored) + int(inside.sum()) + n_prof
     assert len(ex_info["profile"]["values"]) >= 3
     fit = info["fe_best_fit"]
     assert fit["chi2"] <= fit["chi2_at_posterior_median"] + 1e-9  # LM never goes uphill
@@ -233,7 +250,7 @@ def test_calibrate_names_bad_refinement_flags(tmp_path, capsys):
     good = tmp_path / "good.csv"
     good.write_text("time_s,temperature_C,point,x_mm,y_mm,quantity,value_um,sigma_um\n"
                     "600,75,A,15,4.5,V,7.7,0.05\n")
-    for flags, name in ((["--exact", "1"], "--exact"),
+    for flags, name in ((["--exact", "1"], "--exact"), (["--profile-ci"], "--profile-ci"),
                         (["--exact", "8", "--exact-rounds", "0"], "--exact-rounds"),
                         (["--exact", "8", "--exact-profile", "1"], "--exact-profile"),
                         (["--local"], "--local"), (["--refine", "4", "--local", "--local-sd",
