@@ -30,6 +30,7 @@ from solderpyro.calibration import Priors
 from solderpyro.configure import build, compose
 from solderpyro.coords import sampling_coords
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
+from solderpyro.exact import profile_intervals
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
@@ -54,6 +55,9 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=128, help="FE runs per AMIS round")
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--profile", type=int, default=9)
+    ap.add_argument("--profile-ci", action="store_true",
+                    help="also the 95 %% profile-likelihood intervals through the FE "
+                         "(solderpyro.exact.profile_intervals) and whether they hold the truth")
     ap.add_argument("--work", default="runs/coverage_exact")
     ap.add_argument("--out", default="benchmarks/results_coverage_exact.json")
     a = ap.parse_args()
@@ -66,7 +70,8 @@ def main() -> None:
         seeds = [int(v) for v in a.seeds.split(",")]
     out = Path(a.out)
     done = json.loads(out.read_text()) if out.exists() else {"cases": []}
-    seen = {(c["effect"], c["seed"], c.get("times", "seed")) for c in done["cases"]}
+    seen = {(c["effect"], c["seed"], c.get("times", "seed"), "profile_ci" in c)
+            for c in done["cases"]}
     times = tuple(SEED_TIMES if a.times == "seed" else EXTENDED_TIMES)
     ov = [f"loading.output_times=[{','.join(str(t) for t in times)}]", f"effects=[{a.effect}]"]
     setup = build(compose(ov))
@@ -79,7 +84,7 @@ def main() -> None:
     base = build(compose([]))
     start = None
     for seed in seeds:
-        if (a.effect, seed, a.times) in seen:
+        if (a.effect, seed, a.times, a.profile_ci) in seen:
             continue
         t0 = time.perf_counter()
         d = Path(a.work) / a.effect / (f"seed{seed}" if a.times == "seed"
@@ -104,6 +109,15 @@ def main() -> None:
         ex, info = fe_exact(fun, coords, y, Priors(sigma_known=0.05), None, start, a.n,
                             a.rounds, a.profile, seed, lm_iters=15 if first else 4)
         start = np.array([info["best_fit"]["x"]])  # the next dataset starts from this fit
+        prof: dict = {}
+        if a.profile_ci:
+            pci = profile_intervals(fun, space, y.numpy(), 0.05, ex.samples,
+                                    np.asarray(ex.result.extra["ssr"], float))
+            prof = {"profile_ci": {p.parameter: [p.lower, p.upper] for p in pci},
+                    "covered_profile_ci": {p.parameter: p.lower <= truth[p.parameter] <= p.upper
+                                           for p in pci},
+                    "profile_at_bound": {p.parameter: [p.at_lower_bound, p.at_upper_bound]
+                                         for p in pci}}
         rows = {r["parameter"]: r for r in ex.rows}
         rec = {"effect": a.effect, "seed": seed, "times": a.times, "n_obs": len(y),
                "truth": truth,
@@ -112,10 +126,13 @@ def main() -> None:
                "covered": {k: rows[k]["q2.5"] <= v <= rows[k]["q97.5"]
                            for k, v in truth.items()},
                "ess": info["ess"], "khat": info["khat"], "reliable": info["reliable"],
-               "fe_runs": info["fe_runs"], "best_chi2": info["best_fit"]["chi2"],
+               "fe_runs": info["fe_runs"], "best_chi2": info["best_fit"]["chi2"], **prof,
                "seconds": time.perf_counter() - t0}
         # re-read: another process (another effect or times) may have written meanwhile
         done = json.loads(out.read_text()) if out.exists() else {"cases": []}
+        done["cases"] = [c for c in done["cases"]  # a rerun (e.g. with --profile-ci) replaces
+                         if (c["effect"], c["seed"], c.get("times", "seed"))
+                         != (a.effect, seed, a.times)]
         done["cases"].append(rec)
         cov: dict[str, list[bool]] = {}
         for c in done["cases"]:
@@ -124,6 +141,15 @@ def main() -> None:
                     cov.setdefault(k, []).append(v)
         done.setdefault("coverage_by_case", {})[f"{a.effect}/{a.times}"] = {
             k: float(np.mean(v)) for k, v in cov.items()}
+        pc: dict[str, list[bool]] = {}
+        for c in done["cases"]:
+            if (c["effect"], c.get("times", "seed")) == (a.effect, a.times) \
+                    and "covered_profile_ci" in c:
+                for k, v in c["covered_profile_ci"].items():
+                    pc.setdefault(k, []).append(v)
+        if pc:
+            done.setdefault("profile_ci_coverage_by_case", {})[f"{a.effect}/{a.times}"] = {
+                k: float(np.mean(v)) for k, v in pc.items()}
         done.setdefault("commands", {})[f"{a.effect}/{a.times}"] = \
             "python benchmarks/coverage_exact.py " + " ".join(
             f"--{k} {v}" for k, v in vars(a).items())

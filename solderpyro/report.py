@@ -203,7 +203,9 @@ def _exact_section(rows: list[dict], exact: tuple, save: Any,
                          + f" | {note or '–'} |")
     ident = info.get("identifiability")
     if ident:
-        lines += ["", "### Identifiability: what the data leave open", "", ident["advice"]]
+        adv = ident["advice"]
+        lines += ["", "### Identifiability: what the data leave open", "",
+                  adv[:1].upper() + adv[1:]]
         if ident.get("options"):
             lines += ["", "| measurement to add | new values | max difference (um) | at t (s), "
                       "point | expected chi-square between the two ends |", "|---|---|---|---|---|"]

@@ -649,7 +649,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
             measurement that would narrow it (:func:`identifiability`).
         profile_ci: with ``exact``, 95 % profile-likelihood confidence intervals of every
             calibrated parameter through the FE (:func:`solderpyro.exact.profile_intervals`,
-            started from the FE-exact samples; every FE run kept in the store): written to
+            started from the FE-exact samples, with the noise sd the data state, else the
+            posterior median's; every FE run kept in the store): written to
             ``profile_ci.csv`` (with the posterior's interval beside) and run.json.
         record: how the run was asked for (e.g. ``{"overrides": [...]}``), kept in
             ``run.json`` so that ``solderpyro diagnose`` can rebuild the model.
@@ -982,7 +983,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                 problems = [*problems, msg]
             if profile_ci:
                 write_all(rows, bands, problems, ex, ex_info, ex_rows)  # safe before the profiles
-                sig_p = float(np.median(ex.sigma))
+                # the noise sd the data state (as the FE check), else the posterior's
+                sig_p = float(pr.sigma_known or np.median(ex.sigma))
                 log.info("profile CI: 95 %% profile-likelihood intervals of %d parameters "
                          "through the FE (sigma %.4g um)", space.dim, sig_p)
                 from solderpyro.exact import profile_intervals
