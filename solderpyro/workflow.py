@@ -269,7 +269,7 @@ def identifiability(setup: Setup, effects: tuple[str, ...], space: Box, rows: li
     top = max(weak, key=lambda v: v["share_of_box"])
     nm, bound_k = top["parameter"], top["bound_by_prior"]
     k = list(space.names).index(nm)
-    unit = f" {space.units[k]}" if space.units and space.units[k] else ""
+    unit = f" {space.units[k]}" if space.units and space.units[k] not in ("", "-") else ""
     head = (f"{nm} is weakly identified by these data: its 95 % interval "
             f"[{by[nm]['q2.5']:.4g}, {by[nm]['q97.5']:.4g}]{unit} spans "
             f"{top['share_of_box']:.0%} of its prior box"
@@ -961,7 +961,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                 try:  # which parameters lie along a ridge, and what would narrow them
                     ex_info["identifiability"] = identifiability(
                         setup, fx.keys if fx is not None else (), space, rows, ex, meas,
-                        float(np.median(ex.sigma)))
+                        float(pr.sigma_known or np.median(ex.sigma)))
                 except Exception as err:  # advisory: never lose the run's files over it
                     log.warning("identifiability not computed", exc_info=True)
                     ex_info["identifiability"] = {"weak": [], "advice": "identifiability not "
