@@ -47,12 +47,8 @@ def _calibrate(overrides, data, out, a, refit=False):
 
 
 def _covered(run_dir: Path, truth: dict) -> dict:
-    import csv
-
-    with open(run_dir / "summary.csv", newline="") as fh:
-        rows = {r["parameter"]: r for r in csv.DictReader(fh)}
-    return {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
-            for k, v in truth.items() if k in rows}
+    iv = _intervals(run_dir)
+    return {k: iv[k][0] <= v <= iv[k][1] for k, v in truth.items() if k in iv}
 
 
 def _intervals(run_dir: Path) -> dict:

@@ -247,13 +247,11 @@ def identifiability(setup: Setup, effects: tuple[str, ...], space: Box, rows: li
     by = {r["parameter"]: r for r in rows}
     weak: list[dict[str, Any]] = []
     bound_only: list[dict[str, Any]] = []
-    lo_b, hi_b = np.array(space.lower, float), np.array(space.upper, float)
+    # the intervals' ends on the box's unit scale (Box.to_unit is column by column)
+    U = space.to_unit(torch.tensor([[by[nm][q] for nm in space.names] for q in ("q2.5", "q97.5")],
+                                   dtype=torch.float64)).numpy()
     for k, nm in enumerate(space.names):
-        q = np.array([by[nm]["q2.5"], by[nm]["q97.5"]], float)
-        if space.log_scale and space.log_scale[k]:
-            u = np.log(q / lo_b[k]) / np.log(hi_b[k] / lo_b[k])
-        else:
-            u = (q - lo_b[k]) / (hi_b[k] - lo_b[k])
+        u = U[:, k]
         share = float(u[1] - u[0])
         bound = [side for side, hit in (("lower", u[0] <= EDGE_SHARE),
                                         ("upper", u[1] >= 1 - EDGE_SHARE)) if hit]
