@@ -168,7 +168,7 @@ def cmd_koh(a, overrides) -> int:
     from .calibration.tables import koh_from_tables
 
     koh_from_tables(a.sim, a.obs, _names(a.x), _names(a.t), a.y, a.out, mode=a.mode,
-                    discrepancy=a.discrepancy, sampler=a.sampler, **_nuts_args(a))
+                    discrepancy=a.discrepancy, **_nuts_args(a))
     print(f"\nsummary: {Path(a.out) / 'summary.csv'}")
     return 0
 
@@ -324,10 +324,6 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--out", required=True, help="output directory")
     k.add_argument("--mode", default="joint", help="joint (seed, Eq. 5-8) | modular")
     k.add_argument("--discrepancy", action="store_true", help="add a GP discrepancy delta(x)")
-    k.add_argument("--sampler", default="pyro", choices=("pyro", "fast"),
-                   help="pyro: Pyro's NUTS (any mode); fast: solderpyro's NumPy NUTS on the "
-                   "analytic gradient (joint mode without discrepancy; 11-15x Pyro's effective "
-                   "samples per second, BENCHMARKS.md)")
     _add_nuts(k)
     c = sub.add_parser("calibrate", help="calibrate the Anand constants of the config's box "
                        "(default s0, QR, xi, m) against a measurement CSV: LHS DOE of FE runs "

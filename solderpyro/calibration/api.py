@@ -4,10 +4,12 @@
 - :func:`calibrate_modular`: a fitted GP, hyperparameters fixed, code uncertainty propagated.
 - :func:`calibrate_joint`: the seed's full joint over runs and observations (Eq. 5-8).
 
-NUTS runs through :func:`~solderpyro.calibration.mcmc.run_nuts`; ``sampler="fast"`` (a keyword
-passed on to it) samples the direct and the full-joint posteriors with the NumPy NUTS of
-:mod:`~solderpyro.calibration.nuts` on analytic gradients (:mod:`~solderpyro.calibration.fastkoh`),
-the same posterior several times faster; the default ``sampler="pyro"`` covers every mode.
+NUTS runs through :func:`~solderpyro.calibration.mcmc.run_nuts`, the one sampler: Stan's NUTS
+in NumPy (:mod:`~solderpyro.calibration.nuts`) on an analytic log density and gradient where
+one exists (direct and full joint: :mod:`~solderpyro.calibration.fastkoh`; modular PCA: the
+reduced likelihood of :mod:`~solderpyro.calibration.reduced`), else on Pyro's potential of the
+model with autograd; chains run in parallel processes; keywords such as ``chains``,
+``warmup``, ``draws``, ``full_mass``, ``workers`` and ``warm`` are passed on to it.
 
 Each returns draws in physical units: ``t`` ``(chain, draw, n_theta)`` labelled with the theta
 box's names, ``sigma``, and for the joint mode ``beta`` (output units), ``sigma_c`` and ``corr``
@@ -38,16 +40,17 @@ from solderpyro.calibration.koh import (
     prepare_joint,
     prepare_observation,
 )
-from solderpyro.calibration.mcmc import Posterior, run_nuts
+from solderpyro.calibration.mcmc import NutsRun, Posterior, run_nuts
 from solderpyro.params import Box
 from solderpyro.surrogate import GPSurrogate
 
 
-def _post(samples: dict[str, torch.Tensor], box: Box, divs: list[int], sec: float
-          ) -> Posterior:
+def _post(run: NutsRun, box: Box) -> Posterior:
+    samples = run.samples
     out = {"t": box.from_unit(samples[SITE_T])}
     out.update({k: v for k, v in samples.items() if k != SITE_T})
-    return Posterior(out, {"t": list(box.names)}, divs, sec, dict(samples))
+    return Posterior(out, {"t": list(box.names)}, run.divergences, run.seconds, dict(samples),
+                     warm=run.warm, stats=run.stats)
 
 
 def calibrate_direct(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
@@ -58,9 +61,9 @@ def calibrate_direct(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
 
     Args:
         x_obs: ``(n_obs, n_x)``; theta_box: calibration parameters and their flat-prior box.
-        nuts: passed to :func:`~solderpyro.calibration.mcmc.run_nuts`; ``sampler="fast"``
-            (no discrepancy, default priors) samples with the NumPy NUTS on the analytic
-            gradient (one torch backward pass through ``f`` per gradient).
+        nuts: passed to :func:`~solderpyro.calibration.mcmc.run_nuts` (without a discrepancy
+            and with the default priors the gradient is analytic: one torch backward pass
+            through ``f`` per gradient).
 
     Returns:
         the posterior and the model inputs (for :func:`predict_observation_model`).
@@ -103,8 +106,7 @@ def calibrate_emulator(emulator: Any, y_obs: torch.Tensor, theta_box: Box,
 
 
 def _run_obs(inp: ObsInputs, priors: Priors | None, nuts: dict) -> Posterior:
-    samples, divs, sec = run_nuts(observation_model, (inp, priors or Priors()), **nuts)
-    return _post(samples, inp.theta_box, divs, sec)
+    return _post(run_nuts(observation_model, (inp, priors or Priors()), **nuts), inp.theta_box)
 
 
 def calibrate_joint(data: CalibrationData, priors: Priors | None = None,
@@ -113,10 +115,9 @@ def calibrate_joint(data: CalibrationData, priors: Priors | None = None,
                     **nuts: Any) -> tuple[Posterior, JointInputs]:
     """The seed's full joint KOH calibration (t, sigma, beta, sigma_c, theta sampled together).
 
-    NUTS adapts a dense mass matrix here unless ``full_mass=False`` is passed.
-    ``sampler="fast"`` (passed on to :func:`~solderpyro.calibration.mcmc.run_nuts`) samples
-    with the NumPy NUTS on the analytic gradient: Gaussian kernel, constant mean, no
-    discrepancy and the default priors only (NotImplementedError otherwise).
+    NUTS adapts a dense mass matrix here unless ``full_mass=False`` is passed; the log density
+    is analytic for the Gaussian kernel, a constant mean, no discrepancy and the default
+    priors, else Pyro's potential with autograd (:func:`~.mcmc.run_nuts`).
 
     Returns:
         the posterior (beta drawn from its exact Gaussian conditional per draw, output units)
@@ -125,8 +126,7 @@ def calibrate_joint(data: CalibrationData, priors: Priors | None = None,
     pr = priors or Priors()
     inp = prepare_joint(data, kernel, mean, ard, discrepancy, nugget)
     nuts.setdefault("full_mass", True)  # sigma_c, theta and t are strongly correlated
-    samples, divs, sec = run_nuts(joint_model, (inp, pr), **nuts)
-    post = _post(samples, data.theta_box, divs, sec)
+    post = _post(run_nuts(joint_model, (inp, pr), **nuts), data.theta_box)
     post.samples["beta"] = _beta_draws(inp, post, pr, seed=int(nuts.get("seed", 0)))
     names = list(data.x_box.names) + list(data.theta_box.names)
     post.labels[SITE_CORR] = [f"theta_{n}" for n in names] if ard else ["theta"]

@@ -20,9 +20,10 @@ Unconstrained coordinates (Pyro's ``biject_to``): a site with support ``(lo, hi)
 site (LogNormal prior) is ``x = exp(u)``, log-Jacobian ``u``. The flat vector stacks the sites in
 the models' order: t_unit, sigma (then sigma_c, corr for the joint).
 
-Configurations these do not cover (custom priors, a discrepancy, GP or low-rank emulators,
-``corr_log``, a Matern kernel, a linear mean) raise :class:`NotImplementedError` naming the
-option, so that ``sampler="fast"`` never silently samples a different posterior.
+Configurations these do not cover (custom priors, a discrepancy, GP emulators, ``corr_log``, a
+Matern kernel, a linear mean) raise :class:`NotImplementedError` naming the option, and
+:func:`flat_model` then takes Pyro's potential of the model instead
+(:mod:`.potential`), so a configuration never silently samples a different posterior.
 """
 
 from __future__ import annotations
@@ -164,8 +165,8 @@ def _unsupported(priors: Priors, extra: dict[str, bool]) -> None:
     if priors.custom:
         bad.append(f"custom priors on {sorted(priors.custom)}")
     if bad:
-        raise NotImplementedError("sampler='fast' does not support " + ", ".join(bad)
-                                  + "; use sampler='pyro'")
+        raise NotImplementedError("no analytic log density for " + ", ".join(bad)
+                                  + " (Pyro's potential with autograd serves it)")
 
 
 def _sigma_site(priors: Priors, y: np.ndarray, offset: int) -> tuple[FlatSite, float, float]:
@@ -343,22 +344,27 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None) -> FlatModel:
     return FlatModel(sites, loglik, mu, sd, inp.z.dtype)
 
 
-def flat_model(model: Any, args: tuple) -> FlatModel:
-    """The :class:`FlatModel` of a Pyro model of :mod:`.koh` called with ``args``.
+def flat_model(model: Any, args: tuple) -> Any:
+    """The flat log density :func:`~.mcmc.run_nuts` samples for ``model(*args)``: analytic
+    where this module (direct, full joint) or :mod:`.reduced` (modular PCA) covers the
+    configuration, else Pyro's potential of the model with autograd
+    (:func:`~.potential.torch_flat`). Both are the same posterior on the same unconstrained
+    scale.
 
     Args:
-        model: :func:`~.koh.observation_model` (direct mode only) or :func:`~.koh.joint_model`.
-        args: ``(inputs, priors)`` as :func:`~.mcmc.run_nuts` passes them to the model.
-
-    Raises:
-        NotImplementedError: any other model or an unsupported configuration.
+        model: any Pyro model; args: its arguments (``(inputs, priors)`` for :mod:`.koh`'s).
     """
     from solderpyro.calibration.koh import joint_model, observation_model
+    from solderpyro.calibration.potential import torch_flat
+    from solderpyro.calibration.reduced import pca_flat
 
-    if model is observation_model:
-        return direct_flat(*args)
-    if model is joint_model:
-        return joint_flat(*args)
-    name = getattr(model, "__name__", repr(model))
-    raise NotImplementedError(f"sampler='fast' supports observation_model (direct mode) and "
-                              f"joint_model only, not {name}; use sampler='pyro'")
+    try:
+        if model is observation_model:
+            if isinstance(args[0].emulator, FunctionEmulator):
+                return direct_flat(*args)
+            return pca_flat(*args)
+        if model is joint_model:
+            return joint_flat(*args)
+    except NotImplementedError:
+        pass
+    return torch_flat(model, args)

@@ -1,9 +1,10 @@
-"""NUTS through Pyro (or the NumPy sampler of :mod:`.nuts`): several chains, diagnostics,
-ArviZ export, the seed's table layout."""
+"""NUTS on KOH posteriors (:func:`run_nuts`: one sampler, chains in parallel, warm starts),
+diagnostics, ArviZ export, the seed's table layout."""
 
 from __future__ import annotations
 
 import csv
+import logging
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -15,7 +16,8 @@ from typing import Any
 import numpy as np
 import pyro
 import torch
-from pyro.infer import MCMC, NUTS
+
+log = logging.getLogger("solderpyro")
 
 SUMMARY_COLUMNS = ("parameter", "q2.5", "median", "mean", "q97.5", "r_hat", "ess_bulk",
                    "ess_tail")
@@ -58,6 +60,8 @@ class Posterior:
         divergences: number of divergent transitions per chain.
         seconds: wall time of warm-up plus sampling, all chains.
         raw: the sampler's own sites ``(chain, draw, ...)`` (unit cube, for predictions).
+        warm: the sampler's adapted state (:class:`WarmStart`), to start a related run.
+        stats: per chain: step size, mean acceptance, gradient evaluations.
     """
 
     samples: dict[str, torch.Tensor]
@@ -65,6 +69,8 @@ class Posterior:
     divergences: list[int] = field(default_factory=list)
     seconds: float = float("nan")
     raw: dict[str, torch.Tensor] = field(default_factory=dict)
+    warm: WarmStart | None = None
+    stats: list[dict[str, float]] = field(default_factory=list)
 
     @property
     def n_chains(self) -> int:
@@ -140,43 +146,109 @@ def format_summary(rows: Sequence[dict], columns: Sequence[str] = SUMMARY_COLUMN
     return "\n".join(lines)
 
 
+@dataclass
+class WarmStart:
+    """A finished run's adapted sampler state, by coordinate name, to start a related run
+    (a recalibration with one more effect, a round with more FE runs) where it applies.
+
+    Attributes:
+        coords: names of the unconstrained coordinates (calibrated parameters by their box
+            names, then the other sites, e.g. ``sigma``).
+        q: ``(chains, d)`` the chains' last positions (unconstrained).
+        inv_metric: ``(d,)`` or ``(d, d)`` the adapted inverse mass matrix (chains averaged).
+        step_size: the adapted step size (median over chains).
+    """
+
+    coords: list[str]
+    q: np.ndarray
+    inv_metric: np.ndarray
+    step_size: float
+
+    def apply(self, coords: Sequence[str], chains: int, dense: bool
+              ) -> tuple[np.ndarray, np.ndarray, float]:
+        """Starting points ``(chains, d')``, inverse metric and step size for a model whose
+        coordinates are ``coords``: shared names take this run's values; a new coordinate
+        starts at 0 (its box's middle) with unit inverse metric."""
+        idx = [self.coords.index(c) if c in self.coords else -1 for c in coords]
+        d = len(coords)
+        q = np.zeros((chains, d))
+        for j, i in enumerate(idx):
+            if i >= 0:
+                q[:, j] = self.q[np.arange(chains) % self.q.shape[0], i]
+        old = self.inv_metric if self.inv_metric.ndim == 2 else np.diag(self.inv_metric)
+        inv = np.eye(d)
+        for a, ia in enumerate(idx):
+            for b, ib in enumerate(idx):
+                if ia >= 0 and ib >= 0:
+                    inv[a, b] = old[ia, ib]
+        return q, (inv if dense else inv.diagonal().copy()), self.step_size
+
+
+@dataclass
+class NutsRun:
+    """What :func:`run_nuts` returns.
+
+    Attributes:
+        samples: ``site -> (chain, draw, ...)`` in the model's constrained units.
+        divergences: divergent transitions after warm-up, per chain.
+        seconds: wall time (warm-up and sampling, all chains).
+        warm: the adapted state, to warm-start a related run.
+        stats: per chain: step size, mean acceptance, gradient evaluations, seconds.
+        analytic: whether the log density was an analytic one (else Pyro's potential).
+    """
+
+    samples: dict[str, torch.Tensor]
+    divergences: list[int]
+    seconds: float
+    warm: WarmStart
+    stats: list[dict[str, float]]
+    analytic: bool
+
+
+def default_workers(chains: int) -> int:
+    """Processes for ``chains`` chains: one per available core, at most one per chain."""
+    import os
+
+    try:
+        ncpu = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        ncpu = os.cpu_count() or 1
+    return max(1, min(chains, ncpu))
+
+
 def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warmup: int = 500,
-             draws: int = 1000, seed: int = 0, jit: bool = True, target_accept: float = 0.8,
+             draws: int = 1000, seed: int = 0, target_accept: float = 0.8,
              max_tree_depth: int = 10, progress: bool = True, threads: int | None = 1,
              full_mass: bool = False, init: str = "uniform", init_draws: int = 256,
-             sampler: str = "pyro") -> tuple[dict[str, torch.Tensor], list[int], float]:
-    """Run NUTS chains one after another (each seeded ``seed + chain``).
+             workers: int | None = None, warm: WarmStart | None = None) -> NutsRun:
+    """NUTS on a Pyro model's posterior: the one sampler of solderpyro.
 
-    KOH likelihoods work on matrices of tens to hundreds of rows, where torch's intra-op
-    threads cost more than they give (measured: 1 ms per gradient on one thread, up to 100 ms
-    with two threads on a busy 2-core machine), so sampling runs on ``threads`` threads
-    (None leaves torch's setting alone); the previous setting is restored afterwards.
+    The model's log density is taken on a flat unconstrained vector (Pyro's transforms and
+    log-Jacobians): analytic, with hand-derived gradients, for the KOH models of :mod:`.koh`
+    where one exists (direct, full joint, modular PCA through the reduced likelihood of
+    :mod:`.reduced`), else Pyro's own potential energy with autograd (:mod:`.potential`:
+    discrepancy, custom priors, local regions, any model). The trajectories are Stan's NUTS
+    with its windowed warm-up (:func:`~.nuts.sample_nuts`), checked against Pyro's NUTS on
+    the same posteriors in the tests.
 
     Args:
         model: a Pyro model; ``args`` are passed to it.
         chains, warmup, draws: chain count, warm-up and kept draws per chain.
-        jit: compile the potential with the PyTorch JIT (falls back to eager if tracing fails).
-        full_mass: adapt a dense mass matrix (pays off for correlated posteriors such as the
-            full joint's sigma_c / theta / t: 1.7x the ESS per second there).
-        init: where the chains start. ``"uniform"`` (default): Pyro's default (uniform in
-            (-2, 2) on the unconstrained scale); ``"sir"``: at points resampled, in proportion
-            to their likelihood, from ``init_draws`` draws of the prior (:func:`sir_inits`), so
-            that chains start where the posterior has its mass and a chain is not left in a
-            minor mode that NUTS cannot leave (the specimen calibration's default).
-        sampler: ``"pyro"`` (default): Pyro's NUTS on the model's autograd potential.
-            ``"fast"``: the NumPy NUTS of :func:`~solderpyro.calibration.nuts.sample_nuts` (the
-            same algorithm and Stan-style warm-up) on the analytic log density and gradient of
-            :mod:`~solderpyro.calibration.fastkoh`, the same posterior on the same
-            unconstrained scale; measured 3-4x (direct) and 11-15x (full joint) the effective
-            samples per second of ``"pyro"``, 2-3x NumPyro's (BENCHMARKS.md, issue 4).
-            Supports :func:`~.koh.observation_model` with the direct (function) emulator and
-            :func:`~.koh.joint_model` with the default priors, the Gaussian kernel, a constant
-            mean and no discrepancy; anything else raises NotImplementedError. ``jit`` and
-            ``progress`` do not apply to it.
+        threads: torch (and BLAS) threads while sampling (small matrices: one is fastest);
+            None leaves them alone; restored afterwards.
+        full_mass: adapt a dense mass matrix (correlated posteriors).
+        init: ``"uniform"``: uniform in (-2, 2) on the unconstrained scale; ``"sir"``: at
+            points resampled, in proportion to their likelihood, from ``init_draws`` prior
+            draws (:func:`sir_inits`), so no chain is left in a minor mode.
+        workers: chains run in this many forked processes at once (default: one per core, at
+            most one per chain); chain ``c`` is seeded ``seed + c`` whatever ``workers`` is,
+            so the draws equal the serial run's.
+        warm: a related run's :class:`WarmStart`: chains start at its last positions and
+            mass matrix (by coordinate name; ``init`` is then ignored).
+        progress: log one line per chain (else at DEBUG level).
 
     Returns:
-        samples ``site -> (chain, draw, ...)`` (the sampler's sites), divergences per chain,
-        wall seconds.
+        :class:`NutsRun`.
     """
     for nm, v in (("chains", chains), ("warmup", warmup), ("draws", draws),
                   ("init_draws", init_draws)):
@@ -184,26 +256,70 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             raise ValueError(f"run_nuts {nm} must be a positive integer, got {v!r}")
     if init not in ("sir", "uniform"):
         raise ValueError(f"run_nuts init must be 'sir' or 'uniform', got {init!r}")
-    if sampler not in ("pyro", "fast"):
-        raise ValueError(f"run_nuts sampler must be 'pyro' or 'fast', got {sampler!r}")
-    if sampler == "fast":
-        return _run_fast(model, args, chains, warmup, draws, seed, target_accept,
-                         max_tree_depth, threads, full_mass, init, init_draws)
-    per_chain, divs = [], []
+    if workers is not None and (not isinstance(workers, int) or workers < 1):
+        raise ValueError(f"run_nuts workers must be a positive integer, got {workers!r}")
+    from solderpyro.calibration.fastkoh import flat_model
+    from solderpyro.calibration.nuts import sample_nuts
+
     t0 = time.perf_counter()
-    with _torch_threads(threads):
-        inits = sir_inits(model, args, chains, init_draws, seed) if init == "sir" \
-            else [None] * chains
-        for c in range(chains):
-            pyro.set_rng_seed(seed + c)
-            mcmc = _one_chain(model, args, warmup, draws, jit, target_accept, max_tree_depth,
-                              progress, c, full_mass, inits[c])
-            per_chain.append({k: v.detach() for k, v in mcmc.get_samples().items()})
-            d = mcmc.diagnostics()
-            divs.append(sum(len(v) for k, v in d.get("divergences", {}).items()))
-    seconds = time.perf_counter() - t0
-    samples = {k: torch.stack([pc[k] for pc in per_chain]) for k in per_chain[0]}
-    return samples, divs, seconds
+    limit: Any = nullcontext()
+    if threads is not None:
+        try:  # BLAS threads: as for torch, one is fastest on these small matrices
+            from threadpoolctl import threadpool_limits
+            limit = threadpool_limits(threads)
+        except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
+            pass
+    with _torch_threads(threads), limit:
+        fm = flat_model(model, args)
+        coords = coord_names(fm, args)
+        q0, inv0, step0 = None, None, None
+        if warm is not None:
+            q0, inv0, step0 = warm.apply(coords, chains, full_mass)
+        elif init == "sir":
+            pts = sir_inits(model, args, chains, init_draws, seed)
+            if all(v is not None for v in pts):
+                q0 = np.stack([fm.to_unconstrained(v) for v in pts if v is not None])
+        lvl = logging.INFO if progress else logging.DEBUG
+
+        def on_chain(c: int, st: dict) -> None:
+            log.log(lvl, "NUTS chain %d/%d: %d + %d iterations in %.1f s (step %.3g, %d "
+                    "gradients, %d divergent)", c + 1, chains, warmup, draws, st["seconds"],
+                    st["step_size"], st["n_leapfrog"], st["divergences"])
+
+        res = sample_nuts(fm.logp_and_grad, fm.dim, chains, warmup, draws, seed, q0,
+                          target_accept, max_tree_depth, dense_mass=full_mass,
+                          inv_metric=inv0, step_size=step0,
+                          workers=workers or default_workers(chains), on_chain=on_chain)
+    inv = np.mean(np.stack(res.inv_metric), 0)
+    ws = WarmStart(coords, res.draws[:, -1].copy(), inv, float(np.median(res.step_size)))
+    stats = [{"step_size": float(a), "accept_prob": float(b), "n_grad": float(c)}
+             for a, b, c in zip(res.step_size, res.accept_prob, res.n_leapfrog, strict=True)]
+    from solderpyro.calibration.potential import TorchFlat
+
+    return NutsRun(fm.to_samples(res.draws), res.divergences, time.perf_counter() - t0, ws,
+                   stats, not isinstance(fm, TorchFlat))
+
+
+def coord_names(fm: Any, args: tuple) -> list[str]:
+    """Names of a flat model's coordinates: the calibrated parameters by their box names
+    (from the model's inputs), other sites by ``site`` or ``site[i]``."""
+    from solderpyro.calibration.koh import SITE_T
+
+    box = None
+    if args:
+        a0 = args[0]
+        box = getattr(a0, "theta_box", None) or getattr(getattr(a0, "data", None),
+                                                        "theta_box", None)
+    names = list(getattr(fm, "coord_names", []))
+    if not names:
+        names = [f"{s.name}[{i}]" if s.vector else s.name for s in fm.sites
+                 for i in range(s.size)]
+    if box is not None:
+        t_idx = [i for i, n in enumerate(names) if n.startswith(SITE_T + "[")]
+        if len(t_idx) == box.dim:
+            for i, nm in zip(t_idx, box.names, strict=True):
+                names[i] = nm
+    return names
 
 
 @contextmanager
@@ -216,35 +332,6 @@ def _torch_threads(threads: int | None) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(old)
-
-
-def _run_fast(model: Callable[..., None], args: tuple, chains: int, warmup: int, draws: int,
-              seed: int, target_accept: float, max_tree_depth: int, threads: int | None,
-              full_mass: bool, init: str, init_draws: int
-              ) -> tuple[dict[str, torch.Tensor], list[int], float]:
-    """``run_nuts(sampler="fast")``: :func:`~.nuts.sample_nuts` on the model's
-    :class:`~.fastkoh.FlatModel`, draws mapped back to the model's sites."""
-    from solderpyro.calibration.fastkoh import flat_model
-    from solderpyro.calibration.nuts import sample_nuts
-
-    t0 = time.perf_counter()
-    fm = flat_model(model, args)
-    limit: Any = nullcontext()
-    if threads is not None:
-        try:  # BLAS threads: as for torch, one is fastest on these small matrices
-            from threadpoolctl import threadpool_limits
-            limit = threadpool_limits(threads)
-        except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
-            pass
-    with _torch_threads(threads), limit:
-        q0 = None
-        if init == "sir":
-            pts = sir_inits(model, args, chains, init_draws, seed)
-            if all(v is not None for v in pts):
-                q0 = np.stack([fm.to_unconstrained(v) for v in pts if v is not None])
-        res = sample_nuts(fm.logp_and_grad, fm.dim, chains, warmup, draws, seed, q0,
-                          target_accept, max_tree_depth, dense_mass=full_mass)
-    return fm.to_samples(res.draws), res.divergences, time.perf_counter() - t0
 
 
 def sir_inits(model: Callable[..., None], args: tuple, chains: int, n: int = 256,
@@ -284,26 +371,3 @@ def sir_inits(model: Callable[..., None], args: tuple, chains: int, n: int = 256
     cdf = np.cumsum(w / w.sum())
     u = (np.random.default_rng(seed).random() + np.arange(chains)) / chains
     return [pts[int(min(np.searchsorted(cdf, ui), n - 1))] for ui in u]
-
-
-def _one_chain(model: Callable[..., None], args: tuple, warmup: int, draws: int, jit: bool,
-               target_accept: float, max_tree_depth: int, progress: bool, chain: int,
-               full_mass: bool = False, init: dict[str, torch.Tensor] | None = None) -> MCMC:
-    from pyro.infer.autoguide.initialization import init_to_uniform, init_to_value
-
-    strategy = init_to_uniform if init is None else init_to_value(values=init)
-    kernel = NUTS(model, jit_compile=jit, ignore_jit_warnings=True, full_mass=full_mass,
-                  target_accept_prob=target_accept, max_tree_depth=max_tree_depth,
-                  init_strategy=strategy)
-    mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup, disable_progbar=not progress)
-    try:
-        mcmc.run(*args)
-    except RuntimeError as exc:  # tracing trouble: run eagerly rather than fail
-        if not jit:
-            raise
-        warnings.warn(f"JIT failed for chain {chain} ({exc}); running eagerly", stacklevel=3)
-        kernel = NUTS(model, target_accept_prob=target_accept, max_tree_depth=max_tree_depth,
-                      full_mass=full_mass, init_strategy=strategy)
-        mcmc = MCMC(kernel, num_samples=draws, warmup_steps=warmup, disable_progbar=not progress)
-        mcmc.run(*args)
-    return mcmc

@@ -289,8 +289,12 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
                 draws: int = 1000, seed: int = 0, init: np.ndarray | None = None,
                 target_accept: float = 0.8, max_tree_depth: int = 10,
                 dense_mass: bool = False, max_energy_error: float = 1000.0,
-                init_radius: float = 2.0, init_tries: int = 100) -> NutsResult:
-    """Run NUTS chains one after another, chain ``c`` seeded with ``seed + c``.
+                init_radius: float = 2.0, init_tries: int = 100,
+                inv_metric: np.ndarray | None = None, step_size: float | None = None,
+                workers: int = 1, on_chain: Callable[[int, dict], None] | None = None
+                ) -> NutsResult:
+    """Run NUTS chains, chain ``c`` seeded with ``seed + c`` (so the draws do not depend on
+    ``workers``: chains in parallel give exactly the serial result).
 
     Args:
         logp_and_grad: ``q (dim,)`` -> (log density up to a constant (float), its gradient
@@ -304,6 +308,13 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
         max_tree_depth: at most ``2**max_tree_depth - 1`` leapfrog steps per iteration.
         dense_mass: adapt a dense inverse mass matrix (else diagonal).
         max_energy_error: an energy error above this is a divergence.
+        inv_metric: a warm start's inverse mass matrix ``(dim,)`` or ``(dim, dim)`` (e.g. the
+            previous posterior's), used from the first iteration; the windows still adapt it.
+        step_size: a warm start's step size (the step-size search starts there).
+        workers: processes running chains at once (fork; 1: in this process). Each chain's
+            random stream is its own, so results are identical for any ``workers``.
+        on_chain: called as ``on_chain(c, stats)`` when chain ``c`` ends (seconds,
+            divergences, step size, leapfrog steps), e.g. to log a line per chain.
 
     Returns:
         :class:`NutsResult` with draws ``(chains, draws, dim)``.
@@ -312,7 +323,8 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
         ValueError: bad sizes or a given ``init`` where the log density is not finite.
     """
     for nm, v, lo in (("dim", dim, 1), ("chains", chains, 1), ("warmup", warmup, 0),
-                      ("draws", draws, 1), ("max_tree_depth", max_tree_depth, 1)):
+                      ("draws", draws, 1), ("max_tree_depth", max_tree_depth, 1),
+                      ("workers", workers, 1)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
             raise ValueError(f"sample_nuts {nm} must be an integer >= {lo}, got {v!r}")
     if not 0.0 < target_accept < 1.0:
@@ -325,39 +337,131 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
         if inits.shape != (chains, dim):
             raise ValueError(f"sample_nuts init must have shape ({dim},) or ({chains}, {dim}), "
                              f"got {np.shape(init)}")
+    metric0 = _initial_metric(inv_metric, dim, dense_mass)
+    if step_size is not None and not (math.isfinite(step_size) and step_size > 0):
+        raise ValueError(f"sample_nuts step_size must be positive, got {step_size}")
     t0 = time.perf_counter()
-    out = np.empty((chains, draws, dim))
-    depth_out = np.empty((chains, draws), dtype=np.int64)
-    res = NutsResult(out, tree_depth=depth_out)
-    for c in range(chains):
-        rng = np.random.default_rng(seed + c)
-        if inits is not None:
-            q = inits[c].copy()
-            lp, g = _check_logp(logp_and_grad, q, f"init[{c}]")
-        else:
-            for k in range(init_tries):
-                q = rng.uniform(-init_radius, init_radius, dim)
-                try:
-                    lp, g = _check_logp(logp_and_grad, q, "init")
-                    break
-                except (ValueError, FloatingPointError, np.linalg.LinAlgError):
-                    if k == init_tries - 1:
-                        raise ValueError(f"no finite log density at {init_tries} random "
-                                         "initial points: give init") from None
-        _run_chain(logp_and_grad, q, lp, g, rng, warmup, draws, target_accept, max_tree_depth,
-                   dense_mass, max_energy_error, res, c)
+    job = _ChainJob(logp_and_grad, dim, inits, seed, warmup, draws, target_accept,
+                    max_tree_depth, dense_mass, max_energy_error, init_radius, init_tries,
+                    metric0, step_size or 1.0)
+    outs = _map_chains(job, chains, workers, on_chain)
+    res = NutsResult(np.stack([o["draws"] for o in outs]),
+                     tree_depth=np.stack([o["depth"] for o in outs]))
+    for o in outs:
+        res.divergences.append(o["divergences"])
+        res.step_size.append(o["step_size"])
+        res.inv_metric.append(o["inv_metric"])
+        res.accept_prob.append(o["accept_prob"])
+        res.n_leapfrog.append(o["n_leapfrog"])
     res.seconds = time.perf_counter() - t0
     return res
 
 
-def _run_chain(f: LogpGrad, q: np.ndarray, lp: float, g: np.ndarray, rng: np.random.Generator,
-               warmup: int, draws: int, target_accept: float, max_depth: int, dense: bool,
-               max_de: float, res: NutsResult, c: int) -> None:
+def _initial_metric(inv_metric: np.ndarray | None, dim: int, dense: bool) -> np.ndarray:
+    """The first inverse metric: the identity, or a warm start's (diagonal <-> dense as asked)."""
+    if inv_metric is None:
+        return np.eye(dim) if dense else np.ones(dim)
+    m = np.asarray(inv_metric, dtype=float)
+    if m.shape not in ((dim,), (dim, dim)) or not np.all(np.isfinite(m)):
+        raise ValueError(f"sample_nuts inv_metric must be finite with shape ({dim},) or "
+                         f"({dim}, {dim}), got {m.shape}")
+    if dense and m.ndim == 1:
+        m = np.diag(m)
+    elif not dense and m.ndim == 2:
+        m = m.diagonal().copy()
+    if (m.diagonal() if m.ndim == 2 else m).min() <= 0:
+        raise ValueError("sample_nuts inv_metric must be positive definite")
+    return m
+
+
+@dataclass
+class _ChainJob:
+    """Everything one chain needs (shared by the chains; forked into worker processes)."""
+
+    f: LogpGrad
+    dim: int
+    inits: np.ndarray | None
+    seed: int
+    warmup: int
+    draws: int
+    target_accept: float
+    max_depth: int
+    dense: bool
+    max_de: float
+    init_radius: float
+    init_tries: int
+    metric0: np.ndarray
+    step0: float
+
+    def __call__(self, c: int) -> dict:
+        t0 = time.perf_counter()
+        rng = np.random.default_rng(self.seed + c)
+        f = self.f
+        if self.inits is not None:
+            q = self.inits[c].copy()
+            lp, g = _check_logp(f, q, f"init[{c}]")
+        else:
+            for k in range(self.init_tries):
+                q = rng.uniform(-self.init_radius, self.init_radius, self.dim)
+                try:
+                    lp, g = _check_logp(f, q, "init")
+                    break
+                except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                    if k == self.init_tries - 1:
+                        raise ValueError(f"no finite log density at {self.init_tries} random "
+                                         "initial points: give init") from None
+        out = _run_chain(self, q, lp, g, rng)
+        out["seconds"] = time.perf_counter() - t0
+        return out
+
+
+_FORKED: _ChainJob | None = None  # the job a forked worker runs (inherited, not pickled)
+
+
+def _forked_chain(c: int) -> dict:
+    assert _FORKED is not None
+    return _FORKED(c)
+
+
+def _map_chains(job: _ChainJob, chains: int, workers: int,
+                on_chain: Callable[[int, dict], None] | None) -> list[dict]:
+    """Run chains ``0..chains-1``: in this process, or in ``workers`` forked processes (the
+    log density is inherited by the fork, so closures over tensors need no pickling)."""
+    import multiprocessing as mp
+
+    workers = min(workers, chains)
+    if workers <= 1 or "fork" not in mp.get_all_start_methods():
+        outs = []
+        for c in range(chains):
+            outs.append(job(c))
+            if on_chain is not None:
+                on_chain(c, outs[-1])
+        return outs
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    global _FORKED
+    _FORKED = job
+    try:
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("fork")) as ex:
+            futs = {ex.submit(_forked_chain, c): c for c in range(chains)}
+            res: dict[int, dict] = {}
+            for fu in as_completed(futs):
+                res[futs[fu]] = fu.result()
+                if on_chain is not None:
+                    on_chain(futs[fu], res[futs[fu]])
+    finally:
+        _FORKED = None
+    return [res[c] for c in range(chains)]
+
+
+def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
+               rng: np.random.Generator) -> dict:
     d = q.shape[0]
-    metric = _Metric(np.eye(d) if dense else np.ones(d))
-    ch = _Chain(f, q, lp, g, rng, metric, 1.0, max_depth, max_de)
+    dense, warmup = job.dense, job.warmup
+    metric = _Metric(job.metric0)
+    ch = _Chain(job.f, q, lp, g, rng, metric, job.step0, job.max_depth, job.max_de)
     ch.init_step()
-    da = _DualAveraging(ch.step, target_accept)
+    da = _DualAveraging(ch.step, job.target_accept)
     win = _Windows(warmup)
     window: list[np.ndarray] = []
     for _ in range(warmup):
@@ -382,15 +486,14 @@ def _run_chain(f: LogpGrad, q: np.ndarray, lp: float, g: np.ndarray, rng: np.ran
     if warmup > 0:
         ch.step = da.final()
     n_div, acc_sum = 0, 0.0
-    for i in range(draws):
+    out = np.empty((job.draws, d))
+    depth_out = np.empty(job.draws, dtype=np.int64)
+    for i in range(job.draws):
         acc, depth, div, _ = ch.transition()
-        res.draws[c, i] = ch.q
-        assert res.tree_depth is not None
-        res.tree_depth[c, i] = depth
+        out[i] = ch.q
+        depth_out[i] = depth
         n_div += int(div)
         acc_sum += acc
-    res.divergences.append(n_div)
-    res.step_size.append(ch.step)
-    res.inv_metric.append(ch.metric.inv)
-    res.accept_prob.append(acc_sum / draws)
-    res.n_leapfrog.append(ch.n_grad)
+    return {"draws": out, "depth": depth_out, "divergences": n_div, "step_size": ch.step,
+            "inv_metric": ch.metric.inv, "accept_prob": acc_sum / job.draws,
+            "n_leapfrog": ch.n_grad}

@@ -149,8 +149,11 @@ class GPSurrogate:
             self._in_lo = f.min(0).values
             self._in_span = (f.max(0).values - self._in_lo).clamp_min(1e-12)
         u = self._unit(x)
+        # hyperparameters in the data's dtype: GPyTorch creates them in torch's default dtype
+        # (float32 outside the tests), which rounded the CLI's lengthscales to 1e-8 and the
+        # predictive means of a PCA surrogate to ~1e-6 of their size
         self.model = _BatchGP(u.expand(z.shape[0], *u.shape), z, self.kernel, self.mean,
-                              self.ard, self.nugget)
+                              self.ard, self.nugget).to(dtype=u.dtype, device=u.device)
         _fit_mll(self.model, self.restarts)
         self._freeze()
         return self

@@ -31,8 +31,8 @@ def test_sir_starts_chains_in_proportion_to_the_mass_of_each_mode():
 
 
 def test_nuts_chains_from_sir_sit_in_the_main_mode():
-    s, _, _ = run_nuts(_bimodal, chains=4, warmup=100, draws=100, seed=3, progress=False,
-                       init="sir", jit=False)
+    s = run_nuts(_bimodal, chains=4, warmup=100, draws=100, seed=3, progress=False,
+                 init="sir").samples
     med = s["t"].median(1).values  # (chains,)
     assert ((med - MODES[0]).abs() < 0.3).all(), med
 

@@ -1,0 +1,351 @@
+"""The modular KOH likelihood of a PCA surrogate, reduced to the K basis directions.
+
+For a PCA surrogate (:class:`~solderpyro.surrogate.GPSurrogate` with ``output="pca"``) the
+observations ``y (n,)`` are, at a calibration point ``t``,
+
+    y ~ N(mu0 + off(q) + B c(t), B V(t) B^T + D + sigma^2 I),
+
+with ``B = diag(scale) Phi (n, K)`` the scaled basis, ``c(t), V(t) = diag(v(t))`` the K
+component GPs' predictive means and variances, ``D = diag(d)`` the truncated components'
+variance per output, ``off(q)`` additive observation-side effects (a Moire rigid motion) and
+``sigma`` the noise. With ``D_s = D + sigma^2 I`` (diagonal; it depends on sigma alone),
+``A = B^T D_s^-1 B (K, K)``, ``e = B^T D_s^-1 r (K,)`` for the residual ``r = y - mu0 - off -
+B c`` and ``P = V^1/2 (I + V^1/2 A V^1/2)^-1 V^1/2``, the Woodbury identity gives
+
+    log|C| = log|D_s| + log|I + V^1/2 A V^1/2|,    r^T C^-1 r = r^T D_s^-1 r - e^T P e.
+
+This is the Higdon et al. (2008) / SEPIA reduction: the data enter through their projections
+``b = B^T D_s^-1 (y - mu0)`` and the orthogonal remainder ``(y - mu0)^T D_s^-1 (y - mu0)``, which
+do not depend on t; everything that does is K-dimensional. Per log-density evaluation the cost
+is one weighted Gram matrix ``A`` (O(n K^2), sigma changes at every step) and O(K^3 + K n_sim^2)
+for the GPs, instead of Pyro's ``LowRankMultivariateNormal`` over all n values and its autograd
+tape. The gradient is analytic (``dll/dc = B^T C^-1 r``, ``dll/dv_j = 1/2 ((B^T C^-1 r)_j^2 -
+(B^T C^-1 B)_jj)``, ``dll/dsigma = sigma (|C^-1 r|^2 - tr C^-1)``), chained through the GPs'
+kernels and the input map in NumPy (:class:`GPInputMap`).
+
+:func:`reduced_loglik_torch` is the same reduced likelihood in torch, for the check against
+the full density (``tests/unit/test_reduced.py``: equal to 1e-8 relative).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.linalg.lapack import dtrtrs as _dtrtrs
+
+from solderpyro.params import Box
+from solderpyro.surrogate import GPSurrogate
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+class GPInputMap:
+    """The map from the sampler's ``t_unit (p,)`` to a GP's inputs ``u (d',)``, with its
+    Jacobian, in NumPy.
+
+    ``t_unit`` (the calibration box's unit cube) -> physical ``x = box.from_unit(t_unit)`` ->
+    the GP's inputs: ``gp.box.to_unit(x)``, or the GP's input map (``FlowStressInputs``)
+    rescaled by its range. Only the first ``gp.box.dim`` coordinates of ``t`` enter.
+
+    Args:
+        gp: the fitted surrogate; theta_box: the calibration box (its first ``gp.box.dim``
+            names must be the GP's inputs, in order).
+    Raises:
+        ValueError naming the mismatch.
+    """
+
+    def __init__(self, gp: GPSurrogate, theta_box: Box) -> None:
+        n = gp.box.dim
+        if tuple(theta_box.names[:n]) != tuple(gp.box.names):
+            raise ValueError(f"the calibration box's first names {theta_box.names[:n]} are not "
+                             f"the surrogate's inputs {gp.box.names}")
+        self.n = n
+        self.lo_t, self.w_t, self.log_t = _unit_map(theta_box, n)
+        self.lo_g, self.w_g, self.log_g = _unit_map(gp.box, n)
+        self.feats: Any = gp.inputs
+        if self.feats is not None:
+            if not hasattr(self.feats, "value_and_jacobian"):
+                raise NotImplementedError(f"the GP input map {type(self.feats).__name__} has no "
+                                          "value_and_jacobian")
+            self.in_lo = gp._in_lo.detach().cpu().numpy().astype(float)
+            self.in_span = gp._in_span.detach().cpu().numpy().astype(float)
+
+    def __call__(self, t_unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``t_unit (p,)`` -> GP inputs ``u (d',)`` and ``du/dt_unit (d', n)``."""
+        z = self.lo_t + t_unit[:self.n] * self.w_t
+        x = np.where(self.log_t, np.exp(np.where(self.log_t, z, 0.0)), z)
+        dx = np.where(self.log_t, x, 1.0) * self.w_t  # dx/dt_unit (n,)
+        if self.feats is None:
+            zg = np.where(self.log_g, np.log(np.where(self.log_g, x, 1.0)), x)
+            u = (zg - self.lo_g) / self.w_g
+            return u, np.diag(np.where(self.log_g, 1.0 / x, 1.0) / self.w_g * dx)
+        f, jf = self.feats.value_and_jacobian(x)  # (d',), (d', n)
+        return (f - self.in_lo) / self.in_span, jf * (dx / 1.0)[None, :] / self.in_span[:, None]
+
+
+def _unit_map(box: Box, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(lo, width, log)`` of a box's first ``n`` coordinates on its (log where flagged)
+    scale: ``z = lo + u * width``."""
+    b = box._fwd(torch.tensor([box.lower, box.upper], dtype=torch.float64)).numpy()[:, :n]
+    return b[0], b[1] - b[0], np.asarray(box.log_scale[:n], dtype=bool)
+
+
+class ComponentGPs:
+    """The K component GPs of a fitted PCA surrogate in NumPy: predictive means ``c (K,)`` and
+    variances ``v (K,)`` at one input, and the vector-Jacobian product back to the input.
+
+    Args:
+        gp: a fitted :class:`~solderpyro.surrogate.GPSurrogate` (any output layout; the
+            components share their training inputs).
+    """
+
+    def __init__(self, gp: GPSurrogate) -> None:
+        gp._need_fit()
+        self.kernel = gp.kernel
+        self.U = gp._u[0].detach().cpu().numpy().astype(float)  # (n_sim, d')
+        self.os = gp._os.detach().cpu().numpy().astype(float)  # (K,)
+        ls = gp._ls.detach().cpu().numpy().astype(float)  # (K, d'|1)
+        self.inv_ls2 = np.broadcast_to(1.0 / ls**2, (ls.shape[0], self.U.shape[1])).copy()
+        self.c0 = gp._c.detach().cpu().numpy().astype(float)  # (K,)
+        self.w = None if gp._w is None else gp._w.detach().cpu().numpy().astype(float)
+        self.alpha = gp._alpha.detach().cpu().numpy().astype(float)  # (K, n_sim)
+        chol = gp._chol.detach().cpu().numpy().astype(float)  # (K, n_sim, n_sim)
+        self.linv = np.stack([_trsv(c, np.eye(c.shape[0]), False) for c in chol])  # L^-1
+
+    def __call__(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, Any]:
+        """``u (d',)`` -> means ``c (K,)``, variances ``v (K,)`` and a closure
+        ``(gc (K,), gv (K,)) -> d/du (d',)`` of ``sum(gc c + gv v)``."""
+        diff = u[None, :] - self.U  # (n_sim, d')
+        r2 = (diff * diff) @ self.inv_ls2.T  # (n_sim, K)
+        if self.kernel == "gaussian":
+            rho = np.exp(-0.5 * r2)
+            drho = -rho  # d rho / d(diff_l) = drho * diff_l / ls_l^2
+        else:  # Matern 5/2 (solderpyro.surrogate.kernels.matern52)
+            s5r = math.sqrt(5.0) * np.sqrt(np.maximum(r2, 1e-30))
+            ex = np.exp(-s5r)
+            rho = (1.0 + s5r + s5r * s5r / 3.0) * ex
+            drho = -(5.0 / 3.0) * (1.0 + s5r) * ex
+        kap = (rho * self.os).T  # (K, n_sim)
+        c = self.c0 + np.einsum("kn,kn->k", kap, self.alpha)
+        if self.w is not None:
+            c = c + self.w @ u
+        # v = os - |L^-1 kappa|^2 (through L^-1, not K^-1: half the condition number)
+        half = np.einsum("knm,km->kn", self.linv, kap)  # L^-1 kappa (K, n_sim)
+        beta = np.einsum("kmn,km->kn", self.linv, half)  # K^-1 kappa
+        v_raw = self.os - np.einsum("kn,kn->k", half, half)
+        v = np.maximum(v_raw, 0.0)
+        pos = v_raw > 0.0
+
+        def vjp(gc: np.ndarray, gv: np.ndarray) -> np.ndarray:
+            coef = gc[:, None] * self.alpha - 2.0 * np.where(pos, gv, 0.0)[:, None] * beta
+            a = (coef * self.os[:, None]).T * drho  # (n_sim, K): d sum / d rho_k(i)
+            g = np.einsum("nk,nl,kl->l", a, diff, self.inv_ls2)
+            if self.w is not None:
+                g = g + gc @ self.w
+            return g
+
+        return c, v, vjp
+
+
+def _trsv(chol: np.ndarray, b: np.ndarray, trans: bool) -> np.ndarray:
+    """``L^-1 b`` (or ``L^-T b`` with ``trans``) for a lower-triangular ``L``."""
+    x, _ = _dtrtrs(chol, b, lower=1, trans=1 if trans else 0)
+    return x
+
+
+class PCAReduction:
+    """The reduced likelihood's data side: the scaled basis, the centred data and the
+    truncated components' variance, computed once; :meth:`sigma_terms` is the sigma-dependent
+    part, :meth:`loglik` the whole (NumPy, analytic gradient).
+
+    Args:
+        gp: a fitted PCA surrogate of the observations; y_obs: ``(n,)`` um.
+    """
+
+    def __init__(self, gp: GPSurrogate, y_obs: torch.Tensor) -> None:
+        if gp.output != "pca":
+            raise ValueError(f"PCAReduction needs a PCA surrogate, got output={gp.output!r}")
+        sc = gp.std.scale.detach().cpu().numpy().astype(float)
+        self.B = (gp.basis.detach().cpu().numpy().astype(float) * sc[:, None])  # (n, K)
+        self.mu0 = gp.std.mean.detach().cpu().numpy().astype(float)  # (n,)
+        self.d = (gp.resid_var.detach().cpu().numpy().astype(float) * sc**2)  # (n,)
+        self.y = y_obs.detach().cpu().numpy().astype(float)
+        if self.y.shape != self.mu0.shape:
+            raise ValueError(f"y_obs has shape {self.y.shape}, the surrogate predicts "
+                             f"{self.mu0.shape}")
+        self.n, self.K = self.B.shape
+        # every sigma-dependent sum over the n outputs in one product: Q^T [w, w^2] with
+        # Q = [b_i b_i^T (upper triangle), b_i y0_i, y0_i^2] (n, K(K+1)/2 + K + 1)
+        self._iu = np.triu_indices(self.K)
+        y0 = self.y - self.mu0
+        outer = (self.B[:, :, None] * self.B[:, None, :])[:, self._iu[0], self._iu[1]]
+        self._Q = np.ascontiguousarray(np.concatenate(
+            [outer, self.B * y0[:, None], (y0 * y0)[:, None]], 1))
+
+    def _sym(self, flat: np.ndarray) -> np.ndarray:
+        out = np.empty((self.K, self.K))
+        out[self._iu] = flat
+        out.T[self._iu] = flat
+        return out
+
+    def loglik(self, c: np.ndarray, v: np.ndarray, sigma: float, off: np.ndarray | None
+               ) -> tuple[float, np.ndarray, np.ndarray, float, np.ndarray | None]:
+        """Log density of ``y`` and its gradients.
+
+        Args:
+            c, v: ``(K,)`` component means and variances (standardized PC units); sigma: um;
+            off: ``(n,)`` additive observation offsets (um) or None.
+        Returns:
+            ll, ``d ll/dc (K,)``, ``d ll/dv (K,)``, ``d ll/dsigma``, ``d ll/doff (n,)`` (None
+            when ``off`` is None).
+        """
+        if off is None:
+            return self._loglik_projected(c, v, sigma)
+        w = 1.0 / (self.d + sigma * sigma)  # D_s^-1 (n,)
+        y0 = self.y - self.mu0 if off is None else self.y - self.mu0 - off
+        Bw = self.B * w[:, None]  # (n, K)
+        A = self.B.T @ Bw  # (K, K)
+        r = y0 - self.B @ c  # (n,)
+        e = Bw.T @ r  # (K,)
+        sv = np.sqrt(v)
+        M = np.eye(self.K) + sv[:, None] * A * sv[None, :]
+        Lm = np.linalg.cholesky(M)
+        Minv = np.linalg.inv(M)  # K x K
+        P = sv[:, None] * Minv * sv[None, :]
+        Pe = P @ e
+        quad = float(r @ (w * r)) - float(e @ Pe)
+        logdet = -float(np.log(w).sum()) + 2.0 * float(np.log(Lm.diagonal()).sum())
+        ll = -0.5 * (self.n * _LOG_2PI + logdet + quad)
+        AP = A @ P
+        g = e - A @ Pe  # B^T C^-1 r (K,)
+        gc = g
+        gv = 0.5 * (g * g - (A.diagonal() - np.einsum("ij,ji->i", AP, A)))
+        z = w * (r - self.B @ Pe)  # C^-1 r (n,)
+        # tr C^-1 = sum w - tr(P B^T D_s^-2 B)
+        A2 = Bw.T @ Bw
+        tr = float(w.sum()) - float(np.vdot(P, A2))
+        gs = sigma * (float(z @ z) - tr)
+        return ll, gc, gv, gs, (z if off is not None else None)
+
+    def _loglik_projected(self, c: np.ndarray, v: np.ndarray, sigma: float
+                          ) -> tuple[float, np.ndarray, np.ndarray, float, None]:
+        """:meth:`loglik` without offsets, from the projections: O(n K^2) in one product."""
+        K, m = self.K, len(self._iu[0])
+        w = 1.0 / (self.d + sigma * sigma)
+        S = self._Q.T @ np.stack([w, w * w], 1)  # (m + K + 1, 2)
+        A, A2 = self._sym(S[:m, 0]), self._sym(S[:m, 1])
+        bw, bw2 = S[m:m + K, 0], S[m:m + K, 1]  # B^T D^-1 y0, B^T D^-2 y0
+        yw, yw2 = S[-1, 0], S[-1, 1]  # y0^T D^-1 y0, y0^T D^-2 y0
+        Ac = A @ c
+        e = bw - Ac  # B^T D^-1 r
+        sv = np.sqrt(v)
+        M = np.eye(K) + sv[:, None] * A * sv[None, :]
+        Lm = np.linalg.cholesky(M)
+        Minv = np.linalg.inv(M)
+        P = sv[:, None] * Minv * sv[None, :]
+        Pe = P @ e
+        rwr = yw - 2.0 * float(c @ bw) + float(c @ Ac)
+        quad = rwr - float(e @ Pe)
+        logdet = -float(np.log(w).sum()) + 2.0 * float(np.log(Lm.diagonal()).sum())
+        ll = -0.5 * (self.n * _LOG_2PI + logdet + quad)
+        g = e - A @ Pe  # B^T C^-1 r
+        gv = 0.5 * (g * g - (A.diagonal() - np.einsum("ij,ji->i", A @ P, A)))
+        h = c + Pe  # C^-1 r = D^-1 (y0 - B h)
+        zz = yw2 - 2.0 * float(h @ bw2) + float(h @ A2 @ h)
+        tr = float(w.sum()) - float(np.vdot(P, A2))
+        return ll, g, gv, sigma * (zz - tr), None
+
+
+def reduced_loglik_torch(gp: GPSurrogate, y_obs: torch.Tensor, t: torch.Tensor,
+                         sigma: torch.Tensor) -> torch.Tensor:
+    """The reduced log density in torch (differentiable), for checks against the full one.
+
+    Args:
+        gp: fitted PCA surrogate; y_obs: ``(n,)``; t: ``(d,)`` physical input; sigma: scalar.
+    Returns:
+        scalar: ``log N(y_obs; mean, F F^T + diag(d + sigma^2))`` of ``gp.mean_lowrank(t)``.
+    """
+    mc, vc = gp._coef(t.reshape(1, -1), full_cov=False)  # (K, 1), (K, 1)
+    c, v = mc[:, 0], vc[:, 0].clamp_min(0.0)
+    B = gp.basis * gp.std.scale[:, None]
+    w = 1.0 / (gp.resid_var * gp.std.scale.square() + sigma.square())
+    r = y_obs - gp.std.mean - B @ c
+    Bw = B * w[:, None]
+    A = B.T @ Bw
+    e = Bw.T @ r
+    sv = v.sqrt()
+    M = torch.eye(B.shape[1], dtype=B.dtype) + sv[:, None] * A * sv[None, :]
+    Lm = torch.linalg.cholesky(M)
+    Pe = sv * torch.cholesky_solve((sv * e)[:, None], Lm)[:, 0]
+    quad = (r * w * r).sum() - (e * Pe).sum()
+    logdet = -w.log().sum() + 2.0 * Lm.diagonal().log().sum()
+    return -0.5 * (r.shape[0] * _LOG_2PI + logdet + quad)
+
+
+def pca_flat(inp: Any, priors: Any = None) -> Any:
+    """:func:`~.koh.observation_model` with a PCA surrogate (a :class:`GPEmulator` of the
+    observations, possibly inside an :class:`ObservedEmulator`) as a
+    :class:`~.fastkoh.FlatModel` on the reduced likelihood, with an analytic gradient.
+
+    Flat vector: ``t_unit (p,)`` then ``sigma``; the same priors and transforms as the Pyro
+    model. Observation offsets (``ObservedEmulator``) enter through one torch backward pass
+    through the offset function per gradient.
+
+    Raises:
+        NotImplementedError: another emulator, a discrepancy, a LocalBox prior or custom
+            priors (the generic path, :func:`~.potential.torch_flat`, covers those).
+    """
+    from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
+    from solderpyro.calibration.fastkoh import FlatModel, FlatSite, _sigma_site, _unsupported
+    from solderpyro.calibration.koh import SITE_T, Priors
+
+    pr = priors or Priors()
+    em = inp.emulator
+    base = em.base if isinstance(em, ObservedEmulator) else em
+    ok = (isinstance(base, GPEmulator) and base.x_obs is None and base.gp.output == "pca"
+          and (not isinstance(em, ObservedEmulator) or isinstance(em.base, GPEmulator)))
+    _unsupported(pr, {"emulators other than a PCA GPEmulator": not ok,
+                      "discrepancy=True": inp.discrepancy,
+                      "a LocalBox prior": hasattr(inp.theta_box, "log_support")})
+    gp = base.gp
+    red = PCAReduction(gp, inp.y_obs)
+    gps = ComponentGPs(gp)
+    umap = GPInputMap(gp, inp.theta_box)
+    p = inp.theta_box.dim
+    n_fe = gp.box.dim
+    sig, mu, sd = _sigma_site(pr, red.y, p)
+    sites = [FlatSite(SITE_T, p, True, 0.0, 1.0, 0), sig]
+    offset = em.offset if isinstance(em, ObservedEmulator) else None
+    n_q = p - n_fe
+    if offset is None and n_q:
+        raise ValueError(f"the calibration box has {p} parameters, the surrogate {n_fe}")
+    if offset is not None:
+        obox = Box(tuple(inp.theta_box.names[n_fe:]), tuple(inp.theta_box.lower[n_fe:]),
+                   tuple(inp.theta_box.upper[n_fe:]), tuple(inp.theta_box.log_scale[n_fe:]))
+
+    def loglik(x: np.ndarray) -> tuple[float, np.ndarray]:
+        s = float(x[p])
+        if not s > 0.0:  # sigma underflowed to its bound 0: zero density
+            return -math.inf, np.zeros(p + 1)
+        u, du = umap(x[:p])
+        c, v, vjp = gps(u)
+        off_np = None
+        if offset is not None:
+            with torch.enable_grad():
+                qu = torch.tensor(x[n_fe:p], dtype=inp.y_obs.dtype, requires_grad=True)
+                off_t = offset(obox.from_unit(qu))  # (n,)
+            off_np = off_t.detach().cpu().numpy()
+        ll, gc, gv, gs, goff = red.loglik(c, v, s, off_np)
+        g = np.zeros(p + 1)
+        g[:n_fe] = vjp(gc, gv) @ du
+        g[p] = gs
+        if offset is not None and n_q:
+            assert goff is not None
+            (gq,) = torch.autograd.grad(off_t, qu, torch.from_numpy(goff))
+            g[n_fe:p] = gq.numpy()
+        return ll, g
+
+    return FlatModel(sites, loglik, mu, sd, inp.y_obs.dtype)

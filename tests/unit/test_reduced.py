@@ -1,0 +1,145 @@
+"""The reduced (projected) likelihood of PCA surrogates (calibration.reduced): equal to the full
+low-rank Gaussian density to 1e-8, its analytic gradient equal to Pyro's autograd, the input
+map's Jacobian equal to autograd's."""
+
+import math
+
+import numpy as np
+import pyro.distributions as dist
+import pytest
+import torch
+
+from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
+from solderpyro.calibration.koh import Priors, observation_model, prepare_observation
+from solderpyro.calibration.potential import torch_flat
+from solderpyro.calibration.reduced import PCAReduction, pca_flat, reduced_loglik_torch
+from solderpyro.design import lhs
+from solderpyro.params import Box
+from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate.features import FlowStressInputs
+
+DT = torch.float64
+ANAND = Box(("s0", "QR", "xi", "m"), (5.0, 7000.0, 1.0, 0.05), (25.0, 13000.0, 5.0, 0.5),
+            log_scale=(False, False, True, False))
+FIXED = {"A": 4e6, "s_hat": 13.79, "n": 0.07}
+
+
+def _field(theta: torch.Tensor, n_y: int = 60) -> torch.Tensor:
+    """A smooth stand-in field ``(b, n_y)`` of the four Anand constants (um)."""
+    x = torch.linspace(0, 1, n_y, dtype=DT)
+    f = FlowStressInputs(ANAND, FIXED)(theta)  # (b, 4): log flow stresses, xi, m on [0, 1]
+    return (torch.sin(3 * x + f[:, :1]) * f[:, 1:2] + 0.3 * f[:, 2:3] * x ** 2
+            + 0.2 * torch.cos(5 * x * f[:, 3:4]))
+
+
+def _gp(kernel: str, mean: str, inputs: bool, n: int = 25) -> GPSurrogate:
+    th = lhs(ANAND, n, 0).to(DT)
+    feats = FlowStressInputs(ANAND, FIXED) if inputs else None
+    return GPSurrogate(ANAND, output="pca", kernel=kernel, mean=mean, ard=True, n_pc=4,
+                       inputs=feats, restarts=1).fit(th, _field(th))
+
+
+@pytest.fixture(scope="module")
+def gps():
+    return {"matern-flow": _gp("matern52", "constant", True),
+            "gauss-raw-linear": _gp("gaussian", "linear", False)}
+
+
+def _y(gp: GPSurrogate) -> torch.Tensor:
+    th = torch.tensor([[12.9, 10586.0, 2.04, 0.1]], dtype=DT)
+    g = torch.Generator().manual_seed(0)
+    return _field(th)[0] + 0.05 * torch.randn(60, generator=g, dtype=DT)
+
+
+@pytest.mark.parametrize("name", ["matern-flow", "gauss-raw-linear"])
+def test_reduced_equals_full_low_rank_density(gps, name):
+    """log N(y; m, F F^T + diag(d + s^2)) of the surrogate, the full n-dimensional density,
+    equals the K-dimensional reduction to 1e-8 (relative) at points across the box."""
+    gp = gps[name]
+    y = _y(gp)
+    for u in ([0.1, 0.2, 0.3, 0.4], [0.9, 0.5, 0.7, 0.05], [0.5, 0.95, 0.2, 0.8]):
+        t = ANAND.from_unit(torch.tensor(u, dtype=DT))
+        for s in (0.01, 0.05, 0.3):
+            sig = torch.tensor(s, dtype=DT)
+            m, F, d = gp.mean_lowrank(t)
+            full = float(dist.LowRankMultivariateNormal(m, F, d + sig**2).log_prob(y))
+            red = float(reduced_loglik_torch(gp, y, t, sig))
+            assert abs(red - full) <= 1e-8 * max(1.0, abs(full)), (u, s, red, full)
+
+
+def test_projected_path_equals_the_direct_one(gps):
+    """The projections computed once (no offsets) give what the per-evaluation residual does."""
+    gp = gps["matern-flow"]
+    red = PCAReduction(gp, _y(gp))
+    rng = np.random.default_rng(0)
+    c, v = rng.normal(0, 2, red.K), rng.uniform(0, 1, red.K)
+    a = red.loglik(c, v, 0.07, None)
+    b = red.loglik(c, v, 0.07, np.zeros(red.n))
+    assert abs(a[0] - b[0]) < 1e-9 * abs(a[0])
+    for i in (1, 2, 3):
+        np.testing.assert_allclose(a[i], b[i], rtol=1e-8, atol=1e-8)
+
+
+def _offset_emulator(gp: GPSurrogate):
+    """A rigid offset and tilt of the field: q = (c um, w um per unit x) -> (n,)."""
+    x = torch.linspace(-1, 1, 60, dtype=DT)
+
+    def off(q: torch.Tensor) -> torch.Tensor:
+        return q[..., 0] + q[..., 1] * x
+
+    box = Box((*ANAND.names, "c", "w"), (*ANAND.lower, -1.0, -0.5), (*ANAND.upper, 1.0, 0.5),
+              log_scale=(*ANAND.log_scale, False, False))
+    return ObservedEmulator(GPEmulator(gp), 4, off), box
+
+
+def _flat_pair(gp, emulator, box, pr):
+    inp = prepare_observation(_y(gp), emulator, box)
+    return pca_flat(inp, pr), torch_flat(observation_model, (inp, pr), jit=False)
+
+
+@pytest.mark.parametrize("name", ["matern-flow", "gauss-raw-linear"])
+@pytest.mark.parametrize("offsets", [False, True])
+@pytest.mark.parametrize("pr", [Priors(sigma_known=0.05), Priors(sigma_max=2.0)],
+                         ids=["known", "flat"])
+def test_analytic_density_and_gradient_equal_pyro_autograd(gps, name, offsets, pr):
+    """At random unconstrained points the analytic log density differs from Pyro's
+    -potential_energy of observation_model by one constant, and the gradients agree."""
+    gp = gps[name]
+    em, box = _offset_emulator(gp) if offsets else (GPEmulator(gp), ANAND)
+    fa, fg = _flat_pair(gp, em, box, pr)
+    assert fa.dim == fg.dim == box.dim + 1
+    rng = np.random.default_rng(1)
+    diffs = []
+    for _ in range(5):
+        q = rng.uniform(-1.5, 1.5, fa.dim)
+        if pr.sigma_known:
+            q[-1] = math.log(0.05) + 0.1 * rng.normal()
+        la, ga = fa.logp_and_grad(q)
+        lg, gg = fg.logp_and_grad(q)
+        diffs.append(la - lg)
+        np.testing.assert_allclose(ga, gg, rtol=1e-6, atol=1e-7 * np.abs(gg).max())
+    assert np.ptp(diffs) < 1e-7 * max(1.0, abs(lg)), diffs
+
+
+def test_flow_stress_jacobian_equals_autograd():
+    box = Box(("s0", "QR", "A", "xi", "m", "n"), (5, 7000, 1e5, 1, 0.05, 0.01),
+              (25, 13000, 1e8, 5, 0.5, 0.2), log_scale=(False, False, True, True, False, False))
+    fm = FlowStressInputs(box, {"s_hat": 13.79})
+    for u in ([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], [0.9, 0.8, 0.05, 0.6, 0.99, 0.3]):
+        x = box.from_unit(torch.tensor(u, dtype=DT))
+        f, j = fm.value_and_jacobian(x.numpy())
+        np.testing.assert_allclose(f, fm(x).numpy(), rtol=1e-12, atol=1e-12)
+        jt = torch.autograd.functional.jacobian(fm, x)
+        np.testing.assert_allclose(j, jt.numpy(), rtol=1e-10, atol=1e-12)
+
+
+def test_bad_input_is_named(gps):
+    gp = gps["matern-flow"]
+    with pytest.raises(ValueError, match="y_obs has shape"):
+        PCAReduction(gp, torch.zeros(5, dtype=DT))
+    inp = prepare_observation(_y(gp), GPEmulator(gp), ANAND)
+    with pytest.raises(NotImplementedError, match="custom"):
+        pca_flat(inp, Priors(custom={"sigma": dist.HalfNormal(1.0)}))
+    swapped = Box(("QR", "s0", "xi", "m"), (7000.0, 5.0, 1.0, 0.05), (13000.0, 25.0, 5.0, 0.5))
+    with pytest.raises(ValueError, match="surrogate's inputs"):
+        pca_flat(prepare_observation(_y(gp), GPEmulator(gp), swapped), Priors())
