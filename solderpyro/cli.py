@@ -195,8 +195,14 @@ def cmd_calibrate(a, overrides) -> int:
     if a.exact_profile < 0 or a.exact_profile == 1:
         raise ValueError(f"--exact-profile must be 0 (none) or >= 2 grid points, got "
                          f"{a.exact_profile}")
+    nuts = _nuts_args(a)
+    if a.warm_from:
+        from .calibration.mcmc import WarmStart
+        from .workflow import WARM_FILE
+
+        nuts["warm"] = WarmStart.load(Path(a.warm_from) / WARM_FILE)
     res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,
-                             store_root=a.store, batch_size=a.batch, nuts=_nuts_args(a),
+                             store_root=a.store, batch_size=a.batch, nuts=nuts,
                              progress=not a.quiet, exact=a.exact, refine=a.refine,
                              refine_rounds=a.refine_rounds, local=a.local,
                              local_sd=a.local_sd, exact_rounds=a.exact_rounds,
@@ -333,6 +339,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True,
                    help="run directory (report.html, report.md, summary.csv, ...)")
     c.add_argument("--runs", type=int, default=50, help="Latin hypercube FE runs (seed: 50)")
+    c.add_argument("--warm-from", default=None, metavar="RUN_DIR",
+                   help="start NUTS from an earlier calibration's adapted state (its chains' "
+                   "last positions and mass matrix, matched by parameter name), e.g. the base "
+                   "run when recalibrating with one more effect")
     c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
     c.add_argument("--batch", type=int, default=64, help="FE runs per batched solve")
     c.add_argument("--exact", type=int, default=0, metavar="N",

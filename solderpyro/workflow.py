@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -356,6 +357,8 @@ def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple
 
 
 RUN_FILES = ("run.json", "data.csv", "draws.npz")
+#: the sampler's adapted state in a run directory (:class:`~solderpyro.calibration.mcmc.WarmStart`)
+WARM_FILE = "sampler_state.npz"
 
 
 def save_run(out: Path, meas: Measurements, space: Box, effects: tuple[str, ...],
@@ -387,6 +390,8 @@ def save_run(out: Path, meas: Measurements, space: Box, effects: tuple[str, ...]
             "effects": list(effects),
             "times_s": [float(t) for t in meas.times()], "points": list(meas.points())}
     (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
+    if post.warm is not None:  # a recalibration can start from here (--warm-from)
+        post.warm.save(out / WARM_FILE)
 
 
 def _posterior_region(t: torch.Tensor, box: Box) -> Box:
@@ -692,6 +697,15 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                          f"{exact_rounds}, exact_profile={exact_profile}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    timing: dict[str, float] = {}  # seconds per stage, into run.json and the log
+    clock = [time.perf_counter()]
+
+    def stage(name: str) -> None:
+        now = time.perf_counter()
+        timing[name] = round(timing.get(name, 0.0) + now - clock[0], 2)
+        log.info("stage %s: %.1f s", name, now - clock[0])
+        clock[0] = now
+
     if len(meas) == 0:
         raise ValueError("the measurement file has no rows")
     field = any(p not in setup.problem.points for p in meas.points())
@@ -712,6 +726,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     if fx is not None:
         log.info("effects on: %s (parameters %s)", ", ".join(fx.keys), ", ".join(fx.names))
     doe = run_doe(solver, store, h, params, times, batch_size, progress)
+    stage("doe")
     ti, oi = observation_index(meas, doe.times, doe.names)
     y_sim = doe.V[:, ti, oi]  # (n_runs + 1, n_obs)
     y_liu = y_sim[-1]
@@ -734,6 +749,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
     gp = GPSurrogate(gp_box, **gopts)
     gp.fit(theta[ok], y_sim[:n_runs][ok])
     loo = gp.loo()
+    stage("surrogate")
     problems = gp.check(loo)
     sig = meas.sigma_um[np.isfinite(meas.sigma_um)]
     yr = float(y_obs.max() - y_obs.min())
@@ -759,6 +775,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
         return ObservedEmulator(GPEmulator(gp), gp_box.dim, obs_off)
 
     post, inp = calibrate_emulator(emulate(gp), y_obs, space, priors=pr, **nk)
+    stage("posterior")
     X, Y, okk = theta, y_sim[:n_runs], ok
     fe_fit: dict[str, Any] | None = None
     region: LocalBox | None = None
@@ -826,7 +843,10 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
             fit_space = space
         loo = gp.loo()
         problems = gp.check(loo)
-        post, inp = calibrate_emulator(emulate(gp), y_obs, fit_space, priors=pr, **nk)
+        # the same box: start from the last posterior's positions and mass matrix
+        post, inp = calibrate_emulator(emulate(gp), y_obs, fit_space, priors=pr,
+                                       **(nk if local else {**nk, "warm": post.warm}))
+        stage("refine")
     if region is not None:
         faces = region_faces(region, post.flat("t"))
         local_info = {"local_region": {
@@ -854,6 +874,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
 
     V_chk = fe_fun(draws[pick])
     chk = fe_check(V_chk, y_obs, sig_fe)
+    stage("fe_check")
     log.info("FE check: best RMS residual of the FE over %d posterior draws %.4g um (%.2f "
              "noise sd)", chk["draws"], chk["rms_um"], chk["rms_over_sigma"])
     if not chk["ok"]:
@@ -887,7 +908,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                   "surrogate_inputs": inputs, **({"inputs_T_C": inputs_T_C,
                                                    "inputs_rate": inputs_rate} if feats else {}),
                   "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
-                  "fe_check": chk, **local_info,
+                  "fe_check": chk, **local_info, "timing_s": timing,
                   "posterior": "fe-exact" if saved is not None else "surrogate",
                   **({"exact": ex_info} if ex_info else {}),
                   **({"fe_best_fit": {"x": fe_fit["x"].tolist(), "chi2": fe_fit["chi2"],
@@ -1010,4 +1031,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path, n_runs
                                  if p.at_lower_bound or p.at_upper_bound else "")
             write_all(rows, bands, problems, ex, ex_info, ex_rows)
     print(format_summary(rows))
+    stage("report")
+    info = json.loads((out / "run.json").read_text())
+    info["timing_s"] = timing
+    (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
     return SpecimenCalibration(out, post, rows, loo, int(ok.sum()), int((~ok).sum()))

@@ -183,6 +183,28 @@ class WarmStart:
                     inv[a, b] = old[ia, ib]
         return q, (inv if dense else inv.diagonal().copy()), self.step_size
 
+    def save(self, path: str | Path) -> Path:
+        """Write to ``path`` (``.npz``)."""
+        p = Path(path)
+        np.savez(p, coords=np.array(self.coords), q=self.q, inv_metric=self.inv_metric,
+                 step_size=self.step_size)
+        return p
+
+    @classmethod
+    def load(cls, path: str | Path) -> WarmStart:
+        """Read what :meth:`save` wrote.
+
+        Raises:
+            FileNotFoundError naming the file.
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"{p} is missing: the run directory has no sampler state "
+                                    "(written by 'solderpyro calibrate' of this version)")
+        with np.load(p) as z:
+            return cls([str(c) for c in z["coords"]], z["q"], z["inv_metric"],
+                       float(z["step_size"]))
+
 
 @dataclass
 class NutsRun:

@@ -8,6 +8,14 @@ parameters -> misfit chi-square after a linearised refit and a score test per ef
 (:mod:`solderpyro.diagnose.stats`) -> ranking, confusions, verdict -> ``diagnosis.json``,
 ``diagnosis.md`` and figures.
 
+Every FE run goes through the calibration's run store (:class:`~solderpyro.store.RunStore`,
+``run.json``'s ``"store"``), registered with the solver's problem, times, field flag, dtype and
+the effects switched on: each run is kept as soon as its batch finishes, a rerun of the
+diagnosis reads every run back, and rows that several stages share (the Jacobians' base and
+forward rows, the refits' first steps, a refit that did not move) are solved once. Each
+stage's seconds and FE runs (computed, reused) are logged and written to ``diagnosis.json``
+(``"timing"``) and ``diagnosis.md``.
+
 The FE is exact (no code uncertainty), so the misfit and score statistics are measured against
 the measurement noise alone: the noise the data file states (``sigma_um``) when there is one,
 otherwise the posterior median of sigma.
@@ -15,10 +23,16 @@ otherwise the posterior median of sigma.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import math
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -63,11 +77,211 @@ class Diagnosis:
     indistinguishable: list[list[str]]
     suggestions: list[str]
     separation: dict | None = None
+    #: stage -> ``{"seconds", "fe_runs" (computed), "fe_reused" (read from the run store or
+    #: shared with another row)}``, then ``"total"``
+    timing: dict[str, dict[str, float | int]] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {"misfit": self.misfit, "verdict": self.verdict, "ranking": self.ranking,
                 "check": self.check, "indistinguishable": self.indistinguishable,
-                "suggestions": self.suggestions, "separation": self.separation}
+                "suggestions": self.suggestions, "separation": self.separation,
+                "timing": self.timing}
+
+
+@dataclass
+class FeOut:
+    """Outputs of :meth:`FeRuns.solve`, row for row.
+
+    Attributes:
+        V: ``(n, n_time, n_out)`` um, float64 (NaN rows where a member failed); ok: ``(n,)``
+        bool; reasons: ``n`` strings (empty where converged); times: ``(n_time,)`` s, sorted;
+        names: ``n_out`` output labels.
+    """
+
+    V: np.ndarray
+    ok: np.ndarray
+    reasons: list[str]
+    times: tuple[float, ...]
+    names: tuple[str, ...]
+
+
+class FeRuns:
+    """The FE solves of a diagnosis: one solver per configuration (output times, field grid or
+    not, FE-side effects switched on), set up once, and every run through the run store
+    ``store`` (None: solved directly, nothing kept), registered under that configuration exactly
+    as the calibration registers its own (:meth:`~solderpyro.store.RunStore.register`).
+
+    Observation-side effects (``moire_rigid_motion``: they act on V after the FE) are applied
+    to the FE's outputs here, as the calibration applies them, so rows that differ only in
+    their parameters share one FE run (e.g. each difference step of a Moire offset).
+
+    Args:
+        setup: the run's :class:`~solderpyro.configure.Setup`.
+        store: the run store, or None. batch_size: members per batched FE solve (each batch is
+            stored as soon as it finishes: a killed diagnosis loses at most one batch).
+    Attributes:
+        computed: parameter sets solved so far; reused: rows served without a solve (read from
+            the store, or duplicates of a row of the same call).
+    """
+
+    def __init__(self, setup: Any, store: Any = None, batch_size: int = 64) -> None:
+        if batch_size < 1:
+            raise ValueError(f"FeRuns: batch_size must be >= 1, got {batch_size}")
+        self.setup, self.store, self.batch_size = setup, store, batch_size
+        self.computed = 0
+        self.reused = 0
+        self._configs: dict[tuple, tuple[_LazySolver, str | None]] = {}
+
+    def config(self, times: tuple[float, ...], field: bool, effects: Any = None
+               ) -> tuple[_LazySolver, str | None]:
+        """``(solver, store hash or None)`` of the configuration; ``effects``: an
+        :class:`~solderpyro.effects.EffectSet` the solver simulates (None or empty: none).
+        The solver is set up on its first solve (not at all when every run is stored)."""
+        fx = effects if effects is not None and len(effects) else None
+        key = (tuple(sorted(float(t) for t in times)), bool(field),
+               json.dumps(fx.bind(times).settings(), sort_keys=True, default=str)
+               if fx is not None else "")
+        if key not in self._configs:
+            s = self.setup
+            h = (self.store.register(s.problem, times, field, s.dtype, effects=fx or ())
+                 if self.store is not None else None)
+            self._configs[key] = (_LazySolver(s, field, fx), h)
+        return self._configs[key]
+
+    def solve(self, rows: torch.Tensor, times: tuple[float, ...], field: bool,
+              effects: Any = None, progress: bool = False) -> FeOut:
+        """The FE at solver rows ``(n, 9 + n_eff)`` (:func:`~solderpyro.workflow.fe_params`;
+        the effects' parameters in the order of ``effects``) over ``times`` (s), with the
+        31 x 18 grid when ``field``; stored runs are read back, the others solved in batches
+        of ``batch_size`` and stored; observation-side effects applied after the FE."""
+        from solderpyro.effects import EffectSet
+        from solderpyro.params import ANAND_NAMES
+        from solderpyro.store import run_doe
+        from solderpyro.workflow import OBSERVATION_SEAM
+
+        rows = torch.as_tensor(rows, dtype=torch.float64)
+        fe_cols, obs_cols = list(range(len(ANAND_NAMES))), list[int]()
+        fx_fe = fx_obs = None
+        if effects is not None and len(effects):
+            fxb = effects.bind(times)
+            n = len(ANAND_NAMES)
+            for e in fxb.effects:
+                (obs_cols if e.seam == OBSERVATION_SEAM else fe_cols).extend(
+                    range(n, n + e.n_params))
+                n += e.n_params
+            fe_fx = [e for e in fxb.effects if e.seam != OBSERVATION_SEAM]
+            obs_fx = [e for e in fxb.effects if e.seam == OBSERVATION_SEAM]
+            fx_fe = EffectSet(fe_fx) if fe_fx else None
+            fx_obs = EffectSet(obs_fx) if obs_fx else None
+        solver, h = self.config(times, field, fx_fe)
+        P = rows[:, fe_cols]
+        pnames = [*ANAND_NAMES, *(fx_fe.names if fx_fe is not None else ())]
+        res: Any
+        if self.store is None or h is None:  # each distinct row solved once
+            uniq, inv = torch.unique(P, dim=0, return_inverse=True)
+            res = solver.solve(uniq, times, progress=progress)
+            res = SimpleNamespace(V=res.V[inv], ok=res.ok[inv], times=res.times,
+                                  names=res.names,
+                                  reasons=[res.reasons[i] for i in inv.tolist()])
+            self.computed += len(uniq)
+            self.reused += len(P) - len(uniq)
+        else:
+            res = run_doe(solver, self.store, h, P, times, self._batch(h, P),
+                          progress=progress, param_names=pnames)
+            self.computed += res.n_computed
+            self.reused += len(rows) - res.n_computed
+        Vt = res.V.detach().cpu().to(torch.float64)
+        if fx_obs is not None:  # as the solver applies them: V + offset(x of each output)
+            from solderpyro.workflow import output_points
+
+            pts = output_points(self.setup.problem)
+            x = torch.tensor([pts[n][0] for n in res.names], dtype=torch.float64)
+            Vt = fx_obs.observe(Vt, x, float(self.setup.problem.origin[0]), rows[:, obs_cols])
+        V = Vt.numpy()
+        ok = torch.as_tensor(res.ok).cpu().numpy().astype(bool)
+        tt = tuple(float(t) for t in torch.as_tensor(res.times).tolist())
+        return FeOut(V, ok, [str(r) for r in res.reasons], tt, tuple(res.names))
+
+
+    def _batch(self, h: str, P: torch.Tensor) -> int:
+        """Members per solve: the rows not yet stored split into equal batches of at most
+        ``batch_size`` (66 rows: two of 33, not 64 and 2)."""
+        from solderpyro.store import param_hash
+
+        first = {param_hash(r): i for i, r in enumerate(P)}
+        n = sum(not self.store.path(h, P[i]).exists() for i in first.values())
+        return max(1, math.ceil(n / max(1, math.ceil(n / self.batch_size))))
+
+
+class _LazySolver:
+    """A :class:`~solderpyro.fem.solver.SpecimenSolver` set up on its first :meth:`solve`."""
+
+    def __init__(self, setup: Any, field: bool, effects: Any) -> None:
+        self.setup, self.field, self.effects = setup, field, effects
+        self._solver: Any = None
+
+    @property
+    def solver(self) -> Any:
+        if self._solver is None:
+            from solderpyro.fem.problem import reference_grid
+            from solderpyro.fem.solver import SpecimenSolver
+
+            s = self.setup
+            self._solver = SpecimenSolver(s.problem, reference_grid() if self.field else None,
+                                          dtype=s.dtype, device=s.device,
+                                          effects=self.effects or ())
+        return self._solver
+
+    def solve(self, params: torch.Tensor, times: Any, progress: bool = False) -> Any:
+        return self.solver.solve(params, times, progress=progress)
+
+
+#: stage -> its label in the log and in diagnosis.md
+STAGES = {"load": "loading the run", "predictive_check": "posterior predictive check",
+          "best_fit": "FE best fit (baseline refit)",
+          "fe_jacobians": "FE Jacobians (+ ladder runs)", "score_tests": "score tests",
+          "ladder": "likelihood-ratio ladder", "profile_refits": "profile refits",
+          "verdict": "ranking and verdict", "separation": "separation",
+          "write": "writing (figures)"}
+
+
+class _Costs:
+    """Seconds and FE runs (computed, reused) per stage of a diagnosis."""
+
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+        self.fe: FeRuns | None = None
+        self.stages: dict[str, dict[str, float | int]] = {}
+
+    def _counts(self) -> tuple[int, int]:
+        return (0, 0) if self.fe is None else (self.fe.computed, self.fe.reused)
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t0, (c0, r0) = time.perf_counter(), self._counts()
+        yield
+        c1, r1 = self._counts()
+        row = {"seconds": round(time.perf_counter() - t0, 3), "fe_runs": c1 - c0,
+               "fe_reused": r1 - r0}
+        self.stages[name] = row
+        log.info("diagnose: %-30s %8.2f s, %4d FE runs computed, %4d reused", STAGES[name],
+                 row["seconds"], row["fe_runs"], row["fe_reused"])
+
+    def table(self) -> dict[str, dict[str, float | int]]:
+        """The stages, then ``"total"`` (wall time since the start)."""
+        total = {"seconds": round(time.perf_counter() - self.t0, 3),
+                 "fe_runs": sum(int(r["fe_runs"]) for r in self.stages.values()),
+                 "fe_reused": sum(int(r["fe_reused"]) for r in self.stages.values())}
+        return {**self.stages, "total": total}
+
+
+def run_store(info: dict[str, Any], run_dir: Path) -> Any:
+    """The run store of the calibration (``run.json``'s ``"store"``; a relative path is taken
+    from the working directory, as ``calibrate`` took it), else ``run_dir/fe_store``."""
+    from solderpyro.store import RunStore
+
+    root = info.get("store")
+    return RunStore(Path(root) if root else run_dir / "fe_store")
 
 
 def load_run(run_dir: str | Path) -> dict[str, Any]:
@@ -138,7 +352,8 @@ def _fd_design(box_names, box_lo, box_hi, cands: dict[str, Any], rel: float) -> 
 
 def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
                  candidates: tuple[str, ...], times: tuple[float, ...], field: bool,
-                 rel: float = 1e-3, progress: bool = True) -> dict[str, Any]:
+                 rel: float = 1e-3, progress: bool = True, fe: FeRuns | None = None
+                 ) -> dict[str, Any]:
     """FE outputs and finite-difference Jacobians at calibrated draws, candidates at "off".
 
     Args:
@@ -149,14 +364,17 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         run_effects: effects already on in the calibration; candidates: effects to test.
         times: output times, s; field: also the 31 x 18 grid.
         rel: step as a share of each parameter's box width (one-sided at a box edge).
+        fe: the diagnosis's :class:`FeRuns` (run store, solvers); None: solve directly.
     Returns:
         dict: ``V (K, n_time, n_out)`` at the draws (um), ``J (K, n_time, n_out, n_col)``
-        (um per unit), ``cols`` (:class:`_Columns`), ``names`` (output labels), ``times``.
+        (um per unit), ``cols`` (:class:`_Columns`), ``names`` (output labels), ``times``,
+        ``ladder`` (per one-parameter candidate, its magnitudes and the FE there), ``n_ladder``
+        (FE rows of the ladder). The draws' rows and the ladder's are one batched solve.
     """
     from solderpyro.effects import effect_set
-    from solderpyro.fem.problem import reference_grid
-    from solderpyro.fem.solver import SpecimenSolver
     from solderpyro.workflow import calibration_box, fe_params
+
+    fe = fe if fe is not None else FeRuns(setup)
 
     fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
     cands = {e.name: e for e in fx_all.effects if e.name in candidates}
@@ -165,8 +383,6 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
     cols = _fd_design(list(cal.names), list(cal.lower), list(cal.upper), cands, rel)
     n_cal = cal.dim
     off = np.array([v for e in cands.values() for v in e.off], float)
-    solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                            dtype=setup.dtype, device=setup.device, effects=fx_all)
     rows = []
     for th in theta:
         base = np.concatenate([th, off])
@@ -195,10 +411,12 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
             rows.append(r)
     P = torch.tensor(np.array(rows), dtype=torch.float64)
     full = fe_params(setup, P)
-    log.info("diagnose: %d FE runs (%d draws x %d Jacobian columns, candidates: %s)",
-             len(rows), len(theta), len(cols.names), ", ".join(candidates) or "none")
-    res = solver.solve(full, times, progress=progress)
-    V = res.V.detach().numpy()
+    n_lad = sum(len(v) for v in ladder.values())
+    log.info("diagnose: %d FE rows (%d draws x %d Jacobian columns, %d ladder runs, "
+             "candidates: %s)", len(rows), len(theta), len(cols.names), n_lad,
+             ", ".join(candidates) or "none")
+    res = fe.solve(full, times, field, fx_all, progress=progress)
+    V = res.V
     if not bool(res.ok.all()):
         bad = [r for r in res.reasons if r]
         raise RuntimeError(f"{len(bad)} FE runs of the diagnosis failed: {bad[:2]}")
@@ -222,8 +440,7 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         VL[ename] = (vals, V[i:i + len(vals)])
         i += len(vals)
     return {"V": Vb, "J": J, "cols": cols, "names": list(res.names), "n_cal": n_cal,
-            "solver": solver,
-            "ladder": VL,
+            "fe": fe, "ladder": VL, "n_ladder": n_lad,
             "times": tuple(float(t) for t in res.times)}
 
 
@@ -243,6 +460,15 @@ def analyse(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: _Columns, sigma: 
         ``(misfit at the first draw, scores at the first draw (one per candidate), scores per
         draw)``.
     """
+    mf, scores, per_draw = score_tests(y, V, J, cols, sigma)
+    apply_ladder(mf, scores, y, J[0], cols, sigma, ladder)
+    return mf, scores, per_draw
+
+
+def score_tests(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: _Columns, sigma: float
+                ) -> tuple[Misfit, list[Score], list[list[Score]]]:
+    """:func:`analyse` without the likelihood-ratio ladder: the misfit at the first draw and
+    the score tests at each draw."""
     w = np.full(len(y), 1.0 / sigma**2)
     th = _group(cols, "theta")
     effects = [o for o in dict.fromkeys(cols.owner) if o != "theta"]
@@ -252,10 +478,21 @@ def analyse(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: _Columns, sigma: 
         per_draw.append([score_test(e, r, J[k][:, th], J[k][:, _group(cols, e)], w)
                          for e in effects])
     mf = misfit(y - V[0], J[0][:, th], w)
-    for sc in per_draw[0]:
+    return mf, per_draw[0], per_draw
+
+
+def apply_ladder(mf: Misfit, scores: list[Score], y: np.ndarray, J0: np.ndarray,
+                 cols: _Columns, sigma: float,
+                 ladder: dict[str, tuple[np.ndarray, np.ndarray]] | None) -> None:
+    """The likelihood ratio of each one-parameter candidate over its ladder of magnitudes
+    (first draw, ``J0 (n, n_col)``); where it is the larger statistic it replaces the score's
+    (``scores`` are changed in place)."""
+    w = np.full(len(y), 1.0 / sigma**2)
+    th = _group(cols, "theta")
+    for sc in scores:
         if ladder and sc.effect in ladder:
             vals, VL = ladder[sc.effect]
-            lr = likelihood_ratio(mf.chi2, y, VL, J[0][:, th], w)
+            lr = likelihood_ratio(mf.chi2, y, VL, J0[:, th], w)
             sc.lr, sc.lr_value = float(lr.max()), float(vals[int(np.argmax(lr))])
             if sc.lr > sc.statistic:  # a finite magnitude explains more than the slope at off
                 sc.statistic = sc.lr
@@ -263,7 +500,6 @@ def analyse(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: _Columns, sigma: 
                 sc.p_value = float(_chi2.sf(sc.lr, sc.dof))
                 sc.evidence = evidence(sc.lr, sc.dof)
                 sc.chi2_after = mf.chi2 - sc.lr
-    return mf, per_draw[0], per_draw
 
 
 def likelihood_ratio(chi2_base: float, y: np.ndarray, V_ladder: np.ndarray,
@@ -280,8 +516,8 @@ def likelihood_ratio(chi2_base: float, y: np.ndarray, V_ladder: np.ndarray,
 
 
 def fe_best_fit(setup: Any, theta0: np.ndarray, run_effects: tuple[str, ...],
-                meas: Any, sigma: float, iters: int = 4, rel: float = 1e-3
-                ) -> tuple[np.ndarray, list[float]]:
+                meas: Any, sigma: float, iters: int = 4, rel: float = 1e-3,
+                fe: FeRuns | None = None) -> tuple[np.ndarray, list[float]]:
     """The FE's own best fit near ``theta0``: Levenberg-Marquardt on the calibrated parameters
     through the FE, inside the prior box (:func:`profile_fits` with no candidate).
 
@@ -291,16 +527,18 @@ def fe_best_fit(setup: Any, theta0: np.ndarray, run_effects: tuple[str, ...],
 
     Args:
         theta0: ``(n_cal,)`` start (physical units); meas: the data; sigma: noise sd, um.
+        fe: the diagnosis's :class:`FeRuns` (run store, solvers); None: solve directly.
     Returns:
         ``(theta (n_cal,), chi2 history)``.
     """
-    fit = profile_fits(setup, theta0, run_effects, (), {}, meas, sigma, iters, rel)["baseline"]
+    fit = profile_fits(setup, theta0, run_effects, (), {}, meas, sigma, iters, rel,
+                       fe=fe)["baseline"]
     return fit["x"], fit["history"]
 
 
 def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
                  candidates: tuple[str, ...], start: dict[str, float], meas: Any,
-                 sigma: float, iters: int = 5, rel: float = 1e-3, solver: Any = None
+                 sigma: float, iters: int = 5, rel: float = 1e-3, fe: FeRuns | None = None
                  ) -> dict[str, dict[str, Any]]:
     """Refit the FE with each candidate effect switched on (its parameters and the calibrated
     ones free), all candidates in one batched solve per step (Levenberg-Marquardt, forward
@@ -310,21 +548,25 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
     effect: the gain in fit when it is added, with no linearisation, so it ranks large misfits
     correctly where the score test (first order at "off") cannot.
 
+    Through the run store (``fe``), every row already computed (the Jacobians' base and forward
+    rows at the same point, the ladder's magnitudes, a step that was not taken) is read back,
+    and rows that several models share (the calibrated parameters' difference steps of each
+    model starting at the same point) are solved once.
+
     Args:
         theta: ``(n_cal,)`` start of the calibrated parameters (physical units).
         start: per candidate with one parameter, its start value (e.g. the best ladder
             magnitude; a threshold effect does not move from "off" by its gradient).
-        solver: a :class:`~solderpyro.fem.solver.SpecimenSolver` already set up for these
-            effects and outputs (e.g. :func:`fe_jacobians`'s), to skip setting up another.
+        fe: the diagnosis's :class:`FeRuns` (run store, solvers set up once, e.g. the one
+            :func:`fe_jacobians` used); None: solve directly.
     Returns:
         ``{name: {"chi2": float, "x": (n_col,) row, "iters": int, "history": [chi2, ...]}}``
         with ``"baseline"``.
     """
     from solderpyro.effects import effect_set
-    from solderpyro.fem.problem import reference_grid
-    from solderpyro.fem.solver import SpecimenSolver
     from solderpyro.workflow import calibration_box, fe_params, observation_index
 
+    fe = fe if fe is not None else FeRuns(setup)
     field = any(p not in setup.problem.points for p in meas.points())
     times = tuple(float(t) for t in meas.times())
     fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
@@ -338,9 +580,6 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         off += list(e.off)
         owner += [e.name] * e.n_params
     lo_a, hi_a = np.array(lo, float), np.array(hi, float)
-    if solver is None:
-        solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                                dtype=setup.dtype, device=setup.device, effects=fx_all)
     y = np.asarray(meas.value_um, float)
     ow = np.array(owner)
     models = {"baseline": np.arange(n_cal)}
@@ -355,14 +594,13 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         starts.append(x)
     idx: dict[str, Any] = {}
 
-    def run(rows: np.ndarray) -> np.ndarray:
+    def run(rows: np.ndarray) -> np.ndarray:  # one batched call per lm_fit step
         P = torch.tensor(rows, dtype=torch.float64)
-        res = solver.solve(fe_params(setup, P), times)
+        res = fe.solve(fe_params(setup, P), times, field, fx_all)
         if "ti" not in idx:
-            idx["ti"], idx["oi"] = observation_index(meas, tuple(res.times.tolist()),
-                                                      tuple(res.names))
-        V = res.V.detach().numpy()[:, idx["ti"], idx["oi"]]
-        V[~res.ok.numpy()] = np.nan
+            idx["ti"], idx["oi"] = observation_index(meas, res.times, res.names)
+        V = res.V[:, idx["ti"], idx["oi"]]
+        V[~res.ok] = np.nan
         return V
 
     out = lm_fit(run, np.array(starts), lo_a, hi_a, y, sigma, list(models.values()), iters,
@@ -372,8 +610,13 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
 
 
 def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_draws: int = 3,
-             seed: int = 0, progress: bool = True, refit: bool = True) -> Diagnosis:
+             seed: int = 0, progress: bool = True, refit: bool = True,
+             batch_size: int = 64) -> Diagnosis:
     """Diagnose the calibration in ``run_dir``; writes diagnosis.json, diagnosis.md, figures.
+
+    Every FE run goes through the calibration's run store (:func:`run_store`): a second
+    diagnosis of the same run directory reads them all back. Each stage's cost (seconds, FE
+    runs computed and reused) is logged and kept in :attr:`Diagnosis.timing`.
 
     Args:
         run_dir: a directory written by ``solderpyro calibrate``.
@@ -384,67 +627,88 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
             stable the evidence is over the posterior).
         refit: move the first draw to the FE's own best fit (:func:`fe_best_fit`) before the
             tests, so that a surrogate error is not read as a missing effect.
+        batch_size: FE runs per batched solve (each batch is stored as soon as it finishes).
     Returns:
         :class:`Diagnosis`.
     """
     from solderpyro.effects import EFFECTS
     from solderpyro.workflow import observation_index
 
+    cost = _Costs()
     d = Path(run_dir)
-    run = load_run(d)
-    info, setup, meas, dr = run["info"], run["setup"], run["meas"], run["draws"]
-    run_effects = tuple(info.get("effects", []))
-    if candidates is None:
-        candidates = tuple(n for n in EFFECTS if n not in run_effects)
-    unknown = [c for c in candidates if c not in EFFECTS]
-    if unknown:
-        raise ValueError(f"unknown effect(s) {unknown}; valid: {', '.join(EFFECTS)}")
-    y = np.asarray(meas.value_um, float)
-    sigma_draws = dr["sigma"]
-    sig_known = info.get("sigma_known")
-    sigma = float(sig_known) if sig_known else float(np.median(sigma_draws))
-    pc = predictive_check(y, dr["process"], dr["sigma_pred"], seed=seed)
+    with cost.stage("load"):
+        run = load_run(d)
+        info, setup, meas, dr = run["info"], run["setup"], run["meas"], run["draws"]
+        run_effects = tuple(info.get("effects", []))
+        if candidates is None:
+            candidates = tuple(n for n in EFFECTS if n not in run_effects)
+        unknown = [c for c in candidates if c not in EFFECTS]
+        if unknown:
+            raise ValueError(f"unknown effect(s) {unknown}; valid: {', '.join(EFFECTS)}")
+        cost.fe = fe = FeRuns(setup, run_store(info, d), batch_size)
+        log.info("diagnose: FE runs kept in the run store %s", fe.store.root)
+    with cost.stage("predictive_check"):
+        y = np.asarray(meas.value_um, float)
+        sigma_draws = dr["sigma"]
+        sig_known = info.get("sigma_known")
+        sigma = float(sig_known) if sig_known else float(np.median(sigma_draws))
+        pc = predictive_check(y, dr["process"], dr["sigma_pred"], seed=seed)
     field = any(p not in setup.problem.points for p in meas.points())
     times = tuple(float(t) for t in meas.times())
     idx = _pick_draws(dr["theta"], n_draws, seed)
     thetas = dr["theta"][idx].copy()
     if refit:
-        thetas[0], hist = fe_best_fit(setup, thetas[0], run_effects, meas, sigma)
-        log.info("diagnose: FE best fit from the posterior median, chi2 %s",
-                 " -> ".join(f"{c:.1f}" for c in hist))
-    fe = fe_jacobians(setup, thetas, run_effects, candidates, times, field,
-                      progress=progress)
-    ti, oi = observation_index(meas, fe["times"], tuple(fe["names"]))
-    V = fe["V"][:, ti, oi]
-    J = fe["J"][:, ti, oi, :]
-    lad = {k: (v, VL[:, ti, oi]) for k, (v, VL) in fe["ladder"].items()}
-    mf, scores, per_draw = analyse(y, V, J, fe["cols"], sigma, lad)
+        with cost.stage("best_fit"):
+            thetas[0], hist = fe_best_fit(setup, thetas[0], run_effects, meas, sigma, fe=fe)
+            log.info("diagnose: FE best fit from the posterior median, chi2 %s",
+                     " -> ".join(f"{c:.1f}" for c in hist))
+    with cost.stage("fe_jacobians"):
+        fej = fe_jacobians(setup, thetas, run_effects, candidates, times, field,
+                           progress=progress, fe=fe)
+    with cost.stage("score_tests"):
+        ti, oi = observation_index(meas, fej["times"], tuple(fej["names"]))
+        V = fej["V"][:, ti, oi]
+        J = fej["J"][:, ti, oi, :]
+        mf, scores, per_draw = score_tests(y, V, J, fej["cols"], sigma)
+    with cost.stage("ladder"):
+        lad = {k: (v, VL[:, ti, oi]) for k, (v, VL) in fej["ladder"].items()}
+        apply_ladder(mf, scores, y, J[0], fej["cols"], sigma, lad)
     fits = None
     if refit and candidates and (mf.p_value < ALPHA or _targeted(scores, len(candidates))):
         # a misfit: refit the FE with each candidate on (no linearisation) and use the
         # likelihood ratio where it is the larger statistic
-        start = {sc.effect: sc.lr_value for sc in scores
-                 if sc.lr_value is not None and (sc.lr or 0.0) > 0.0}
-        fits = profile_fits(setup, thetas[0], run_effects, candidates, start, meas, sigma,
-                            solver=fe["solver"])
-        base = min(fits["baseline"]["chi2"], mf.chi2)
-        log.info("diagnose: profile refits, baseline chi2 %.1f; %s", base, ", ".join(
-            f"{m} {f['chi2']:.1f}" for m, f in fits.items() if m != "baseline"))
-        for sc in scores:
-            lr = base - fits[sc.effect]["chi2"]
-            sc.profile_chi2 = fits[sc.effect]["chi2"]
-            if lr > sc.statistic:
-                sc.statistic, sc.dof = float(lr), max(sc.dof, 1)
-                sc.p_value = float(_chi2.sf(lr, sc.dof))
-                sc.evidence = evidence(lr, sc.dof)
-                sc.chi2_after = fits[sc.effect]["chi2"]
-        mf.chi2_refit = base
-    diag = _verdict(mf, pc, scores, per_draw, sigma, len(candidates))
+        with cost.stage("profile_refits"):
+            start = {sc.effect: sc.lr_value for sc in scores
+                     if sc.lr_value is not None and (sc.lr or 0.0) > 0.0}
+            fits = profile_fits(setup, thetas[0], run_effects, candidates, start, meas, sigma,
+                                fe=fe)
+            base = min(fits["baseline"]["chi2"], mf.chi2)
+            log.info("diagnose: profile refits, baseline chi2 %.1f; %s", base, ", ".join(
+                f"{m} {f['chi2']:.1f}" for m, f in fits.items() if m != "baseline"))
+            for sc in scores:
+                lr = base - fits[sc.effect]["chi2"]
+                sc.profile_chi2 = fits[sc.effect]["chi2"]
+                if lr > sc.statistic:
+                    sc.statistic, sc.dof = float(lr), max(sc.dof, 1)
+                    sc.p_value = float(_chi2.sf(lr, sc.dof))
+                    sc.evidence = evidence(lr, sc.dof)
+                    sc.chi2_after = fits[sc.effect]["chi2"]
+            mf.chi2_refit = base
+    with cost.stage("verdict"):
+        diag = _verdict(mf, pc, scores, per_draw, sigma, len(candidates))
     if diag.indistinguishable and fits is not None:
-        group = diag.indistinguishable[0]
-        diag.separation = separation(setup, run_effects, candidates, fits, group, meas, sigma)
-        diag.suggestions.insert(0, diag.separation["advice"])
-    _write(d, diag, meas, mf, pc, scores, V[0], sigma)
+        with cost.stage("separation"):
+            group = diag.indistinguishable[0]
+            diag.separation = separation(setup, run_effects, candidates, fits, group, meas,
+                                         sigma, fe=fe)
+            diag.suggestions.insert(0, diag.separation["advice"])
+    with cost.stage("write"):
+        figs = _figures(d, diag, meas, mf, pc, scores, sigma)
+    diag.timing = cost.table()
+    tot = diag.timing["total"]
+    log.info("diagnose: total %.1f s, %d FE runs computed, %d reused (store %s)",
+             tot["seconds"], tot["fe_runs"], tot["fe_reused"], fe.store.root)
+    _write(d, diag, mf, pc, sigma, figs)
     return diag
 
 
@@ -457,7 +721,7 @@ def _targeted(scores: list[Score], n_cand: int) -> list[Score]:
 
 def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],
                fits: dict[str, dict[str, Any]], group: list[str], meas: Any,
-               sigma: float) -> dict[str, Any]:
+               sigma: float, fe: FeRuns | None = None) -> dict[str, Any]:
     """Which measurement would tell the effects in ``group`` apart?
 
     Each effect's profile fit (:func:`profile_fits`: the FE with that effect on, refitted to the
@@ -470,7 +734,8 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
     Args:
         fits: :func:`profile_fits`'s output (rows laid out as calibrated parameters, then the
             candidates' parameters bound to the measured times); group: effect names (>= 2).
-        meas: the data; sigma: noise sd, um.
+        meas: the data; sigma: noise sd, um; fe: the diagnosis's :class:`FeRuns` (run store);
+        None: solve directly.
     Returns:
         ``{"effects", "options": [{"measurement", "n_new", "pair", "rms_diff_um",
         "max_diff_um", "time_s", "point", "xy_mm", "chi2_apart"}, ...] best first,
@@ -482,7 +747,7 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
     if len(group) >= 2:
         X = np.array([fits[g]["x"] for g in group])
         options, failed = separation_options(setup, tuple(run_effects) + tuple(candidates), X,
-                                             list(group), meas, sigma)
+                                             list(group), meas, sigma, fe=fe)
         if failed is not None:
             return {"effects": list(group), "options": [],
                     "advice": f"the FE at the best fit of {', '.join(failed[0])} did not "
@@ -506,7 +771,7 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
 
 
 def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
-                       labels: list[str], meas: Any, sigma: float
+                       labels: list[str], meas: Any, sigma: float, fe: FeRuns | None = None
                        ) -> tuple[list[dict[str, Any]], tuple[list[str], str] | None]:
     """Where would new measurements tell apart parameter sets that fit ``meas`` equally well?
 
@@ -521,6 +786,7 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
         X: ``(g, dim)`` parameter rows (g >= 2): the Anand constants of ``setup.space``, then
             the effects' parameters bound to the measured times; labels: ``g`` names of them.
         meas: the data (which values exist already); sigma: noise sd, um.
+        fe: a :class:`FeRuns` (the diagnosis's run store and solvers); None: solve directly.
     Returns:
         ``(options, failed)``: options ``[{"measurement", "n_new", "pair", "rms_diff_um",
         "max_diff_um", "time_s", "point", "xy_mm", "chi2_apart"}, ...]`` best first, where
@@ -534,7 +800,6 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
     from solderpyro.effects import effect_set
     from solderpyro.fem.loading import EXTENDED_TIMES
     from solderpyro.fem.problem import reference_grid
-    from solderpyro.fem.solver import SpecimenSolver
     from solderpyro.workflow import fe_params
 
     if len(X) < 2 or len(labels) != len(X):
@@ -557,14 +822,13 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
     else:
         fx_u, rows = None, Xt[:, :n_a]
     grid = reference_grid()
-    solver = SpecimenSolver(setup.problem, grid, dtype=setup.dtype, device=setup.device,
-                            effects=fx_u or ())
-    res = solver.solve(fe_params(setup, rows), t_u)
+    fe = fe if fe is not None else FeRuns(setup)
+    res = fe.solve(fe_params(setup, rows), t_u, True, fx_u)
     if not bool(res.ok.all()):
         bad = [g for g, ok in zip(labels, res.ok.tolist(), strict=True) if not ok]
         return [], (bad, next(r for r in res.reasons if r))
-    V = res.V.detach().cpu().numpy()  # (g, T, n_out)
-    times = [float(t) for t in res.times.tolist()]
+    V = res.V  # (g, T, n_out)
+    times = [float(t) for t in res.times]
     out_names = list(res.names)
     xy = {n: tuple(float(v) for v in p) for n, p in setup.problem.points.items()}
     xy.update({n: (float(p[0]), float(p[1])) for n, p in zip(grid[0], grid[1], strict=True)})
@@ -694,15 +958,34 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
     return Diagnosis(bool(bad), verdict, ranking, check, groups, suggestions)
 
 
-def _write(d: Path, diag: Diagnosis, meas: Any, mf: Misfit, pc: PredictiveCheck,
-           scores: list[Score], V0: np.ndarray, sigma: float) -> None:
+def _figures(d: Path, diag: Diagnosis, meas: Any, mf: Misfit, pc: PredictiveCheck,
+             scores: list[Score], sigma: float) -> tuple[str, str]:
+    """The residual and ranking figures; returns their paths."""
     from solderpyro.diagnose.plots import plot_ranking, plot_residuals
 
-    (d / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2) + "\n")
     f1 = plot_residuals(meas, mf.residual, pc, sigma, d / "diagnosis_residuals.png")
     by = {s.effect: s for s in scores}
     f2 = plot_ranking(meas, mf.residual, [by[r["effect"]] for r in diag.ranking], sigma,
                       d / "diagnosis_ranking.png")
+    return f1, f2
+
+
+def _cost_lines(timing: dict[str, dict[str, float | int]]) -> list[str]:
+    """The ``timing`` table of :class:`Diagnosis` as markdown lines."""
+    lines = ["## Cost per stage", "",
+             "| stage | seconds | FE runs computed | FE runs reused |", "|---|---|---|---|"]
+    for k, r in timing.items():
+        lab = "**total**" if k == "total" else STAGES.get(k, k)
+        lines.append(f"| {lab} | {float(r['seconds']):.2f} | {int(r['fe_runs'])} | "
+                     f"{int(r['fe_reused'])} |")
+    return lines + ["", "(reused: read back from the run store, or shared by several rows of "
+                    "one batch)"]
+
+
+def _write(d: Path, diag: Diagnosis, mf: Misfit, pc: PredictiveCheck, sigma: float,
+           figs: tuple[str, str]) -> None:
+    f1, f2 = figs
+    (d / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2) + "\n")
     lines = ["# solderpyro diagnosis", "", f"**Verdict:** {diag.verdict}.", "",
              f"- misfit chi2 {mf.chi2:.2f} on {mf.dof} dof (p = {mf.p_value:.3g}); RMS residual "
              f"{mf.rms:.4g} um, noise {sigma:.4g} um",
@@ -719,6 +1002,8 @@ def _write(d: Path, diag: Diagnosis, meas: Any, mf: Misfit, pc: PredictiveCheck,
         lines += ["", "Cannot be told apart from these data: "
                   + "; ".join(", ".join(g) for g in diag.indistinguishable)]
     lines += ["", "## Suggestions", ""] + ([f"- {s}" for s in diag.suggestions] or ["- none"])
+    if diag.timing:
+        lines += [""] + _cost_lines(diag.timing)
     lines += ["", "## Figures", "", f"![residuals]({f1})", "", f"![ranking]({f2})", ""]
     (d / "diagnosis.md").write_text("\n".join(lines) + "\n")
     from solderpyro.report import write_html

@@ -50,6 +50,30 @@ def test_diagnosis_contract_and_hidden_effect_found(runs):
         assert (runs / "lag" / f).stat().st_size > 100, f
 
 
+def test_second_diagnosis_reuses_every_fe_run(runs):
+    """Every FE run of a diagnosis goes through the run store: the same diagnosis again
+    computes none (each stage's cost is in diagnosis.json's timing) and ranks identically."""
+    first = json.loads((runs / "lag" / "diagnosis.json").read_text())
+    t1 = first["timing"]
+    assert {"load", "predictive_check", "best_fit", "fe_jacobians", "score_tests", "ladder",
+            "profile_refits", "verdict", "write", "total"} <= set(t1)
+    assert all(r["seconds"] >= 0 for r in t1.values())
+    assert t1["total"]["fe_runs"] == sum(r["fe_runs"] for k, r in t1.items() if k != "total")
+    assert t1["fe_jacobians"]["fe_runs"] > 0
+    # the refits' first step starts where the Jacobians were taken: those rows are reused
+    assert t1["profile_refits"]["fe_reused"] > 0
+    assert "Cost per stage" in (runs / "lag" / "diagnosis.md").read_text()
+    assert main(["diagnose", str(runs / "lag"), "--draws", "1", "--quiet",
+                 "--effects", "thermal_lag,cte_temperature"]) == 0
+    second = json.loads((runs / "lag" / "diagnosis.json").read_text())
+    t2 = second["timing"]
+    assert t2["total"]["fe_runs"] == 0, t2
+    assert t2["total"]["fe_reused"] == t1["total"]["fe_runs"] + t1["total"]["fe_reused"]
+    for key in ("misfit", "verdict", "ranking", "check", "indistinguishable", "suggestions",
+                "separation"):
+        assert second[key] == first[key], key
+
+
 def test_clean_data_flag_nothing(runs):
     dg = json.loads((runs / "clean" / "diagnosis.json").read_text())
     assert dg["misfit"] is False

@@ -1,0 +1,97 @@
+"""The diagnosis's FE runs through the run store (:class:`solderpyro.diagnose.run.FeRuns`):
+stored runs are read back, duplicates solved once, every solve counted; and the stage costs."""
+
+import json
+import logging
+
+import numpy as np
+import torch
+
+from solderpyro.configure import build, compose
+from solderpyro.diagnose.run import STAGES, FeRuns, _cost_lines, _Costs
+from solderpyro.effects import effect_set
+from solderpyro.store import RunStore, config_hash
+from solderpyro.workflow import fe_params
+
+TINY = ["experiment=quick", "loading.times_s=[0,600,900,1500]",
+        "loading.temps_C=[25,75,75,25]", "loading.output_times=[600,900,1500]"]
+TIMES = (600.0, 900.0, 1500.0)
+
+
+def test_fe_runs_through_the_store(tmp_path):
+    torch.set_num_threads(1)
+    setup = build(compose(TINY))
+    fx = effect_set(("thermal_lag",), TIMES, setup.effect_bounds)
+    theta = torch.tensor([[12.92, 10586.0, 2.04, 0.1, 0.0], [13.5, 10400.0, 2.1, 0.12, 30.0],
+                          [12.92, 10586.0, 2.04, 0.1, 0.0]], dtype=torch.float64)
+    rows = fe_params(setup, theta)
+    store = RunStore(tmp_path / "store")
+    fe = FeRuns(setup, store, batch_size=2)
+    a = fe.solve(rows, TIMES, False, fx)
+    assert (fe.computed, fe.reused) == (2, 1)  # the duplicate row is solved once
+    assert a.V.shape == (3, 3, 2) and a.ok.all() and a.times == TIMES
+    np.testing.assert_array_equal(a.V[0], a.V[2])
+    # registered with the effects switched on, as the calibration registers its own runs
+    h = config_hash(setup.problem, TIMES, False, setup.dtype, effects=fx)
+    assert len(store.records(h)) == 2
+    assert json.loads((store.root / h / "meta.json").read_text())["inputs"]["effects"]
+    again = FeRuns(setup, store)
+    b = again.solve(rows, TIMES, False, fx)
+    assert (again.computed, again.reused) == (0, 3)
+    np.testing.assert_array_equal(a.V, b.V)
+    # without a store: the same values, all computed
+    direct = FeRuns(setup)
+    c = direct.solve(rows[:2], TIMES, False, fx)
+    assert (direct.computed, direct.reused) == (2, 0)
+    np.testing.assert_allclose(c.V, a.V[:2], rtol=1e-10, atol=1e-12)
+
+
+def test_observation_effects_share_the_fe_run(tmp_path):
+    """Rows that differ only in an observation-side effect's parameters (Moire offsets) are one
+    FE run, stored under the FE-side effects only (as the calibration stores its runs); the
+    outputs equal the solver's with every effect on."""
+    from solderpyro.fem.solver import SpecimenSolver
+
+    torch.set_num_threads(1)
+    setup = build(compose(TINY))
+    fx = effect_set(("moire_rigid_motion", "thermal_lag"), TIMES, setup.effect_bounds)
+    base = [12.92, 10586.0, 2.04, 0.1, *([0.0] * 6), 20.0]
+    shifted = list(base)
+    shifted[4] = 0.2  # moire_c_1: the 600 s image
+    rows = fe_params(setup, torch.tensor([base, shifted], dtype=torch.float64))
+    store = RunStore(tmp_path / "store")
+    fe = FeRuns(setup, store)
+    out = fe.solve(rows, TIMES, False, fx)
+    assert (fe.computed, fe.reused) == (1, 1)
+    dV = out.V[1] - out.V[0]
+    np.testing.assert_allclose(dV[0], 0.2, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dV[1:], 0.0, rtol=0, atol=1e-12)
+    lag = effect_set(("thermal_lag",), TIMES, setup.effect_bounds)
+    assert len(store.records(config_hash(setup.problem, TIMES, False, setup.dtype,
+                                         effects=lag))) == 1
+    ref = SpecimenSolver(setup.problem, dtype=setup.dtype, effects=fx).solve(rows, TIMES)
+    np.testing.assert_allclose(out.V, ref.V.numpy(), rtol=1e-10, atol=1e-10)
+
+
+def test_stage_costs(caplog):
+    class Counter:
+        computed, reused = 0, 0
+
+    cost = _Costs()
+    with caplog.at_level(logging.INFO, logger="solderpyro"):
+        with cost.stage("load"):
+            pass
+        cost.fe = Counter()  # type: ignore[assignment]
+        with cost.stage("fe_jacobians"):
+            Counter.computed, Counter.reused = 7, 2
+        with cost.stage("profile_refits"):
+            Counter.computed, Counter.reused = 10, 9
+    t = cost.table()
+    assert list(t) == ["load", "fe_jacobians", "profile_refits", "total"]
+    assert (t["fe_jacobians"]["fe_runs"], t["fe_jacobians"]["fe_reused"]) == (7, 2)
+    assert (t["profile_refits"]["fe_runs"], t["profile_refits"]["fe_reused"]) == (3, 7)
+    assert (t["total"]["fe_runs"], t["total"]["fe_reused"]) == (10, 9)
+    assert t["total"]["seconds"] >= sum(t[k]["seconds"] for k in STAGES if k in t) - 1e-2
+    assert sum(STAGES["fe_jacobians"] in r.getMessage() for r in caplog.records) == 1
+    md = "\n".join(_cost_lines(t))
+    assert "| **total** |" in md and STAGES["profile_refits"] in md
