@@ -329,7 +329,7 @@ def pca_flat(inp: Any, priors: Any = None) -> Any:
 
     def loglik(x: np.ndarray) -> tuple[float, np.ndarray]:
         s = float(x[p])
-        if not s > 0.0:  # sigma underflowed to its bound 0: zero density
+        if not s * s > 0.0:  # sigma (or its square) underflowed to 0: zero density
             return -math.inf, np.zeros(p + 1)
         u, du = umap(x[:p])
         c, v, vjp = gps(u)
