@@ -1,34 +1,59 @@
-"""NUTS efficiency of solderpyro's calibrations (Pyro and fast samplers) against NumPyro.
+"""NUTS efficiency of solderpyro's calibrations against NumPyro, same posterior side by side.
 
-Usage: python benchmarks/bench_koh.py [--chains 4] [--warmup 500] [--draws 1000]
-       [--out benchmarks/results_koh.json] [--no-numpyro] [--no-pyro]
+Usage: python benchmarks/bench_koh.py [--cases direct,joint,field_modular,joint_400]
+       [--chains 4] [--warmup 500] [--draws 1000] [--seed 0]
+       [--numpyro-mass both|diag|dense] [--workers 1] [--no-numpyro]
+       [--out benchmarks/results_koh.json]
 
-Cases (identical data, priors and likelihood on both sides):
+Cases (identical data, priors, site transforms and likelihood on both sides):
 - direct: the seed's mathematical example, t and sigma (Table I's posterior);
-- joint: the full-joint KOH posterior (beta integrated out analytically on both sides) with
-  m = 50 LHS runs, n = 8 observations and 4 calibration parameters of
-  y = t1 exp(-t2 x) + t3 sin(pi t4 x), x in [0, 1].
-Effective samples per second = min over parameters of ArviZ's bulk ESS / wall time (warm-up,
-sampling and JIT compilation included). All run their chains one after another on one CPU
-thread. solderpyro runs each case twice, with ``sampler="pyro"`` (Pyro's NUTS, TorchScript
-potential, autograd) and ``sampler="fast"`` (solderpyro.calibration.nuts on the analytic
-densities of solderpyro.calibration.fastkoh); its joint adapts a dense mass matrix (its
-default); NumPyro runs with both its default diagonal and a dense mass matrix, and the ratios
-are taken against the faster.
+- joint: the full-joint KOH posterior (seed Eq. 5-8, beta integrated out analytically on both
+  sides) with m = 50 LHS runs, n = 8 observations and 4 calibration parameters of
+  y = t1 exp(-t2 x) + t3 sin(pi t4 x), x in [0, 1];
+- field_modular: a full-field modular calibration of the specimen (s0, QR, xi, m on the seed
+  box): the FE's V at the 4 seed times, A, B and the 558 grid points (2,240 observed values)
+  at Liu's constants plus N(0, 0.05^2) um noise, through a PCA GP (Matern 5/2, ARD,
+  FlowStressInputs) fitted on a 50-run LHS through the FE; sigma ~ LogNormal(log 0.05, 0.1)
+  (Priors(sigma_known=0.05)), likelihood y ~ N(mean(t), F F^T + diag(d + sigma^2)). NumPyro
+  side: the GP's predictive mean and low-rank covariance at t ported to JAX (checked against
+  torch's ``GPSurrogate.mean_lowrank`` to 1e-10 before timing) and
+  ``numpyro.distributions.LowRankMultivariateNormal`` on all 2,240 values;
+- joint_400: the full-joint KOH posterior with 400 simulator runs and 12 observations of a
+  ball-drop simulator (as SEPIA's ball-drop example): fall time from height h (x, 5-100 m)
+  under gravity and quadratic drag dv/dt = g - C v^2 (C, the calibration parameter,
+  0.05-0.5 1/m), closed form t = acosh(exp(C h)) / sqrt(g C); runs: a 400-point LHS over
+  (h, C); observations: 12 heights, C = 0.2, noise sd 1 % of each fall time, no discrepancy.
+
+Every case uses the same chains, warm-up and draws (the command line's). Effective samples per
+second = min over the sampler's own sites (unit-cube t, sigma, sigma_c, corr) of ArviZ's bulk
+ESS / wall time (warm-up, sampling and JIT compilation included). Both sides run their chains
+one after another on one CPU thread (torch threads 1 and, where run_nuts has it, ``workers=1``:
+``--workers``; XLA: one host device, no multi-threaded Eigen, one intra-op thread). solderpyro
+runs with the mass matrix its calibration functions choose (dense for the joint and for
+several modular parameters, diagonal for direct); NumPyro runs with its default diagonal and
+with a dense mass matrix (``--numpyro-mass``), and the ratio is taken against the faster. The
+2.5/50/97.5 % quantiles of every site are compared between the two sides: they agree when
+|q_a - q_b| < 4 sqrt(mcse_a^2 + mcse_b^2) (ArviZ's quantile MCSE); ``agree`` is the median
+check, ``agree_tails`` all three; ``converged`` (R-hat < 1.01 on both sides) says whether
+the MCSEs, hence the check, can be trusted.
 NumPyro is the optional `bench` extra (pip install -e .[bench]).
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import math
 import os
 import platform
 import time
 import warnings
+from collections.abc import Callable
+from typing import Any
 
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1 "
+                      "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # one BLAS thread (NumPy, torch) as one XLA one
 
@@ -36,18 +61,32 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from scipy.stats import qmc  # noqa: E402
 
-from solderpyro.calibration import CalibrationData, Priors, calibrate_direct, calibrate_joint  # noqa: E402,E501
+from solderpyro.calibration import (  # noqa: E402
+    CalibrationData,
+    Priors,
+    calibrate_direct,
+    calibrate_joint,
+    calibrate_modular,
+)
 from solderpyro.calibration.koh import prepare_joint  # noqa: E402
-from solderpyro.calibration.mcmc import flatten_sites  # noqa: E402
+from solderpyro.calibration.mcmc import flatten_sites, run_nuts  # noqa: E402
 from solderpyro.examples.seed_math import X_OBS, code, make_data  # noqa: E402
 from solderpyro.params import Box  # noqa: E402
 
 DT = torch.float64
+CASES = ("direct", "joint", "field_modular", "joint_400")
+QS = (0.025, 0.5, 0.975)
 T_BOX = Box(("t",), (0.0,), (2.0,))
 J_BOX = Box(("t1", "t2", "t3", "t4"), (0.5, 0.5, 0.0, 0.5), (1.5, 3.0, 1.0, 2.0))
 J_TRUE = torch.tensor([1.0, 1.5, 0.5, 1.2], dtype=DT)
+G = 9.81  # m/s^2
+H_BOX = Box(("h",), (5.0,), (100.0,))  # drop height, m
+C_BOX = Box(("C",), (0.05,), (0.5,))  # quadratic drag coefficient, 1/m
+C_TRUE = 0.2
+FIELD_SIGMA = 0.05  # um
 
 
+# ----------------------------------------------------------------------------- data
 def j_code(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """``x (n, 1)``, ``t (..., 4)`` -> ``(n,)`` (or broadcast)."""
     xx = x[:, 0]
@@ -65,50 +104,164 @@ def joint_data(m: int = 50, n: int = 8, seed: int = 0) -> CalibrationData:
                                   theta_box=J_BOX, x_box=Box(("x",), (0.0,), (1.0,)))
 
 
-def ess_per_s(cols: dict[str, np.ndarray], seconds: float) -> tuple[float, float]:
+def fall_time(h: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """Time (s) to fall ``h`` m from rest under dv/dt = g - c v^2 (any broadcastable shapes).
+
+    Distance ln(cosh(sqrt(g c) t)) / c = h, so t = acosh(exp(c h)) / sqrt(g c), with
+    acosh(e^a) = a + log(1 + sqrt(1 - e^{-2a})) (no overflow).
+    """
+    a = c * h
+    return (a + torch.log1p(torch.sqrt(-torch.expm1(-2.0 * a)))) / torch.sqrt(G * c)
+
+
+def _check_fall_time() -> None:
+    """The closed form against an ODE solve of the same drag law (once, milliseconds)."""
+    from scipy.integrate import solve_ivp
+
+    for h, c in ((5.0, 0.05), (100.0, 0.5), (40.0, 0.2)):
+        ev = lambda _t, s, h=h: s[0] - h  # noqa: E731
+        ev.terminal = True  # type: ignore[attr-defined]
+        sol = solve_ivp(lambda _t, s, c=c: [s[1], G - c * s[1] ** 2], (0.0, 100.0), [0.0, 0.0],
+                        events=ev, rtol=1e-11, atol=1e-11)
+        t_ode = float(sol.t_events[0][0])
+        t_cf = float(fall_time(torch.tensor(h, dtype=DT), torch.tensor(c, dtype=DT)))
+        assert abs(t_ode - t_cf) < 1e-6 * t_cf, (h, c, t_ode, t_cf)
+
+
+def ball_code(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``x (n, 1)`` heights, ``t (..., 1)`` drag coefficient -> ``(n,)`` fall times."""
+    return fall_time(x[:, 0], t[..., 0])
+
+
+def ball_data(m: int = 400, n: int = 12, seed: int = 0) -> CalibrationData:
+    _check_fall_time()
+    u = torch.as_tensor(qmc.LatinHypercube(d=2, seed=seed).random(m), dtype=DT)
+    xs, ts = H_BOX.from_unit(u[:, :1]), C_BOX.from_unit(u[:, 1:])
+    ys = fall_time(xs[:, 0], ts[:, 0])
+    xo = torch.linspace(H_BOX.lower[0], H_BOX.upper[0], n, dtype=DT)[:, None]
+    g = torch.Generator().manual_seed(seed)
+    t_true = fall_time(xo[:, 0], torch.tensor(C_TRUE, dtype=DT))
+    yo = t_true * (1.0 + 0.01 * torch.randn(n, generator=g, dtype=DT))
+    return CalibrationData.create(xs, ts, ys, xo, yo, ["h"], ["C"], theta_box=C_BOX,
+                                  x_box=H_BOX)
+
+
+def field_setup(seed: int = 0, n_runs: int = 50) -> dict[str, Any]:
+    """FE runs (50-run LHS + Liu's constants), the fitted PCA GP and the noisy observations."""
+    from solderpyro import ParameterSpace, SpecimenModel
+    from solderpyro.design import lhs
+    from solderpyro.params import LIU2008
+    from solderpyro.surrogate import GPSurrogate
+    from solderpyro.surrogate.features import FlowStressInputs
+
+    space = ParameterSpace.seed()
+    box = Box(space.names, space.lower, space.upper, space.log_scale, space.units)
+    truth = torch.tensor([[LIU2008[k] for k in box.names]], dtype=DT)
+    theta = lhs(box, n_runs, seed)
+    t0 = time.perf_counter()
+    V = SpecimenModel(space=space, field=True)(torch.cat([theta, truth]))  # (n+1, 4, 560)
+    fe_s = time.perf_counter() - t0
+    y = V.reshape(V.shape[0], -1)
+    ok = torch.isfinite(y[:n_runs]).all(-1)
+    assert torch.isfinite(y[-1]).all(), "the FE run at the true constants failed"
+    t0 = time.perf_counter()
+    feats = FlowStressInputs(box, space.defaults)
+    gp = GPSurrogate(box, output="pca", kernel="matern52", ard=True, inputs=feats)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp.fit(theta[ok], y[:n_runs][ok])
+    fit_s = time.perf_counter() - t0
+    g = torch.Generator().manual_seed(seed)
+    y_obs = y[-1] + FIELD_SIGMA * torch.randn(y.shape[1], generator=g, dtype=DT)
+    loo = gp.loo()
+    return dict(gp=gp, box=box, feats=feats, y_obs=y_obs, truth=truth[0],
+                info=dict(n_obs=int(y.shape[1]), n_runs=int(ok.sum()), n_pc=int(gp.basis.shape[1]),
+                          fe_seconds=fe_s, gp_fit_seconds=fit_s, loo_rmse_rel=loo.rmse_rel,
+                          loo_coverage95=loo.coverage95))
+
+
+# ----------------------------------------------------------------------------- diagnostics
+def _az() -> Any:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)
         import arviz as az
+    return az
+
+
+def ess_per_s(cols: dict[str, np.ndarray], seconds: float) -> tuple[float, float]:
+    az = _az()
     ess = az.ess(az.from_dict(posterior=cols), method="bulk")
     mn = min(float(ess[k]) for k in cols)
     return mn, mn / seconds
 
 
+def max_rhat(cols: dict[str, np.ndarray]) -> float:
+    """Largest rank-normalized R-hat over the sites (the quantile check needs < 1.01)."""
+    az = _az()
+    rh = az.rhat(az.from_dict(posterior=cols))
+    return max(float(rh[k]) for k in cols)
+
+
+def quantiles(cols: dict[str, np.ndarray]) -> dict[str, dict[str, list[float]]]:
+    """Per site: the 2.5/50/97.5 % quantiles and their MCSE (ArviZ)."""
+    az = _az()
+    idata = az.from_dict(posterior=cols)
+    mc = [az.mcse(idata, method="quantile", prob=p) for p in QS]
+    return {k: dict(q=[float(v) for v in np.quantile(a.reshape(-1), QS)],
+                    mcse=[float(m[k]) for m in mc]) for k, a in cols.items()}
+
+
+def compare(qa: dict, qb: dict) -> dict[str, Any]:
+    """Sites of both sides: quantiles, |difference| / combined MCSE, agreement (< 4)."""
+    out: dict[str, Any] = {}
+    for k in qa:
+        if k not in qb:
+            continue
+        z = [abs(a - b) / max(math.hypot(ma, mb), 1e-300) for a, b, ma, mb in
+             zip(qa[k]["q"], qb[k]["q"], qa[k]["mcse"], qb[k]["mcse"], strict=True)]
+        out[k] = dict(solderpyro=qa[k]["q"], numpyro=qb[k]["q"], mcse_solderpyro=qa[k]["mcse"],
+                      mcse_numpyro=qb[k]["mcse"], z=z, agree=bool(z[1] < 4.0),
+                      agree_tails=bool(max(z) < 4.0))
+    return out
+
+
 # ----------------------------------------------------------------------------- NumPyro side
-def numpyro_direct(x, y, sigma_max, chains, warmup, draws, seed):
+def numpyro_direct(x, y, sigma_max, chains, warmup, draws, seed, dense=False):
     import jax.numpy as jnp
     import numpyro
     import numpyro.distributions as nd
-    from jax import random
 
     xj, yj = jnp.asarray(x[:, 0].numpy()), jnp.asarray(y.numpy())
     lo, hi = T_BOX.lower[0], T_BOX.upper[0]
 
     def model():
-        tu = numpyro.sample("t_unit", nd.Uniform(0.0, 1.0))
+        tu = numpyro.sample("t_unit", nd.Uniform(jnp.zeros(1), 1.0).to_event(1))
         sig = numpyro.sample("sigma", nd.Uniform(0.0, sigma_max))
-        numpyro.sample("y", nd.Normal(5 * jnp.exp(-(lo + (hi - lo) * tu) * xj), sig), obs=yj)
+        numpyro.sample("y", nd.Normal(5 * jnp.exp(-(lo + (hi - lo) * tu[0]) * xj), sig), obs=yj)
 
-    return _run_numpyro(model, chains, warmup, draws, seed, random)
+    return _run_numpyro(model, chains, warmup, draws, seed, dense)
 
 
 def numpyro_joint(inp, pr: Priors, chains, warmup, draws, seed, dense=False):
+    """Gaussian kernel, one shared correlation parameter, constant mean, no discrepancy."""
     import jax.numpy as jnp
     import jax.scipy.linalg as jsl
     import numpyro
     import numpyro.distributions as nd
-    from jax import random
 
+    assert inp.kernel == "gaussian" and inp.mean == "constant" and not inp.ard
+    assert not inp.discrepancy and pr.sigma_max is not None and pr.sigma_known is None
     u_sim, u_xo = jnp.asarray(inp.u_sim.numpy()), jnp.asarray(inp.u_xobs.numpy())
     z, ys = jnp.asarray(inp.z.numpy()), inp.y_scale
     m, n = u_sim.shape[0], u_xo.shape[0]
     p = inp.data.theta_box.dim
     lo_c, hi_c = pr.corr_range
+    sc_max = pr.sigma_c_max or 10 * inp.y_scale
 
     def model():
         tu = numpyro.sample("t_unit", nd.Uniform(jnp.zeros(p), 1.0).to_event(1))
         sig = numpyro.sample("sigma", nd.Uniform(0.0, pr.sigma_max))
-        sc = numpyro.sample("sigma_c", nd.Uniform(0.0, pr.sigma_c_max))
+        sc = numpyro.sample("sigma_c", nd.Uniform(0.0, sc_max))
         corr = numpyro.sample("corr", nd.Uniform(jnp.full(1, lo_c), hi_c).to_event(1))
         u = jnp.concatenate([u_sim, jnp.concatenate([u_xo, jnp.broadcast_to(tu, (n, p))], 1)])
         d2 = ((u[:, None, :] - u[None, :, :]) ** 2).sum(-1)
@@ -124,10 +277,98 @@ def numpyro_joint(inp, pr: Priors, chains, warmup, draws, seed, dense=False):
         ll = -jnp.log(jnp.diag(chol)).sum() - 0.5 * jnp.log(g[0, 0]) - 0.5 * (r**2).sum()
         numpyro.factor("y", ll)
 
-    return _run_numpyro(model, chains, warmup, draws, seed, random, dense)
+    return _run_numpyro(model, chains, warmup, draws, seed, dense)
 
 
-def _run_numpyro(model, chains, warmup, draws, seed, random, dense=False):
+def jax_lowrank(gp, feats) -> Callable:
+    """``t (d,)`` physical -> ``(mean (n_y,), F (n_y, k), d (n_y,))``: GPSurrogate.mean_lowrank
+    of a fitted PCA GP (Matern 5/2, constant mean, FlowStressInputs on a linear box) in JAX."""
+    import jax.numpy as jnp
+    import jax.scipy.linalg as jsl
+
+    assert gp.output == "pca" and gp.kernel == "matern52" and gp._w is None
+    assert not any(gp.box.log_scale)
+    # w = lengthscale^-2 as torch forms it (GPyTorch keeps the hyperparameters in float32)
+    c = {k: jnp.asarray(v.detach().numpy(), dtype=jnp.float64) for k, v in dict(
+        u=gp._u, chol=gp._chol, alpha=gp._alpha, os=gp._os, w=gp._ls.pow(-2), c=gp._c,
+        basis=gp.basis, mu=gp.std.mean, scale=gp.std.scale, resid=gp.resid_var,
+        in_lo=gp._in_lo, in_span=gp._in_span).items()}
+    lo, hi = jnp.asarray(gp.box.lower), jnp.asarray(gp.box.upper)
+    i_s0, i_qr, i_xi, i_m = (feats.idx[k] for k in ("s0", "QR", "xi", "m"))
+    log_a, log_sh, n_exp = math.log(feats.fixed["A"]), math.log(feats.fixed["s_hat"]), \
+        feats.fixed["n"]
+    log_rate, t_ref = math.log(feats.rate_ref), feats.T_ref_K
+    sv = c["basis"] * c["scale"][:, None]  # (n_y, k)
+    d = c["resid"] * c["scale"] ** 2
+
+    def log_asinh_exp(w):
+        wp, wn = jnp.maximum(w, 0.0), jnp.minimum(w, 0.0)
+        pos = jnp.log(wp + jnp.log1p(jnp.sqrt(1.0 + jnp.exp(-2.0 * wp))))
+        neg = jnp.where(wn < -30.0, wn, jnp.log(jnp.arcsinh(jnp.exp(jnp.maximum(wn, -30.0)))))
+        return jnp.where(w >= 0, pos, neg)
+
+    def unit(x):
+        z = log_rate - log_a + x[i_qr] / t_ref
+        common = log_asinh_exp(x[i_m] * z) - jnp.log(x[i_xi])
+        f = (x - lo) / (hi - lo)
+        f = f.at[i_s0].set(jnp.log(x[i_s0]) + common)
+        f = f.at[i_qr].set(log_sh + n_exp * z + common)
+        return (f - c["in_lo"]) / c["in_span"]
+
+    def lowrank(x):
+        u = unit(x)  # (d,)
+        r2 = ((u - c["u"]) ** 2 * c["w"][:, None, :]).sum(-1)  # (k, n)
+        s5r = math.sqrt(5.0) * jnp.sqrt(jnp.maximum(r2, 1e-30))
+        ks = c["os"][:, None] * (1.0 + s5r + s5r**2 / 3.0) * jnp.exp(-s5r)  # (k, n)
+        mc = c["c"] + (ks * c["alpha"]).sum(-1)  # (k,)
+        v = jsl.solve_triangular(c["chol"], ks[..., None], lower=True)[..., 0]  # (k, n)
+        var = jnp.maximum(c["os"] - (v**2).sum(-1), 0.0)  # (k,)
+        mean = c["mu"] + c["scale"] * (c["basis"] @ mc)
+        return mean, sv * jnp.sqrt(var), d
+
+    return lowrank
+
+
+def check_jax_lowrank(gp, lowrank, box: Box, n: int = 5, tol: float = 1e-10) -> float:
+    """Max abs difference of the JAX port from torch's mean_lowrank at ``n`` LHS points."""
+    import jax
+    import jax.numpy as jnp
+
+    from solderpyro.design import lhs
+
+    f = jax.jit(lowrank)
+    worst = 0.0
+    for t in lhs(box, n, 123):
+        with torch.no_grad():
+            ref = gp.mean_lowrank(t)
+        got = f(jnp.asarray(t.numpy()))
+        for a, b in zip(ref, got, strict=True):
+            worst = max(worst, float(np.abs(a.numpy() - np.asarray(b)).max()))
+    assert worst < tol, f"JAX port of mean_lowrank differs from torch by {worst:.3g}"
+    return worst
+
+
+def numpyro_field(gp, feats, y_obs, box: Box, chains, warmup, draws, seed, dense=False):
+    import jax.numpy as jnp
+    import numpyro
+    import numpyro.distributions as nd
+
+    lowrank = jax_lowrank(gp, feats)
+    yj = jnp.asarray(y_obs.numpy())
+    lo, hi = jnp.asarray(box.lower), jnp.asarray(box.upper)
+    p = box.dim
+
+    def model():
+        tu = numpyro.sample("t_unit", nd.Uniform(jnp.zeros(p), 1.0).to_event(1))
+        sig = numpyro.sample("sigma", nd.LogNormal(math.log(FIELD_SIGMA), 0.1))
+        mean, f, d = lowrank(lo + (hi - lo) * tu)
+        numpyro.sample("y", nd.LowRankMultivariateNormal(mean, f, d + sig**2), obs=yj)
+
+    return _run_numpyro(model, chains, warmup, draws, seed, dense)
+
+
+def _run_numpyro(model, chains, warmup, draws, seed, dense=False):
+    from jax import random
     from numpyro.infer import MCMC, NUTS
 
     t0 = time.perf_counter()
@@ -135,65 +376,153 @@ def _run_numpyro(model, chains, warmup, draws, seed, random, dense=False):
               num_chains=chains, chain_method="sequential", progress_bar=False)
     mc.run(random.PRNGKey(seed))
     sec = time.perf_counter() - t0
-    return flatten_sites(mc.get_samples(group_by_chain=True)), sec
+    div = int(np.asarray(mc.get_extra_fields()["diverging"]).sum())
+    return flatten_sites(mc.get_samples(group_by_chain=True)), sec, div
 
 
-def raw_cols(post) -> dict[str, np.ndarray]:
-    """The sampler's own sites of a solderpyro posterior, named as on the NumPyro side."""
-    return flatten_sites(post.raw)
+# ----------------------------------------------------------------------------- cases
+def _row(cols: dict[str, np.ndarray], seconds: float, divergences: int) -> dict:
+    mn, eps = ess_per_s(cols, seconds)
+    return dict(min_ess=mn, ess_per_s=eps, seconds=seconds, divergences=divergences,
+                max_rhat=max_rhat(cols))
 
 
-def _row(post) -> dict:
-    mn, eps = ess_per_s(raw_cols(post), post.seconds)
-    return dict(min_ess=mn, ess_per_s=eps, seconds=post.seconds,
-                divergences=sum(post.divergences))
+def _solderpyro(calibrate: Callable, *args: Any, **kw: Any) -> tuple[dict, float, int]:
+    post, _ = calibrate(*args, **kw)
+    return flatten_sites(post.raw), post.seconds, sum(post.divergences)
+
+
+def build_case(case: str, a: argparse.Namespace, nuts: dict) -> dict[str, Any]:
+    """``solderpyro()`` and ``numpyro(dense)`` runners (each -> cols, seconds, divergences),
+    the true values of the unit-cube t sites (``truth``) and case information."""
+    npk = dict(chains=a.chains, warmup=a.warmup, draws=a.draws, seed=a.seed)
+    if case == "direct":
+        x, y = make_data(0)
+        pr = Priors(sigma_max=5.0)
+        return dict(solderpyro=lambda: _solderpyro(calibrate_direct, code, x, y, T_BOX, pr,
+                                                   **nuts),
+                    numpyro=lambda dense: numpyro_direct(X_OBS, y, 5.0, dense=dense, **npk),
+                    truth={}, info=dict(n_obs=int(y.shape[0])))
+    if case in ("joint", "joint_400"):
+        if case == "joint":
+            data, box, truth = joint_data(), J_BOX, J_TRUE
+            pr = Priors(sigma_max=1.0, sigma_c_max=10.0 * float(data.y_sim.std()))
+        else:
+            data, box, truth = ball_data(), C_BOX, torch.tensor([C_TRUE], dtype=DT)
+            pr = Priors(sigma_max=1.0, sigma_c_max=10.0 * float(data.y_sim.std()))
+        inp = prepare_joint(data)
+        tu = box.to_unit(truth)
+        return dict(solderpyro=lambda: _solderpyro(calibrate_joint, data, pr, **nuts),
+                    numpyro=lambda dense: numpyro_joint(inp, pr, dense=dense, **npk),
+                    truth={f"t_unit[{i}]": float(v) for i, v in enumerate(tu)},
+                    info=dict(n_sim=data.n_sim, n_obs=data.n_obs,
+                              parameters=list(box.names)))
+    if case == "field_modular":
+        fs = field_setup(a.seed)
+        gp, box, feats, y_obs = fs["gp"], fs["box"], fs["feats"], fs["y_obs"]
+        err = None if a.no_numpyro else check_jax_lowrank(gp, jax_lowrank(gp, feats), box)
+        pr = Priors(sigma_known=FIELD_SIGMA)
+        tu = box.to_unit(fs["truth"])
+        return dict(solderpyro=lambda: _solderpyro(calibrate_modular, gp, y_obs, box,
+                                                   priors=pr, **nuts),
+                    numpyro=lambda dense: numpyro_field(gp, feats, y_obs, box, dense=dense,
+                                                        **npk),
+                    truth={f"t_unit[{i}]": float(v) for i, v in enumerate(tu)},
+                    info=dict(fs["info"], jax_port_max_abs_err=err,
+                              parameters=list(box.names)))
+    raise ValueError(f"unknown case {case!r}; choose from {CASES}")
+
+
+def run_case(case: str, a: argparse.Namespace, nuts: dict) -> dict[str, Any]:
+    c = build_case(case, a, nuts)
+    res: dict[str, Any] = {f"{case}_info": c["info"]}
+    cols, sec, div = c["solderpyro"]()
+    res[f"{case}_solderpyro"] = _row(cols, sec, div)
+    q_s = quantiles(cols)
+    res[f"{case}_solderpyro_quantiles"] = q_s
+    if c["truth"]:
+        res[f"{case}_solderpyro_truth_in_95"] = {
+            k: bool(q_s[k]["q"][0] <= v <= q_s[k]["q"][2]) for k, v in c["truth"].items()}
+    print(json.dumps({f"{case}_solderpyro": res[f"{case}_solderpyro"]}), flush=True)
+    if a.no_numpyro:
+        return res
+    masses = {"both": (False, True), "diag": (False,), "dense": (True,)}[a.numpyro_mass]
+    best = None
+    for dense in masses:
+        tag = "dense" if dense else "diag"
+        cols_n, sec_n, div_n = c["numpyro"](dense)
+        row = _row(cols_n, sec_n, div_n)
+        res[f"{case}_numpyro_{tag}"] = row
+        cmp = compare(q_s, quantiles(cols_n))
+        res[f"{case}_quantiles_vs_numpyro_{tag}"] = cmp
+        res[f"{case}_agree_numpyro_{tag}"] = all(v["agree"] for v in cmp.values())
+        res[f"{case}_agree_tails_numpyro_{tag}"] = all(v["agree_tails"] for v in cmp.values())
+        print(json.dumps({f"{case}_numpyro_{tag}": row,
+                          "agree": res[f"{case}_agree_numpyro_{tag}"]}), flush=True)
+        if best is None or row["ess_per_s"] > best[1]["ess_per_s"]:
+            best = (tag, row)
+    assert best is not None
+    res[f"{case}_numpyro"] = dict(best[1], mass=best[0])
+    res[f"{case}_ratio_solderpyro_over_numpyro"] = (
+        res[f"{case}_solderpyro"]["ess_per_s"] / best[1]["ess_per_s"])
+    res[f"{case}_agree"] = res[f"{case}_agree_numpyro_{best[0]}"]
+    # MCSEs (hence the agreement check) mean something only for converged chains
+    res[f"{case}_converged"] = bool(max(res[f"{case}_solderpyro"]["max_rhat"],
+                                        best[1]["max_rhat"]) < 1.01)
+    return res
+
+
+def sampler_label() -> str:
+    """Which NUTS solderpyro's calibrations use by default (read, never passed)."""
+    p = inspect.signature(run_nuts).parameters.get("sampler")
+    return f"run_nuts default sampler={p.default!r}" if p is not None else "run_nuts (one sampler)"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cases", default=",".join(CASES),
+                    help=f"comma-separated subset of {', '.join(CASES)}")
     ap.add_argument("--chains", type=int, default=4)
     ap.add_argument("--warmup", type=int, default=500)
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--numpyro-mass", choices=("both", "diag", "dense"), default="both",
+                    help="NumPyro's mass matrix (both: run each, compare with the faster)")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="solderpyro's chain processes where run_nuts has workers= (default 1: "
+                         "one thread, as NumPyro's sequential chains)")
     ap.add_argument("--no-numpyro", action="store_true")
-    ap.add_argument("--no-pyro", action="store_true", help="skip the (slow) Pyro sampler")
     ap.add_argument("--out", default="benchmarks/results_koh.json")
     a = ap.parse_args()
-    nuts = dict(chains=a.chains, warmup=a.warmup, draws=a.draws, seed=a.seed, progress=False)
-    res: dict = {"machine": platform.processor() or platform.machine(),
-                 "chains": a.chains, "warmup": a.warmup, "draws": a.draws}
-    x, y = make_data(0)
-    pr_d = Priors(sigma_max=5.0)
-    data = joint_data()
-    pr_j = Priors(sigma_max=1.0, sigma_c_max=10.0 * float(data.y_sim.std()))
-    for sampler in ("fast",) + (() if a.no_pyro else ("pyro",)):
-        post, _ = calibrate_direct(code, x, y, T_BOX, pr_d, sampler=sampler, **nuts)
-        res[f"direct_{sampler}"] = _row(post)
-        post, _ = calibrate_joint(data, pr_j, sampler=sampler, **nuts)
-        res[f"joint_{sampler}"] = _row(post)
-        q = {r["parameter"]: (r["q2.5"], r["q97.5"]) for r in post.summary()}
-        res[f"joint_{sampler}_truth_in_95"] = {k: bool(q[k][0] <= float(v) <= q[k][1])
-                                               for k, v in zip(J_BOX.names, J_TRUE,
-                                                               strict=True)}
+    cases = [c.strip() for c in a.cases.split(",") if c.strip()]
+    bad = [c for c in cases if c not in CASES]
+    if bad:
+        ap.error(f"unknown case(s) {bad}; choose from {', '.join(CASES)}")
+    nuts: dict[str, Any] = dict(chains=a.chains, warmup=a.warmup, draws=a.draws, seed=a.seed)
+    params = inspect.signature(run_nuts).parameters
+    if "progress" in params:
+        nuts["progress"] = False
+    if "workers" in params:  # chains in forked processes: one here, as NumPyro's one thread
+        nuts["workers"] = a.workers
+    res: dict[str, Any] = {"machine": platform.processor() or platform.machine(),
+                           "chains": a.chains, "warmup": a.warmup, "draws": a.draws,
+                           "seed": a.seed, "cases": cases, "solderpyro_sampler": sampler_label(),
+                           "solderpyro_workers": nuts.get("workers", 1),
+                           "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+                           "xla_flags": os.environ.get("XLA_FLAGS", "")}
     if not a.no_numpyro:
-        cols, sec = numpyro_direct(X_OBS, y, 5.0, a.chains, a.warmup, a.draws, a.seed)
-        res["direct_numpyro"] = dict(zip(("min_ess", "ess_per_s"), ess_per_s(cols, sec),
-                                         strict=True), seconds=sec)
-        for dense in (False, True):
-            cols, sec = numpyro_joint(prepare_joint(data), pr_j, a.chains, a.warmup, a.draws,
-                                      a.seed, dense)
-            res[f"joint_numpyro_{'dense' if dense else 'diag'}"] = dict(
-                zip(("min_ess", "ess_per_s"), ess_per_s(cols, sec), strict=True), seconds=sec)
-        res["joint_numpyro"] = max(res["joint_numpyro_diag"], res["joint_numpyro_dense"],
-                                   key=lambda r: r["ess_per_s"])
-        for case in ("direct", "joint"):
-            for sampler in ("fast", "pyro"):
-                if f"{case}_{sampler}" in res:
-                    res[f"{case}_ratio_{sampler}_over_numpyro"] = (
-                        res[f"{case}_{sampler}"]["ess_per_s"] / res[f"{case}_numpyro"]["ess_per_s"])
-    print(json.dumps(res, indent=2))
-    with open(a.out, "w") as f:
-        json.dump(res, f, indent=2)
+        import jax
+        import numpyro
+
+        res.update(numpyro=numpyro.__version__, jax=jax.__version__)
+    for case in cases:
+        res.update(run_case(case, a, nuts))
+        with open(a.out, "w") as f:  # after every case: a long run keeps what it measured
+            json.dump(res, f, indent=2)
+    summary = {c: {k: res.get(f"{c}_{k}") for k in ("ratio_solderpyro_over_numpyro", "agree",
+                                                     "converged")}
+               for c in cases}
+    print(json.dumps(summary, indent=2))
 
 
 if __name__ == "__main__":
