@@ -39,12 +39,22 @@ def _run(cmd: list[str], log: Path) -> float:
 
 
 def _summary(run: Path) -> dict:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import arviz as az
     with (run / "summary.csv").open() as f:
         rows = list(csv.DictReader(f))
     info = json.loads((run / "run.json").read_text())
-    return {"r_hat_max": max(float(r["r_hat"]) for r in rows),
-            "ess_bulk_min": min(float(r["ess_bulk"]) for r in rows),
-            "rows": rows, "timing_s": info.get("timing_s"), "fe_check": info.get("fe_check")}
+    idata = az.from_netcdf(str(run / "posterior.nc"))
+    rhat = az.rhat(idata)
+    ess = az.ess(idata, method="bulk")
+    div = int(idata.sample_stats["diverging"].values.sum())
+    return {"r_hat_max": float(max(rhat[v].values.max() for v in rhat.data_vars)),
+            "ess_bulk_min": float(min(ess[v].values.min() for v in ess.data_vars)),
+            "divergences": div, "rows": rows, "timing_s": info.get("timing_s"),
+            "fe_check": info.get("fe_check")}
 
 
 def main() -> None:
