@@ -83,7 +83,7 @@ class GPInputMap:
             u = (zg - self.lo_g) / self.w_g
             return u, np.diag(np.where(self.log_g, 1.0 / x, 1.0) / self.w_g * dx)
         f, jf = self.feats.value_and_jacobian(x)  # (d',), (d', n)
-        return (f - self.in_lo) / self.in_span, jf * (dx / 1.0)[None, :] / self.in_span[:, None]
+        return (f - self.in_lo) / self.in_span, jf * dx[None, :] / self.in_span[:, None]
 
 
 def _unit_map(box: Box, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -211,19 +211,9 @@ class PCAReduction:
         A = self.B.T @ Bw  # (K, K)
         r = y0 - self.B @ c  # (n,)
         e = Bw.T @ r  # (K,)
-        sv = np.sqrt(v)
-        M = np.eye(self.K) + sv[:, None] * A * sv[None, :]
-        Lm = np.linalg.cholesky(M)
-        Minv = np.linalg.inv(M)  # K x K
-        P = sv[:, None] * Minv * sv[None, :]
-        Pe = P @ e
+        logdet_m, P, Pe, gc, gv = _k_terms(A, e, v)
         quad = float(r @ (w * r)) - float(e @ Pe)
-        logdet = -float(np.log(w).sum()) + 2.0 * float(np.log(Lm.diagonal()).sum())
-        ll = -0.5 * (self.n * _LOG_2PI + logdet + quad)
-        AP = A @ P
-        g = e - A @ Pe  # B^T C^-1 r (K,)
-        gc = g
-        gv = 0.5 * (g * g - (A.diagonal() - np.einsum("ij,ji->i", AP, A)))
+        ll = -0.5 * (self.n * _LOG_2PI - float(np.log(w).sum()) + logdet_m + quad)
         z = w * (r - self.B @ Pe)  # C^-1 r (n,)
         # tr C^-1 = sum w - tr(P B^T D_s^-2 B)
         A2 = Bw.T @ Bw
@@ -242,22 +232,34 @@ class PCAReduction:
         yw, yw2 = S1[-1], S2[-1]  # y0^T D^-1 y0, y0^T D^-2 y0
         Ac = A @ c
         e = bw - Ac  # B^T D^-1 r
-        sv = np.sqrt(v)
-        M = np.eye(K) + sv[:, None] * A * sv[None, :]
-        Lm = np.linalg.cholesky(M)
-        Minv = np.linalg.inv(M)
-        P = sv[:, None] * Minv * sv[None, :]
-        Pe = P @ e
+        logdet_m, P, Pe, g, gv = _k_terms(A, e, v)
         rwr = yw - 2.0 * float(c @ bw) + float(c @ Ac)
         quad = rwr - float(e @ Pe)
-        logdet = -float(np.log(w).sum()) + 2.0 * float(np.log(Lm.diagonal()).sum())
-        ll = -0.5 * (self.n * _LOG_2PI + logdet + quad)
-        g = e - A @ Pe  # B^T C^-1 r
-        gv = 0.5 * (g * g - (A.diagonal() - np.einsum("ij,ji->i", A @ P, A)))
+        ll = -0.5 * (self.n * _LOG_2PI - float(np.log(w).sum()) + logdet_m + quad)
         h = c + Pe  # C^-1 r = D^-1 (y0 - B h)
         zz = yw2 - 2.0 * float(h @ bw2) + float(h @ A2 @ h)
         tr = float(w.sum()) - float(np.vdot(P, A2))
         return ll, g, gv, sigma * (zz - tr), None
+
+
+def _k_terms(A: np.ndarray, e: np.ndarray, v: np.ndarray
+             ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The K-dimensional part shared by both paths of :meth:`PCAReduction.loglik`.
+
+    Args:
+        A: ``B^T D_s^-1 B (K, K)``; e: ``B^T D_s^-1 r (K,)``; v: component variances ``(K,)``.
+    Returns:
+        ``log|I + V^1/2 A V^1/2|``, ``P (K, K)``, ``P e``, ``d ll/dc = B^T C^-1 r`` and
+        ``d ll/dv`` (both ``(K,)``).
+    """
+    sv = np.sqrt(v)
+    M = np.eye(A.shape[0]) + sv[:, None] * A * sv[None, :]
+    Lm = np.linalg.cholesky(M)
+    P = sv[:, None] * np.linalg.inv(M) * sv[None, :]
+    Pe = P @ e
+    g = e - A @ Pe  # B^T C^-1 r
+    gv = 0.5 * (g * g - (A.diagonal() - np.einsum("ij,ji->i", A @ P, A)))
+    return 2.0 * float(np.log(Lm.diagonal()).sum()), P, Pe, g, gv
 
 
 def reduced_loglik_torch(gp: GPSurrogate, y_obs: torch.Tensor, t: torch.Tensor,
