@@ -348,7 +348,8 @@ def check_jax_lowrank(gp, lowrank, box: Box, n: int = 5, tol: float = 1e-10) -> 
     return worst
 
 
-def numpyro_field(gp, feats, y_obs, box: Box, chains, warmup, draws, seed, dense=False):
+def numpyro_field(gp, feats, y_obs, box: Box, chains, warmup, draws, seed, dense=False,
+                  init_params=None):
     import jax.numpy as jnp
     import numpyro
     import numpyro.distributions as nd
@@ -364,17 +365,36 @@ def numpyro_field(gp, feats, y_obs, box: Box, chains, warmup, draws, seed, dense
         mean, f, d = lowrank(lo + (hi - lo) * tu)
         numpyro.sample("y", nd.LowRankMultivariateNormal(mean, f, d + sig**2), obs=yj)
 
-    return _run_numpyro(model, chains, warmup, draws, seed, dense)
+    return _run_numpyro(model, chains, warmup, draws, seed, dense, init_params)
 
 
-def _run_numpyro(model, chains, warmup, draws, seed, dense=False):
+def sir_starts(gp, y_obs, box: Box, pr, chains: int, seed: int) -> dict[str, np.ndarray]:
+    """The specimen calibration's chain starts (``init="sir"``: likelihood-resampled prior
+    draws, the same points solderpyro's run_nuts computes for this seed) on NumPyro's
+    unconstrained scale: logit of t_unit, log of sigma, ``(chains, ...)``."""
+    from solderpyro.calibration.emulators import GPEmulator
+    from solderpyro.calibration.koh import observation_model, prepare_observation
+    from solderpyro.calibration.mcmc import sir_inits
+
+    inp = prepare_observation(y_obs, GPEmulator(gp), box)
+    pts = sir_inits(observation_model, (inp, pr), chains, 256, seed)
+    tu = np.stack([p["t_unit"].numpy() for p in pts])
+    return {"t_unit": np.log(tu) - np.log1p(-tu),
+            "sigma": np.log(np.array([float(p["sigma"]) for p in pts]))}
+
+
+def _run_numpyro(model, chains, warmup, draws, seed, dense=False, init_params=None):
     from jax import random
     from numpyro.infer import MCMC, NUTS
 
     t0 = time.perf_counter()
     mc = MCMC(NUTS(model, dense_mass=dense), num_warmup=warmup, num_samples=draws,
               num_chains=chains, chain_method="sequential", progress_bar=False)
-    mc.run(random.PRNGKey(seed))
+    if init_params is not None:
+        import jax.numpy as jnp
+
+        init_params = {k: jnp.asarray(v) for k, v in init_params.items()}
+    mc.run(random.PRNGKey(seed), init_params=init_params)
     sec = time.perf_counter() - t0
     div = int(np.asarray(mc.get_extra_fields()["diverging"]).sum())
     return flatten_sites(mc.get_samples(group_by_chain=True)), sec, div
@@ -423,10 +443,13 @@ def build_case(case: str, a: argparse.Namespace, nuts: dict) -> dict[str, Any]:
         err = None if a.no_numpyro else check_jax_lowrank(gp, jax_lowrank(gp, feats), box)
         pr = Priors(sigma_known=FIELD_SIGMA)
         tu = box.to_unit(fs["truth"])
+        starts = None
+        if a.init == "sir":  # both sides start where the specimen calibration starts
+            starts = sir_starts(gp, y_obs, box, pr, a.chains, a.seed)
         return dict(solderpyro=lambda: _solderpyro(calibrate_modular, gp, y_obs, box,
-                                                   priors=pr, **nuts),
+                                                   priors=pr, init=a.init, **nuts),
                     numpyro=lambda dense: numpyro_field(gp, feats, y_obs, box, dense=dense,
-                                                        **npk),
+                                                        init_params=starts, **npk),
                     truth={f"t_unit[{i}]": float(v) for i, v in enumerate(tu)},
                     info=dict(fs["info"], jax_port_max_abs_err=err,
                               parameters=list(box.names)))
@@ -486,6 +509,9 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=500)
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--init", default="uniform", choices=("uniform", "sir"),
+                    help="field_modular: chain starts on both sides (sir: the specimen "
+                    "calibration's likelihood-resampled prior draws, identical on both sides)")
     ap.add_argument("--numpyro-mass", choices=("both", "diag", "dense"), default="both",
                     help="NumPyro's mass matrix (both: run each, compare with the faster)")
     ap.add_argument("--workers", type=int, default=1,
