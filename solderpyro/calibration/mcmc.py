@@ -215,8 +215,7 @@ class NutsRun:
         divergences: divergent transitions after warm-up, per chain.
         seconds: wall time (warm-up and sampling, all chains).
         warm: the adapted state, to warm-start a related run.
-        stats: per chain: step size, mean acceptance, gradient evaluations, seconds.
-        analytic: whether the log density was an analytic one (else Pyro's potential).
+        stats: per chain: step size, mean acceptance, gradient evaluations.
     """
 
     samples: dict[str, torch.Tensor]
@@ -224,7 +223,6 @@ class NutsRun:
     seconds: float
     warm: WarmStart
     stats: list[dict[str, float]]
-    analytic: bool
 
 
 def default_workers(chains: int) -> int:
@@ -316,10 +314,8 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
     ws = WarmStart(coords, res.draws[:, -1].copy(), inv, float(np.median(res.step_size)))
     stats = [{"step_size": float(a), "accept_prob": float(b), "n_grad": float(c)}
              for a, b, c in zip(res.step_size, res.accept_prob, res.n_leapfrog, strict=True)]
-    from solderpyro.calibration.potential import TorchFlat
-
     return NutsRun(fm.to_samples(res.draws), res.divergences, time.perf_counter() - t0, ws,
-                   stats, not isinstance(fm, TorchFlat))
+                   stats)
 
 
 def coord_names(fm: Any, args: tuple) -> list[str]:

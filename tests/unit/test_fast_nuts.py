@@ -73,7 +73,7 @@ def pyro_reference(model, args, box, chains=2, warmup=300, draws=600, seed=0) ->
         mc.run(*args)
         per.append(mc.get_samples())
     samples = {k: torch.stack([p[k] for p in per]) for k in per[0]}
-    return _post(NutsRun(samples, [0] * chains, 1.0, None, [], False), box)  # type: ignore
+    return _post(NutsRun(samples, [0] * chains, 1.0, None, []), box)  # type: ignore
 
 
 # ----------------------------------------------------------------- the sampler on Gaussians
