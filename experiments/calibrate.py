@@ -1,7 +1,7 @@
 """Calibrate the Anand constants against a measurement CSV, driven by the Hydra configs.
 
     python experiments/calibrate.py data.path=runs/demo/data.csv
-    python experiments/calibrate.py data.path=FILE.csv surrogate=matern calibration.runs=80
+    python experiments/calibrate.py data.path=FILE.csv calibration.design.budget=80
     python experiments/calibrate.py -m data.path=FILE.csv surrogate=gaussian,matern  # sweep
 
 Same workflow as ``solderpyro calibrate``; writes report.md, summary.csv, posterior.nc and the
@@ -16,9 +16,10 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from solderpyro.configure import build, task_overrides
+from solderpyro.configure import build, calibration_settings, task_overrides
 from solderpyro.io.measurements import read_measurements
-from solderpyro.workflow import calibrate_specimen, output_points
+from solderpyro.pipeline import calibrate_specimen
+from solderpyro.specimen import output_points
 
 log = logging.getLogger(__name__)
 
@@ -31,14 +32,10 @@ def main(cfg: DictConfig) -> None:
     meas = read_measurements(hydra.utils.to_absolute_path(cfg.data.path),
                              valid_points=output_points(setup.problem))
     out = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    c = cfg.calibration
-    res = calibrate_specimen(setup, meas, out, n_runs=int(c.runs), seed=int(c.seed),
-                             store_root=hydra.utils.to_absolute_path(c.store),
-                             batch_size=int(c.batch),
-                             nuts=dict(chains=int(c.chains), warmup=int(c.warmup),
-                                       draws=int(c.draws)),
-                             record={"overrides": task_overrides(), "data": str(cfg.data.path)},
-                             **setup.surrogate)
+    s = calibration_settings(cfg, setup.surrogate)
+    s.store = hydra.utils.to_absolute_path(s.store)
+    res = calibrate_specimen(setup, meas, out, s,
+                             record={"overrides": task_overrides(), "data": str(cfg.data.path)})
     log.info("report: %s", res.out / "report.html")
 
 

@@ -7,7 +7,7 @@ Options (``+case.<key>=...``): ``effect`` (an effect name, or ``none`` for clean
 thermal_lag), ``field`` (full-field grid at the output times instead of A, B; default true),
 ``noise`` (um, 0.05), ``seed`` (0), ``draws`` (posterior draws of the diagnosis, 2),
 ``candidates`` (a list of effect names to test; default all). The
-calibration settings are the ``calibration`` group's (``calibration.runs=50`` ...) and every
+calibration settings are the ``calibration`` group's (``calibration.design.budget=80`` ...) and every
 other override changes the model as usual. Outputs go to the Hydra run directory: data.csv,
 base/ (calibration + diagnosis), with_<effect>/ (calibration + comparison.md).
 See docs/diagnosis.md.
@@ -21,12 +21,13 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from solderpyro.configure import build, compose, task_overrides
+from solderpyro.configure import build, calibration_settings, compose, task_overrides
 from solderpyro.diagnose import diagnose
 from solderpyro.diagnose.compare import compare
 from solderpyro.diagnose.hidden import make_dataset
 from solderpyro.io.measurements import read_measurements
-from solderpyro.workflow import calibrate_specimen, output_points
+from solderpyro.pipeline import calibrate_specimen
+from solderpyro.specimen import output_points
 
 log = logging.getLogger(__name__)
 
@@ -43,13 +44,10 @@ def main(cfg: DictConfig) -> None:
                         seed=int(case.get("seed", 0)))
     meas = read_measurements(data, valid_points=output_points(setup.problem))
     log.info("hidden effect %s: %s", effect, meas.meta.get("hidden_values", "-"))
-    c = cfg.calibration
     ov = task_overrides()
-    kw = dict(n_runs=int(c.runs), seed=int(c.seed),
-              store_root=hydra.utils.to_absolute_path(c.store), batch_size=int(c.batch),
-              nuts=dict(chains=int(c.chains), warmup=int(c.warmup), draws=int(c.draws)),
-              **setup.surrogate)
-    calibrate_specimen(setup, meas, out / "base", record={"overrides": ov}, **kw)
+    s = calibration_settings(cfg, setup.surrogate)
+    s.store = hydra.utils.to_absolute_path(s.store)
+    calibrate_specimen(setup, meas, out / "base", s, record={"overrides": ov})
     cands = case.get("candidates")
     dg = diagnose(out / "base", n_draws=int(case.get("draws", 2)),
                   candidates=None if not cands else tuple(str(c) for c in cands))
@@ -61,7 +59,7 @@ def main(cfg: DictConfig) -> None:
     ov2 = [o for o in ov if not o.startswith("effects=")] + [f"effects=[{top}]"]
 
     setup2 = build(compose(ov2))
-    calibrate_specimen(setup2, meas, out / f"with_{top}", record={"overrides": ov2}, **kw)
+    calibrate_specimen(setup2, meas, out / f"with_{top}", s, record={"overrides": ov2})
     r = compare(out / "base", out / f"with_{top}")
     log.info("RMS residual %.4g -> %.4g um (noise %.3g um); ELPD gain %.1f nats",
              r["before"]["rms_um"], r["after"]["rms_um"], float(case.get("noise", 0.05)),

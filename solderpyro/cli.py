@@ -117,7 +117,7 @@ DEMO_NOISE_UM = 0.05
 def _demo_calibration(a, setup, out: Path) -> int:
     """Synthetic measurements at DEMO_TRUTH (+ N(0, 0.05^2) um) -> calibrate -> report."""
     from .io.measurements import from_arrays, write_measurements
-    from .workflow import calibrate_specimen
+    from .pipeline import calibrate_specimen
 
     log.info("demo calibration: synthetic data at %s with noise %.2g um", DEMO_TRUTH,
              DEMO_NOISE_UM)
@@ -133,9 +133,9 @@ def _demo_calibration(a, setup, out: Path) -> int:
                                          sigma_um=np.full(V.shape, DEMO_NOISE_UM), meta=meta))
     from .io.measurements import read_measurements
 
+    a.store = out / "store"
     res = calibrate_specimen(setup, read_measurements(data), out / "calibration",
-                             n_runs=a.runs, seed=a.seed, store_root=out / "store",
-                             nuts=_nuts_args(a), progress=not a.quiet, **setup.surrogate)
+                             _settings(a, setup))
     inside = {r["parameter"]: float(r["q2.5"]) <= DEMO_TRUTH[str(r["parameter"])]
               <= float(r["q97.5"]) for r in res.summary if r["parameter"] in DEMO_TRUTH}
     print(f"\ntruth {DEMO_TRUTH}; inside the 95 % interval: {inside}")
@@ -173,43 +173,49 @@ def cmd_koh(a, overrides) -> int:
     return 0
 
 
+def _settings(a, setup):
+    """The calibration's settings from the command line (and the config's surrogate group)."""
+    from .pipeline.settings import (
+        CalibrationSettings,
+        DesignSettings,
+        ExactSettings,
+        SamplerSettings,
+        SurrogateSettings,
+    )
+
+    dflt = DesignSettings()
+    start = a.start if a.start is not None else dflt.start
+    budget = a.budget if a.budget is not None else max(dflt.budget, start)
+    design = DesignSettings(start=start, batch=a.q, budget=budget,
+                            criterion=a.criterion, optimizer=a.optimizer)
+    return CalibrationSettings(
+        design=design, surrogate=SurrogateSettings(**setup.surrogate),
+        sampler=SamplerSettings(chains=a.chains, warmup=a.warmup, draws=a.draws),
+        exact=ExactSettings(mode=a.exact, runs=a.exact_runs, rounds=a.exact_rounds,
+                            profile=a.exact_profile, profile_ci=not a.no_profile_ci),
+        seed=a.seed, store=str(a.store), batch=a.batch, progress=not a.quiet)
+
+
 def cmd_calibrate(a, overrides) -> int:
     from .io.measurements import read_measurements
-    from .workflow import calibrate_specimen, output_points
+    from .pipeline import calibrate_specimen
+    from .specimen import output_points
 
     setup = _setup(overrides)
     meas = read_measurements(a.data, valid_points=output_points(setup.problem))
-    if a.runs < 5:
-        raise ValueError(f"--runs must be at least 5, got {a.runs}")
-    if a.local and a.refine < 1:
-        raise ValueError("--local needs --refine N (the FE runs placed in the local region)")
-    if not a.local_sd > 0:
-        raise ValueError(f"--local-sd must be > 0, got {a.local_sd}")
-    if a.exact < 0 or a.exact == 1:
-        raise ValueError(f"--exact must be 0 (off) or >= 2 FE runs per round, got {a.exact}")
-    if a.exact_rounds < 1:
-        raise ValueError(f"--exact-rounds must be >= 1, got {a.exact_rounds}")
-    if a.profile_ci and a.exact == 0:
-        raise ValueError("--profile-ci needs --exact N (its profiles start from the FE-exact "
-                         "posterior's samples)")
-    if a.exact_profile < 0 or a.exact_profile == 1:
-        raise ValueError(f"--exact-profile must be 0 (none) or >= 2 grid points, got "
-                         f"{a.exact_profile}")
-    nuts = _nuts_args(a)
+    s = _settings(a, setup)
+    s.validate(setup.space.dim)
+    warm = None
     if a.warm_from:
         from .calibration.mcmc import WarmStart
-        from .workflow import WARM_FILE
+        from .specimen import WARM_FILE
 
-        nuts["warm"] = WarmStart.load(Path(a.warm_from) / WARM_FILE)
-    res = calibrate_specimen(setup, meas, a.out, n_runs=a.runs, seed=a.seed,
-                             store_root=a.store, batch_size=a.batch, nuts=nuts,
-                             progress=not a.quiet, exact=a.exact, refine=a.refine,
-                             refine_rounds=a.refine_rounds, local=a.local,
-                             local_sd=a.local_sd, exact_rounds=a.exact_rounds,
-                             exact_profile=a.exact_profile, profile_ci=a.profile_ci,
+        warm = WarmStart.load(Path(a.warm_from) / WARM_FILE)
+    res = calibrate_specimen(setup, meas, a.out, s,
                              record={"overrides": list(overrides), "data": str(a.data)},
-                             **setup.surrogate)
-    print(f"\nreport:  {res.out / 'report.html'}\nsummary: {res.out / 'summary.csv'}")
+                             warm=warm)
+    print(f"\ndesign: {res.design['message'] if res.design else ''}")
+    print(f"report:  {res.out / 'report.html'}\nsummary: {res.out / 'summary.csv'}")
     return 0
 
 
@@ -285,6 +291,43 @@ def _add_nuts(p: argparse.ArgumentParser, chains: int = 4, draws: int = 1000,
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
+def _add_design(p: argparse.ArgumentParser) -> None:
+    """The adaptive design's and the FE-exact fallback's options (calibrate, demo)."""
+    from .pipeline.settings import DesignSettings, ExactSettings
+
+    ds, es = DesignSettings(), ExactSettings()
+    p.add_argument("--budget", type=int, default=None, metavar="N",
+                   help=f"most FE runs the adaptive design makes (default {ds.budget}): a "
+                   "Latin-hypercube start, then rounds of acquired runs (BoTorch) and FE checks "
+                   "at posterior draws until the FE confirms the surrogate")
+    p.add_argument("--start", type=int, default=None, metavar="N",
+                   help=f"Latin-hypercube FE runs before the first round (default {ds.start})")
+    p.add_argument("--q", type=int, default=ds.batch,
+                   help=f"FE runs acquired per round, one batched solve (default {ds.batch})")
+    p.add_argument("--criterion", default=ds.criterion, choices=["loglik", "variance"],
+                   help="acquisition: loglik (posterior-weighted code variance of the "
+                   "log-likelihood, default) or variance (BoTorch's integrated posterior "
+                   "variance at the observed outputs)")
+    p.add_argument("--optimizer", default=ds.optimizer, choices=["draws", "optimize"],
+                   help="draws: the best q of the posterior draws (default); optimize: "
+                   "BoTorch's optimize_acqf over the box")
+    p.add_argument("--batch", type=int, default=64, help="FE runs per batched solve")
+    p.add_argument("--exact", default=es.mode, choices=["auto", "on", "off"],
+                   help="the FE-exact posterior (adaptive importance sampling with the FE in "
+                   "the likelihood) and profile-likelihood intervals: auto (default) runs them "
+                   "when the design's budget runs out with the FE disagreeing with the "
+                   "surrogate; on: always; off: never")
+    p.add_argument("--exact-runs", type=int, default=es.runs, metavar="N",
+                   help=f"FE runs per importance-sampling round (default {es.runs})")
+    p.add_argument("--exact-rounds", type=int, default=es.rounds, metavar="R",
+                   help=f"importance-sampling rounds (default {es.rounds})")
+    p.add_argument("--exact-profile", type=int, default=es.profile, metavar="G",
+                   help=f"grid points of the chi-square profile along the ridge (default "
+                   f"{es.profile}; 0: none)")
+    p.add_argument("--no-profile-ci", action="store_true",
+                   help="skip the 95 %% profile-likelihood intervals after the FE-exact step")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="solderpyro",
@@ -311,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="runs/demo", help="output directory")
     d.add_argument("--no-calibrate", action="store_true",
                    help="only simulate (skip the synthetic-data calibration)")
-    d.add_argument("--runs", type=int, default=50, help="LHS FE runs of the calibration")
+    _add_design(d)
     # 4 x 400 draws after 500 warm-up (300 warm-up left a chain badly adapted: R-hat 1.38):
     # bulk ESS ~150+ per parameter, inside 10 min on the 2-core CPU
     _add_nuts(d, draws=400, warmup=500)
@@ -332,50 +375,19 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--discrepancy", action="store_true", help="add a GP discrepancy delta(x)")
     _add_nuts(k)
     c = sub.add_parser("calibrate", help="calibrate the Anand constants of the config's box "
-                       "(default s0, QR, xi, m) against a measurement CSV: LHS DOE of FE runs "
-                       "(run store), GP surrogate, KOH with NUTS, report")
+                       "(default s0, QR, xi, m) against a measurement CSV: an adaptive design "
+                       "of FE runs (run store) that stops when the FE confirms the GP "
+                       "surrogate, KOH with NUTS, report")
     c.add_argument("--data", required=True, help="measurement CSV (shared/data-format.md); "
                    "points A, B or grid labels g_ii_jj, any output times")
     c.add_argument("--out", required=True,
                    help="run directory (report.html, report.md, summary.csv, ...)")
-    c.add_argument("--runs", type=int, default=50, help="Latin hypercube FE runs (seed: 50)")
     c.add_argument("--warm-from", default=None, metavar="RUN_DIR",
                    help="start NUTS from an earlier calibration's adapted state (its chains' "
                    "last positions and mass matrix, matched by parameter name), e.g. the base "
                    "run when recalibrating with one more effect")
     c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
-    c.add_argument("--batch", type=int, default=64, help="FE runs per batched solve")
-    c.add_argument("--exact", type=int, default=0, metavar="N",
-                   help="sample the FE-exact posterior (the FE in the likelihood, no "
-                   "surrogate): the FE's best fit, a chi-square profile along the ridge, then "
-                   "--exact-rounds rounds of adaptive importance sampling with N FE runs each; "
-                   "writes exact_posterior.csv/.png; when reliable (Pareto k-hat <= 0.7, "
-                   "ESS >= 50) summary.csv is that posterior (e.g. --exact 128 for full-field "
-                   "data whose surrogate posterior is not trusted)")
-    c.add_argument("--exact-rounds", type=int, default=3, metavar="R",
-                   help="adaptive importance sampling rounds of --exact (default 3)")
-    c.add_argument("--exact-profile", type=int, default=9, metavar="G",
-                   help="grid points of the --exact chi-square profile (default 9; 0: none)")
-    c.add_argument("--profile-ci", action="store_true",
-                   help="with --exact: 95 %% profile-likelihood confidence intervals of every "
-                   "calibrated parameter through the FE (its value held on a grid, the others "
-                   "refitted; Wilks' chi2(1) threshold 3.84): prior-free intervals beside the "
-                   "posterior's, and a bound reached = the data do not bound it there; "
-                   "writes profile_ci.csv (~400 FE runs per parameter, all kept in the store)")
-    c.add_argument("--refine", type=int, default=0, metavar="N",
-                   help="after the first posterior, add N FE runs (Latin hypercubes): half "
-                   "around the FE's own best fit (Levenberg-Marquardt through the FE from the "
-                   "posterior median and the best stored run, +-4 Laplace sd), half where the "
-                   "posterior lies; refit the surrogate on all runs and sample again")
-    c.add_argument("--refine-rounds", type=int, default=1, help="rounds of --refine")
-    c.add_argument("--local", action="store_true",
-                   help="with --refine: put all N runs in a local region aligned with the "
-                   "posterior (+-LOCAL_SD sd of a Gaussian around the FE's best fit from "
-                   "several starts; later rounds: around the last posterior), fit a GP there "
-                   "and sample the prior truncated to it; for full-field data whose "
-                   "posterior the global surrogate puts in the wrong place (FE check warning)")
-    c.add_argument("--local-sd", type=float, default=3.5,
-                   help="half-width of the --local region in sd (default 3.5)")
+    _add_design(c)
     _add_nuts(c)
     g = sub.add_parser("diagnose", help="does the calibrated model fit the data, and which "
                        "physical effect is missing? Posterior predictive checks, a misfit test "

@@ -31,6 +31,9 @@ def compose(overrides: list[str] | None = None, config_name: str = "config"):
 
     if not CONFIG_DIR.is_dir():
         raise FileNotFoundError(f"config directory not found: {CONFIG_DIR}")
+    from .pipeline.settings import register_configs
+
+    register_configs()  # the calibration group's schema (CalibrationSettings)
     from hydra.core.global_hydra import GlobalHydra
 
     try:
@@ -47,6 +50,21 @@ def compose(overrides: list[str] | None = None, config_name: str = "config"):
             return _compose(config_name, overrides=list(overrides or []))
     except (HydraException, OmegaConfBaseException) as e:
         raise ValueError(f"bad config override in {overrides}: {e}") from None
+
+
+def calibration_settings(cfg: Any, surrogate: Mapping[str, Any] | None = None) -> Any:
+    """The composed config's ``calibration`` group as a
+    :class:`~solderpyro.pipeline.settings.CalibrationSettings` (its ``surrogate`` from the
+    ``surrogate`` group, i.e. ``Setup.surrogate``, when given)."""
+    from omegaconf import OmegaConf
+
+    from .pipeline.settings import CalibrationSettings, SurrogateSettings
+
+    d = OmegaConf.to_container(cfg.calibration, resolve=True) if "calibration" in cfg else {}
+    s = CalibrationSettings.from_dict(dict(d))  # type: ignore[arg-type]
+    if surrogate:
+        s.surrogate = SurrogateSettings(**surrogate)
+    return s
 
 
 def task_overrides() -> list[str]:

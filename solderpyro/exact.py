@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -45,6 +46,7 @@ from solderpyro.calibration.amis import (
     weighted_em,
 )
 from solderpyro.coords import UnitCoords
+from solderpyro.params import Box
 
 Fun = Callable[[np.ndarray], np.ndarray]
 
@@ -590,3 +592,19 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
         out.append(ProfileInterval(space.names[k], k, lower, upper, bool(at_lo), bool(at_hi),
                                    g, c2, xs, c_min, delta, bool(trunc)))
     return out
+
+
+def laplace_cov_unit(fit: Any, space: Box, sigma: float) -> np.ndarray:
+    """Laplace covariance ``(space.dim, space.dim)`` of an :class:`~solderpyro.fit.LMFit` on
+    ``space``'s unit scale (log where flagged): ``(J_u' J_u / sigma^2 + 4 I)^-1``, the ``4 I``
+    a prior sd of half the box so that a direction the data do not constrain spans the box.
+
+    Args:
+        fit: with ``J (n_obs, dim)``, df/du on the linear unit scale, um (None: the prior).
+        sigma: noise sd, um.
+    """
+    p = space.dim
+    if fit.J is None or fit.J.shape[1] != p:
+        return np.eye(p) * 0.25
+    J = fit.jacobian_unit(space.lower, space.upper, space.log_scale)
+    return np.linalg.inv(J.T @ J / sigma**2 + 4.0 * np.eye(p))

@@ -1,7 +1,7 @@
 """Least-squares fits through the FE: a batched, bounded Levenberg-Marquardt.
 
 Used where the exact model (not the surrogate) must say where the data are fitted best: the
-FE anchor of a calibration's refinement (:func:`solderpyro.workflow.calibrate_specimen`) and the
+FE anchor of a calibration's refinement (:func:`solderpyro.pipeline.calibrate_specimen`) and the
 profile refits of the diagnosis (:func:`solderpyro.diagnose.run.profile_fits`). Several starts
 (or models with different free parameters) advance together, so every FE call is one batch.
 

@@ -70,7 +70,7 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
 
     ``notes``: more lines for the report's opening list (e.g. the FE check, a local region).
     ``exact_rows`` and ``exact = (ExactPosterior, info, surrogate draws (n, dim), box)``: the
-    FE-exact posterior's section and figure (:func:`solderpyro.workflow.fe_exact`).
+    FE-exact posterior's section and figure (:func:`solderpyro.pipeline.fe_exact.fe_exact`).
     """
     def save(fig, name: str) -> str:
         fig.savefig(out / name, dpi=120)

@@ -150,14 +150,14 @@ class FeRuns:
 
     def solve(self, rows: torch.Tensor, times: tuple[float, ...], field: bool,
               effects: Any = None, progress: bool = False) -> FeOut:
-        """The FE at solver rows ``(n, 9 + n_eff)`` (:func:`~solderpyro.workflow.fe_params`;
+        """The FE at solver rows ``(n, 9 + n_eff)`` (:func:`~solderpyro.specimen.fe_params`;
         the effects' parameters in the order of ``effects``) over ``times`` (s), with the
         31 x 18 grid when ``field``; stored runs are read back, the others solved in batches
         of ``batch_size`` and stored; observation-side effects applied after the FE."""
         from solderpyro.effects import EffectSet
         from solderpyro.params import ANAND_NAMES
+        from solderpyro.specimen import OBSERVATION_SEAM
         from solderpyro.store import run_doe
-        from solderpyro.workflow import OBSERVATION_SEAM
 
         rows = torch.as_tensor(rows, dtype=torch.float64)
         fe_cols, obs_cols = list(range(len(ANAND_NAMES))), list[int]()
@@ -192,7 +192,7 @@ class FeRuns:
             self.reused += len(rows) - res.n_computed
         Vt = res.V.detach().cpu().to(torch.float64)
         if fx_obs is not None:  # as the solver applies them: V + offset(x of each output)
-            from solderpyro.workflow import output_points
+            from solderpyro.specimen import output_points
 
             pts = output_points(self.setup.problem)
             x = torch.tensor([pts[n][0] for n in res.names], dtype=torch.float64)
@@ -295,7 +295,7 @@ def load_run(run_dir: str | Path) -> dict[str, Any]:
     """
     from solderpyro.configure import build, compose
     from solderpyro.io.measurements import read_measurements
-    from solderpyro.workflow import RUN_FILES, output_points
+    from solderpyro.specimen import RUN_FILES, output_points
 
     d = Path(run_dir)
     for f in RUN_FILES:
@@ -372,7 +372,7 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         (FE rows of the ladder). The draws' rows and the ladder's are one batched solve.
     """
     from solderpyro.effects import effect_set
-    from solderpyro.workflow import calibration_box, fe_params
+    from solderpyro.specimen import calibration_box, fe_params
 
     fe = fe if fe is not None else FeRuns(setup)
 
@@ -564,7 +564,7 @@ def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         with ``"baseline"``.
     """
     from solderpyro.effects import effect_set
-    from solderpyro.workflow import calibration_box, fe_params, observation_index
+    from solderpyro.specimen import calibration_box, fe_params, observation_index
 
     fe = fe if fe is not None else FeRuns(setup)
     field = any(p not in setup.problem.points for p in meas.points())
@@ -632,7 +632,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         :class:`Diagnosis`.
     """
     from solderpyro.effects import EFFECTS
-    from solderpyro.workflow import observation_index
+    from solderpyro.specimen import observation_index
 
     cost = _Costs()
     d = Path(run_dir)
@@ -800,7 +800,7 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
     from solderpyro.effects import effect_set
     from solderpyro.fem.loading import EXTENDED_TIMES
     from solderpyro.fem.problem import reference_grid
-    from solderpyro.workflow import fe_params
+    from solderpyro.specimen import fe_params
 
     if len(X) < 2 or len(labels) != len(X):
         raise ValueError(f"separation_options: need >= 2 rows and one label per row, got "

@@ -136,7 +136,7 @@ class GPSurrogate:
             self, fitted.
         """
         x, y = self._check_xy(x, y)
-        self._y_train = y
+        self._x_train, self._y_train = x, y
         self.std = Standardizer.fit(y)
         ys = self.std.forward(y)  # (n, n_y)
         self.basis, self.resid_var = self._basis(ys)  # (n_y, k), (n_y,)

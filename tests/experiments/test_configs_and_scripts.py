@@ -135,7 +135,7 @@ def test_demo_command_runs_tiny(tmp_path):
     assert "(11 reused from the run store, 0 computed)" in (out / "report.md").read_text()
     # every FE run of the FE-exact step is in the store (the importance samples included)
     from solderpyro.store import param_hash
-    from solderpyro.workflow import fe_params
+    from solderpyro.specimen import fe_params
 
     smp = np.load(out / "exact_samples.npz")
     inside = np.isfinite(smp["log_target"])

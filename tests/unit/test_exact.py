@@ -21,7 +21,7 @@ from solderpyro.exact import (
 )
 from solderpyro.fit import lm_fit
 from solderpyro.params import Box
-from solderpyro.workflow import laplace_cov_unit
+from solderpyro.exact import laplace_cov_unit
 
 BOX = Box(("a", "b", "c"), (0.2, 0.2, 0.0), (5.0, 5.0, 2.0), (True, False, False))
 UC = UnitCoords(BOX)

@@ -40,7 +40,7 @@ def test_fe_check_flags_an_fe_misfit_at_every_draw():
     not flagged."""
     import torch
 
-    from solderpyro.workflow import fe_check
+    from solderpyro.pipeline.fe_check import fe_check
 
     rng = np.random.default_rng(0)
     y = torch.tensor(rng.normal(size=2000))

@@ -1,5 +1,5 @@
 """Identifiability after the FE-exact posterior: which parameter lies along a ridge, the two
-samples at its ends, and the measurement that would tell them apart (workflow.identifiability).
+samples at its ends, and the measurement that would tell them apart (pipeline.fe_exact.identifiability).
 """
 
 from types import SimpleNamespace
@@ -15,7 +15,8 @@ from solderpyro.exact import weighted_quantiles
 from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.io.measurements import from_arrays
-from solderpyro.workflow import calibration_box, fe_params, identifiability, ridge_ends
+from solderpyro.pipeline.fe_exact import identifiability, ridge_ends
+from solderpyro.specimen import calibration_box, fe_params
 
 TINY = ["experiment=quick", "loading.times_s=[0,600,900]", "loading.temps_C=[25,75,75]",
         "loading.output_times=[600,900]"]

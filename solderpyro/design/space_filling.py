@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from scipy.stats import qmc
 
-from .params import Box
+from solderpyro.params import Box
 
 
 def lhs(box: Box, n: int, seed: int | None = 0, dtype: torch.dtype = torch.float64,

@@ -1,0 +1,157 @@
+"""Acquisition functions that place FE runs where the surrogate's code uncertainty matters for
+the calibration, and the optimizer that proposes a q-batch from them.
+
+Both criteria are BoTorch ``AcquisitionFunction`` s over the unit cube of the FE's parameter
+box, ``forward(X (b, q, d)) -> (b,)`` (larger is better), and both integrate over the current
+posterior of the parameters (``mc_points``: posterior draws, unit cube):
+
+- :func:`integrated_code_variance`: BoTorch's ``qNegIntegratedPosteriorVariance`` with a
+  scalarization that makes it ``-E_post[sum_i var(eta_i(theta) | runs + X) / sigma^2]``: the
+  surrogate's variance at the observed outputs, weighted by the noise, that remains after the
+  q new runs (Seo et al. 2000; BoTorch's active-learning function).
+- :class:`qIntegratedLogLikVariance`: likelihood-aware. The code uncertainty of the
+  Gaussian log-likelihood ``l(theta) = -|y - eta(theta)|^2 / (2 sigma^2)`` at each posterior
+  draw, after the q new runs: with ``eta = m + S B z``, ``z ~ N(mu, diag v)``,
+  ``Var l = sum_k g_k^2 v_k + 1/2 sum_kl M_kl^2 v_k v_l``, ``g = (S B)^T (y - m) / sigma^2``,
+  ``M = (S B)^T (S B) / sigma^2`` (exact for a quadratic form of a Gaussian). Runs go where
+  the code error would move the posterior, not merely where the GP is unsure
+  (cf. Jarvenpaa et al. 2019, "Efficient acquisition rules for model-based ABC").
+
+The variance of a GP with fixed hyperparameters after new runs does not depend on their
+outputs, so one fantasy (BoTorch's default dummy sampler) makes both criteria exact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from botorch.acquisition import AcquisitionFunction
+from botorch.acquisition.active_learning import qNegIntegratedPosteriorVariance
+from botorch.acquisition.objective import ScalarizedPosteriorTransform
+from botorch.models.model import Model
+from botorch.optim import optimize_acqf, optimize_acqf_discrete
+from botorch.sampling.normal import SobolQMCNormalSampler
+from botorch.utils.transforms import concatenate_pending_points, t_batch_mode_transform
+
+from solderpyro.surrogate import GPSurrogate
+
+CRITERIA = ("loglik", "variance")
+OPTIMIZERS = ("optimize", "draws")
+
+
+def integrated_code_variance(model: Model, mc_points: torch.Tensor, weights: torch.Tensor,
+                             X_pending: torch.Tensor | None = None
+                             ) -> qNegIntegratedPosteriorVariance:
+    """BoTorch's ``qNegIntegratedPosteriorVariance``, scalarized to the noise-weighted code
+    variance at the observed outputs.
+
+    Args:
+        model: :func:`~solderpyro.design.model.botorch_model` of the surrogate (k outputs).
+        mc_points: ``(N, d)`` posterior draws of the FE parameters, unit cube.
+        weights: ``(k,)`` from :func:`~solderpyro.design.model.observed_weights` (1/um^2 x
+            um^2: dimensionless per unit coefficient variance).
+        X_pending: ``(m, d)`` runs already asked for and not yet back.
+
+    Returns:
+        acquisition with ``forward(X (b, q, d)) -> (b,)`` = ``-mean_j sum_k a_k v_k(theta_j |
+        runs + X)``, in chi-square units (dimensionless).
+    """
+    if weights.ndim != 1 or weights.shape[0] != model.num_outputs:
+        raise ValueError(f"weights must have shape ({model.num_outputs},), got "
+                         f"{tuple(weights.shape)}")
+    pt = ScalarizedPosteriorTransform(weights.clamp_min(0).sqrt().to(mc_points))
+    return qNegIntegratedPosteriorVariance(model, mc_points, posterior_transform=pt,
+                                           X_pending=X_pending)
+
+
+class qIntegratedLogLikVariance(AcquisitionFunction):
+    """``-E_post[Var_code l(theta) | runs + X]``: the posterior-weighted code variance of the
+    Gaussian log-likelihood that remains after the q-batch ``X`` (nats^2).
+
+    Args:
+        model: :func:`~solderpyro.design.model.botorch_model` of the surrogate (k outputs).
+        mc_points: ``(N, d)`` posterior draws, unit cube.
+        grad: ``(N, k)`` ``g_j = (S B)^T (y - m(theta_j)) / sigma^2`` (1/coefficient unit).
+        curvature: ``(k, k)`` ``M = (S B)^T (S B) / sigma^2``.
+        X_pending: ``(m, d)`` runs asked for and not yet back.
+    See :func:`loglik_terms` for ``grad`` and ``curvature``.
+    """
+
+    def __init__(self, model: Model, mc_points: torch.Tensor, grad: torch.Tensor,
+                 curvature: torch.Tensor, X_pending: torch.Tensor | None = None) -> None:
+        super().__init__(model=model)
+        k = model.num_outputs
+        if mc_points.ndim != 2 or grad.shape != (mc_points.shape[0], k) \
+                or curvature.shape != (k, k):
+            raise ValueError(f"qIntegratedLogLikVariance: need mc_points (N, d), grad (N, {k}) "
+                             f"and curvature ({k}, {k}); got {tuple(mc_points.shape)}, "
+                             f"{tuple(grad.shape)}, {tuple(curvature.shape)}")
+        self.register_buffer("mc_points", mc_points)
+        self.register_buffer("grad2", grad.square())
+        self.register_buffer("curv2", curvature.square())
+        self.sampler = SobolQMCNormalSampler(sample_shape=torch.Size([1]))
+        self.set_X_pending(X_pending)
+
+    @concatenate_pending_points
+    @t_batch_mode_transform()
+    def forward(self, X: torch.Tensor) -> torch.Tensor:
+        """``X (b, q, d)`` unit cube -> ``(b,)``."""
+        fm = self.model.fantasize(X=X, sampler=self.sampler)
+        # one point at a time (as qNegIntegratedPosteriorVariance does for several outputs):
+        # a joint posterior over the N points would form (b, k, N, N) covariances
+        bdims = tuple(1 for _ in X.shape[:-2])
+        mc = self.mc_points.view(-1, *bdims, 1, X.size(-1))  # (N, 1, 1, d)
+        v = fm.posterior(mc).variance  # (N, 1, b, 1, k)
+        v = v.reshape(v.shape[0], -1, v.shape[-1]).transpose(0, 1)  # (b, N, k)
+        var = (self.grad2 * v).sum(-1) + 0.5 * torch.einsum("bnk,kl,bnl->bn", v, self.curv2, v)
+        return -var.mean(-1)
+
+
+def loglik_terms(gp: GPSurrogate, theta: torch.Tensor, y: torch.Tensor, sigma: float,
+                 offset: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``grad (N, k)`` and ``curvature (k, k)`` of :class:`qIntegratedLogLikVariance`.
+
+    Args:
+        gp: the fitted surrogate of the ``n_y`` observed outputs (um).
+        theta: ``(N, d)`` posterior draws of the FE parameters, physical units.
+        y: ``(n_y,)`` the observations, um. sigma: the noise sd, um.
+        offset: ``(N, n_y)`` what observation-side effects add at each draw, um (or None).
+    """
+    with torch.no_grad():
+        mean, _ = gp.predict(theta)
+    mean = mean.reshape(theta.shape[0], -1)
+    r = y.to(mean) - mean - (0 if offset is None else offset.to(mean))
+    sv = gp.basis * gp.std.scale[:, None]  # (n_y, k)
+    return r @ sv / sigma**2, sv.T @ sv / sigma**2
+
+
+def propose(acq: AcquisitionFunction, d: int, q: int, method: str = "optimize",
+            candidates: torch.Tensor | None = None, seed: int = 0
+            ) -> tuple[torch.Tensor, float]:
+    """The next q runs: ``(q, d)`` in the unit cube, and the acquisition's value there.
+
+    Args:
+        acq: an acquisition function over ``[0, 1]^d``.
+        method: ``"optimize"``: BoTorch's ``optimize_acqf`` (sequential greedy q-batch,
+            L-BFGS-B from 8 restarts; raw samples and the ``candidates`` as starting points);
+            ``"draws"``: ``optimize_acqf_discrete`` over ``candidates`` (e.g. posterior draws).
+        candidates: ``(N, d)`` unit-cube points (required for ``"draws"``).
+        seed: for the raw samples of ``"optimize"``.
+    """
+    if method not in OPTIMIZERS:
+        raise ValueError(f"propose: method must be one of {OPTIMIZERS}, got {method!r}")
+    if q < 1:
+        raise ValueError(f"propose: q must be >= 1, got {q}")
+    dt = acq.mc_points.dtype if hasattr(acq, "mc_points") else torch.float64
+    if method == "draws":
+        if candidates is None or candidates.shape[0] < q:
+            raise ValueError("propose(method='draws') needs at least q candidates")
+        X, val = optimize_acqf_discrete(acq, q, candidates.to(dt), unique=True)
+        return X.detach(), float(acq(X[None]).item())
+    bounds = torch.stack([torch.zeros(d, dtype=dt), torch.ones(d, dtype=dt)])
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        np.random.seed(seed % 2**32)
+        X, _ = optimize_acqf(acq, bounds, q=q, num_restarts=8, raw_samples=128,
+                             sequential=True, options={"maxiter": 100, "seed": seed})
+    return X.detach(), float(acq(X[None]).item())

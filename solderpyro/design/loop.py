@@ -1,0 +1,354 @@
+"""The adaptive design loop: the calibration places its own FE runs until the FE agrees.
+
+A small space-filling start, then rounds of
+
+    fit the surrogate -> posterior (warm-started) -> FE at a few posterior draws (the check)
+    -> stop? -> acquire q runs (BoTorch, :mod:`solderpyro.design.acquisition`)
+    -> one batched FE solve -> refit ...
+
+The engine is generic: it sees the FE, the surrogate fit and the posterior only as callables
+(:class:`LoopProblem`), so the same loop runs the specimen calibration
+(:mod:`solderpyro.pipeline`) and the toys of the tests.
+
+Stopping rule (both parts must hold; ``n`` observed values, ``s = sqrt(2 n)`` the chi-square's
+own sampling sd under the noise):
+
+1. **code**: the surrogate's noise-weighted code variance at the posterior draws is small,
+   ``E_post[sum_i var_code(eta_i) / sigma^2] <= code_tol * s``: the code uncertainty inflates
+   the chi-square by less than its own sampling spread (per output: code sd <=
+   ``(2/n)^(1/4)`` noise sd at ``code_tol = 1``, 0.17 for the 2,232-value field).
+2. **FE confirms**: at the ``check`` posterior draws the FE's chi-square equals the one the
+   surrogate predicts, ``max_j |chi2_FE(theta_j) - chi2_sur(theta_j)| <= fe_tol * s``.
+
+It also stops when the next round would exceed ``budget`` FE runs, and then says so.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from solderpyro.params import Box
+from solderpyro.surrogate import GPSurrogate
+
+log = logging.getLogger("solderpyro")
+
+
+@dataclass
+class LoopSettings:
+    """How the adaptive design runs (all counts are FE runs).
+
+    Attributes:
+        start: space-filling (Latin hypercube) runs before the first round.
+        batch: q, runs acquired per round (one batched FE solve).
+        check: FE runs at posterior draws per round: the FE's confirmation; they join the
+            training runs of the next round (no run is wasted).
+        budget: the most FE runs the loop makes (start + rounds); the loop stops before a
+            round that would exceed it.
+        criterion: ``"loglik"`` (:class:`~.acquisition.qIntegratedLogLikVariance`) or
+            ``"variance"`` (:func:`~.acquisition.integrated_code_variance`).
+        optimizer: ``"draws"`` (the best q of ``candidates`` posterior draws) or
+            ``"optimize"`` (BoTorch's ``optimize_acqf``); see docs/design.md for why
+            ``"draws"`` is the default.
+        mc_points: posterior draws the criteria integrate over.
+        candidates: posterior draws offered to the ``"draws"`` optimizer.
+        code_tol, fe_tol: the stopping rule's tolerances in units of sqrt(2 n).
+    """
+
+    start: int = 30
+    batch: int = 8
+    check: int = 4
+    budget: int = 110
+    criterion: str = "loglik"
+    optimizer: str = "draws"
+    mc_points: int = 256
+    candidates: int = 512
+    code_tol: float = 1.0
+    fe_tol: float = 1.0
+
+    def validate(self, dim: int) -> None:
+        """Raise ``ValueError`` naming the first bad field (``dim``: FE parameters)."""
+        from solderpyro.design.acquisition import CRITERIA, OPTIMIZERS
+
+        if self.start < dim + 2:
+            raise ValueError(f"design.start must be >= {dim + 2} (parameters + 2), got "
+                             f"{self.start}")
+        for nm in ("batch", "check", "mc_points", "candidates"):
+            if getattr(self, nm) < 1:
+                raise ValueError(f"design.{nm} must be >= 1, got {getattr(self, nm)}")
+        if self.budget < self.start + self.check:
+            raise ValueError(f"design.budget ({self.budget}) must be >= design.start + "
+                             f"design.check ({self.start + self.check}): one round")
+        if self.criterion not in CRITERIA:
+            raise ValueError(f"design.criterion must be one of {CRITERIA}, got "
+                             f"{self.criterion!r}")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"design.optimizer must be one of {OPTIMIZERS}, got "
+                             f"{self.optimizer!r}")
+        for nm in ("code_tol", "fe_tol"):
+            if not getattr(self, nm) > 0:
+                raise ValueError(f"design.{nm} must be > 0, got {getattr(self, nm)}")
+
+
+@dataclass
+class Draws:
+    """What the loop needs of a posterior.
+
+    Attributes:
+        theta: ``(N, d)`` draws of the FE parameters, physical units.
+        sigma: ``(N,)`` noise sd per draw, output units (um).
+        offset: ``(N, n_y)`` what observation-side parameters add at each draw (or None).
+        posterior: the sampler's own result (passed back as ``warm`` to the next round).
+    """
+
+    theta: torch.Tensor
+    sigma: torch.Tensor
+    offset: torch.Tensor | None = None
+    posterior: Any = None
+
+
+@dataclass
+class LoopProblem:
+    """The loop's view of a calibration.
+
+    Attributes:
+        box: the FE parameters' box (what the runs vary).
+        y: ``(n_y,)`` observations.
+        fe: ``theta (m, d) physical -> (V (m, n_y), ok (m,) bool)``: one batched FE solve of
+            the observed outputs (stored as it finishes; NaN rows where not converged).
+        fit: ``(X (n, d), Y (n, n_y)) -> GPSurrogate``.
+        sample: ``(gp, previous Draws or None, final: bool) -> Draws``; ``final`` asks for the
+            full-length posterior (the rounds' may be shorter, warm-started).
+    """
+
+    box: Box
+    y: torch.Tensor
+    fe: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+    fit: Callable[[torch.Tensor, torch.Tensor], GPSurrogate]
+    sample: Callable[[GPSurrogate, Draws | None, bool], Draws]
+
+
+@dataclass
+class Round:
+    """One round of the loop (one line of the log, one row of ``design_rounds.csv``)."""
+
+    round: int
+    runs: int  # FE runs so far, this round's check included
+    code_chi2: float
+    fe_chi2: list[float]
+    surrogate_chi2: list[float]
+    tolerance: float
+    code_ok: bool
+    fe_ok: bool
+    acquired: int = 0
+    acquisition: float = float("nan")
+    quantiles: dict[str, list[float]] = field(default_factory=dict)
+    seconds: float = 0.0
+    timing: dict[str, float] = field(default_factory=dict)  # s per step: fit, posterior, ...
+
+    def line(self) -> str:
+        d = np.max(np.abs(np.subtract(self.fe_chi2, self.surrogate_chi2))) \
+            if self.fe_chi2 else float("nan")
+        return (f"design round {self.round}: {self.runs} FE runs; code chi2 "
+                f"{self.code_chi2:.3g} ({'ok' if self.code_ok else 'too large'}), |FE - "
+                f"surrogate| chi2 {d:.3g} ({'ok' if self.fe_ok else 'disagree'}), tolerance "
+                f"{self.tolerance:.3g}; +{self.acquired} runs; {self.seconds:.1f} s ("
+                + ", ".join(f"{k} {v:.1f}" for k, v in self.timing.items()) + ")")
+
+
+@dataclass
+class LoopResult:
+    """The loop's outcome.
+
+    Attributes:
+        gp: the last surrogate; draws: its full-length posterior.
+        X, Y, ok: every FE run the loop made ``(n, d)``, ``(n, n_y)``, ``(n,)``; kind: per
+            run ``"start"``, ``"acquired"`` or ``"check"``; round: per run.
+        rounds: the per-round records. reason: why it stopped (``"converged"`` or
+            ``"budget"``). message: that, in words.
+    """
+
+    gp: GPSurrogate
+    draws: Draws
+    X: torch.Tensor
+    Y: torch.Tensor
+    ok: torch.Tensor
+    kind: list[str]
+    round: list[int]
+    rounds: list[Round]
+    reason: str
+    message: str
+
+    @property
+    def converged(self) -> bool:
+        return self.reason == "converged"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"reason": self.reason, "message": self.message, "fe_runs": int(len(self.X)),
+                "rounds": [asdict(r) for r in self.rounds]}
+
+
+def chi2_terms(gp: GPSurrogate, d: Draws, y: torch.Tensor, rows: np.ndarray
+               ) -> tuple[np.ndarray, float]:
+    """The surrogate's chi-square at ``d.theta[rows]`` (mean prediction) ``(m,)``, and its
+    code chi-square ``E_post[sum_i var_i / sigma^2]`` over all of ``d``."""
+    with torch.no_grad():
+        mu, var = gp.predict(d.theta)
+    mu, var = mu.reshape(len(d.theta), -1), var.reshape(len(d.theta), -1)
+    off = 0 if d.offset is None else d.offset
+    r = (y - mu - off) / d.sigma[:, None]
+    code = float((var / d.sigma[:, None] ** 2).sum(1).mean())
+    return r[rows].square().sum(1).numpy(), code
+
+
+def stop_rule(code_chi2: float, fe_chi2: np.ndarray, sur_chi2: np.ndarray, n: int,
+              s: LoopSettings) -> tuple[bool, bool, float]:
+    """``(code_ok, fe_ok, tolerance)`` of the stopping rule (module docstring)."""
+    tol = math.sqrt(2 * n)
+    fe = np.asarray(fe_chi2, float)
+    fe_ok = bool(fe.size) and bool(np.all(np.isfinite(fe))) and bool(
+        np.max(np.abs(fe - np.asarray(sur_chi2, float))) <= s.fe_tol * tol)
+    return code_chi2 <= s.code_tol * tol, fe_ok, tol
+
+
+class _Laps:
+    """Seconds per step of a round."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        self.seconds[name] = round(now - self._t, 2)
+        self._t = now
+
+
+def _spread(n: int, m: int) -> np.ndarray:
+    return np.linspace(0, n - 1, min(m, n)).round().astype(int)
+
+
+def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | None = None,
+             names: list[str] | None = None,
+             on_round: Callable[[LoopResult], None] | None = None) -> LoopResult:
+    """Run the adaptive design (module docstring) on ``p`` with settings ``s``.
+
+    Args:
+        p: the calibration as the loop sees it. s: settings (validated here).
+        seed: of the start design and the acquisition's optimizer.
+        X0: ``(n0, d)`` the start design (physical); default a Latin hypercube of ``s.start``.
+        names: parameter names for the per-round quantiles (default ``p.box.names``).
+        on_round: called after every round with the result so far (saving, plotting).
+
+    Returns:
+        :class:`LoopResult`.
+    """
+    from solderpyro.design import lhs
+    from solderpyro.design.acquisition import (
+        integrated_code_variance,
+        loglik_terms,
+        propose,
+        qIntegratedLogLikVariance,
+    )
+    from solderpyro.design.model import botorch_model, observed_weights
+
+    box = p.box
+    s.validate(box.dim)
+    y = p.y.to(torch.float64)
+    n = int(y.numel())
+    names = names or list(box.names)
+    X = lhs(box, s.start, seed) if X0 is None else X0.to(torch.float64)
+    V, ok = p.fe(X)
+    kind, rnd_of = ["start"] * len(X), [0] * len(X)
+    rounds: list[Round] = []
+    draws: Draws | None = None
+    r = 0
+    while True:
+        r += 1
+        t0 = time.perf_counter()
+        if int(ok.sum()) < box.dim + 2:
+            raise RuntimeError(f"design: only {int(ok.sum())} of {len(X)} FE runs converged")
+        lap = _Laps()
+
+        gp = p.fit(X[ok], V[ok])
+        lap("fit")
+        draws = p.sample(gp, draws, False)
+        lap("posterior")
+        N = len(draws.theta)
+        chk = _spread(N, s.check)
+        th_chk = draws.theta[chk]
+        Vc, okc = p.fe(th_chk)
+        lap("check")
+        off = 0 if draws.offset is None else draws.offset[chk]
+        fe_c2 = (((Vc - y - off) / draws.sigma[chk, None]) ** 2).sum(1).numpy()
+        fe_c2[~okc.numpy()] = np.inf
+        sur_c2, code = chi2_terms(gp, draws, y, chk)
+        code_ok, fe_ok, tol = stop_rule(code, fe_c2, sur_c2, n, s)
+        X, V = torch.cat([X, th_chk]), torch.cat([V, Vc])
+        ok = torch.cat([ok, okc])
+        kind += ["check"] * len(chk)
+        rnd_of += [r] * len(chk)
+        q = torch.quantile(draws.theta, torch.tensor([0.025, 0.5, 0.975], dtype=torch.float64),
+                           0)
+        rec = Round(r, len(X), code, fe_c2.tolist(), sur_c2.tolist(), tol, code_ok, fe_ok,
+                    quantiles={nm: q[:, j].tolist() for j, nm in enumerate(names)})
+        stop = code_ok and fe_ok
+        room = s.budget - len(X) - s.check  # keep room for the next round's check
+        if not stop and room >= 1:
+            qn = min(s.batch, room)
+            mi = _spread(N, s.mc_points)
+            mc = box.to_unit(draws.theta[mi])
+            sig = float(draws.sigma.median())
+            model = botorch_model(gp)
+            pend = box.to_unit(th_chk)
+            if s.criterion == "loglik":
+                g, M = loglik_terms(gp, draws.theta[mi], y, sig,
+                                    None if draws.offset is None else draws.offset[mi])
+                acq: Any = qIntegratedLogLikVariance(model, mc, g, M, X_pending=pend)
+            else:
+                acq = integrated_code_variance(model, mc, observed_weights(gp, sig),
+                                               X_pending=pend)
+            cand = box.to_unit(draws.theta[_spread(N, s.candidates)])
+            Xu, val = propose(acq, box.dim, qn, s.optimizer, cand, seed + r)
+            lap("acquire")
+            th_new = box.from_unit(Xu).clamp(torch.tensor(box.lower, dtype=torch.float64),
+                                             torch.tensor(box.upper, dtype=torch.float64))
+            Vn, okn = p.fe(th_new)
+            lap("fe")
+            X, V, ok = torch.cat([X, th_new]), torch.cat([V, Vn]), torch.cat([ok, okn])
+            kind += ["acquired"] * qn
+            rnd_of += [r] * qn
+            rec.acquired, rec.acquisition = qn, val
+        rec.seconds = time.perf_counter() - t0
+        rec.timing = lap.seconds
+        rounds.append(rec)
+        log.info(rec.line())
+        if stop or len(X) + s.check > s.budget:  # the next round's check would exceed it
+            break
+        if on_round is not None:
+            on_round(LoopResult(gp, draws, X, V, ok, kind, rnd_of, rounds, "running", ""))
+    if stop:
+        reason, msg = "converged", (
+            f"the design converged after {r} rounds and {len(X)} FE runs: the code chi2 at the "
+            f"posterior draws ({rounds[-1].code_chi2:.3g}) and the FE-vs-surrogate chi2 at "
+            f"{len(rounds[-1].fe_chi2)} of them are within sqrt(2n) = {tol:.3g}")
+    else:
+        why = [] if code_ok else [f"code chi2 {rounds[-1].code_chi2:.3g}"]
+        if not fe_ok:
+            why.append("the FE disagrees with the surrogate at posterior draws (max |d chi2| "
+                       f"{np.max(np.abs(fe_c2 - sur_c2)):.3g})")
+        reason, msg = "budget", (
+            f"the FE budget ran out ({len(X)} of {s.budget} runs, {r} rounds) before the "
+            f"surrogate was confirmed: {'; '.join(why)} > sqrt(2n) = {tol:.3g}")
+    final = p.sample(gp, draws, True)
+    res = LoopResult(gp, final, X, V, ok, kind, rnd_of, rounds, reason, msg)
+    if on_round is not None:
+        on_round(res)
+    return res

@@ -1,0 +1,22 @@
+"""The specimen calibration as a sequence of stages, one module each, read top-down:
+
+1. :mod:`.problem` -- what is observed and how the FE runs (run store).
+2. :mod:`.surrogate` -- the GP of the observed outputs.
+3. :mod:`.posterior` -- modular KOH with NUTS through the surrogate.
+4. :mod:`.adaptive` -- the adaptive design that repeats 2-3 and places FE runs (BoTorch,
+   :mod:`solderpyro.design`) until the FE confirms the surrogate.
+5. :mod:`.fe_check` -- the FE at posterior draws: does the model itself fit?
+6. :mod:`.fe_exact` -- the FE-exact posterior and profile intervals, when the design's budget
+   ran out with the FE disagreeing.
+7. :mod:`.outputs` -- the run directory (and :mod:`solderpyro.report` for the report).
+
+:func:`calibrate_specimen` (:mod:`.calibrate`) runs them; :class:`CalibrationSettings`
+(:mod:`.settings`) holds every setting. A new stage is a module here and a line in
+:mod:`.calibrate`; a new acquisition function goes to :mod:`solderpyro.design.acquisition`.
+"""
+
+from solderpyro.pipeline.calibrate import calibrate_specimen
+from solderpyro.pipeline.outputs import SpecimenCalibration
+from solderpyro.pipeline.settings import CalibrationSettings
+
+__all__ = ["CalibrationSettings", "SpecimenCalibration", "calibrate_specimen"]

@@ -1,0 +1,133 @@
+"""Stage 2-3 together, the adaptive design: the calibration places its own FE runs.
+
+Wires :func:`solderpyro.design.loop.run_loop` to the specimen: the FE through the run store
+(:meth:`SpecimenModel.fe`), the surrogate fit (:mod:`.surrogate`) and the warm-started
+posterior (:mod:`.posterior`). After every round it writes ``design.csv`` (every FE run: round,
+kind, parameters, converged), ``design_rounds.json`` and ``design.png`` (marginals per round,
+code chi-square per round, where the runs went), so a crashed run leaves its record; the FE
+runs themselves are in the run store, and a rerun with the same settings proposes the same
+runs (every step is seeded), so it reuses them instead of solving again.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from solderpyro.design.loop import Draws, LoopProblem, LoopResult, run_loop
+from solderpyro.pipeline.posterior import as_draws, sample_posterior
+from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.settings import CalibrationSettings
+from solderpyro.pipeline.surrogate import fit_surrogate
+from solderpyro.surrogate import GPSurrogate
+
+log = logging.getLogger("solderpyro")
+
+
+def adaptive_design(sm: SpecimenModel, s: CalibrationSettings, out: Path,
+                    warm: Any = None) -> LoopResult:
+    """Run the adaptive design on the specimen and keep its record in ``out``.
+
+    Args:
+        sm: the problem. s: the settings (``s.design``: the loop's; ``s.sampler``: NUTS).
+        out: the run directory. warm: a :class:`~solderpyro.calibration.mcmc.WarmStart` for
+            the first round's posterior (e.g. the run this one adds an effect to).
+
+    Returns:
+        the :class:`~solderpyro.design.loop.LoopResult`; its ``draws.posterior`` is the
+        final ``(Posterior, ObsInputs)``.
+    """
+
+    def sample(gp: GPSurrogate, prev: Draws | None, final: bool) -> Draws:
+        w = prev.posterior[0].warm if prev is not None else warm
+        post, inp = sample_posterior(sm, gp, s.sampler, s.seed, w, final, s.progress)
+        return as_draws(sm, post, inp)
+
+    p = LoopProblem(sm.gp_box, sm.y, sm.fe,
+                    lambda X, Y: fit_surrogate(sm, s.surrogate, X, Y), sample)
+    log.info("design: %d Latin-hypercube runs over %s, then rounds of %d acquired + %d check "
+             "runs (%s criterion) up to %d FE runs", s.design.start, ", ".join(sm.gp_box.names),
+             s.design.batch, s.design.check, s.design.criterion, s.design.budget)
+    return run_loop(p, s.design, s.seed, names=list(sm.gp_box.names),
+                    on_round=lambda r: save_design(r, sm.gp_box.names, out))
+
+
+def save_design(r: LoopResult, names: Any, out: Path) -> None:
+    """``design.csv``, ``design_rounds.json`` and ``design.png`` of the loop so far."""
+    out.mkdir(parents=True, exist_ok=True)
+    X = r.X.numpy()
+    with (out / "design.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["run", "round", "kind", *names, "converged"])
+        for i in range(len(X)):
+            w.writerow([i, r.round[i], r.kind[i], *[f"{v:.8g}" for v in X[i]],
+                        int(bool(r.ok[i]))])
+    (out / "design_rounds.json").write_text(json.dumps(r.as_dict(), indent=1, default=float)
+                                            + "\n")
+    try:
+        plot_design(r, list(names), out / "design.png")
+    except Exception:  # a figure never costs the run its record
+        log.warning("design.png not drawn", exc_info=True)
+
+
+def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
+    """One figure of the loop: per parameter, the posterior's median and 95 % interval per
+    round with the runs placed in it; the code chi-square and the FE-vs-surrogate chi-square
+    per round against the stopping tolerance; and the runs in the first two parameters."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = len(names)
+    ncol = d + 2
+    fig, axes = plt.subplots(1, ncol, figsize=(3.0 * ncol, 3.2))
+    rounds = [q.round for q in r.rounds]
+    X = r.X.numpy()
+    rnd = np.asarray(r.round)
+    kinds = np.asarray(r.kind)
+    for j, nm in enumerate(names):
+        ax = axes[j]
+        q = np.array([rec.quantiles[nm] for rec in r.rounds])  # (R, 3)
+        ax.fill_between(rounds, q[:, 0], q[:, 2], color="C0", alpha=0.25, label="95 % interval")
+        ax.plot(rounds, q[:, 1], "C0o-", ms=3, label="median")
+        for kind, mk, c in (("acquired", "x", "C3"), ("check", "+", "C2")):
+            m = kinds == kind
+            ax.plot(rnd[m] + 0.15, X[m, j], mk, color=c, ms=4, label=f"{kind} runs")
+        ax.set_xlabel("round")
+        ax.set_title(nm, fontsize=9)
+        if j == 0:
+            ax.legend(fontsize=6)
+    ax = axes[d]
+    code = [rec.code_chi2 for rec in r.rounds]
+    dfe = [float(np.max(np.abs(np.subtract(rec.fe_chi2, rec.surrogate_chi2))))
+           for rec in r.rounds]
+    tol = r.rounds[-1].tolerance
+    ax.semilogy(rounds, code, "C0o-", label="code chi2 at posterior draws")
+    ax.semilogy(rounds, np.maximum(dfe, 1e-3), "C3s-", label="max |FE - surrogate| chi2")
+    ax.axhline(tol, color="k", ls="--", lw=0.8, label="tolerance sqrt(2n)")
+    ax.set_xlabel("round")
+    ax.legend(fontsize=6)
+    ax.set_title("stopping rule", fontsize=9)
+    ax = axes[d + 1]
+    if d >= 2:
+        for kind, mk, c in (("start", "o", "0.6"), ("acquired", "x", "C3"), ("check", "+", "C2")):
+            m = kinds == kind
+            ax.plot(X[m, 0], X[m, 1], mk, color=c, ms=4, label=kind)
+        ax.set_xlabel(names[0])
+        ax.set_ylabel(names[1])
+        ax.legend(fontsize=6)
+        ax.set_title("where the runs went", fontsize=9)
+    fig.suptitle(f"adaptive design: {len(X)} FE runs, {len(r.rounds)} rounds"
+                 + (f" ({r.reason})" if r.reason in ("converged", "budget") else ""),
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+

@@ -1,0 +1,286 @@
+"""The specimen calibration end to end, as a short sequence of stages.
+
+    problem (:mod:`.problem`) -> adaptive design: surrogate + posterior per round, FE runs
+    placed by BoTorch until the FE confirms (:mod:`.adaptive`) -> FE check at posterior draws
+    (:mod:`.fe_check`) -> outputs (:mod:`.outputs`) -> the FE-exact posterior and profile
+    intervals when the design ran out of budget with the FE still disagreeing
+    (:mod:`.fe_exact`) -> outputs again.
+
+Data flow is one-directional: measurements -> observed model outputs -> FE runs (run store) ->
+surrogate -> posterior -> report. Every setting is in :class:`~.settings.CalibrationSettings`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import torch
+
+from solderpyro.calibration import predict_observation_model
+from solderpyro.calibration.mcmc import WarmStart, format_summary, write_summary
+from solderpyro.calibration.predictive import Bands
+from solderpyro.configure import Setup
+from solderpyro.io.measurements import Measurements
+from solderpyro.pipeline.adaptive import adaptive_design
+from solderpyro.pipeline.fe_check import FE_CHECK_DRAWS, fe_check
+from solderpyro.pipeline.fe_exact import SUMMARY, WEAK_SHARE, exact_rows, fe_exact, identifiability
+from solderpyro.pipeline.outputs import SpecimenCalibration, save_run
+from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.settings import CalibrationSettings
+
+log = logging.getLogger("solderpyro")
+
+
+class _Clock:
+    """Seconds per stage, for the log and run.json."""
+
+    def __init__(self) -> None:
+        self.timing: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        self.timing[name] = round(self.timing.get(name, 0.0) + now - self._t, 2)
+        log.info("stage %s: %.1f s", name, now - self._t)
+        self._t = now
+
+
+def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
+                       settings: CalibrationSettings | None = None,
+                       record: dict[str, Any] | None = None,
+                       warm: WarmStart | None = None) -> SpecimenCalibration:
+    """Calibrate ``setup.space`` (default s0, QR, xi, m; plus the parameters of switched-on
+    effects) against ``meas``.
+
+    Args:
+        setup: the typed problem, parameter box and defaults (:mod:`solderpyro.configure`).
+        meas: measurements; times and points must be model outputs (A, B, grid labels).
+        out: the run directory (created).
+        settings: every setting (:class:`CalibrationSettings`; default: the adaptive design
+            with its default budget).
+        record: how the run was asked for (e.g. ``{"overrides": [...], "data": path}``), kept in
+            ``run.json`` so that ``solderpyro diagnose`` can rebuild the model.
+        warm: a related run's sampler state (``--warm-from``) for the first posterior.
+
+    Returns:
+        :class:`SpecimenCalibration`; writes summary.csv, posterior.nc, design.csv/.png,
+        figures and report.md/.html into ``out``.
+    """
+    s = settings or CalibrationSettings()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    clock = _Clock()
+    sm = SpecimenModel.build(setup, meas, s.store, s.batch, s.progress)
+    s.validate(sm.n_fe)
+    y_liu = sm.literature()
+    clock("problem")
+    loop = adaptive_design(sm, s, out, warm)
+    clock("design")
+    post, inp = loop.draws.posterior
+    gp = loop.gp
+    loo = gp.loo()
+    problems = gp.check(loo)
+    log.info(loop.message)
+    if not loop.converged:
+        log.warning(loop.message)
+        problems = [*problems, loop.message]
+    # the FE at a few posterior draws: does the exact model fit where the surrogate says so?
+    pr = sm.priors
+    sig_fe = pr.sigma_known or float(post.flat("sigma").median())
+    draws = post.flat("t").detach().cpu().numpy()
+    pick = np.linspace(0, len(draws) - 1, min(FE_CHECK_DRAWS, len(draws))).round().astype(int)
+    V_chk = sm.observed(draws[pick])
+    chk = fe_check(V_chk, sm.y, sig_fe)
+    clock("fe_check")
+    log.info("FE check: best RMS residual of the FE over %d posterior draws %.4g um (%.2f "
+             "noise sd)", chk["draws"], chk["rms_um"], chk["rms_over_sigma"])
+    if not chk["ok"]:
+        msg = (f"the FE itself misfits at every one of {chk['draws']} posterior draws: best "
+               f"RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.1f} noise sd "
+               f"(chi2 {chk['chi2']:.0f} on {chk['n']} values): the model misses something "
+               f"the data show (solderpyro diagnose names candidate effects)")
+        log.warning(msg)
+        problems = [*problems, msg]
+    rows = list(post.summary())
+    space = sm.space
+    order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
+    rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
+    post.save(out / "posterior.nc")
+    bands = predict_observation_model(post, inp, None, seed=s.seed)
+    tally = sm.tally
+    ok_runs = loop.ok
+    doe = SimpleNamespace(ok=ok_runs, n_reused=tally.n_reused, n_computed=tally.n_computed)
+    nk = {"chains": s.sampler.chains, "draws": s.sampler.draws, "warmup": s.sampler.warmup}
+    run_exact = s.exact.mode == "on" or (
+        s.exact.mode == "auto" and not loop.converged and not loop.rounds[-1].fe_ok)
+    trust = ("the surrogate posterior: the design converged and the FE confirms the surrogate "
+             "at posterior draws" if loop.converged else
+             "the surrogate posterior, with care: the design's budget ran out before the FE "
+             "confirmed the surrogate" + (" (the FE-exact posterior follows)" if run_exact
+                                          else ""))
+
+    def write_all(rows: list[dict], bands: Any, problems: list[str], ex: Any = None,
+                  ex_info: dict[str, Any] | None = None, ex_rows: list[dict] | None = None,
+                  trust: str = trust) -> None:
+        """summary.csv, draws.npz, run.json and the report (the FE-exact posterior's where
+        ``ex`` is reliable); written before the FE-exact step and again after it."""
+        from solderpyro import report
+
+        saved = (ex.theta, ex.sigma) if ex is not None and ex.reliable else None
+        write_summary(rows, out / "summary.csv", SUMMARY)
+        sg = s.surrogate
+        save_run(out, meas, space, sm.effects, post, bands, sm.y, y_liu, pr,
+                 {**(record or {}), "settings": s.as_dict(), "seed": s.seed, "store": s.store,
+                  "kernel": sg.kernel, "ard": sg.ard, "mean": sg.mean,
+                  "surrogate_output": gp.output, "surrogate_inputs": sg.inputs,
+                  "inputs_T_C": sg.inputs_T_C, "inputs_rate": sg.inputs_rate,
+                  "n_runs": int(len(loop.X)), "design": loop.as_dict(),
+                  "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
+                  "fe_check": chk, "timing_s": clock.timing, "trust": trust,
+                  "posterior": "fe-exact" if saved is not None else "surrogate",
+                  **({"exact": ex_info} if ex_info else {})}, draws=saved)
+        last = loop.rounds[-1]
+        notes = [f"**trust**: {trust}",
+                 f"adaptive design: {len(loop.X)} FE runs in {len(loop.rounds)} rounds "
+                 f"({loop.reason}): {loop.message} (design.png, design.csv)",
+                 f"last round: code chi2 {last.code_chi2:.3g}, max |FE - surrogate| chi2 "
+                 f"{np.max(np.abs(np.subtract(last.fe_chi2, last.surrogate_chi2))):.3g}, "
+                 f"tolerance {last.tolerance:.3g}",
+                 f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), "
+                 f"best RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} "
+                 f"noise sd (chi2 {chk['chi2']:.0f} on {chk['n']} values)"]
+        if saved is not None and ex_info:
+            notes.insert(1, f"**posterior: FE-exact** (adaptive importance sampling with the FE "
+                            f"in the likelihood, {ex_info['fe_runs']} FE runs, ESS "
+                            f"{ex_info['ess']:.0f}, Pareto k-hat {ex_info['khat']:.2f}); the "
+                            f"surrogate's is in summary_surrogate.csv")
+        ident = (ex_info or {}).get("identifiability") or {}
+        if saved is not None and ident.get("weak"):
+            notes.append("weakly identified by these data (95 % interval over >= "
+                         f"{WEAK_SHARE:.0%} of the prior box): "
+                         + ", ".join(v["parameter"] for v in ident["weak"])
+                         + "; see 'Identifiability' below for the measurement that would "
+                         "narrow them")
+        ti, oi = sm.index
+        report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk,
+                     ex_rows, notes,
+                     exact=(ex, ex_info, draws, space) if ex is not None else None)
+
+    write_all(rows, bands, problems)  # the surrogate's results are safe before the FE-exact step
+    clock("report")
+    if run_exact:
+        rows, bands, problems = _exact_stage(sm, s, out, loop, post, draws, pick, V_chk, rows,
+                                             bands, problems, write_all)
+        clock("exact")
+    print(format_summary(rows))
+    info = json.loads((out / "run.json").read_text())
+    info["timing_s"] = clock.timing
+    (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
+    n_ok = int(loop.ok.sum())
+    return SpecimenCalibration(out, post, rows, loo, n_ok, int(len(loop.ok)) - n_ok,
+                               loop.as_dict())
+
+
+def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any, post: Any,
+                 draws: np.ndarray, pick: np.ndarray, V_chk: np.ndarray, rows: list[dict],
+                 bands: Any, problems: list[str], write_all: Any
+                 ) -> tuple[list[dict], Any, list[str]]:
+    """The FE-exact posterior, identifiability and profile intervals; rewrites the outputs.
+    Returns the rows, bands and problems to report."""
+    ex_s = s.exact
+    pr = sm.priors
+    y = sm.y
+    space = sm.space
+    log.info("exact: the FE-exact posterior, %d rounds of %d FE runs after a best fit%s",
+             ex_s.rounds, ex_s.runs, f" and a {ex_s.profile}-point profile"
+             if ex_s.profile >= 2 else "")
+    c2 = np.nansum((V_chk - y.numpy()) ** 2, 1)
+    c2[~np.isfinite(V_chk).all(1)] = np.inf
+    starts = draws[pick][np.argsort(c2)[:2]]
+    from solderpyro.coords import sampling_coords
+
+    sg = s.surrogate
+    coords = sampling_coords(space, sm.setup.space.defaults, "auto", sg.inputs_T_C,
+                             sg.inputs_rate)
+    try:
+        ex, ex_info = fe_exact(sm.observed, coords, y, pr, draws, starts, ex_s.runs,
+                               ex_s.rounds, ex_s.profile, s.seed, len(draws))
+    except RuntimeError as err:  # keep the surrogate's results (and the stored runs)
+        log.warning("the FE-exact posterior failed: %s", err)
+        problems = [*problems, f"the FE-exact posterior failed: {err}"]
+        write_all(rows, bands, problems)
+        return rows, bands, problems
+    ex_rows = exact_rows(ex, rows)
+    np.savez(out / "exact_samples.npz", w=ex.result.u, theta=ex.samples,
+             log_target=ex.result.log_target, log_q=ex.result.log_q, round=ex.result.round,
+             weights=ex.result.weights(), names=np.array(space.names))
+    write_summary(ex_rows, out / "exact_posterior.csv", tuple(ex_rows[0]))
+    if ex.reliable:
+        write_summary(rows, out / "summary_surrogate.csv", SUMMARY)
+        by = {r["parameter"]: r for r in ex.rows}
+        rows = [{**by[r["parameter"]], "r_hat": float("nan"), "ess_bulk": ex_info["ess"],
+                 "ess_tail": ex_info["ess"]} for r in rows]
+        try:  # which parameters lie along a ridge, and what would narrow them
+            ex_info["identifiability"] = identifiability(
+                sm.setup, sm.effects, space, rows, ex, sm.meas,
+                float(pr.sigma_known or np.median(ex.sigma)))
+        except Exception as err:  # advisory: never lose the run's files over it
+            log.warning("identifiability not computed", exc_info=True)
+            ex_info["identifiability"] = {"weak": [], "advice": "identifiability not "
+                                          f"computed: {err!r}"}
+        log.info("identifiability: %s", ex_info["identifiability"]["advice"])
+        gen = torch.Generator().manual_seed(s.seed)
+        Vt, st = torch.as_tensor(ex.V), torch.as_tensor(ex.sigma)
+        bands = Bands(Vt, Vt + st[:, None] * torch.randn(Vt.shape, generator=gen,
+                                                         dtype=Vt.dtype), st)
+        trust = (f"the FE-exact posterior (ESS {ex_info['ess']:.0f}, Pareto k-hat "
+                 f"{ex_info['khat']:.2f}): the design's budget ran out before the FE confirmed "
+                 "the surrogate" if not loop.converged else
+                 f"the FE-exact posterior (ESS {ex_info['ess']:.0f})")
+        log.info("exact: reliable: summary.csv, draws.npz and the predictive are the FE-exact "
+                 "posterior's")
+    else:
+        msg = (f"the FE-exact posterior is not reliable (ESS {ex_info['ess']:.0f}, Pareto "
+               f"k-hat {ex_info['khat']:.2f}; needs k-hat <= 0.7 and ESS >= 50): summary.csv "
+               f"stays the surrogate's; a larger calibration.exact.runs or more rounds")
+        log.warning(msg)
+        problems = [*problems, msg]
+        trust = ("neither posterior is confirmed: the design's budget ran out with the FE "
+                 "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
+                 "--budget; the profile intervals (profile_ci.csv) are the FE's own")
+    write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
+    if ex_s.profile_ci:
+        sig_p = float(pr.sigma_known or np.median(ex.sigma))
+        log.info("profile CI: 95 %% profile-likelihood intervals of %d parameters through the "
+                 "FE (sigma %.4g um)", space.dim, sig_p)
+        from solderpyro.exact import profile_intervals
+
+        try:
+            pci = profile_intervals(sm.observed, space, y.numpy(), sig_p, ex.samples,
+                                    np.asarray(ex.result.extra["ssr"], float))
+        except (RuntimeError, ValueError) as err:
+            log.warning("the profile-likelihood intervals failed: %s", err)
+            problems = [*problems, f"the profile-likelihood intervals failed: {err}"]
+        else:
+            ex_info["profile_ci"] = [p.as_dict() for p in pci]
+            ex_info["profile_ci_sigma_um"] = sig_p
+            by = {r["parameter"]: r for r in rows}
+            pci_rows = [{"parameter": p.parameter, "lower": p.lower, "upper": p.upper,
+                         "at_lower_bound": str(p.at_lower_bound).lower(),
+                         "at_upper_bound": str(p.at_upper_bound).lower(),
+                         "truncated": str(p.truncated).lower(),
+                         "posterior_q2.5": by[p.parameter]["q2.5"],
+                         "posterior_q97.5": by[p.parameter]["q97.5"]} for p in pci]
+            write_summary(pci_rows, out / "profile_ci.csv", tuple(pci_rows[0]))
+            for p in pci:
+                log.info("profile CI: %s in [%.4g, %.4g]%s", p.parameter, p.lower, p.upper,
+                         " (reaches the box's bound)"
+                         if p.at_lower_bound or p.at_upper_bound else "")
+        write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
+    return rows, bands, problems

@@ -1,0 +1,237 @@
+"""Stage 6 (when needed), the FE-exact posterior: the FE itself in the likelihood.
+
+Adaptive importance sampling (:mod:`solderpyro.exact`) from a proposal built on the surrogate
+posterior, the FE's best fit and a chi-square profile along the ridge; then, for parameters the
+data leave weakly identified, which measurement would narrow them; and the 95 %
+profile-likelihood intervals through the FE.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import torch
+
+from solderpyro.calibration import Priors
+from solderpyro.configure import Setup
+from solderpyro.io.measurements import Measurements
+from solderpyro.params import Box
+
+log = logging.getLogger("solderpyro")
+SUMMARY = ("parameter", "q2.5", "median", "mean", "q97.5")
+
+
+def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
+             draws: np.ndarray | None, starts: np.ndarray, n: int, rounds: int,
+             n_profile: int = 9, seed: int = 0, n_draws: int = 1000, lm_iters: int = 4
+             ) -> tuple[Any, dict[str, Any]]:
+    """The FE-exact posterior of a specimen calibration (:mod:`solderpyro.exact`).
+
+    The FE's best fit from ``starts`` (Levenberg-Marquardt, ``lm_iters`` iterations) and its
+    Laplace covariance, the chi-square profiled along the weakest direction's coordinate over
+    ``n_profile`` grid points (0: no profile), a first proposal from those and the surrogate
+    posterior's ``draws``, then ``rounds`` AMIS rounds of ``n`` FE runs each, all in the
+    sampling coordinates ``coords`` (:func:`solderpyro.coords.sampling_coords`).
+
+    Args:
+        fun: ``rows (b, dim) -> (b, n_obs)`` the FE's observed outputs, um (e.g.
+            :func:`fe_observed` through the run store).
+        y_obs: ``(n_obs,)`` um; priors: the calibration's (sigma's prior).
+        draws: ``(n, dim)`` surrogate posterior draws (or None); starts: ``(k, dim)`` starts of
+            the best fit (e.g. the FE check's best draws), physical units.
+    Returns:
+        ``(ExactPosterior, info)``; ``info`` for run.json: ESS, k-hat, reliable, the number of
+        FE runs, the coordinates, the best fit, the profile and each round's diagnostics.
+    """
+    from solderpyro.exact import exact_posterior, fe_profile, initial_proposal, laplace_cov_w
+    from solderpyro.fit import lm_fit
+
+    space = coords.space
+    y = y_obs.detach().cpu().numpy()
+    n_fe = [0]
+
+    def counted(rows: np.ndarray) -> np.ndarray:
+        n_fe[0] += len(rows)
+        return fun(rows)
+
+    # the fits' noise sd: the stated one, else the RMS residual at the first start
+    sig = priors.sigma_known or float(np.sqrt(np.nanmean((counted(starts[:1]) - y) ** 2)))
+    fits = lm_fit(counted, starts, space.lower, space.upper, y, sig, iters=lm_iters)
+    best = min(fits, key=lambda f: f.chi2)
+    J = best.jacobian_unit(space.lower, space.upper, space.log_scale)
+    cov = (laplace_cov_w(J, coords, best.x, sig) if J is not None
+           else np.eye(space.dim) * 0.25)
+    log.info("exact: the FE's best fit chi2 %.1f at %s (%d FE runs); sampling in %s "
+             "coordinates", best.chi2, ", ".join(f"{nm}={v:.4g}" for nm, v in zip(
+                 space.names, best.x, strict=True)), n_fe[0], coords.name)
+    prof = None
+    if n_profile >= 2:
+        prof = fe_profile(counted, coords, best.x, cov, y, sig, n_grid=n_profile, iters=4)
+        log.info("exact: chi2 profile along %s: %s (%d FE runs so far)", space.names[prof.coord],
+                 ", ".join(f"{v:.4g}: {c:.1f}" for v, c in zip(prof.x[:, prof.coord],
+                                                                 prof.chi2, strict=True)),
+                 n_fe[0])
+    q0 = initial_proposal(coords, draws, (best.x, cov), prof, seed)
+
+    def on_round(r: Any) -> None:
+        h = r.history[-1]
+        log.info("exact: AMIS round %d: %d samples, ESS %.1f, Pareto k-hat %.2f (%d FE runs "
+                 "so far)", len(r.history), h["n"], h["ess"], h["khat"], n_fe[0])
+
+    ex = exact_posterior(counted, coords, y, q0, n, rounds, priors.sigma_known,
+                         priors.sigma_max, seed, n_draws, prof, on_round)
+    r = ex.result
+    info = {"ess": r.ess, "khat": r.khat, "reliable": r.reliable, "fe_runs": n_fe[0],
+            "samples": int(len(r.u)), "coordinates": coords.name, "rounds": r.history,
+            "best_fit": {"x": best.x.tolist(), "chi2": best.chi2},
+            **({"profile": {"parameter": space.names[prof.coord],
+                            "values": prof.x[:, prof.coord].tolist(),
+                            "chi2": prof.chi2.tolist()}} if prof is not None else {})}
+    return ex, info
+
+
+def exact_rows(ex: Any, surrogate: list[dict]) -> list[dict]:
+    """``exact_posterior.csv``'s rows: per parameter of ``surrogate`` (summary rows), the
+    FE-exact 2.5 / 50 / 97.5 % and mean, then the surrogate's, then the weights' Kish ESS and
+    Pareto k-hat (the same on every row)."""
+    by = {r["parameter"]: r for r in ex.rows}
+    r_ = ex.result
+    return [{**{k: by[s["parameter"]][k] for k in SUMMARY},
+             "surrogate_q2.5": float(s["q2.5"]), "surrogate_median": float(s["median"]),
+             "surrogate_q97.5": float(s["q97.5"]), "ess": r_.ess, "khat": r_.khat}
+            for s in surrogate if s["parameter"] in by]
+
+
+#: a parameter whose FE-exact 95 % interval spans at least this share of its prior box (on the
+#: box's unit scale) is reported as weakly identified, and a measurement that narrows it sought
+WEAK_SHARE = 0.4
+#: an interval end within this share of the box's width from a bound is set by the prior box
+EDGE_SHARE = 0.02
+
+
+def ridge_ends(x: np.ndarray, weights: np.ndarray, ssr: np.ndarray, k: int
+               ) -> tuple[int, int]:
+    """Two importance samples at the ends of parameter ``k``'s posterior that fit the data as
+    well as the posterior's bulk does.
+
+    Among the samples inside ``k``'s central 95 % interval whose sum of squared residuals is
+    at most the posterior's weighted median, the ones with the smallest and the largest
+    ``x[:, k]``: two parameter sets the data cannot tell apart, as far apart along ``k`` as the
+    posterior reaches.
+
+    Args:
+        x: ``(N, dim)`` importance samples (any units); weights: ``(N,)`` their normalized
+            weights; ssr: ``(N,)`` their sums of squared residuals, um^2 (inf where the model
+            failed); k: the parameter's column.
+    Returns:
+        the two sample indices ``(low end, high end)``.
+    Raises:
+        ValueError: when no sample qualifies (all weights zero or all fits failed), or the
+            qualifying samples do not spread along ``k``.
+    """
+    from solderpyro.exact import weighted_quantiles
+
+    x, w, ssr = np.asarray(x, float), np.asarray(weights, float), np.asarray(ssr, float)
+    ok = np.isfinite(ssr) & (w > 0)
+    if not ok.any():
+        raise ValueError("ridge_ends: no sample with a positive weight and a finite fit")
+    lo, hi = weighted_quantiles(x[ok, k], w[ok], (0.025, 0.975))
+    med = weighted_quantiles(ssr[ok], w[ok], (0.5,))[0]
+    inside = ok & (x[:, k] >= lo) & (x[:, k] <= hi)
+    good = inside & (ssr <= med)
+    idx = np.nonzero(good if good.sum() >= 2 else inside)[0]
+    i_lo, i_hi = int(idx[np.argmin(x[idx, k])]), int(idx[np.argmax(x[idx, k])])
+    if x[i_lo, k] == x[i_hi, k]:
+        raise ValueError(f"ridge_ends: the posterior has no spread in column {k} (its weight "
+                         "sits on one sample)")
+    return i_lo, i_hi
+
+
+def identifiability(setup: Setup, effects: tuple[str, ...], space: Box, rows: list[dict],
+                    ex: Any, meas: Measurements, sigma: float) -> dict[str, Any]:
+    """Which parameters do the data leave weakly identified, and what would narrow them?
+
+    A parameter whose FE-exact 95 % interval spans at least :data:`WEAK_SHARE` of its prior box
+    (unit scale) lies along a ridge of the FE's likelihood: its interval is set as much by the
+    prior box and the ridge's volume as by the data, and may miss the truth although the model
+    fits. For the weakest one, two importance samples at the ends of its interval that fit as
+    well as the posterior's bulk (:func:`ridge_ends`) are run through the FE over the outputs
+    not yet measured (:func:`solderpyro.diagnose.run.separation_options`): where they differ
+    by many noise sd, that measurement would narrow the posterior.
+
+    Args:
+        effects: the switched-on effects in the order of their parameters in ``space``.
+        space: the calibrated box; rows: the FE-exact summary rows (parameter, q2.5, q97.5).
+        ex: the :class:`~solderpyro.exact.ExactPosterior`; meas: the data; sigma: noise sd, um.
+    Returns:
+        ``{"weak": [{"parameter", "share_of_box", "bound_by_prior"}], "ends": {...},
+        "options": [...], "advice"}`` (``ends``/``options`` only when a parameter is weak).
+    """
+    from solderpyro.diagnose.run import APART_CHI2, separation_options
+
+    if not sigma > 0:
+        raise ValueError(f"identifiability: sigma must be > 0 um, got {sigma}")
+    by = {r["parameter"]: r for r in rows}
+    weak: list[dict[str, Any]] = []
+    bound_only: list[dict[str, Any]] = []
+    # the intervals' ends on the box's unit scale (Box.to_unit is column by column)
+    U = space.to_unit(torch.tensor([[by[nm][q] for nm in space.names] for q in ("q2.5", "q97.5")],
+                                   dtype=torch.float64)).numpy()
+    for k, nm in enumerate(space.names):
+        u = U[:, k]
+        share = float(u[1] - u[0])
+        bound = [side for side, hit in (("lower", u[0] <= EDGE_SHARE),
+                                        ("upper", u[1] >= 1 - EDGE_SHARE)) if hit]
+        if share >= WEAK_SHARE:
+            weak.append({"parameter": nm, "share_of_box": share, "bound_by_prior": bound})
+        elif bound:
+            bound_only.append({"parameter": nm, "share_of_box": share, "bound_by_prior": bound})
+    info: dict[str, Any] = {"weak": weak, "weak_share": WEAK_SHARE, "at_bound": bound_only}
+    if not weak:
+        info["advice"] = ("every parameter's 95 % interval spans less than "
+                          f"{WEAK_SHARE:.0%} of its prior box")
+        return info
+    top = max(weak, key=lambda v: v["share_of_box"])
+    nm, bound_k = top["parameter"], top["bound_by_prior"]
+    k = list(space.names).index(nm)
+    unit = f" {space.units[k]}" if space.units and space.units[k] not in ("", "-") else ""
+    head = (f"{nm} is weakly identified by these data: its 95 % interval "
+            f"[{by[nm]['q2.5']:.4g}, {by[nm]['q97.5']:.4g}]{unit} spans "
+            f"{top['share_of_box']:.0%} of its prior box"
+            + (f" and reaches its {' and '.join(bound_k)} bound" if bound_k else ""))
+    try:
+        w = ex.result.weights()
+        ssr = np.asarray(ex.result.extra["ssr"], float)
+        i_lo, i_hi = ridge_ends(ex.samples, w, ssr, k)
+        X = ex.samples[[i_lo, i_hi]]
+        chi2 = (ssr[[i_lo, i_hi]] / sigma**2).tolist()
+        labels = [f"{nm} = {X[0, k]:.4g}", f"{nm} = {X[1, k]:.4g}"]
+        info["ends"] = {"parameter": nm, "x": X.tolist(), "chi2": chi2,
+                        "names": list(space.names)}
+        options, failed = separation_options(setup, effects, X, labels, meas, sigma)
+    except (RuntimeError, ValueError) as err:
+        info["advice"] = f"{head}; no measurement computed: {err}"
+        return info
+    info["options"] = options
+    head += (f"; posterior samples at its two ends ({labels[0]} and {labels[1]}, chi2 "
+             f"{chi2[0]:.0f} and {chi2[1]:.0f} on {len(meas)} values) fit as well as the "
+             "posterior's median sample, so the interval follows the prior box and the "
+             "ridge's width and may miss the truth")
+    if failed is not None:
+        info["advice"] = (f"{head}; no measurement computed: the FE at {', '.join(failed[0])} "
+                          f"did not converge on the extended outputs ({failed[1]})")
+    elif options and options[0]["chi2_apart"] >= APART_CHI2:
+        o = options[0]
+        info["advice"] = (f"{head}. To narrow it, measure {o['measurement']}: the two differ "
+                          f"there by up to {o['max_diff_um']:.3g} um "
+                          f"({o['max_diff_um'] / sigma:.1f} noise sd) at t = {o['time_s']:g} s, "
+                          f"point {o['point']} {tuple(round(v, 2) for v in o['xy_mm'])} mm; "
+                          f"expected chi-square between them "
+                          f"{o['chi2_apart']:.0f}")
+    else:
+        info["advice"] = (f"{head}. No measurement tried (points at the extended times, the "
+                          "full field at the measured and extended times) separates them; "
+                          "another test (a different cycle or dwell) is needed")
+    return info

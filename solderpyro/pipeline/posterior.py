@@ -1,0 +1,49 @@
+"""Stage 3, the posterior: modular KOH through the surrogate, sampled with NUTS."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from solderpyro.calibration import calibrate_emulator
+from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
+from solderpyro.calibration.mcmc import Posterior, WarmStart
+from solderpyro.design.loop import Draws
+from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.settings import SamplerSettings
+from solderpyro.surrogate import GPSurrogate
+
+
+def nuts_options(s: SamplerSettings, seed: int, progress: bool, final: bool = True
+                 ) -> dict[str, Any]:
+    """Keyword arguments of :func:`~solderpyro.calibration.mcmc.run_nuts`: the full length
+    when ``final``, else the design rounds' shorter one. Chains start at likelihood-resampled
+    prior draws: the specimen posterior can have minor modes a random start never leaves."""
+    return dict(chains=s.chains, warmup=s.warmup if final else s.round_warmup,
+                draws=s.draws if final else s.round_draws, seed=seed, progress=progress,
+                init="sir", workers=s.workers or None)
+
+
+def sample_posterior(sm: SpecimenModel, gp: GPSurrogate, s: SamplerSettings, seed: int,
+                     warm: WarmStart | None = None, final: bool = True,
+                     progress: bool = True) -> tuple[Posterior, Any]:
+    """The modular KOH posterior of ``sm.space`` with ``gp`` as the code (its variance in the
+    likelihood), observation-side effects added after it.
+
+    Returns:
+        ``(Posterior, ObsInputs)`` (the inputs feed the posterior predictive).
+    """
+    em: Any = GPEmulator(gp)
+    off = sm.offset()
+    if off is not None:
+        em = ObservedEmulator(em, sm.n_fe, off)
+    nk = nuts_options(s, seed, progress, final)
+    if warm is not None:
+        nk["warm"] = warm
+    return calibrate_emulator(em, sm.y, sm.space, priors=sm.priors, **nk)
+
+
+def as_draws(sm: SpecimenModel, post: Posterior, inp: Any) -> Draws:
+    """What the design loop needs of a posterior (FE parameters, sigma, offsets)."""
+    t = post.flat("t").detach().to("cpu")
+    return Draws(theta=t[:, :sm.n_fe], sigma=post.flat("sigma").detach().to("cpu"),
+                 offset=sm.offsets(t), posterior=(post, inp))

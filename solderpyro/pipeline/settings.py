@@ -1,0 +1,153 @@
+"""Every setting of a specimen calibration in one typed object, which is also the Hydra
+structured config of the ``calibration`` group (``configs/calibration/default.yaml``).
+
+>>> s = CalibrationSettings()                       # the defaults: the adaptive design
+>>> s = CalibrationSettings(design=DesignSettings(budget=60), seed=3)
+>>> s.validate()                                    # ValueError naming the bad field
+
+From the command line the same fields are ``solderpyro calibrate --budget 60`` or, in the
+Hydra scripts, ``calibration.design.budget=60``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+from solderpyro.design.loop import LoopSettings
+
+DesignSettings = LoopSettings
+
+EXACT_MODES = ("auto", "on", "off")
+
+
+@dataclass
+class SurrogateSettings:
+    """The GP surrogate (:class:`~solderpyro.surrogate.GPSurrogate`); the ``surrogate``
+    config group. ``inputs``: ``"raw"`` (the box's unit cube) or ``"flow_stress"`` (log flow
+    stresses at ``inputs_T_C`` degC and ``inputs_rate`` 1/s replace s0 and Q/R)."""
+
+    kernel: str = "matern52"
+    ard: bool = True
+    mean: str = "constant"
+    output: str = "pca"
+    inputs: str = "flow_stress"
+    inputs_T_C: float = 125.0
+    inputs_rate: float = 1e-5
+
+
+@dataclass
+class SamplerSettings:
+    """NUTS (:func:`~solderpyro.calibration.mcmc.run_nuts`): the final posterior's length,
+    and the shorter, warm-started runs of the design rounds. ``workers``: processes for the
+    chains (0: one per core)."""
+
+    chains: int = 4
+    warmup: int = 500
+    draws: int = 1000
+    round_warmup: int = 150
+    round_draws: int = 200
+    workers: int = 0
+
+
+@dataclass
+class ExactSettings:
+    """The FE-exact posterior (adaptive importance sampling with the FE in the likelihood)
+    and the profile-likelihood intervals.
+
+    ``mode``: ``"auto"`` runs them when the design stops on its budget with the FE still
+    disagreeing with the surrogate; ``"on"`` always; ``"off"`` never. ``runs`` FE runs per
+    round, ``rounds`` rounds, a ``profile``-point chi-square profile along the ridge (0: none),
+    ``profile_ci``: the 95 % profile-likelihood intervals through the FE after it."""
+
+    mode: str = "auto"
+    runs: int = 64
+    rounds: int = 3
+    profile: int = 9
+    profile_ci: bool = True
+
+
+@dataclass
+class CalibrationSettings:
+    """How :func:`~solderpyro.pipeline.calibrate_specimen` runs.
+
+    Attributes:
+        design: the adaptive design (:class:`~solderpyro.design.loop.LoopSettings`): start,
+            q per round, FE budget, criterion, stopping tolerances.
+        surrogate: the GP. sampler: NUTS. exact: the FE-exact fallback.
+        seed: of the design, the sampler and the predictive draws.
+        store: the run store's directory (shared by calibrations of the same problem).
+        batch: FE runs per batched solve. progress: progress bars (on a terminal).
+    """
+
+    design: LoopSettings = field(default_factory=LoopSettings)
+    surrogate: SurrogateSettings = field(default_factory=SurrogateSettings)
+    sampler: SamplerSettings = field(default_factory=SamplerSettings)
+    exact: ExactSettings = field(default_factory=ExactSettings)
+    seed: int = 0
+    store: str = "runs/store"
+    batch: int = 64
+    progress: bool = True
+
+    def validate(self, dim: int = 4) -> CalibrationSettings:
+        """Raise ``ValueError`` naming the first bad field; returns self."""
+        self.design.validate(dim)
+        sg = self.surrogate
+        for nm, ok in (("kernel", ("gaussian", "matern52")), ("mean", ("constant", "linear")),
+                       ("output", ("pca", "batched")), ("inputs", ("raw", "flow_stress"))):
+            if getattr(sg, nm) not in ok:
+                raise ValueError(f"surrogate.{nm} must be one of {ok}, got "
+                                 f"{getattr(sg, nm)!r}")
+        sp = self.sampler
+        for nm in ("chains", "warmup", "draws", "round_warmup", "round_draws"):
+            if getattr(sp, nm) < 1:
+                raise ValueError(f"sampler.{nm} must be >= 1, got {getattr(sp, nm)}")
+        if sp.workers < 0:
+            raise ValueError(f"sampler.workers must be >= 0 (0: one per core), got "
+                             f"{sp.workers}")
+        ex = self.exact
+        if ex.mode not in EXACT_MODES:
+            raise ValueError(f"exact.mode must be one of {EXACT_MODES}, got {ex.mode!r}")
+        if ex.runs < 2 or ex.rounds < 1 or ex.profile < 0 or ex.profile == 1:
+            raise ValueError(f"exact: need runs >= 2, rounds >= 1 and profile = 0 or >= 2, got "
+                             f"runs={ex.runs}, rounds={ex.rounds}, profile={ex.profile}")
+        if self.batch < 1:
+            raise ValueError(f"batch must be >= 1, got {self.batch}")
+        return self
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain nested dict (for run.json)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> CalibrationSettings:
+        """From a nested mapping (e.g. an OmegaConf node turned into a dict); unknown keys are
+        an error naming them."""
+        d = dict(d or {})
+        parts = {"design": LoopSettings, "surrogate": SurrogateSettings,
+                 "sampler": SamplerSettings, "exact": ExactSettings}
+        known = {f.name for f in fields(cls)}
+        bad = sorted(set(d) - known)
+        if bad:
+            raise ValueError(f"unknown calibration settings {bad}; known: {sorted(known)}")
+        kw: dict[str, Any] = {}
+        for k, v in d.items():
+            if k in parts:
+                sub = dict(v or {})
+                ok = {f.name for f in fields(parts[k])}
+                badk = sorted(set(sub) - ok)
+                if badk:
+                    raise ValueError(f"unknown {k} settings {badk}; known: {sorted(ok)}")
+                kw[k] = parts[k](**sub)
+            else:
+                kw[k] = v
+        return cls(**kw)
+
+
+def register_configs() -> None:
+    """Register :class:`CalibrationSettings` with Hydra's ConfigStore as ``calibration/base``,
+    so the ``calibration`` group is type-checked (``calibration.design.budget=abc`` fails
+    with the field's name)."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(group="calibration", name="base", node=CalibrationSettings)

@@ -1,0 +1,140 @@
+"""The specimen as the calibration observes it: which parameters the FE varies, which model
+outputs the measurements are, and the FE's observed outputs at parameter rows.
+
+The lowest layer of the specimen pipeline: :mod:`solderpyro.pipeline` (the calibration) and
+:mod:`solderpyro.diagnose` (the diagnosis) both build on it, and it imports neither.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from solderpyro.configure import Setup
+from solderpyro.effects import EffectSet, effect_set
+from solderpyro.fem.problem import reference_grid
+from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.io.measurements import Measurements
+from solderpyro.params import Box
+from solderpyro.store import RunStore, run_doe
+
+
+def calibration_box(setup: Setup, fx: EffectSet | None = None) -> Box:
+    """The calibrated parameters: ``setup.space`` (Anand constants), then the parameters of the
+    switched-on effects ``fx`` (bound to the data's times), with their prior boxes."""
+    sp = setup.space
+    if fx is None or len(fx) == 0:
+        return sp
+    eb = fx.box
+    return Box(tuple(sp.names) + tuple(eb.names), tuple(sp.lower) + tuple(eb.lower),
+               tuple(sp.upper) + tuple(eb.upper), tuple(sp.log_scale) + tuple(eb.log_scale),
+               tuple(sp.units) + tuple(eb.units))
+
+
+OBSERVATION_SEAM = "observation operator"
+
+
+def split_effects(setup: Setup, times: tuple[float, ...]
+                  ) -> tuple[EffectSet | None, EffectSet | None, EffectSet | None]:
+    """The switched-on effects bound to ``times``: all (FE-side first, then observation-side),
+    those the FE must simulate, and the observation-side ones (applied after the surrogate);
+    None where empty."""
+    if not setup.effects:
+        return None, None, None
+    fx = effect_set(setup.effects, times, setup.effect_bounds)
+    obs = [e.name for e in fx.effects if e.seam == OBSERVATION_SEAM]
+    fe = [e.name for e in fx.effects if e.seam != OBSERVATION_SEAM]
+
+    def mk(names: list[str]) -> EffectSet | None:
+        return effect_set(names, times, setup.effect_bounds) if names else None
+
+    return mk(fe + obs), mk(fe), mk(obs)
+
+
+def observation_offset(fx_obs: EffectSet, problem: Any, names: Sequence[str], n_time: int,
+                       ti: np.ndarray, oi: np.ndarray) -> Any:
+    """``q (n_q,) -> (n_obs,)``: what additive observation effects add to each observation, um
+    (they act on V after the FE: ``EffectSet.observe`` of a zero field)."""
+    pts = output_points(problem)
+    x = torch.tensor([pts[n][0] for n in names], dtype=torch.float64)
+    x_O = float(problem.origin[0])
+    tt, oo = torch.as_tensor(ti), torch.as_tensor(oi)
+
+    def offset(q: torch.Tensor) -> torch.Tensor:
+        z = torch.zeros(1, n_time, len(names), dtype=q.dtype)
+        return fx_obs.observe(z, x, x_O, q.reshape(1, -1))[0, tt, oo]
+
+    return offset
+
+
+def fe_params(setup: Setup, theta: torch.Tensor) -> torch.Tensor:
+    """Solver rows ``(n, 9 + n_eff)`` from calibrated ``theta (n, n_anand + n_eff)``: the nine
+    Anand constants (defaults for those not calibrated), then the effects' parameters."""
+    n = setup.space.n_theta
+    return torch.cat([setup.space.full(theta[:, :n]), theta[:, n:]], 1)
+
+
+def output_points(problem: Any) -> dict[str, tuple[float, float]]:
+    """Every label a measurement may name: the problem's points (A, B) and the 31 x 18 grid.
+
+    Returns:
+        label -> (x_mm, y_mm), for ``read_measurements(valid_points=...)``.
+    """
+    labels, pts = reference_grid()
+    return {**{k: (float(v[0]), float(v[1])) for k, v in problem.points.items()},
+            **{lab: (float(x), float(y)) for lab, (x, y) in zip(labels, pts, strict=True)}}
+
+
+def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple[str, ...]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Where each measured row sits in the model output ``(n_time, n_out)``.
+
+    Returns:
+        ``(n_obs,)`` time indices and ``(n_obs,)`` output indices.
+
+    Raises:
+        ValueError naming the first row whose time or point is not a model output.
+    """
+    ti = np.searchsorted(np.asarray(times), meas.time_s)
+    oi = np.empty(len(meas), dtype=int)
+    lookup = {n: j for j, n in enumerate(names)}
+    for r in range(len(meas)):
+        t, p = float(meas.time_s[r]), str(meas.point[r])
+        if ti[r] >= len(times) or abs(times[ti[r]] - t) > 1e-6:
+            raise ValueError(f"measurement row {r + 1}: time {t} s is not an output time")
+        if p not in lookup:
+            raise ValueError(f"measurement row {r + 1}: point {p!r} is not a model output; "
+                             f"valid: A, B or grid labels g_ii_jj")
+        oi[r] = lookup[p]
+    return ti, oi
+
+
+RUN_FILES = ("run.json", "data.csv", "draws.npz")
+#: the sampler's adapted state in a run directory (:class:`~solderpyro.calibration.mcmc.WarmStart`)
+WARM_FILE = "sampler_state.npz"
+
+
+def fe_observed(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...], ti: np.ndarray,
+                oi: np.ndarray, rows: np.ndarray, n_fe: int, obs_offset: Any = None,
+                store: RunStore | None = None, cfg_hash: str | None = None,
+                batch_size: int = 64) -> np.ndarray:
+    """The FE's observed outputs ``(b, n_obs)`` um for parameter rows ``(b, space.dim)``
+    (FE-side parameters first, ``n_fe`` of them, then observation-side ones, which
+    ``obs_offset: q -> (n_obs,)`` adds); NaN rows for members that did not converge.
+
+    With ``store`` and ``cfg_hash`` the runs go through :func:`~solderpyro.store.run_doe`:
+    stored as soon as each batch of ``batch_size`` finishes, and read back when already there.
+    """
+    P = fe_params(setup, torch.tensor(np.asarray(rows)[:, :n_fe], dtype=torch.float64))
+    if store is not None and cfg_hash is not None:
+        res: Any = run_doe(solver, store, cfg_hash, P, times, batch_size, progress=False)
+    else:
+        res = solver.solve(P, times)
+    V = res.V.detach().cpu().numpy()[:, ti, oi]
+    if obs_offset is not None:
+        V = V + np.stack([obs_offset(torch.tensor(r[n_fe:])).detach().numpy() for r in rows])
+    V[~res.ok.cpu().numpy()] = np.nan
+    return V

@@ -1,0 +1,212 @@
+"""The adaptive design (solderpyro.design): the surrogate as a BoTorch model, the acquisition
+functions against closed forms, where they put runs, the stopping rule, and a crash between
+rounds."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from solderpyro.design import lhs
+from solderpyro.design.acquisition import (integrated_code_variance, loglik_terms, propose,
+                                           qIntegratedLogLikVariance)
+from solderpyro.design.loop import Draws, LoopProblem, LoopSettings, run_loop, stop_rule
+from solderpyro.design.model import botorch_model, observed_weights
+from solderpyro.params import Box, ParameterSpace
+from solderpyro.surrogate import GPSurrogate
+
+BOX1 = Box(("t",), (0.0,), (1.0,))
+GRID = torch.linspace(0, 1, 801, dtype=torch.float64)[:, None]
+SIGMA = 0.02
+
+
+def f1(t: torch.Tensor) -> torch.Tensor:
+    """A 1-D toy simulator with 12 outputs: ``(n, 1) -> (n, 12)``."""
+    k = torch.arange(1, 13, dtype=torch.float64)
+    return torch.sin(2.0 * t * k / 4 + k) + t * k / 12
+
+
+@pytest.fixture(scope="module")
+def gp4():
+    box = ParameterSpace.seed()
+    x = lhs(box, 24, 1)
+    u = box.to_unit(x)
+    y = torch.stack([torch.sin(3 * u[:, 0]) + u[:, 1] * u[:, 2] + 0.2 * k * u[:, 3]
+                     for k in range(15)], 1)
+    return box, GPSurrogate(box, output="pca", kernel="matern52", ard=True).fit(x, y)
+
+
+def _var_after(gp: GPSurrogate, x_new: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """Closed form: the GP coefficients' variance ``(N, k)`` at ``pts`` after adding runs
+    ``x_new`` (physical), hyperparameters fixed."""
+    A = torch.cat([gp._u[0], gp._unit(x_new)])  # (n + q, d')
+    P = gp._unit(pts)
+    out = []
+    for k in range(gp._u.shape[0]):
+        gpk = gp
+        Kaa = gpk._os[k] * _corr(gpk, A, A, k) + gpk._noise[k] * torch.eye(len(A))
+        Kpa = gpk._os[k] * _corr(gpk, P, A, k)
+        out.append(gpk._os[k] - (Kpa * torch.linalg.solve(Kaa, Kpa.T).T).sum(1))
+    return torch.stack(out, 1)
+
+
+def _corr(gp, a, b, k):
+    from solderpyro.surrogate.kernels import matern52
+
+    return matern52(a[None], b[None], gp._ls[k:k + 1])[0]
+
+
+def test_botorch_model_is_the_surrogate(gp4):
+    box, gp = gp4
+    m = botorch_model(gp)
+    x = lhs(box, 9, 7)
+    mc, vc = gp._coef(x, False)
+    post = m.posterior(box.to_unit(x))
+    assert m.num_outputs == gp.basis.shape[1]
+    # GPyTorch's distance (|a|^2 + |b|^2 - 2ab) rounds at ~1e-8 of the unit scale
+    torch.testing.assert_close(post.mean, mc.T, atol=1e-6, rtol=0)
+    torch.testing.assert_close(post.variance, vc.T, atol=1e-7, rtol=1e-5)
+
+
+def test_acquisitions_have_botorch_shapes_and_equal_their_closed_forms(gp4):
+    box, gp = gp4
+    m = botorch_model(gp)
+    g = torch.Generator().manual_seed(0)
+    mc = 0.3 + 0.4 * torch.rand(40, 4, generator=g, dtype=torch.float64)
+    a = observed_weights(gp, 0.05)
+    y = gp.predict(box.from_unit(torch.full((1, 4), 0.5, dtype=torch.float64)))[0][0]
+    gr, M = loglik_terms(gp, box.from_unit(mc), y + 0.01, 0.05)
+    acqs = [integrated_code_variance(m, mc, a), qIntegratedLogLikVariance(m, mc, gr, M)]
+    X = torch.rand(5, 3, 4, generator=g, dtype=torch.float64)  # (b, q, d)
+    for acq in acqs:
+        v = acq(X)
+        assert v.shape == (5,) and bool((v <= 0).all())
+    for b in range(2):
+        V = _var_after(gp, box.from_unit(X[b]), box.from_unit(mc))  # (N, k)
+        want_v = -(V * a).sum(1).mean()
+        want_l = -((gr**2 * V).sum(1) + 0.5 * torch.einsum("nk,kl,nl->n", V, M**2, V)).mean()
+        assert float(acqs[0](X[b:b + 1])) == pytest.approx(float(want_v), rel=1e-4)
+        assert float(acqs[1](X[b:b + 1])) == pytest.approx(float(want_l), rel=1e-4)
+    with pytest.raises(ValueError, match="weights must have shape"):
+        integrated_code_variance(m, mc, a[:1])
+
+
+def _toy_posterior(gp: GPSurrogate, y: torch.Tensor, n: int = 400, seed: int = 0) -> Draws:
+    """Exact posterior on a grid of the 1-D box (uniform prior, modular likelihood with the
+    code variance), resampled to ``n`` draws."""
+    with torch.no_grad():
+        mu, var = gp.predict(GRID)
+    ll = -0.5 * (((y - mu) ** 2) / (var + SIGMA**2) + torch.log(var + SIGMA**2)).sum(1)
+    w = torch.softmax(ll, 0)
+    idx = torch.multinomial(w, n, replacement=True,
+                            generator=torch.Generator().manual_seed(seed))
+    t = GRID[idx].sort(0).values
+    return Draws(t, torch.full((n,), SIGMA, dtype=torch.float64))
+
+
+def test_the_acquisition_puts_runs_where_the_posterior_is_not_where_the_prior_is():
+    """1-D toy, data at t = 0.8: over the whole box, both criteria are best inside the
+    posterior's range (a few hundredths wide), not in the rest of the prior box."""
+    x = torch.tensor([[0.05], [0.3], [0.5], [0.7], [0.95]], dtype=torch.float64)
+    gp = GPSurrogate(BOX1, output="batched", kernel="matern52").fit(x, f1(x))
+    y = f1(torch.tensor([[0.8]], dtype=torch.float64))[0]
+    d = _toy_posterior(gp, y)
+    lo, hi = float(d.theta.min()), float(d.theta.max())
+    assert hi - lo < 0.3  # a posterior narrower than the prior
+    m = botorch_model(gp)
+    g, M = loglik_terms(gp, d.theta, y, SIGMA)
+    for acq in (integrated_code_variance(m, d.theta, observed_weights(gp, SIGMA)),
+                qIntegratedLogLikVariance(m, d.theta, g, M)):
+        vals = acq(GRID[:, None, :])  # (801,), q = 1 at every grid point
+        best = float(GRID[int(vals.argmax()), 0])
+        assert lo - 0.05 <= best <= hi + 0.05, (best, lo, hi)
+        # and the proposer's q-batch from posterior draws lies in it, all distinct
+        Xq, _ = propose(acq, 1, 3, "draws", candidates=d.theta)
+        assert Xq.shape == (3, 1) and len(set(Xq[:, 0].tolist())) == 3
+        assert bool(((Xq >= lo) & (Xq <= hi)).all())
+
+
+def _toy_problem(bias: float = 0.0, calls: list | None = None, cache: dict | None = None):
+    y = f1(torch.tensor([[0.8]], dtype=torch.float64))[0] \
+        + SIGMA * torch.randn(12, generator=torch.Generator().manual_seed(4),
+                              dtype=torch.float64)
+
+    def fe(th):
+        V = torch.empty(len(th), 12, dtype=torch.float64)
+        for i, t in enumerate(th):
+            key = round(float(t[0]), 12)
+            if cache is not None and key in cache:
+                V[i] = cache[key]
+                continue
+            if calls is not None:
+                calls.append(key)
+            V[i] = f1(t[None])[0]
+            if cache is not None:
+                cache[key] = V[i].clone()
+        return V, torch.ones(len(th), dtype=torch.bool)
+
+    def fit(X, Y):  # a biased surrogate learns outputs shifted by a smooth bias
+        return GPSurrogate(BOX1, output="batched", kernel="matern52", restarts=1).fit(
+            X, Y + bias * torch.cos(3 * X))
+
+    return LoopProblem(BOX1, y, fe, fit, lambda gp, prev, final: _toy_posterior(gp, y))
+
+
+def test_the_stopping_rule_stops_on_an_exact_surrogate_and_not_on_a_biased_one():
+    s = LoopSettings(start=4, batch=2, check=3, budget=30, mc_points=100, candidates=200)
+    res = run_loop(_toy_problem(), s, seed=0)
+    assert res.reason == "converged" and res.converged
+    last = res.rounds[-1]
+    assert last.code_ok and last.fe_ok
+    assert len(res.X) < s.budget
+    # the posterior it stops on covers the truth
+    assert float(res.draws.theta.min()) <= 0.8 <= float(res.draws.theta.max())
+    biased = run_loop(_toy_problem(bias=0.05), s, seed=0)
+    assert biased.reason == "budget" and "budget ran out" in biased.message
+    assert not biased.rounds[-1].fe_ok
+    assert len(biased.X) <= s.budget
+
+
+def test_stop_rule_tolerance_is_the_chi_square_sampling_sd():
+    s = LoopSettings()
+    code_ok, fe_ok, tol = stop_rule(1.0, np.array([100.0]), np.array([100.0 + 19.9]), 200, s)
+    assert tol == pytest.approx(math.sqrt(400)) and code_ok and fe_ok
+    assert not stop_rule(21.0, np.array([1.0]), np.array([1.0]), 200, s)[0]
+    assert not stop_rule(1.0, np.array([np.inf]), np.array([1.0]), 200, s)[1]
+
+
+def test_a_crash_between_rounds_loses_no_fe_run_and_the_rerun_continues_from_the_store():
+    """The FE runs are kept as they finish (here: a cache standing in for the run store); a
+    run that dies after round 1 and is started again proposes the same runs (every step is
+    seeded) and solves only what round 1 did not."""
+    s = LoopSettings(start=4, batch=2, check=2, budget=20, mc_points=100, candidates=200)
+    full_calls: list = []
+    full = run_loop(_toy_problem(bias=0.05, calls=full_calls, cache={}), s, seed=0)
+    cache: dict = {}
+    calls: list = []
+
+    class Crash(Exception):
+        pass
+
+    def die(r):
+        if len(r.rounds) == 1:
+            raise Crash
+
+    with pytest.raises(Crash):
+        run_loop(_toy_problem(bias=0.05, calls=calls, cache=cache), s, seed=0, on_round=die)
+    n_first = len(calls)
+    assert n_first == s.start + s.check + s.batch  # nothing lost: all in the cache
+    calls2: list = []
+    again = run_loop(_toy_problem(bias=0.05, calls=calls2, cache=cache), s, seed=0)
+    assert len(calls2) == len(full_calls) - n_first  # only the rounds not done before
+    torch.testing.assert_close(again.X, full.X)
+
+
+def test_bad_settings_name_the_field():
+    with pytest.raises(ValueError, match="design.start"):
+        LoopSettings(start=2).validate(4)
+    with pytest.raises(ValueError, match="design.criterion"):
+        LoopSettings(criterion="ei").validate(4)
+    with pytest.raises(ValueError, match="design.budget"):
+        LoopSettings(start=30, budget=10).validate(4)
