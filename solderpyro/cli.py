@@ -168,7 +168,7 @@ def cmd_koh(a, overrides) -> int:
     from .calibration.tables import koh_from_tables
 
     koh_from_tables(a.sim, a.obs, _names(a.x), _names(a.t), a.y, a.out, mode=a.mode,
-                    discrepancy=a.discrepancy, **_nuts_args(a))
+                    discrepancy=a.discrepancy, propose=a.propose, **_nuts_args(a))
     print(f"\nsummary: {Path(a.out) / 'summary.csv'}")
     return 0
 
@@ -373,6 +373,11 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--out", required=True, help="output directory")
     k.add_argument("--mode", default="joint", help="joint (seed, Eq. 5-8) | modular")
     k.add_argument("--discrepancy", action="store_true", help="add a GP discrepancy delta(x)")
+    k.add_argument("--propose", type=int, default=0, metavar="Q",
+                   help="also write the next Q parameter sets for your simulator to "
+                   "OUT/proposed.csv (BoTorch: where its code uncertainty matters for the "
+                   "posterior; each t at every observed x); append their results to --sim and "
+                   "call again; sets still pending (OUT/pending.csv) are not proposed twice")
     _add_nuts(k)
     c = sub.add_parser("calibrate", help="calibrate the Anand constants of the config's box "
                        "(default s0, QR, xi, m) against a measurement CSV: an adaptive design "

@@ -52,13 +52,17 @@ def read_columns(path: str | Path, columns: Sequence[str], what: str) -> torch.T
 
 def koh_from_tables(sim: str | Path, obs: str | Path, x: Sequence[str], t: Sequence[str],
                     y: str, out: str | Path, mode: str = "joint", discrepancy: bool = False,
-                    **nuts: Any) -> Posterior:
+                    propose: int = 0, **nuts: Any) -> Posterior:
     """Calibrate from SIM.csv (columns x, t, y) and OBS.csv (columns x, y).
 
     The flat prior of t spans the range of the runs. ``mode`` is ``"joint"`` (the seed's full
     joint) or ``"modular"`` (GP fitted first, its LOO check written and warned on). Writes
     ``summary.csv`` (parameter, q2.5, median, mean, q97.5), ``posterior.nc``, ``traces.png``
     (and ``surrogate_loo.png`` in modular mode) into ``out``.
+
+    ``propose > 0``: also write the next ``propose`` parameter sets for the simulator to
+    ``out/proposed.csv`` (each t at every observed x; :mod:`solderpyro.design.external`),
+    never one still pending from an earlier call (``out/pending.csv``).
     """
     if mode not in ("joint", "modular"):
         raise ValueError(f"--mode must be 'joint' or 'modular', got {mode!r}")
@@ -73,10 +77,13 @@ def koh_from_tables(sim: str | Path, obs: str | Path, x: Sequence[str], t: Seque
                                   list(x), list(t))
     log.info("%d runs, %d observations, calibrating %s (%s)", data.n_sim, data.n_obs,
              ", ".join(t), mode)
+    if propose < 0:
+        raise ValueError(f"--propose must be >= 0, got {propose}")
+    gp = None
     if mode == "joint":
         post, _ = calibrate_joint(data, discrepancy=discrepancy, **nuts)
     else:
-        post = _modular(data, discrepancy, outd, nuts)
+        post, gp = _modular(data, discrepancy, outd, nuts)
     rows = post.summary()
     write_summary(rows, outd / "summary.csv", ("parameter", "q2.5", "median", "mean", "q97.5"))
     post.save(outd / "posterior.nc")
@@ -85,13 +92,47 @@ def koh_from_tables(sim: str | Path, obs: str | Path, x: Sequence[str], t: Seque
     plot_traces(post).savefig(outd / "traces.png", dpi=110)
     print(format_summary(rows))
     print(f"divergences per chain: {post.divergences}")
+    if propose:
+        _propose(data, gp, post, propose, outd, list(x), list(t))
     return post
 
 
-def _modular(data: CalibrationData, discrepancy: bool, outd: Path, nuts: dict) -> Posterior:
+def _propose(data: CalibrationData, gp: GPSurrogate | None, post: Posterior, q: int,
+             outd: Path, x: list[str], t: list[str]) -> Path:
+    """Write the next ``q`` simulator runs (``proposed.csv``) and the pending ones."""
+    from solderpyro.design.external import (
+        PENDING,
+        propose_external,
+        read_pending,
+        still_pending,
+        write_proposal,
+    )
+
+    if gp is None:  # joint mode: the code's GP over (x, t), as the modular mode fits it
+        gp = _scalar_gp(data)
+    before = read_pending(outd / PENDING, t)
+    pend = still_pending(before, data.theta_sim)
+    if len(before) > len(pend):
+        log.info("propose: %d earlier proposal(s) now in the run table", len(before) - len(pend))
+    if len(pend):
+        log.info("propose: %d proposal(s) still pending (not proposed again)", len(pend))
+    sigma = float(post.flat("sigma").median())
+    th = propose_external(gp, data.x_obs, post.flat("t").to(torch.float64), sigma, q, pend)
+    p = write_proposal(outd, x, t, data.x_obs, th, pend)
+    print(f"\nproposed: {p} ({q} parameter set(s), each at the {data.n_obs} observed x; "
+          f"append their results to the run table and call again)")
+    return p
+
+
+def _scalar_gp(data: CalibrationData) -> GPSurrogate:
     box = Box(data.x_box.names + data.theta_box.names, data.x_box.lower + data.theta_box.lower,
               data.x_box.upper + data.theta_box.upper)
-    gp = GPSurrogate(box).fit(torch.cat([data.x_sim, data.theta_sim], -1), data.y_sim)
+    return GPSurrogate(box).fit(torch.cat([data.x_sim, data.theta_sim], -1), data.y_sim)
+
+
+def _modular(data: CalibrationData, discrepancy: bool, outd: Path, nuts: dict
+             ) -> tuple[Posterior, GPSurrogate]:
+    gp = _scalar_gp(data)
     res = gp.loo()
     from solderpyro.plots import plot_validation
 
@@ -99,4 +140,4 @@ def _modular(data: CalibrationData, discrepancy: bool, outd: Path, nuts: dict) -
     gp.check(res)
     post, _ = calibrate_modular(gp, data.y_obs, data.theta_box, data.x_obs,
                                 discrepancy=discrepancy, x_box=data.x_box, **nuts)
-    return post
+    return post, gp

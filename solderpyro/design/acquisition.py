@@ -93,15 +93,15 @@ class qIntegratedLogLikVariance(AcquisitionFunction):
         self.set_X_pending(X_pending)
 
     @concatenate_pending_points
-    @t_batch_mode_transform()
+    @t_batch_mode_transform()  # type: ignore[arg-type]
     def forward(self, X: torch.Tensor) -> torch.Tensor:
         """``X (b, q, d)`` unit cube -> ``(b,)``."""
-        fm = self.model.fantasize(X=X, sampler=self.sampler)
+        fm = self.model.fantasize(X=X, sampler=self.sampler)  # type: ignore[operator]
         # one point at a time (as qNegIntegratedPosteriorVariance does for several outputs):
         # a joint posterior over the N points would form (b, k, N, N) covariances
         bdims = tuple(1 for _ in X.shape[:-2])
-        mc = self.mc_points.view(-1, *bdims, 1, X.size(-1))  # (N, 1, 1, d)
-        v = fm.posterior(mc).variance  # (N, 1, b, 1, k)
+        mc = self.mc_points.view(-1, *bdims, 1, X.size(-1))  # type: ignore[operator]
+        v = fm.posterior(mc).variance  # (N, 1, b, 1, k); mc: (N, 1, 1, d)
         v = v.reshape(v.shape[0], -1, v.shape[-1]).transpose(0, 1)  # (b, N, k)
         var = (self.grad2 * v).sum(-1) + 0.5 * torch.einsum("bnk,kl,bnl->bn", v, self.curv2, v)
         return -var.mean(-1)
@@ -142,7 +142,8 @@ def propose(acq: AcquisitionFunction, d: int, q: int, method: str = "optimize",
         raise ValueError(f"propose: method must be one of {OPTIMIZERS}, got {method!r}")
     if q < 1:
         raise ValueError(f"propose: q must be >= 1, got {q}")
-    dt = acq.mc_points.dtype if hasattr(acq, "mc_points") else torch.float64
+    mcp = getattr(acq, "mc_points", None)
+    dt: torch.dtype = mcp.dtype if isinstance(mcp, torch.Tensor) else torch.float64
     if method == "draws":
         if candidates is None or candidates.shape[0] < q:
             raise ValueError("propose(method='draws') needs at least q candidates")

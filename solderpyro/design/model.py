@@ -68,14 +68,47 @@ def botorch_model(gp: GPSurrogate) -> SingleTaskGP:
     assert src is not None
     X = gp.box.to_unit(gp._x_train).to(gp._z)  # (n, d)
     Z = gp._z.T.contiguous()  # (n, k)
-    m = SingleTaskGP(X, Z, likelihood=copy.deepcopy(src.likelihood),
-                     covar_module=copy.deepcopy(src.covar_module),
-                     mean_module=copy.deepcopy(src.mean_module), outcome_transform=None,
-                     input_transform=SurrogateInputs(gp))
+    k = Z.shape[1]
+    if k == 1:  # BoTorch's single-output models carry no output batch dimension
+        from solderpyro.surrogate.gp import _BatchGP
+
+        u = src.train_inputs[0][0]
+        one = _BatchGP(u[None], Z.T, gp.kernel, gp.mean, gp.ard, gp.nugget).to(Z)
+        st = {kk: v.reshape(-1) if v.ndim == 1 else v for kk, v in src.state_dict().items()}
+        one.load_state_dict(st)
+        mods = [_unbatch(m_) for m_ in (one.likelihood, one.covar_module, one.mean_module)]
+    else:
+        mods = [copy.deepcopy(m_) for m_ in (src.likelihood, src.covar_module,
+                                              src.mean_module)]
+    m = SingleTaskGP(X, Z, likelihood=mods[0], covar_module=mods[1], mean_module=mods[2],
+                     outcome_transform=None, input_transform=SurrogateInputs(gp))
     m.eval()
     for p in m.parameters():
         p.requires_grad_(False)
     return m
+
+
+def _unbatch(module: torch.nn.Module) -> torch.nn.Module:
+    """A copy of a GPyTorch module with batch shape ``(1,)`` as one with no batch shape."""
+    import gpytorch
+
+    if isinstance(module, gpytorch.likelihoods.GaussianLikelihood):
+        new: torch.nn.Module = gpytorch.likelihoods.GaussianLikelihood(
+            noise_constraint=module.noise_covar.raw_noise_constraint)
+    elif isinstance(module, gpytorch.kernels.ScaleKernel):
+        b = module.base_kernel
+        kw = dict(ard_num_dims=b.ard_num_dims, lengthscale_constraint=b.raw_lengthscale_constraint)
+        base = (gpytorch.kernels.RBFKernel(**kw) if isinstance(b, gpytorch.kernels.RBFKernel)
+                else gpytorch.kernels.MaternKernel(nu=b.nu, **kw))
+        new = gpytorch.kernels.ScaleKernel(base)
+    elif isinstance(module, gpytorch.means.ConstantMean):
+        new = gpytorch.means.ConstantMean()
+    else:
+        new = gpytorch.means.LinearMean(int(module.weights.shape[-2]))  # type: ignore[index]
+    st = module.state_dict()
+    tgt = new.state_dict()
+    new.load_state_dict({k: st[k].reshape(tgt[k].shape) for k in tgt})
+    return new.to(next(iter(st.values())))
 
 
 def observed_weights(gp: GPSurrogate, sigma: float) -> torch.Tensor:

@@ -52,7 +52,7 @@ class SpecimenModel:
 
     Attributes:
         setup, meas: the typed problem and the measurements.
-        times: ``(n_time,)`` measured times, s. field: full-field data (grid labels).
+        times: ``(n_time,)`` measured times, s. full_field: full-field data (grid labels).
         fx, fx_fe, fx_obs: switched-on effects (all, FE-side, observation-side), or None.
         gp_box: what the FE runs vary (Anand constants, then FE-side effects' parameters).
         space: ``gp_box`` plus observation-side parameters: what the posterior is over.
@@ -64,7 +64,7 @@ class SpecimenModel:
     setup: Setup
     meas: Measurements
     times: tuple[float, ...]
-    field: bool
+    full_field: bool
     fx: EffectSet | None
     fx_fe: EffectSet | None
     fx_obs: EffectSet | None

@@ -9,8 +9,12 @@ import pytest
 import torch
 
 from solderpyro.design import lhs
-from solderpyro.design.acquisition import (integrated_code_variance, loglik_terms, propose,
-                                           qIntegratedLogLikVariance)
+from solderpyro.design.acquisition import (
+    integrated_code_variance,
+    loglik_terms,
+    propose,
+    qIntegratedLogLikVariance,
+)
 from solderpyro.design.loop import Draws, LoopProblem, LoopSettings, run_loop, stop_rule
 from solderpyro.design.model import botorch_model, observed_weights
 from solderpyro.params import Box, ParameterSpace
@@ -67,6 +71,20 @@ def test_botorch_model_is_the_surrogate(gp4):
     # GPyTorch's distance (|a|^2 + |b|^2 - 2ab) rounds at ~1e-8 of the unit scale
     torch.testing.assert_close(post.mean, mc.T, atol=1e-6, rtol=0)
     torch.testing.assert_close(post.variance, vc.T, atol=1e-7, rtol=1e-5)
+
+
+@pytest.mark.parametrize("mean", ["constant", "linear"])
+def test_a_scalar_surrogate_is_a_single_output_botorch_model(mean):
+    box = Box(("x", "t"), (0.0, 0.0), (1.0, 2.0))
+    x = lhs(box, 20, 3)
+    gp = GPSurrogate(box, mean=mean, restarts=1).fit(x, torch.sin(2 * x[:, 0]) + x[:, 1])
+    m = botorch_model(gp)
+    xt = lhs(box, 6, 4)
+    mc, vc = gp._coef(xt, False)
+    post = m.posterior(box.to_unit(xt))
+    assert m.num_outputs == 1
+    torch.testing.assert_close(post.mean[:, 0], mc[0], atol=1e-7, rtol=0)
+    torch.testing.assert_close(post.variance[:, 0], vc[0], atol=1e-9, rtol=1e-5)
 
 
 def test_acquisitions_have_botorch_shapes_and_equal_their_closed_forms(gp4):
