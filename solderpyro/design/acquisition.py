@@ -33,6 +33,7 @@ from botorch.optim import optimize_acqf, optimize_acqf_discrete
 from botorch.sampling.normal import SobolQMCNormalSampler
 from botorch.utils.transforms import concatenate_pending_points, t_batch_mode_transform
 
+from solderpyro.design.model import observed_weights
 from solderpyro.surrogate import GPSurrogate
 
 CRITERIA = ("loglik", "variance")
@@ -123,6 +124,77 @@ def loglik_terms(gp: GPSurrogate, theta: torch.Tensor, y: torch.Tensor, sigma: f
     r = y.to(mean) - mean - (0 if offset is None else offset.to(mean))
     sv = gp.basis * gp.std.scale[:, None]  # (n_y, k)
     return r @ sv / sigma**2, sv.T @ sv / sigma**2
+
+
+def greedy_draws(gp: GPSurrogate, criterion: str, mc_theta: torch.Tensor,
+                 cand_theta: torch.Tensor, q: int, sigma: float, y: torch.Tensor | None = None,
+                 offset: torch.Tensor | None = None, pending: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, float]:
+    """The best ``q`` of ``cand_theta`` for a criterion, chosen greedily one at a time (each
+    choice joins the pending runs before the next), in closed form.
+
+    This is BoTorch's ``optimize_acqf_discrete`` on :func:`integrated_code_variance`
+    (``criterion="variance"``) or :class:`qIntegratedLogLikVariance` (``"loglik"``): the same
+    choices and values (tested), without building a fantasy model per candidate. With fixed
+    hyperparameters a new run at ``c`` lowers the coefficients' posterior covariance by the
+    rank-1 term ``S[:, c] S[c, :] / (S[c, c] + tau)``, so one posterior covariance over the
+    draws, candidates and pending runs ``(k, N + C + P, N + C + P)`` and rank-1 updates give
+    every candidate's value. Measured on the full-field case (k = 12 components, 256 draws,
+    512 candidates, q = 8): BoTorch's fantasies took 353 s per round, this < 1 s.
+
+    Args:
+        gp: the fitted surrogate. criterion: ``"variance"`` or ``"loglik"``.
+        mc_theta: ``(N, d)`` posterior draws integrated over; cand_theta: ``(C, d)`` the
+            candidates; pending: ``(P, d)`` runs asked for and not yet back (all physical).
+        q: how many to choose (<= C). sigma: noise sd (um).
+        y, offset: the data ``(n_y,)`` and observation-side offsets ``(N, n_y)`` (for
+            ``"loglik"``).
+
+    Returns:
+        the chosen candidates' indices ``(q,)`` and the acquisition's value at the q-batch.
+    """
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    N, C = len(mc_theta), len(cand_theta)
+    if not 1 <= q <= C:
+        raise ValueError(f"greedy_draws: need 1 <= q <= {C} candidates, got q={q}")
+    parts = [mc_theta, cand_theta] + ([pending] if pending is not None and len(pending) else [])
+    S = torch.cat(parts).to(torch.float64)
+    with torch.no_grad():
+        _, cov = gp._coef(S, full_cov=True)  # (k, N + C + P, N + C + P)
+        tau = gp._noise  # (k,)
+
+        def condition(cov: torch.Tensor, i: int) -> torch.Tensor:
+            den = (cov[:, i, i] + tau)[:, None, None]
+            return cov - cov[:, :, i:i + 1] * cov[:, i:i + 1, :] / den
+
+        for i in range(N + C, len(S)):
+            cov = condition(cov, i)
+        if criterion == "loglik":
+            if y is None:
+                raise ValueError("greedy_draws(criterion='loglik') needs the data y")
+            g, M = loglik_terms(gp, mc_theta, y, sigma, offset)
+            g2, M2 = g.square().T, M.square()  # (k, N), (k, k)
+        else:
+            a = observed_weights(gp, sigma)  # (k,)
+        chosen: list[int] = []
+        val = torch.zeros(C, dtype=cov.dtype)
+        for _ in range(q):
+            d = cov.diagonal(dim1=-2, dim2=-1)  # (k, N + C + P)
+            cm = cov[:, :N, N:N + C]  # (k, N, C)
+            vn = (d[:, :N, None] - cm.square() / (d[:, None, N:N + C] + tau[:, None, None])
+                  ).clamp_min(0.0)  # (k, N, C): variance at the draws after adding c
+            if criterion == "variance":
+                val = -(a[:, None, None] * vn).sum(0).mean(0)
+            else:
+                val = -((g2[:, :, None] * vn).sum(0)
+                        + 0.5 * torch.einsum("knc,kl,lnc->nc", vn, M2, vn)).mean(0)
+            if chosen:
+                val[chosen] = -float("inf")
+            b = int(val.argmax())
+            chosen.append(b)
+            cov = condition(cov, N + b)
+    return torch.tensor(chosen), float(val[chosen[-1]])
 
 
 def propose(acq: AcquisitionFunction, d: int, q: int, method: str = "optimize",

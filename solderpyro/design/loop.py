@@ -252,6 +252,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
     """
     from solderpyro.design import lhs
     from solderpyro.design.acquisition import (
+        greedy_draws,
         integrated_code_variance,
         loglik_terms,
         propose,
@@ -306,17 +307,22 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             mi = _spread(N, s.mc_points)
             mc = box.to_unit(draws.theta[mi])
             sig = float(draws.sigma.median())
-            model = botorch_model(gp)
-            pend = box.to_unit(th_chk)
-            if s.criterion == "loglik":
-                g, M = loglik_terms(gp, draws.theta[mi], y, sig,
-                                    None if draws.offset is None else draws.offset[mi])
-                acq: Any = qIntegratedLogLikVariance(model, mc, g, M, X_pending=pend)
+            cand_th = draws.theta[_spread(N, s.candidates)]
+            off_mc = None if draws.offset is None else draws.offset[mi]
+            if s.optimizer == "draws":  # closed form, the same choice as BoTorch's (tested)
+                idx, val = greedy_draws(gp, s.criterion, draws.theta[mi], cand_th, qn, sig, y,
+                                        off_mc, th_chk)
+                Xu = box.to_unit(cand_th[idx])
             else:
-                acq = integrated_code_variance(model, mc, observed_weights(gp, sig),
-                                               X_pending=pend)
-            cand = box.to_unit(draws.theta[_spread(N, s.candidates)])
-            Xu, val = propose(acq, box.dim, qn, s.optimizer, cand, seed + r)
+                model = botorch_model(gp)
+                pend = box.to_unit(th_chk)
+                if s.criterion == "loglik":
+                    g, M = loglik_terms(gp, draws.theta[mi], y, sig, off_mc)
+                    acq: Any = qIntegratedLogLikVariance(model, mc, g, M, X_pending=pend)
+                else:
+                    acq = integrated_code_variance(model, mc, observed_weights(gp, sig),
+                                                   X_pending=pend)
+                Xu, val = propose(acq, box.dim, qn, "optimize", seed=seed + r)
             lap("acquire")
             th_new = box.from_unit(Xu).clamp(torch.tensor(box.lower, dtype=torch.float64),
                                              torch.tensor(box.upper, dtype=torch.float64))

@@ -10,6 +10,7 @@ import torch
 
 from solderpyro.design import lhs
 from solderpyro.design.acquisition import (
+    greedy_draws,
     integrated_code_variance,
     loglik_terms,
     propose,
@@ -108,6 +109,30 @@ def test_acquisitions_have_botorch_shapes_and_equal_their_closed_forms(gp4):
         assert float(acqs[1](X[b:b + 1])) == pytest.approx(float(want_l), rel=1e-4)
     with pytest.raises(ValueError, match="weights must have shape"):
         integrated_code_variance(m, mc, a[:1])
+
+
+def test_the_closed_form_greedy_choice_is_botorchs(gp4):
+    """greedy_draws (rank-1 updates) picks the same q-batch as BoTorch's
+    optimize_acqf_discrete on the BoTorch acquisitions, with the same value."""
+    from botorch.optim import optimize_acqf_discrete
+
+    box, gp = gp4
+    m = botorch_model(gp)
+    g = torch.Generator().manual_seed(2)
+    mc_u = 0.3 + 0.4 * torch.rand(30, 4, generator=g, dtype=torch.float64)
+    cand_u = 0.2 + 0.6 * torch.rand(25, 4, generator=g, dtype=torch.float64)
+    pend_u = 0.5 + 0.1 * torch.rand(2, 4, generator=g, dtype=torch.float64)
+    mc, cand, pend = (box.from_unit(v) for v in (mc_u, cand_u, pend_u))
+    y = gp.predict(box.from_unit(torch.full((1, 4), 0.45, dtype=torch.float64)))[0][0]
+    sig = 0.05
+    gr, M = loglik_terms(gp, mc, y, sig)
+    for crit, acq in (("variance", integrated_code_variance(m, mc_u, observed_weights(gp, sig),
+                                                            X_pending=pend_u)),
+                      ("loglik", qIntegratedLogLikVariance(m, mc_u, gr, M, X_pending=pend_u))):
+        Xb, _ = optimize_acqf_discrete(acq, 3, cand_u, unique=True)
+        idx, val = greedy_draws(gp, crit, mc, cand, 3, sig, y, pending=pend)
+        torch.testing.assert_close(cand_u[idx], Xb)
+        assert val == pytest.approx(float(acq(Xb[None])), rel=1e-4)
 
 
 def _toy_posterior(gp: GPSurrogate, y: torch.Tensor, n: int = 400, seed: int = 0) -> Draws:
