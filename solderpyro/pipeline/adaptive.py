@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from solderpyro.design.loop import Draws, LoopProblem, LoopResult, run_loop
 from solderpyro.pipeline.posterior import as_draws, sample_posterior
@@ -48,8 +49,17 @@ def adaptive_design(sm: SpecimenModel, s: CalibrationSettings, out: Path,
         post, inp = sample_posterior(sm, gp, s.sampler, s.seed, w, final, s.progress)
         return as_draws(sm, post, inp)
 
-    p = LoopProblem(sm.gp_box, sm.y, sm.fe,
-                    lambda X, Y: fit_surrogate(sm, s.surrogate, X, Y), sample)
+    last: list[float | None] = [None]  # the latest posterior's noise sd (PCA truncation)
+
+    def fit(X: torch.Tensor, Y: torch.Tensor) -> GPSurrogate:
+        return fit_surrogate(sm, s.surrogate, X, Y, last[0])
+
+    def sample_and_keep(gp: GPSurrogate, prev: Draws | None, final: bool) -> Draws:
+        d = sample(gp, prev, final)
+        last[0] = float(d.sigma.median())
+        return d
+
+    p = LoopProblem(sm.gp_box, sm.y, sm.fe, fit, sample_and_keep)
     log.info("design: %d Latin-hypercube runs over %s, then rounds of %d acquired + %d check "
              "runs (%s criterion) up to %d FE runs", s.design.start, ", ".join(sm.gp_box.names),
              s.design.batch, s.design.check, s.design.criterion, s.design.budget)
@@ -65,7 +75,7 @@ def save_design(r: LoopResult, names: Any, out: Path) -> None:
         w = csv.writer(f)
         w.writerow(["run", "round", "kind", *names, "converged"])
         for i in range(len(X)):
-            w.writerow([i, r.round[i], r.kind[i], *[f"{v:.8g}" for v in X[i]],
+            w.writerow([i, r.round[i], r.kind[i], *[repr(float(v)) for v in X[i]],
                         int(bool(r.ok[i]))])
     (out / "design_rounds.json").write_text(json.dumps(r.as_dict(), indent=1, default=float)
                                             + "\n")

@@ -25,7 +25,10 @@ EXACT_MODES = ("auto", "on", "off")
 class SurrogateSettings:
     """The GP surrogate (:class:`~solderpyro.surrogate.GPSurrogate`); the ``surrogate``
     config group. ``inputs``: ``"raw"`` (the box's unit cube) or ``"flow_stress"`` (log flow
-    stresses at ``inputs_T_C`` degC and ``inputs_rate`` 1/s replace s0 and Q/R)."""
+    stresses at ``inputs_T_C`` degC and ``inputs_rate`` 1/s replace s0 and Q/R).
+    ``truncation``: a PCA surrogate keeps components until the variance they leave, summed
+    over the observed values in noise variances, is at most ``truncation * sqrt(2 n)`` (a
+    chi-square no added FE run could remove; see ``GPSurrogate(resid_chi2=)``)."""
 
     kernel: str = "matern52"
     ard: bool = True
@@ -34,6 +37,7 @@ class SurrogateSettings:
     inputs: str = "flow_stress"
     inputs_T_C: float = 125.0
     inputs_rate: float = 1e-5
+    truncation: float = 0.1
 
 
 @dataclass
@@ -98,6 +102,8 @@ class CalibrationSettings:
             if getattr(sg, nm) not in ok:
                 raise ValueError(f"surrogate.{nm} must be one of {ok}, got "
                                  f"{getattr(sg, nm)!r}")
+        if not sg.truncation > 0:
+            raise ValueError(f"surrogate.truncation must be > 0, got {sg.truncation}")
         sp = self.sampler
         for nm in ("chains", "warmup", "draws", "round_warmup", "round_draws"):
             if getattr(sp, nm) < 1:

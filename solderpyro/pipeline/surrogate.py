@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 
 import torch
 
@@ -13,14 +14,16 @@ from solderpyro.surrogate import GPSurrogate
 log = logging.getLogger("solderpyro")
 
 
-def fit_surrogate(sm: SpecimenModel, s: SurrogateSettings, X: torch.Tensor, Y: torch.Tensor
-                  ) -> GPSurrogate:
+def fit_surrogate(sm: SpecimenModel, s: SurrogateSettings, X: torch.Tensor, Y: torch.Tensor,
+                  noise_sd: float | None = None) -> GPSurrogate:
     """Fit the surrogate to converged runs.
 
     Args:
         sm: the problem (its ``gp_box``, and Anand defaults for the flow-stress inputs).
         s: kernel, ARD, mean, output layout (``"pca"`` unless one value is observed), inputs.
         X: ``(n, n_fe)`` FE parameters, physical units; Y: ``(n, n_obs)`` observed outputs, um.
+        noise_sd: the noise sd (um) for the PCA truncation rule (``s.truncation``); default
+            the one the data state (none: the variance-explained rule alone).
 
     Returns:
         the fitted :class:`~solderpyro.surrogate.GPSurrogate`.
@@ -30,6 +33,12 @@ def fit_surrogate(sm: SpecimenModel, s: SurrogateSettings, X: torch.Tensor, Y: t
     output = s.output if Y.shape[1] > 1 else "batched"
     feats = input_map(s.inputs, sm.gp_box, sm.setup.space.defaults, s.inputs_T_C,
                       s.inputs_rate)
+    sd = noise_sd if noise_sd is not None else sm.priors.sigma_known
+    trunc = dict(resid_chi2=s.truncation * math.sqrt(2 * Y.shape[1]), noise_sd=sd) \
+        if sd and output == "pca" else {}
     gp = GPSurrogate(sm.gp_box, output=output, kernel=s.kernel, ard=s.ard, mean=s.mean,
-                     inputs=feats)
-    return gp.fit(X, Y)
+                     inputs=feats, **trunc)
+    gp.fit(X, Y)
+    log.info("surrogate: %s GP on %d runs, %d outputs, %d component(s)", output, len(X),
+             Y.shape[1], gp.basis.shape[1])
+    return gp

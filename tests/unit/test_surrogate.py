@@ -125,3 +125,30 @@ def test_box_maps_have_finite_gradients_for_large_linear_values():
     x = torch.tensor([10.0, 9000.0, 0.1], dtype=torch.float64, requires_grad=True)
     box.to_unit(x).sum().backward()
     assert torch.isfinite(x.grad).all()
+
+
+def test_pca_keeps_components_until_the_truncation_chi_square_is_below_its_bound():
+    """resid_chi2 with noise_sd: the PCs kept leave at most resid_chi2 noise variances of
+    truncation variance over the outputs, and one component fewer would leave more."""
+    from solderpyro.design import lhs
+    from solderpyro.params import ParameterSpace
+
+    box = ParameterSpace.seed()
+    x = lhs(box, 20, 0)
+    u = box.to_unit(x)
+    y = torch.stack([torch.sin(3 * u[:, 0] + k / 10) * (1 + u[:, 1])
+                     + 0.01 * k * u[:, 2] ** 2 * u[:, 3] + 1e-3 * torch.cos(7 * u[:, 3] * k)
+                     for k in range(30)], 1)
+    plain = GPSurrogate(box, output="pca", restarts=1).fit(x, y)
+    sd, tol = 1e-3, 1.0
+    gp = GPSurrogate(box, output="pca", restarts=1, resid_chi2=tol, noise_sd=sd).fit(x, y)
+
+    def left(g):
+        return float((g.resid_var * g.std.scale**2).sum() / sd**2)
+
+    k = gp.basis.shape[1]
+    assert left(plain) > tol >= left(gp) and k > plain.basis.shape[1]
+    fewer = GPSurrogate(box, output="pca", restarts=1, n_pc=k - 1).fit(x, y)
+    assert left(fewer) > tol
+    with pytest.raises(ValueError, match="go together"):
+        GPSurrogate(box, output="pca", noise_sd=0.1)
