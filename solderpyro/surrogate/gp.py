@@ -103,8 +103,9 @@ class GPSurrogate:
             variance the PCs leave, summed over the outputs in units of the noise variance,
             ``sum_i resid_i / noise_sd^2``, is at most this (a chi-square: the code variance
             no added run can remove; 0.1 * sqrt(2 n_y) is a tenth of the chi-square's own
-            sampling sd). Measured on 102 full-field runs (2,240 outputs, sigma 0.05 um):
-            var_explained 0.999 keeps 8 PCs and leaves 178; 15 PCs leave 4.9, 20 leave 0.7.
+            sampling sd), but never more than half as many components as runs. Measured on
+            102 full-field runs (2,240 outputs, sigma 0.05 um): var_explained 0.999 keeps 8 PCs
+            and leaves 178; 15 PCs leave 4.9, 20 leave 0.7.
         noise_sd: the data's noise sd, output units (for ``resid_chi2``).
         nugget: lower bound of the GP noise variance (standardized units), for conditioning.
         restarts: L-BFGS restarts from different initial lengthscales.
@@ -211,7 +212,9 @@ class GPSurrogate:
             per = (vt.square() * sc2).sum(1) * s.square() / ys.shape[0]  # (r,) per component
             tail = per.flip(0).cumsum(0).flip(0)  # tail[j]: left when keeping j components
             left = torch.cat([tail[1:], tail.new_zeros(1)])
-            k = max(k, int((left > self.resid_chi2).sum().item()) + 1)
+            # at most half as many components as runs: with few runs spread over the box the
+            # rule asks for nearly one per run (a GP per noise-like component, slow to fit)
+            k = max(k, min(int((left > self.resid_chi2).sum().item()) + 1, ys.shape[0] // 2))
         k = min(k, vt.shape[0])
         v = vt[:k].T  # (n_y, k)
         resid = ys - ys @ v @ v.T

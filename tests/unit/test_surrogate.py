@@ -134,13 +134,13 @@ def test_pca_keeps_components_until_the_truncation_chi_square_is_below_its_bound
     from solderpyro.params import ParameterSpace
 
     box = ParameterSpace.seed()
-    x = lhs(box, 20, 0)
+    x = lhs(box, 44, 0)
     u = box.to_unit(x)
     y = torch.stack([torch.sin(3 * u[:, 0] + k / 10) * (1 + u[:, 1])
                      + 0.01 * k * u[:, 2] ** 2 * u[:, 3] + 1e-3 * torch.cos(7 * u[:, 3] * k)
                      for k in range(30)], 1)
     plain = GPSurrogate(box, output="pca", restarts=1).fit(x, y)
-    sd, tol = 1e-3, 1.0
+    sd, tol = 1e-3, 5.0
     gp = GPSurrogate(box, output="pca", restarts=1, resid_chi2=tol, noise_sd=sd).fit(x, y)
 
     def left(g):
@@ -150,5 +150,9 @@ def test_pca_keeps_components_until_the_truncation_chi_square_is_below_its_bound
     assert left(plain) > tol >= left(gp) and k > plain.basis.shape[1]
     fewer = GPSurrogate(box, output="pca", restarts=1, n_pc=k - 1).fit(x, y)
     assert left(fewer) > tol
+    # never more components than half the runs
+    few = GPSurrogate(box, output="pca", restarts=1, resid_chi2=0.01, noise_sd=sd).fit(
+        x[:12], y[:12])
+    assert few.basis.shape[1] == 6 and left(few) > 0.01
     with pytest.raises(ValueError, match="go together"):
         GPSurrogate(box, output="pca", noise_sd=0.1)
