@@ -8,8 +8,8 @@ The same truth (solderpyro.diagnose.hidden.TRUTH and the effect's hidden value),
 at the seed times (``--times extended``: at the seven extended times, the measurement that
 separates a ridge of the seed times), noise 0.05 um with a different seed per dataset (seed 1
 is the dataset of benchmarks/hidden_effects.py); the model is calibrated with
-the effect switched on by the FE-exact step alone (solderpyro.workflow.fe_exact: the FE's best
-fit from a fixed start, the chi-square profile along the ridge, AMIS with the FE in the
+the effect switched on by the FE-exact step alone (solderpyro.pipeline.fe_exact.fe_exact: the
+FE's best fit from a fixed start, the chi-square profile along the ridge, AMIS with the FE in the
 likelihood; no surrogate). For an exact posterior each 95 % interval holds the truth in 95 % of
 the datasets on average. Each dataset's result is appended to the JSON as soon as it is done
 (a rerun skips finished seeds; FE runs are reused from the run store WORK/store).
@@ -35,15 +35,15 @@ from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.io.measurements import read_measurements
-from solderpyro.store import RunStore
-from solderpyro.workflow import (
+from solderpyro.pipeline.fe_exact import fe_exact
+from solderpyro.specimen import (
     calibration_box,
-    fe_exact,
     fe_observed,
     observation_index,
     output_points,
     split_effects,
 )
+from solderpyro.store import RunStore
 
 
 def main() -> None:

@@ -4,7 +4,8 @@ Usage: python benchmarks/coverage_specimen.py [--datasets 20] [--runs 50] [--cha
        [--warmup 300] [--draws 500] [--output batched|pca] [--kernel gaussian|matern52]
        [--inputs raw|flow_stress]
        [--var-explained 0.999]
-       [--refine N --work runs/coverage] [--only i,j,...]
+       [--workflow [--budget N] [--start N] [--exact auto|on|off] --work runs/coverage]
+       [--only i,j,...]
        [--store runs/store] [--out benchmarks/results_coverage.json]
 
 Truths are drawn from the prior (uniform on the seed box), so for an exact posterior the
@@ -12,6 +13,9 @@ coverage of a 95 % interval is 95 % on average. Each dataset: the FE at the trut
 times, plus N(0, 0.05^2) um noise (8 values), calibrated with the same 50-run LHS surrogate
 (one DOE from the run store, one GP fit) through the modular KOH posterior with NUTS, with
 the noise known to ~10 % (``Priors(sigma_known=...)``, as when the data state ``sigma_um``).
+With ``--workflow`` each dataset instead runs the whole ``solderpyro calibrate``
+(solderpyro.pipeline.calibrate_specimen: its own adaptive design of up to ``--budget`` FE runs
+from the shared run store, then NUTS, and the FE-exact step per ``--exact``).
 """
 
 from __future__ import annotations
@@ -33,13 +37,20 @@ from solderpyro.surrogate.features import input_map
 
 
 def _workflow(setup, tv, y, i, a):
-    """The whole ``calibrate_specimen`` (its own DOE from the shared store, surrogate, NUTS,
-    refinement) on dataset ``i`` written as a measurement file; its 95 % intervals."""
+    """The whole ``calibrate_specimen`` (its own adaptive design from the shared store,
+    surrogate, NUTS, the FE-exact step per ``--exact``) on dataset ``i`` written as a
+    measurement file; its 95 % intervals."""
     import csv
     from pathlib import Path
 
     from solderpyro.io.measurements import from_arrays
-    from solderpyro.workflow import calibrate_specimen
+    from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
+    from solderpyro.pipeline.settings import (
+        DesignSettings,
+        ExactSettings,
+        SamplerSettings,
+        SurrogateSettings,
+    )
 
     times, names = tv.times, list(tv.names)
     pts = [setup.problem.points[n] for n in names]
@@ -48,10 +59,16 @@ def _workflow(setup, tv, y, i, a):
                        temperature_C=[setup.problem.cycle(t) for t in times],
                        sigma_um=a.noise)
     out = Path(a.work) / f"ds{i:02d}"
-    nuts = dict(chains=a.chains, warmup=a.warmup, draws=a.draws)
+    dflt = DesignSettings()
+    start = a.start if a.start is not None else dflt.start
+    budget = a.budget if a.budget is not None else max(dflt.budget, start + dflt.check)
+    s = CalibrationSettings(
+        design=DesignSettings(start=start, budget=budget),
+        surrogate=SurrogateSettings(**setup.surrogate),
+        sampler=SamplerSettings(chains=a.chains, warmup=a.warmup, draws=a.draws),
+        exact=ExactSettings(mode=a.exact), seed=0, store=a.store, progress=False)
     if not (out / "summary.csv").exists():  # a rerun reuses finished datasets
-        calibrate_specimen(setup, meas, out, n_runs=a.runs, seed=0, store_root=a.store,
-                           nuts=nuts, progress=False, refine=a.refine, **setup.surrogate)
+        calibrate_specimen(setup, meas, out, s)
     with open(out / "summary.csv", newline="") as fh:
         rows = {r["parameter"]: r for r in csv.DictReader(fh)}
     names_t = setup.space.names
@@ -62,7 +79,8 @@ def _workflow(setup, tv, y, i, a):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--datasets", type=int, default=20)
-    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--runs", type=int, default=50,
+                    help="LHS runs of the one shared surrogate (without --workflow)")
     ap.add_argument("--chains", type=int, default=2)
     ap.add_argument("--warmup", type=int, default=300)
     ap.add_argument("--draws", type=int, default=500)
@@ -76,11 +94,18 @@ def main() -> None:
                     help="GP inputs (default: the config's surrogate.inputs)")
     ap.add_argument("--var-explained", type=float, default=0.999,
                     help="PCA: share of the standardized output variance the kept PCs explain")
-    ap.add_argument("--refine", type=int, default=0,
-                    help="run the whole workflow (solderpyro.workflow.calibrate_specimen) per "
-                         "dataset with this many refinement runs (FE anchor + posterior "
-                         "region); 0: one shared surrogate, no refinement")
-    ap.add_argument("--work", default="runs/coverage", help="run directories (--refine)")
+    ap.add_argument("--workflow", action="store_true",
+                    help="run the whole calibration (solderpyro.pipeline.calibrate_specimen: "
+                         "an adaptive design per dataset) instead of the one shared surrogate")
+    ap.add_argument("--budget", type=int, default=None,
+                    help="--workflow: most FE runs of each adaptive design (default: "
+                         "calibrate's)")
+    ap.add_argument("--start", type=int, default=None,
+                    help="--workflow: Latin-hypercube runs before the first round (default: "
+                         "calibrate's)")
+    ap.add_argument("--exact", default="auto", choices=("auto", "on", "off"),
+                    help="--workflow: the FE-exact step (calibrate --exact)")
+    ap.add_argument("--work", default="runs/coverage", help="run directories (--workflow)")
     ap.add_argument("--only", default="", help="comma-separated dataset indices to run "
                     "(default: all; the truths and noise draws do not depend on it)")
     ap.add_argument("--store", default="runs/store")
@@ -96,7 +121,7 @@ def main() -> None:
     y_sim = doe.V.reshape(doe.V.shape[0], -1)  # (n_runs, n_time * n_out)
     kernel = a.kernel or setup.surrogate["kernel"]
     inputs = a.inputs or setup.surrogate["inputs"]
-    setup.surrogate.update(kernel=kernel, output=a.output, inputs=inputs)  # for --refine
+    setup.surrogate.update(kernel=kernel, output=a.output, inputs=inputs)  # for --workflow
     feats = input_map(inputs, sp, sp.defaults, setup.surrogate["inputs_T_C"],
                       setup.surrogate["inputs_rate"])
     gp = GPSurrogate(sp, output=a.output, kernel=kernel, ard=True, inputs=feats,
@@ -113,7 +138,7 @@ def main() -> None:
         y = tv.V[i].reshape(-1) + a.noise * torch.as_tensor(rng.standard_normal(y_sim.shape[1]))
         if i not in only:
             continue
-        if a.refine > 0:
+        if a.workflow:
             lo, hi = _workflow(setup, tv, y, i, a)
         else:
             pr = Priors(sigma_known=a.noise)  # the data state their noise, as the demo's do
@@ -133,7 +158,8 @@ def main() -> None:
             json.dump({"per_dataset": rows}, f)
     res = {"datasets": a.datasets, "runs": a.runs, "noise_um": a.noise, "output": a.output,
            "kernel": kernel, "inputs": inputs,
-           "refine": a.refine,
+           "workflow": a.workflow,
+           **({"budget": a.budget, "start": a.start, "exact": a.exact} if a.workflow else {}),
            "n_pc": int(gp.basis.shape[1]),
            "coverage": dict(zip(sp.names, hits[sorted(only)].mean(0).tolist(), strict=True)),
            "only": sorted(only),

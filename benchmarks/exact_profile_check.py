@@ -37,7 +37,7 @@ from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.fit import lm_fit
 from solderpyro.io.measurements import read_measurements
-from solderpyro.workflow import (
+from solderpyro.specimen import (
     calibration_box,
     fe_observed,
     observation_index,

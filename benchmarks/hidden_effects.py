@@ -2,8 +2,14 @@
 -> calibrate again, for one dataset per effect plus a clean one, full-field and point data.
 
 Usage: python benchmarks/hidden_effects.py [--kind field|point|both] [--effects a,b,...]
-       [--runs 50] [--chains 2] [--warmup 300] [--draws 500] [--work runs/hidden] [--store DIR]
+       [--budget N] [--start N] [--q N] [--chains 2] [--warmup 300] [--draws 500]
+       [--exact auto|on|off] [--work runs/hidden] [--store DIR]
        [--out benchmarks/results_hidden.json]
+
+Every calibration is ``solderpyro calibrate``'s (solderpyro.pipeline.calibrate_specimen: the
+adaptive design up to ``--budget`` FE runs, then NUTS); the FE-exact posterior and profile
+intervals (``--exact``) apply to the 'add it' calibrations only: the base one misfits by
+design (the hidden effect), so it runs with ``exact.mode=off``.
 
 Each case's result is appended to the JSON file as soon as it is done (a rerun skips finished
 cases; FE runs are reused from the run store). Full-field data: the 31 x 18 grid (+ A, B) at
@@ -29,21 +35,37 @@ from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.effects import EFFECTS
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.io.measurements import read_measurements
-from solderpyro.workflow import calibrate_specimen, output_points
+from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
+from solderpyro.pipeline.settings import (
+    DesignSettings,
+    ExactSettings,
+    SamplerSettings,
+    SurrogateSettings,
+)
+from solderpyro.specimen import output_points
+
+
+def _settings(setup, a, refit: bool) -> CalibrationSettings:
+    """``solderpyro calibrate``'s settings from this script's options; the FE-exact step
+    (``--exact``) for the 'add it' fits only."""
+    dflt = DesignSettings()
+    start = a.start if a.start is not None else dflt.start
+    budget = a.budget if a.budget is not None else max(dflt.budget, start + dflt.check)
+    return CalibrationSettings(
+        design=DesignSettings(start=start, batch=a.q, budget=budget),
+        surrogate=SurrogateSettings(**setup.surrogate),
+        sampler=SamplerSettings(chains=a.chains, warmup=a.warmup, draws=a.draws),
+        exact=ExactSettings(mode=a.exact if refit else "off", runs=a.exact_runs,
+                            rounds=a.exact_rounds, profile=a.exact_profile,
+                            profile_ci=not a.no_profile_ci),
+        seed=0, store=a.store or a.work + "/store", progress=False)
 
 
 def _calibrate(overrides, data, out, a, refit=False):
     setup = build(compose(overrides))
     meas = read_measurements(data, valid_points=output_points(setup.problem))
-    nuts = dict(chains=a.chains, warmup=a.warmup, draws=a.draws)
-    store = a.store or a.work + "/store"
-    # refinement: the "add it" fits only
-    extra = dict(refine=a.refine, refine_rounds=a.refine_rounds, local=a.local,
-                 exact=a.exact, exact_rounds=a.exact_rounds,
-                 exact_profile=a.exact_profile, profile_ci=a.profile_ci) if refit else {}
-    return calibrate_specimen(setup, meas, out, n_runs=a.runs, store_root=store, nuts=nuts,
-                              progress=False, record={"overrides": overrides},
-                              **extra, **setup.surrogate)
+    return calibrate_specimen(setup, meas, out, _settings(setup, a, refit),
+                              record={"overrides": overrides})
 
 
 def _covered(run_dir: Path, truth: dict) -> dict:
@@ -63,26 +85,29 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--kind", default="field", choices=("field", "point", "both"))
     ap.add_argument("--effects", default="", help="hidden effects (default: all + clean)")
-    ap.add_argument("--runs", type=int, default=50)
+    ds, es = DesignSettings(), ExactSettings()
+    ap.add_argument("--budget", type=int, default=None,
+                    help=f"most FE runs of each adaptive design (default {ds.budget})")
+    ap.add_argument("--start", type=int, default=None,
+                    help=f"Latin-hypercube runs before the first round (default {ds.start})")
+    ap.add_argument("--q", type=int, default=ds.batch, help="FE runs acquired per round")
     ap.add_argument("--chains", type=int, default=2)
     ap.add_argument("--warmup", type=int, default=300)
     ap.add_argument("--draws", type=int, default=500)
     ap.add_argument("--work", default="runs/hidden")
     ap.add_argument("--store", default="", help="FE run store (default: WORK/store)")
     ap.add_argument("--out", default="benchmarks/results_hidden.json")
-    ap.add_argument("--refine", type=int, default=0,
-                    help="FE runs per refinement round of the 'add it' calibrations")
-    ap.add_argument("--refine-rounds", type=int, default=1)
-    ap.add_argument("--local", action="store_true",
-                    help="refine in the local region (calibrate --local)")
-    ap.add_argument("--exact", type=int, default=0,
-                    help="FE runs per round of the FE-exact posterior of the 'add it' "
-                         "calibrations (calibrate --exact)")
-    ap.add_argument("--exact-rounds", type=int, default=3)
-    ap.add_argument("--exact-profile", type=int, default=9)
-    ap.add_argument("--profile-ci", action="store_true",
-                    help="with --exact: profile-likelihood intervals of the 'add it' fits "
-                         "(calibrate --profile-ci), and whether they hold the truth")
+    ap.add_argument("--exact", default=es.mode, choices=("auto", "on", "off"),
+                    help="the FE-exact posterior and profile-likelihood intervals of the 'add "
+                         "it' calibrations (calibrate --exact; auto: when the design's budget "
+                         "runs out with the FE disagreeing); the base calibrations: off")
+    ap.add_argument("--exact-runs", type=int, default=es.runs,
+                    help="FE runs per importance-sampling round")
+    ap.add_argument("--exact-rounds", type=int, default=es.rounds)
+    ap.add_argument("--exact-profile", type=int, default=es.profile)
+    ap.add_argument("--no-profile-ci", action="store_true",
+                    help="skip the profile-likelihood intervals after the FE-exact step "
+                         "(else: whether they hold the truth is recorded)")
     ap.add_argument("--with-dir", default="with_{e}",
                     help="directory name of an 'add it' calibration ({e}: the effect)")
     a = ap.parse_args()
@@ -114,6 +139,8 @@ def main() -> None:
             run = json.loads((d / "base" / "run.json").read_text())
             rec = {"kind": kind, "hidden": h, "hidden_values": meta.get("hidden_values"),
                    "surrogate": f"{run.get('surrogate_inputs')} ({run.get('kernel')})",
+                   "design_base": {k: (run.get("design") or {}).get(k)
+                                   for k in ("reason", "fe_runs")},
                    "hidden_rms_point_um": meta.get("hidden_rms_point_um"),
                    "misfit": dg.misfit, "verdict": dg.verdict,
                    "ranking": [(r["effect"], r["evidence"], r["flagged"]) for r in dg.ranking],
@@ -141,6 +168,8 @@ def main() -> None:
                                  "covered_after": _covered(wd, truth),
                                  "intervals": _intervals(wd),
                                  "fe_check": info.get("fe_check"),
+                                 "design": {k: (info.get("design") or {}).get(k)
+                                            for k in ("reason", "fe_runs")},
                                  "posterior": info.get("posterior", "surrogate"),
                                  **({"exact": {k: ex.get(k) for k in (
                                      "ess", "khat", "reliable", "fe_runs", "coordinates")}}

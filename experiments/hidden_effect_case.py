@@ -6,9 +6,9 @@ calibrate -> diagnose -> calibrate with the top-ranked effect -> before/after.
 Options (``+case.<key>=...``): ``effect`` (an effect name, or ``none`` for clean data; default
 thermal_lag), ``field`` (full-field grid at the output times instead of A, B; default true),
 ``noise`` (um, 0.05), ``seed`` (0), ``draws`` (posterior draws of the diagnosis, 2),
-``candidates`` (a list of effect names to test; default all). The
-calibration settings are the ``calibration`` group's (``calibration.design.budget=80`` ...) and every
-other override changes the model as usual. Outputs go to the Hydra run directory: data.csv,
+``candidates`` (a list of effect names to test; default all). The calibration settings are
+the ``calibration`` group's (``calibration.design.budget=80`` ...) and every other override
+changes the model as usual. Outputs go to the Hydra run directory: data.csv,
 base/ (calibration + diagnosis), with_<effect>/ (calibration + comparison.md).
 See docs/diagnosis.md.
 """

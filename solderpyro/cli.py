@@ -185,7 +185,7 @@ def _settings(a, setup):
 
     dflt = DesignSettings()
     start = a.start if a.start is not None else dflt.start
-    budget = a.budget if a.budget is not None else max(dflt.budget, start)
+    budget = a.budget if a.budget is not None else max(dflt.budget, start + dflt.check)
     design = DesignSettings(start=start, batch=a.q, budget=budget,
                             criterion=a.criterion, optimizer=a.optimizer)
     return CalibrationSettings(

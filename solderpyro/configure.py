@@ -18,8 +18,10 @@ from .fem.loading import EXTENDED_TIMES, SEED_TIMES, ThermalCycle, TimeStepping
 from .fem.mesh import Layer, MeshSpec
 from .fem.problem import LAWS, Problem
 from .params import ANAND_NAMES, Box, ParameterSpace, check_anand_values
+from .pipeline.settings import register_configs
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+register_configs()  # the calibration group's schema, also for @hydra.main scripts
 
 
 def compose(overrides: list[str] | None = None, config_name: str = "config"):
@@ -31,9 +33,6 @@ def compose(overrides: list[str] | None = None, config_name: str = "config"):
 
     if not CONFIG_DIR.is_dir():
         raise FileNotFoundError(f"config directory not found: {CONFIG_DIR}")
-    from .pipeline.settings import register_configs
-
-    register_configs()  # the calibration group's schema (CalibrationSettings)
     from hydra.core.global_hydra import GlobalHydra
 
     try:

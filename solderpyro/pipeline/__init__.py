@@ -13,10 +13,27 @@
 :func:`calibrate_specimen` (:mod:`.calibrate`) runs them; :class:`CalibrationSettings`
 (:mod:`.settings`) holds every setting. A new stage is a module here and a line in
 :mod:`.calibrate`; a new acquisition function goes to :mod:`solderpyro.design.acquisition`.
+
+The names below load on first use, so that :mod:`solderpyro.configure` can import
+:mod:`.settings` (the Hydra schema) without the stages.
 """
 
-from solderpyro.pipeline.calibrate import calibrate_specimen
-from solderpyro.pipeline.outputs import SpecimenCalibration
-from solderpyro.pipeline.settings import CalibrationSettings
+from typing import Any
 
 __all__ = ["CalibrationSettings", "SpecimenCalibration", "calibrate_specimen"]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "calibrate_specimen":
+        from solderpyro.pipeline.calibrate import calibrate_specimen
+
+        return calibrate_specimen
+    if name == "SpecimenCalibration":
+        from solderpyro.pipeline.outputs import SpecimenCalibration
+
+        return SpecimenCalibration
+    if name == "CalibrationSettings":
+        from solderpyro.pipeline.settings import CalibrationSettings
+
+        return CalibrationSettings
+    raise AttributeError(f"module 'solderpyro.pipeline' has no attribute {name!r}")

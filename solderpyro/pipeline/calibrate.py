@@ -113,9 +113,6 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
     post.save(out / "posterior.nc")
     bands = predict_observation_model(post, inp, None, seed=s.seed)
-    tally = sm.tally
-    ok_runs = loop.ok
-    doe = SimpleNamespace(ok=ok_runs, n_reused=tally.n_reused, n_computed=tally.n_computed)
     nk = {"chains": s.sampler.chains, "draws": s.sampler.draws, "warmup": s.sampler.warmup}
     run_exact = s.exact.mode == "on" or (
         s.exact.mode == "auto" and not loop.converged and not loop.rounds[-1].fe_ok)
@@ -168,6 +165,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                          + "; see 'Identifiability' below for the measurement that would "
                          "narrow them")
         ti, oi = sm.index
+        t = sm.tally  # every FE run of the calibration so far (Liu, design, checks, exact)
+        doe = SimpleNamespace(ok=torch.tensor([True] * t.n_ok + [False] * t.n_failed),
+                              n_reused=t.n_reused, n_computed=t.n_computed)
         report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk,
                      ex_rows, notes,
                      exact=(ex, ex_info, draws, space) if ex is not None else None)

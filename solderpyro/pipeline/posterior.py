@@ -16,11 +16,12 @@ from solderpyro.surrogate import GPSurrogate
 def nuts_options(s: SamplerSettings, seed: int, progress: bool, final: bool = True
                  ) -> dict[str, Any]:
     """Keyword arguments of :func:`~solderpyro.calibration.mcmc.run_nuts`: the full length
-    when ``final``, else the design rounds' shorter one. Chains start at likelihood-resampled
-    prior draws: the specimen posterior can have minor modes a random start never leaves."""
-    return dict(chains=s.chains, warmup=s.warmup if final else s.round_warmup,
-                draws=s.draws if final else s.round_draws, seed=seed, progress=progress,
-                init="sir", workers=s.workers or None)
+    when ``final``, else the design rounds' (never longer than the final one). Chains start
+    at likelihood-resampled prior draws: the specimen posterior can have minor modes a random
+    start never leaves."""
+    return dict(chains=s.chains, warmup=s.warmup if final else min(s.round_warmup, s.warmup),
+                draws=s.draws if final else min(s.round_draws, s.draws), seed=seed,
+                progress=progress, init="sir", workers=s.workers or None)
 
 
 def sample_posterior(sm: SpecimenModel, gp: GPSurrogate, s: SamplerSettings, seed: int,

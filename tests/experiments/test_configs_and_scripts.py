@@ -110,56 +110,114 @@ def test_experiment_script_runs_tiny(tmp_path):
     assert len(m) == 4 and (tmp_path / "cycle.png").stat().st_size > 10_000
 
 
-CAL_TINY = ["--runs", "10", "--chains", "2", "--warmup", "60", "--draws", "60", "--quiet"]
+NUTS_TINY = ["--chains", "2", "--warmup", "60", "--draws", "60", "--quiet"]
+# the adaptive design at its smallest: 10 LHS runs and one round (4 FE checks at posterior
+# draws; the budget leaves no room for more); the FE-exact step off unless asked
+CAL_TINY = ["--start", "10", "--budget", "14", "--q", "4", "--exact", "off", *NUTS_TINY]
+# two rounds: 10 LHS + round 1 (4 checks, 4 acquired) + round 2 (4 checks)
+DEMO_TINY = ["--start", "10", "--budget", "22", "--q", "4", *NUTS_TINY]
+
+
+def _stored(store: Path) -> dict[str, np.ndarray]:
+    """Every stored FE run's solver row (the nine Anand constants, then any effect
+    parameters), by file name."""
+    return {p.name: np.array(list(json.loads(p.read_text())["params"].values()), float)
+            for p in store.glob("*/runs/*.json")}
 
 
 def test_demo_command_runs_tiny(tmp_path):
-    """Simulate, then calibrate on synthetic data; `calibrate` on the same data reuses the
-    stored runs and writes the contract's summary.csv."""
-    assert main(["demo", "--out", str(tmp_path), *CAL_TINY, *TINY]) == 0
+    """Simulate, then calibrate on synthetic data by the adaptive design (design.csv holds
+    every FE run it made, the run store every FE run at all); `calibrate` on the same data and
+    store proposes the same runs and reuses every one, then runs the FE-exact posterior and
+    the profile intervals, whose FE runs are kept in the store too."""
+    import csv
+
+    from solderpyro.specimen import fe_params
+    from solderpyro.store import param_hash
+
+    assert main(["demo", "--out", str(tmp_path), *DEMO_TINY, "--exact", "off", *TINY]) == 0
     assert (tmp_path / "cycle.png").exists() and len(read_measurements(
         tmp_path / "simulation.csv")) > 4
     cal = tmp_path / "calibration"
     for f in ("report.md", "summary.csv", "posterior.nc", "fig8_literature.png",
-              "fig9_posterior.png", "fig10_predictive.png", "surrogate_loo.png"):
+              "fig9_posterior.png", "fig10_predictive.png", "surrogate_loo.png",
+              "design.csv", "design_rounds.json", "design.png"):
         assert (cal / f).stat().st_size > 100, f
-    stored = {p.name for p in (tmp_path / "store").glob("*/runs/*.json")}
-    # 10 LHS runs + the Liu 2008 run + the FE check's 8 posterior draws: nothing lost
-    assert 11 < len(stored) <= 19
-    assert "(0 reused from the run store, 11 computed)" in (cal / "report.md").read_text()
+    setup = build(compose(TINY))
+    box = setup.space
+    info = json.loads((cal / "run.json").read_text())
+    des = info["design"]
+    assert "fe_best_fit" not in info and "local_region" not in info
+    assert info["settings"]["design"]["budget"] == 22
+    assert info["settings"]["exact"]["mode"] == "off"
+    assert isinstance(info["trust"], str) and info["trust"]
+    assert des["reason"] in ("converged", "budget") and des["message"]
+    # the design's arithmetic: 10 LHS runs; each round 4 checks, and 4 acquired runs when it
+    # does not stop and the budget leaves room for them and the next round's checks; at 22
+    # runs the next round's checks would exceed the budget: round 2 is the last
+    with (cal / "design.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    kinds = [r["kind"] for r in rows]
+    n_rounds = len(des["rounds"])
+    assert n_rounds in (1, 2) and (des["reason"] == "converged" or n_rounds == 2)
+    assert kinds[:10] == ["start"] * 10 and {r["round"] for r in rows[:10]} == {"0"}
+    assert kinds.count("check") == 4 * n_rounds
+    assert kinds.count("acquired") == 4 * (n_rounds - 1) == sum(
+        r["acquired"] for r in des["rounds"])
+    assert len(rows) == des["fe_runs"] == info["n_runs"] == 10 + 8 * n_rounds - 4 <= 22
+    assert json.loads((cal / "design_rounds.json").read_text())["reason"] == des["reason"]
+    X = torch.tensor([[float(r[n]) for n in box.names] for r in rows], dtype=torch.float64)
+    lo_t, hi_t = (torch.tensor(b, dtype=torch.float64) for b in (box.lower, box.upper))
+    assert bool(((X >= lo_t * (1 - 1e-7)) & (X <= hi_t * (1 + 1e-7))).all())  # in the box
+    # nothing lost: every design run is in the store (design.csv keeps 8 significant digits),
+    # and the store holds exactly what was computed: the Liu 2008 run, the design and the FE
+    # check's 8 posterior draws (fewer only where a draw repeats)
+    store = _stored(tmp_path / "store")
+    S = np.stack(list(store.values()))
+    for x in fe_params(setup, X).numpy():
+        assert np.isclose(S, x, rtol=1e-7, atol=0.0).all(1).any(), x
+    chk = info["fe_check"]
+    assert chk["draws"] == 8 and len(rows) + 1 < len(store) <= len(rows) + 1 + chk["draws"]
+    n = len(store)
+    conv = sum(int(r["converged"]) for r in rows)
+    assert (f"FE runs: {conv} converged, {len(rows) - conv} failed (0 reused from the run "
+            f"store, {n} computed)") in (cal / "report.md").read_text()
     out = tmp_path / "again"
     assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(out),
-                 "--store", str(tmp_path / "store"), "--exact", "6", "--exact-rounds", "2",
-                 "--exact-profile", "3", "--refine", "5", "--profile-ci", *CAL_TINY,
+                 "--store", str(tmp_path / "store"), *DEMO_TINY, "--exact", "on",
+                 "--exact-runs", "6", "--exact-rounds", "2", "--exact-profile", "3",
                  *TINY]) == 0
-    assert "(11 reused from the run store, 0 computed)" in (out / "report.md").read_text()
+    # the same settings and data: the same design, every run (and the FE check) from the store
+    assert f"({n} reused from the run store, 0 computed)" in (out / "report.md").read_text()
+    info = json.loads((out / "run.json").read_text())
+    assert info["design"]["reason"] == des["reason"]
+    with (out / "design.csv").open(newline="") as fh:
+        assert list(csv.DictReader(fh)) == rows
     # every FE run of the FE-exact step is in the store (the importance samples included)
-    from solderpyro.store import param_hash
-    from solderpyro.specimen import fe_params
-
     smp = np.load(out / "exact_samples.npz")
     inside = np.isfinite(smp["log_target"])
     assert inside.sum() >= 6 and smp["theta"].shape == (12, 4)
-    rows = fe_params(build(compose(TINY)), torch.as_tensor(smp["theta"][inside]))
+    solver_rows = fe_params(setup, torch.as_tensor(smp["theta"][inside]))
     names = {p.name for p in (tmp_path / "store").glob("*/runs/*.json")}
-    assert {f"{param_hash(r)}.json" for r in rows} <= names
-    assert len(names) >= len(stored) + 5 + int(inside.sum())
+    assert {f"{param_hash(r)}.json" for r in solver_rows} <= names
+    # ... and the best fit's forward differences (2 starts x 4 parameters in its first step)
+    assert len(names) >= n + 8 + int(inside.sum())
     ex = (out / "exact_posterior.csv").read_text().splitlines()
     assert ex[0] == ("parameter,q2.5,median,mean,q97.5,surrogate_q2.5,surrogate_median,"
                      "surrogate_q97.5,ess,khat") and len(ex) == 6
     assert 1.0 <= float(ex[1].split(",")[-2]) <= 12.0  # Kish ESS of 12 weights
     assert "## FE-exact posterior" in (out / "report.md").read_text()
     assert (out / "exact_posterior.png").stat().st_size > 1000
-    info = json.loads((out / "run.json").read_text())
     ex_info = info["exact"]
+    assert info["settings"]["exact"] == {"mode": "on", "runs": 6, "rounds": 2, "profile": 3,
+                                         "profile_ci": True}
     assert info["posterior"] == ("fe-exact" if ex_info["reliable"] else "surrogate")
     assert len(ex_info["rounds"]) == 2 and ex_info["samples"] == 12
-    # --profile-ci: a profile-likelihood interval per calibrated parameter inside the box, each
-    # end flagged when it is the box's bound; every profile fit's FE run is in the store
+    # the profile-likelihood intervals: one per calibrated parameter inside the box, each end
+    # flagged when it is the box's bound; every profile fit's FE run is in the store
     pci = (out / "profile_ci.csv").read_text().splitlines()
     assert pci[0] == ("parameter,lower,upper,at_lower_bound,at_upper_bound,truncated,"
                       "posterior_q2.5,posterior_q97.5")
-    box = build(compose(TINY)).space
     assert [r.split(",")[0] for r in pci[1:]] == list(box.names)
     for r, lo_b, hi_b in zip(pci[1:], box.lower, box.upper, strict=True):
         f = r.split(",")
@@ -169,13 +227,13 @@ def test_demo_command_runs_tiny(tmp_path):
         assert (f[4] == "true") == (abs(hi - hi_b) < 1e-6)
     assert len(ex_info["profile_ci"]) == 4
     n_prof = sum(len(p["grid"]) for p in ex_info["profile_ci"])
-    assert len(names) >= len(stored) + int(inside.sum()) + n_prof
+    assert len(names) >= n + int(inside.sum()) + n_prof
     assert len(ex_info["profile"]["values"]) >= 3
-    fit = info["fe_best_fit"]
-    assert fit["chi2"] <= fit["chi2_at_posterior_median"] + 1e-9  # LM never goes uphill
-    # the FE check at the posterior median: its chi2 and RMS describe the same residuals, and
-    # the report warns exactly when the FE misfits by more than 1.5 noise sd
+    # the best fit starts at the FE check's best draw: Levenberg-Marquardt never goes uphill
     chk = info["fe_check"]
+    assert ex_info["best_fit"]["chi2"] <= chk["chi2"] * (1 + 1e-9)
+    # the FE check at posterior draws: its chi2 and RMS describe the same residuals, and the
+    # report warns exactly when the FE misfits by more than 1.5 noise sd
     assert chk["n"] == len(read_measurements(tmp_path / "data.csv"))
     assert chk["chi2"] == pytest.approx(chk["n"] * chk["rms_over_sigma"] ** 2, rel=1e-9)
     assert chk["draws"] == 8 and chk["ok"] == (chk["rms_over_sigma"] <= 1.5 or chk["chi2"]
@@ -184,55 +242,6 @@ def test_demo_command_runs_tiny(tmp_path):
     rows = (out / "summary.csv").read_text().splitlines()
     assert rows[0] == "parameter,q2.5,median,mean,q97.5"
     assert [r.split(",")[0] for r in rows[1:]] == ["s0", "QR", "xi", "m", "sigma"]
-    # --local: all 6 runs in the region around the FE's best fit; every draw inside it
-    loc = tmp_path / "local"
-    n_before = len(list((tmp_path / "store").glob("*/runs/*.json")))
-    assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(loc),
-                 "--store", str(tmp_path / "store"), "--refine", "6", "--local",
-                 *CAL_TINY, *TINY]) == 0
-    # the 6 region runs, and the FE-anchor's and FE check's runs (all kept)
-    assert len(list((tmp_path / "store").glob("*/runs/*.json"))) >= n_before + 6
-    info = json.loads((loc / "run.json").read_text())
-    reg = info["local_region"]
-    assert reg["half_width_sd"] == 3.5
-    np.testing.assert_allclose(reg["center"], info["fe_best_fit"]["x"], rtol=1e-9)
-    from solderpyro.params import Box, LocalBox
-    outer = Box(tuple(info["parameters"]), tuple(info["lower"]), tuple(info["upper"]))
-    lb = LocalBox(outer.names, tuple(reg["bounding_lower"]), tuple(reg["bounding_upper"]),
-                  outer=outer, center=tuple(outer.to_unit(torch.tensor(reg["center"])).tolist()),
-                  basis=tuple(map(tuple, reg["basis_unit"])))
-    u = lb.to_unit(torch.tensor(np.load(loc / "draws.npz")["theta"]))
-    assert float(u.min()) >= 0.0 and float(u.max()) <= 1.0
-    assert "local region" in (loc / "report.md").read_text()
-
-
-def test_fe_anchor_finds_the_truth_from_a_far_start():
-    """Noise-free data at a known theta: from a start across the box (and a stored run far
-    away), the FE's Levenberg-Marquardt fit gets chi2 near 0 and its refinement box holds the
-    truth."""
-    import torch
-
-    from solderpyro.fem.solver import SpecimenSolver
-    from solderpyro.workflow import fe_anchor, fe_params
-
-    torch.set_num_threads(1)
-    setup = build(compose(TINY))
-    sp = setup.space
-    solver = SpecimenSolver(setup.problem, dtype=setup.dtype)
-    truth = torch.tensor([[12.92, 10586.0, 2.04, 0.1]], dtype=torch.float64)
-    res = solver.solve(fe_params(setup, truth), setup.times)
-    n_t, n_o = res.V.shape[1:]
-    ti, oi = np.repeat(np.arange(n_t), n_o), np.tile(np.arange(n_o), n_t)
-    y = res.V[0, ti, oi]
-    far = torch.tensor([8.0, 12000.0, 3.5, 0.2], dtype=torch.float64)
-    X = torch.tensor([[20.0, 8000.0, 4.0, 0.4]], dtype=torch.float64)
-    Y = solver.solve(fe_params(setup, X), setup.times).V[:, ti, oi]
-    fit = fe_anchor(solver, setup, setup.times, ti, oi, y, 0.05, sp, sp.dim, far, X, Y,
-                    iters=12)
-    assert fit["chi2"] < 1.0 < fit["chi2_start"]  # chi2 < 1: within 0.05 um x sqrt(1/n)
-    b = fit["box"]
-    assert all(lo <= t <= hi for lo, t, hi in zip(b.lower, truth[0].tolist(), b.upper,
-                                                    strict=True))
 
 
 def test_calibrate_rejects_points_not_in_the_model(tmp_path, capsys):
@@ -246,19 +255,32 @@ def test_calibrate_rejects_points_not_in_the_model(tmp_path, capsys):
     assert "'Q'" in err and "line 3" in err
 
 
-def test_calibrate_names_bad_refinement_flags(tmp_path, capsys):
+def test_calibrate_names_bad_design_and_exact_flags(tmp_path, capsys):
+    """Bad settings are named before any FE run: the design's (budget below the start plus one
+    round's checks, a start too small for a surrogate of 4 parameters, q = 0), the FE-exact
+    step's, the sampler's; a bad choice is argparse's error."""
     good = tmp_path / "good.csv"
     good.write_text("time_s,temperature_C,point,x_mm,y_mm,quantity,value_um,sigma_um\n"
                     "600,75,A,15,4.5,V,7.7,0.05\n")
-    for flags, name in ((["--exact", "1"], "--exact"), (["--profile-ci"], "--profile-ci"),
-                        (["--exact", "8", "--exact-rounds", "0"], "--exact-rounds"),
-                        (["--exact", "8", "--exact-profile", "1"], "--exact-profile"),
-                        (["--local"], "--local"), (["--refine", "4", "--local", "--local-sd",
-                                                    "0"], "--local-sd")):
+    for flags, name in ((["--budget", "5"], "design.budget"),  # default start 30
+                        (["--start", "12", "--budget", "15"], "design.budget (15)"),
+                        (["--start", "5"], "design.start must be >= 6"),
+                        (["--q", "0"], "design.batch"),
+                        (["--exact-runs", "1"], "runs=1"),
+                        (["--exact-rounds", "0"], "rounds=0"),
+                        (["--exact-profile", "1"], "profile=1"),
+                        (["--chains", "0"], "sampler.chains"),
+                        (["--batch", "0"], "batch must be >= 1")):
         assert main(["calibrate", "--data", str(good), "--out", str(tmp_path / "o"),
-                     "--store", str(tmp_path / "s"), *flags, *CAL_TINY, *TINY]) == 2, flags
+                     "--store", str(tmp_path / "s"), *NUTS_TINY, *flags, *TINY]) == 2, flags
         assert name in capsys.readouterr().err, flags
-    assert not (tmp_path / "s").exists()  # nothing was computed
+    for flags in (["--criterion", "entropy"], ["--exact", "8"], ["--optimizer", "grid"]):
+        with pytest.raises(SystemExit) as e:
+            main(["calibrate", "--data", str(good), "--out", str(tmp_path / "o"),
+                  "--store", str(tmp_path / "s"), *NUTS_TINY, *flags, *TINY])
+        assert e.value.code == 2 and f"argument {flags[0]}: invalid choice" in \
+            capsys.readouterr().err, flags
+    assert not (tmp_path / "s").exists() and not (tmp_path / "o").exists()  # nothing computed
 
 
 def test_calibrate_experiment_script_runs_tiny(tmp_path):
@@ -266,8 +288,11 @@ def test_calibrate_experiment_script_runs_tiny(tmp_path):
     assert main(["simulate", "--theta", "s0=12.9,m=0.1", "--noise", "0.05", "--out", str(data),
                  "--quiet", *TINY]) == 0
     r = subprocess.run([sys.executable, str(ROOT / "experiments" / "calibrate.py"), *TINY,
-                        f"data.path={data}", "calibration.runs=8", "calibration.chains=1",
-                        "calibration.warmup=50", "calibration.draws=50",
+                        f"data.path={data}", "calibration.design.start=8",
+                        "calibration.design.budget=12", "calibration.sampler.chains=1",
+                        "calibration.sampler.warmup=50", "calibration.sampler.draws=50",
+                        "calibration.sampler.round_warmup=50",
+                        "calibration.sampler.round_draws=50", "calibration.exact.mode=off",
                         f"calibration.store={tmp_path / 'store'}", "surrogate=matern",
                         f"hydra.run.dir={tmp_path / 'run'}"],
                        capture_output=True, text=True, timeout=600)
@@ -304,8 +329,11 @@ def test_hidden_effect_case_script_runs_tiny(tmp_path):
     r = subprocess.run([sys.executable, str(ROOT / "experiments" / "hidden_effect_case.py"),
                         *TINY, "+case.effect=thermal_lag", "+case.field=false", "+case.draws=1",
                         "+case.candidates=[thermal_lag,cte_temperature]",
-                        "calibration.runs=12", "calibration.chains=1", "calibration.warmup=80",
-                        "calibration.draws=80", f"calibration.store={tmp_path / 'store'}",
+                        "calibration.design.start=12", "calibration.design.budget=16",
+                        "calibration.sampler.chains=1", "calibration.sampler.warmup=80",
+                        "calibration.sampler.draws=80", "calibration.sampler.round_warmup=80",
+                        "calibration.sampler.round_draws=80", "calibration.exact.mode=off",
+                        f"calibration.store={tmp_path / 'store'}",
                         f"hydra.run.dir={tmp_path / 'run'}"],
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]

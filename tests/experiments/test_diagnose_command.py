@@ -14,7 +14,10 @@ from solderpyro.diagnose.hidden import make_dataset
 TINY = ["experiment=quick", "loading.times_s=[0,600,900,1500]",
         "loading.temps_C=[25,75,75,25]", "loading.output_times=[600,900,1500]"]
 TIMES = (600.0, 900.0, 1500.0)
-CAL = ["--runs", "16", "--chains", "1", "--warmup", "100", "--draws", "100", "--quiet"]
+# one design round: 16 LHS runs + 4 FE checks (+ the final FE check's 8), as the 16-run LHS
+# was; no FE-exact step (the lag data misfit: "auto" would run it)
+CAL = ["--start", "16", "--budget", "20", "--exact", "off", "--chains", "1", "--warmup", "100",
+       "--draws", "100", "--quiet"]
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,8 @@ import torch
 from solderpyro.configure import build, compose
 from solderpyro.diagnose.run import STAGES, FeRuns, _cost_lines, _Costs
 from solderpyro.effects import effect_set
-from solderpyro.store import RunStore, config_hash
 from solderpyro.specimen import fe_params
+from solderpyro.store import RunStore, config_hash
 
 TINY = ["experiment=quick", "loading.times_s=[0,600,900,1500]",
         "loading.temps_C=[25,75,75,25]", "loading.output_times=[600,900,1500]"]

@@ -14,6 +14,7 @@ from solderpyro.exact import (
     exact_posterior,
     fe_profile,
     initial_proposal,
+    laplace_cov_unit,
     laplace_cov_w,
     profile_coordinate,
     ridge_mixture,
@@ -21,7 +22,6 @@ from solderpyro.exact import (
 )
 from solderpyro.fit import lm_fit
 from solderpyro.params import Box
-from solderpyro.exact import laplace_cov_unit
 
 BOX = Box(("a", "b", "c"), (0.2, 0.2, 0.0), (5.0, 5.0, 2.0), (True, False, False))
 UC = UnitCoords(BOX)

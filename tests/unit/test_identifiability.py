@@ -1,6 +1,6 @@
 """Identifiability after the FE-exact posterior: which parameter lies along a ridge, the two
-samples at its ends, and the measurement that would tell them apart (pipeline.fe_exact.identifiability).
-"""
+samples at its ends, and the measurement that would tell them apart
+(pipeline.fe_exact.identifiability)."""
 
 from types import SimpleNamespace
 

@@ -1,6 +1,8 @@
-"""The local region of `calibrate --refine N --local`: a parallelepiped aligned with a Gaussian
-approximation of the posterior, its unit-cube map, the Latin hypercube on it, the prior
-truncation the sampler sees, and NUTS on it against the exact posterior of a linear model."""
+"""solderpyro.params.LocalBox, a local prior region the NUTS sampler supports
+(solderpyro.calibration.koh keeps the draws inside the prior box): a parallelepiped aligned
+with a Gaussian approximation of the posterior, its unit-cube map, the Latin hypercube on it,
+the prior truncation the sampler sees, and NUTS on it against the exact posterior of a linear
+model; and the Laplace covariance on a box's unit scale (solderpyro.exact.laplace_cov_unit)."""
 
 import numpy as np
 import pytest
@@ -8,9 +10,9 @@ import torch
 
 from solderpyro.calibration import Priors, calibrate_direct
 from solderpyro.design import lhs
+from solderpyro.exact import laplace_cov_unit
 from solderpyro.fit import LMFit
 from solderpyro.params import Box, LocalBox
-from solderpyro.workflow import laplace_cov_unit, local_region, marginal_region, region_faces
 
 OUTER = Box(("a", "b", "c"), (1.0, 0.0, 10.0), (5.0, 1.0, 1000.0), (False, False, True))
 COV = np.array([[0.01, 0.0095, 0.0], [0.0095, 0.01, 0.001], [0.0, 0.001, 0.004]])
@@ -54,25 +56,6 @@ def test_bad_local_box_is_named():
     with pytest.raises(ValueError, match="basis"):
         LocalBox(OUTER.names, OUTER.lower, OUTER.upper, OUTER.log_scale, outer=OUTER,
                  center=(0.5,) * 3, basis=((1.0, 0, 0), (1.0, 0, 0), (0, 0, 1.0)))
-
-
-def test_region_helpers():
-    """local_region repairs a near-singular covariance; marginal_region is the marginal
-    Gaussian's region; region_faces names the directions whose faces draws reach."""
-    bad = COV.copy()
-    bad[0, 1] = bad[1, 0] = 0.01  # singular (perfectly correlated a, b) ...
-    bad[1, 2] = bad[2, 1] = 0.0  # ... and positive semi-definite
-    reg = local_region(OUTER, np.array([3.0, 0.5, 100.0]), bad, 3.0)
-    B = torch.tensor(reg.basis)
-    np.testing.assert_allclose((B @ B.T).numpy() / 9.0, bad, atol=1e-9)
-    reg = LocalBox.gaussian(OUTER, [3.0, 0.5, 100.0], torch.tensor(COV), 3.0)
-    m = marginal_region(reg, 2)
-    Bm = torch.tensor(m.basis)
-    np.testing.assert_allclose((Bm @ Bm.T).numpy(), 9.0 * COV[:2, :2], rtol=1e-12)
-    inner = reg.from_unit(torch.rand(500, 3, dtype=torch.float64) * 0.9 + 0.05)
-    assert region_faces(reg, inner) == []
-    edge = reg.from_unit(torch.tensor([[0.5, 0.99, 0.5]] * 10, dtype=torch.float64))
-    assert region_faces(reg, torch.cat([inner, edge])) == [1]
 
 
 def test_laplace_cov_unit_is_the_gauss_newton_covariance():
@@ -158,17 +141,3 @@ def test_nuts_stays_inside_the_prior_box_when_the_region_crosses_it():
     shift = sd[0] * norm.pdf(-1.0) / (1.0 - norm.cdf(-1.0))
     assert abs(t1.mean() - (float(t_hat[0]) + shift)) < 0.25 * sd[0]
 
-
-def test_region_design_places_n_runs_inside_both_the_region_and_the_prior_box():
-    """A region crossing the prior box's edge (centre 1 sd from a = 1): N runs, all in the
-    prior box and in the region (none clipped onto the edge, which would move it off the
-    region along the thin direction)."""
-    from solderpyro.workflow import region_design
-
-    reg = LocalBox.gaussian(OUTER, [1.0 + 4.0 * 0.1, 0.5, 100.0], torch.tensor(COV), 3.5)
-    x = region_design(reg, 40, 0)
-    assert x.shape == (40, 3)
-    v, u = OUTER.to_unit(x), reg.to_unit(x)
-    assert float(v.min()) >= 0.0 and float(v.max()) <= 1.0
-    assert float(u.min()) >= 0.0 and float(u.max()) <= 1.0
-    assert len(torch.unique(x[:, 0])) == 40
