@@ -45,7 +45,7 @@ def _workflow(setup, tv, y, i, a):
 
     from solderpyro.io.measurements import from_arrays
     from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
-    from solderpyro.pipeline.settings import (
+    from solderpyro.settings import (
         DesignSettings,
         ExactSettings,
         SamplerSettings,

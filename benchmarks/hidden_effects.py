@@ -36,7 +36,7 @@ from solderpyro.effects import EFFECTS
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
-from solderpyro.pipeline.settings import (
+from solderpyro.settings import (
     DesignSettings,
     ExactSettings,
     SamplerSettings,

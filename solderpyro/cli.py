@@ -175,7 +175,7 @@ def cmd_koh(a, overrides) -> int:
 
 def _settings(a, setup):
     """The calibration's settings from the command line (and the config's surrogate group)."""
-    from .pipeline.settings import (
+    from .settings import (
         CalibrationSettings,
         DesignSettings,
         ExactSettings,
@@ -293,7 +293,7 @@ def _add_nuts(p: argparse.ArgumentParser, chains: int = 4, draws: int = 1000,
 
 def _add_design(p: argparse.ArgumentParser) -> None:
     """The adaptive design's and the FE-exact fallback's options (calibrate, demo)."""
-    from .pipeline.settings import DesignSettings, ExactSettings
+    from .settings import DesignSettings, ExactSettings
 
     ds, es = DesignSettings(), ExactSettings()
     p.add_argument("--budget", type=int, default=None, metavar="N",

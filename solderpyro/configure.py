@@ -18,7 +18,7 @@ from .fem.loading import EXTENDED_TIMES, SEED_TIMES, ThermalCycle, TimeStepping
 from .fem.mesh import Layer, MeshSpec
 from .fem.problem import LAWS, Problem
 from .params import ANAND_NAMES, Box, ParameterSpace, check_anand_values
-from .pipeline.settings import register_configs
+from .settings import register_configs
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 register_configs()  # the calibration group's schema, also for @hydra.main scripts
@@ -53,11 +53,11 @@ def compose(overrides: list[str] | None = None, config_name: str = "config"):
 
 def calibration_settings(cfg: Any, surrogate: Mapping[str, Any] | None = None) -> Any:
     """The composed config's ``calibration`` group as a
-    :class:`~solderpyro.pipeline.settings.CalibrationSettings` (its ``surrogate`` from the
+    :class:`~solderpyro.settings.CalibrationSettings` (its ``surrogate`` from the
     ``surrogate`` group, i.e. ``Setup.surrogate``, when given)."""
     from omegaconf import OmegaConf
 
-    from .pipeline.settings import CalibrationSettings, SurrogateSettings
+    from .settings import CalibrationSettings, SurrogateSettings
 
     d = OmegaConf.to_container(cfg.calibration, resolve=True) if "calibration" in cfg else {}
     s = CalibrationSettings.from_dict(dict(d))  # type: ignore[arg-type]

@@ -11,11 +11,11 @@
 7. :mod:`.outputs` -- the run directory (and :mod:`solderpyro.report` for the report).
 
 :func:`calibrate_specimen` (:mod:`.calibrate`) runs them; :class:`CalibrationSettings`
-(:mod:`.settings`) holds every setting. A new stage is a module here and a line in
+(:mod:`solderpyro.settings`, also the Hydra schema of the ``calibration`` group) holds every
+setting. A new stage is a module here and a line in
 :mod:`.calibrate`; a new acquisition function goes to :mod:`solderpyro.design.acquisition`.
 
-The names below load on first use, so that :mod:`solderpyro.configure` can import
-:mod:`.settings` (the Hydra schema) without the stages.
+The names below load on first use (importing the package does not load every stage).
 """
 
 from typing import Any
@@ -33,7 +33,7 @@ def __getattr__(name: str) -> Any:
 
         return SpecimenCalibration
     if name == "CalibrationSettings":
-        from solderpyro.pipeline.settings import CalibrationSettings
+        from solderpyro.settings import CalibrationSettings
 
         return CalibrationSettings
     raise AttributeError(f"module 'solderpyro.pipeline' has no attribute {name!r}")

@@ -23,8 +23,8 @@ import torch
 from solderpyro.design.loop import Draws, LoopProblem, LoopResult, run_loop
 from solderpyro.pipeline.posterior import as_draws, sample_posterior
 from solderpyro.pipeline.problem import SpecimenModel
-from solderpyro.pipeline.settings import CalibrationSettings
 from solderpyro.pipeline.surrogate import fit_surrogate
+from solderpyro.settings import CalibrationSettings
 from solderpyro.surrogate import GPSurrogate
 
 log = logging.getLogger("solderpyro")

@@ -32,7 +32,7 @@ from solderpyro.pipeline.fe_check import FE_CHECK_DRAWS, fe_check
 from solderpyro.pipeline.fe_exact import SUMMARY, WEAK_SHARE, exact_rows, fe_exact, identifiability
 from solderpyro.pipeline.outputs import SpecimenCalibration, save_run
 from solderpyro.pipeline.problem import SpecimenModel
-from solderpyro.pipeline.settings import CalibrationSettings
+from solderpyro.settings import CalibrationSettings
 
 log = logging.getLogger("solderpyro")
 

@@ -9,7 +9,7 @@ from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
 from solderpyro.calibration.mcmc import Posterior, WarmStart
 from solderpyro.design.loop import Draws
 from solderpyro.pipeline.problem import SpecimenModel
-from solderpyro.pipeline.settings import SamplerSettings
+from solderpyro.settings import SamplerSettings
 from solderpyro.surrogate import GPSurrogate
 
 

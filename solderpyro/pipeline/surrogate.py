@@ -8,7 +8,7 @@ import math
 import torch
 
 from solderpyro.pipeline.problem import SpecimenModel
-from solderpyro.pipeline.settings import SurrogateSettings
+from solderpyro.settings import SurrogateSettings
 from solderpyro.surrogate import GPSurrogate
 
 log = logging.getLogger("solderpyro")

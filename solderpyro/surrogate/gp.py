@@ -159,10 +159,11 @@ class GPSurrogate:
         self.basis, self.resid_var = self._basis(ys)  # (n_y, k), (n_y,)
         z = (ys @ self.basis).T.contiguous()  # (k, n)
         if self.inputs is not None:  # the map's range over the box, for the [0, 1] scaling
-            from solderpyro.design import lhs
+            from scipy.stats import qmc
 
-            with torch.no_grad():
-                f = self.inputs(torch.cat([x, lhs(self.box, 1024, 0).to(x)]))
+            u0 = torch.as_tensor(qmc.LatinHypercube(d=self.box.dim, seed=0).random(1024))
+            with torch.no_grad():  # (the LHS of solderpyro.design.lhs, which sits above us)
+                f = self.inputs(torch.cat([x, self.box.from_unit(u0).to(x)]))
             self._in_lo = f.min(0).values
             self._in_span = (f.max(0).values - self._in_lo).clamp_min(1e-12)
         u = self._unit(x)
