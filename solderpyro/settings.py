@@ -44,14 +44,19 @@ class SurrogateSettings:
 @dataclass
 class SamplerSettings:
     """NUTS (:func:`~solderpyro.calibration.mcmc.run_nuts`): the final posterior's length,
-    and the shorter, warm-started runs of the design rounds. ``workers``: processes for the
-    chains (0: one per core)."""
+    and the shorter, warm-started runs of the design rounds, whose trees stop at
+    ``round_max_depth`` (2^depth leapfrog steps): when the surrogate sharpens between rounds,
+    the previous round's mass matrix is too wide for the new posterior until the warm-up's
+    window re-estimates it, and full-depth trees then cost 1,023 gradients per iteration
+    (208 s for one round on the full-field case). ``workers``: processes for the chains (0:
+    one per core)."""
 
     chains: int = 4
     warmup: int = 500
     draws: int = 1000
     round_warmup: int = 150
     round_draws: int = 200
+    round_max_depth: int = 6
     workers: int = 0
 
 
@@ -106,7 +111,8 @@ class CalibrationSettings:
         if not sg.truncation > 0:
             raise ValueError(f"surrogate.truncation must be > 0, got {sg.truncation}")
         sp = self.sampler
-        for nm in ("chains", "warmup", "draws", "round_warmup", "round_draws"):
+        for nm in ("chains", "warmup", "draws", "round_warmup", "round_draws",
+                   "round_max_depth"):
             if getattr(sp, nm) < 1:
                 raise ValueError(f"sampler.{nm} must be >= 1, got {getattr(sp, nm)}")
         if sp.workers < 0:

@@ -19,9 +19,12 @@ def nuts_options(s: SamplerSettings, seed: int, progress: bool, final: bool = Tr
     when ``final``, else the design rounds' (never longer than the final one). Chains start
     at likelihood-resampled prior draws: the specimen posterior can have minor modes a random
     start never leaves."""
-    return dict(chains=s.chains, warmup=s.warmup if final else min(s.round_warmup, s.warmup),
-                draws=s.draws if final else min(s.round_draws, s.draws), seed=seed,
-                progress=progress, init="sir", workers=s.workers or None)
+    nk = dict(chains=s.chains, warmup=s.warmup if final else min(s.round_warmup, s.warmup),
+              draws=s.draws if final else min(s.round_draws, s.draws), seed=seed,
+              progress=progress, init="sir", workers=s.workers or None)
+    if not final:
+        nk["max_tree_depth"] = s.round_max_depth
+    return nk
 
 
 def sample_posterior(sm: SpecimenModel, gp: GPSurrogate, s: SamplerSettings, seed: int,

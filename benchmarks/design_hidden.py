@@ -1,0 +1,97 @@
+"""The adaptive design on data nobody here calibrates with (issue 19, "Done when").
+
+For each case: full-field data (the 31 x 18 grid + A, B at the four seed times, noise 0.05 um)
+made by a *finer* FE than the calibration's (``mesh=fine``, time steps dT 2 K / dt 150 s: no
+inverse crime), with one hidden effect (or none); then exactly what a user types, with the
+default flags and the true effect switched on:
+
+    solderpyro calibrate --data DATA --out DIR --store STORE --quiet effects=[EFFECT]
+
+Recorded per case (appended to the JSON as soon as it is done; a rerun skips finished cases):
+wall time, why the design stopped and its FE runs, the FE check (best RMS over posterior draws
+in noise sd, ok), which truths lie in the 95 % intervals (summary.csv), the trust line.
+
+Usage: python benchmarks/design_hidden.py [--cases modulus_temperature,none,...]
+       [--work runs/design_hidden] [--out benchmarks/results_design_hidden.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from solderpyro.configure import build, compose
+from solderpyro.diagnose.hidden import TRUTH, make_dataset
+from solderpyro.fem.loading import SEED_TIMES
+
+FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cases", default="modulus_temperature,none",
+                    help="hidden effects, comma-separated ('none': clean data)")
+    ap.add_argument("--work", default="runs/design_hidden")
+    ap.add_argument("--out", default="benchmarks/results_design_hidden.json")
+    ap.add_argument("--seed", type=int, default=0, help="noise seed of the data")
+    a = ap.parse_args()
+    work = Path(a.work)
+    work.mkdir(parents=True, exist_ok=True)
+    outp = Path(a.out)
+    done = json.loads(outp.read_text()) if outp.exists() else {"cases": []}
+    have = {c["case"] for c in done["cases"]}
+    for case in [c.strip() for c in a.cases.split(",") if c.strip()]:
+        if case in have:
+            print(f"{case}: done already")
+            continue
+        data = work / f"data_{case}.csv"
+        if not data.exists():  # the finer FE makes the data
+            make_dataset(build(compose(FINE)), None if case == "none" else case, data, True,
+                         SEED_TIMES, noise=0.05, seed=a.seed)
+        run = work / f"cal_{case}"
+        cmd = [sys.executable, "-m", "solderpyro.cli", "calibrate", "--data", str(data),
+               "--out", str(run), "--store", str(work / "store"), "--quiet"]
+        if case != "none":
+            cmd.append(f"effects=[{case}]")
+        t0 = time.perf_counter()
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        (work / f"cal_{case}.log").write_text(r.stdout + r.stderr)
+        if r.returncode != 0:
+            print(f"{case}: calibrate failed (rc {r.returncode}); see cal_{case}.log")
+            rec = {"case": case, "rc": r.returncode, "wall_s": wall}
+        else:
+            info = json.loads((run / "run.json").read_text())
+            truth = dict(TRUTH)
+            meta = {}
+            for line in data.read_text().splitlines():
+                if line.startswith("# hidden_values:"):
+                    meta = ast.literal_eval(line.split(":", 1)[1].strip())
+            truth.update(meta)
+            with (run / "summary.csv").open() as f:
+                rows = {row["parameter"]: row for row in csv.DictReader(f)}
+            cover = {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
+                     for k, v in truth.items() if k in rows}
+            chk = info["fe_check"]
+            rec = {"case": case, "command": " ".join(cmd[1:]), "wall_s": round(wall, 1),
+                   "design": {k: info["design"][k] for k in ("reason", "fe_runs")},
+                   "rounds": len(info["design"]["rounds"]),
+                   "fe_check_rms_sd": chk["rms_over_sigma"], "fe_check_ok": chk["ok"],
+                   "covered": cover, "n_covered": sum(cover.values()), "n_truth": len(cover),
+                   "intervals": {k: [float(rows[k]["q2.5"]), float(rows[k]["q97.5"])]
+                                 for k in cover},
+                   "posterior": info.get("posterior"), "trust": info.get("trust"),
+                   "timing_s": info.get("timing_s")}
+        done["cases"].append(rec)
+        outp.write_text(json.dumps(done, indent=1) + "\n")
+        print(json.dumps(rec, indent=1))
+
+
+if __name__ == "__main__":
+    main()
