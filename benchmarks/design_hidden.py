@@ -33,6 +33,37 @@ from solderpyro.fem.loading import SEED_TIMES
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
 
 
+def _rhat_max(nc: Path) -> float:
+    """The largest R-hat of the surrogate posterior (ArviZ) in ``nc``."""
+    import arviz as az
+
+    r = az.rhat(az.from_netcdf(str(nc)))
+    return float(max(float(r[v].max()) for v in r.data_vars))
+
+
+def record(case: str, data: Path, run: Path, command: str, wall: float) -> dict:
+    """One case's result from its run directory."""
+    info = json.loads((run / "run.json").read_text())
+    truth = dict(TRUTH)
+    for line in data.read_text().splitlines():
+        if line.startswith("# hidden_values:"):
+            truth.update(ast.literal_eval(line.split(":", 1)[1].strip()))
+    with (run / "summary.csv").open() as f:
+        rows = {row["parameter"]: row for row in csv.DictReader(f)}
+    cover = {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
+             for k, v in truth.items() if k in rows}
+    chk = info["fe_check"]
+    return {"case": case, "command": command, "wall_s": round(wall, 1),
+            "design": {k: info["design"][k] for k in ("reason", "fe_runs")},
+            "rounds": len(info["design"]["rounds"]),
+            "fe_check_rms_sd": chk["rms_over_sigma"], "fe_check_ok": chk["ok"],
+            "covered": cover, "n_covered": sum(cover.values()), "n_truth": len(cover),
+            "intervals": {k: [float(rows[k]["q2.5"]), float(rows[k]["q97.5"])] for k in cover},
+            "r_hat_max": _rhat_max(run / "posterior.nc"),
+            "posterior": info.get("posterior"), "trust": info.get("trust"),
+            "timing_s": info.get("timing_s")}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cases", default="modulus_temperature,none",
@@ -40,12 +71,23 @@ def main() -> None:
     ap.add_argument("--work", default="runs/design_hidden")
     ap.add_argument("--out", default="benchmarks/results_design_hidden.json")
     ap.add_argument("--seed", type=int, default=0, help="noise seed of the data")
+    ap.add_argument("--record", default="", metavar="CASE:DATA:RUN_DIR:WALL_S",
+                    help="record a run made by hand with this script's command instead")
     a = ap.parse_args()
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     outp = Path(a.out)
     done = json.loads(outp.read_text()) if outp.exists() else {"cases": []}
     have = {c["case"] for c in done["cases"]}
+    if a.record:
+        case, data_s, run_s, wall_s = a.record.split(":")
+        rec = record(case, Path(data_s), Path(run_s),
+                     f"solderpyro calibrate --data {data_s} --out {run_s} --quiet "
+                     f"effects=[{case}]", float(wall_s))
+        done["cases"] = [c for c in done["cases"] if c["case"] != case] + [rec]
+        outp.write_text(json.dumps(done, indent=1) + "\n")
+        print(json.dumps(rec, indent=1))
+        return
     for case in [c.strip() for c in a.cases.split(",") if c.strip()]:
         if case in have:
             print(f"{case}: done already")
@@ -67,27 +109,7 @@ def main() -> None:
             print(f"{case}: calibrate failed (rc {r.returncode}); see cal_{case}.log")
             rec = {"case": case, "rc": r.returncode, "wall_s": wall}
         else:
-            info = json.loads((run / "run.json").read_text())
-            truth = dict(TRUTH)
-            meta = {}
-            for line in data.read_text().splitlines():
-                if line.startswith("# hidden_values:"):
-                    meta = ast.literal_eval(line.split(":", 1)[1].strip())
-            truth.update(meta)
-            with (run / "summary.csv").open() as f:
-                rows = {row["parameter"]: row for row in csv.DictReader(f)}
-            cover = {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
-                     for k, v in truth.items() if k in rows}
-            chk = info["fe_check"]
-            rec = {"case": case, "command": " ".join(cmd[1:]), "wall_s": round(wall, 1),
-                   "design": {k: info["design"][k] for k in ("reason", "fe_runs")},
-                   "rounds": len(info["design"]["rounds"]),
-                   "fe_check_rms_sd": chk["rms_over_sigma"], "fe_check_ok": chk["ok"],
-                   "covered": cover, "n_covered": sum(cover.values()), "n_truth": len(cover),
-                   "intervals": {k: [float(rows[k]["q2.5"]), float(rows[k]["q97.5"])]
-                                 for k in cover},
-                   "posterior": info.get("posterior"), "trust": info.get("trust"),
-                   "timing_s": info.get("timing_s")}
+            rec = record(case, data, run, " ".join(cmd[1:]), wall)
         done["cases"].append(rec)
         outp.write_text(json.dumps(done, indent=1) + "\n")
         print(json.dumps(rec, indent=1))

@@ -34,10 +34,11 @@ def fit_surrogate(sm: SpecimenModel, s: SurrogateSettings, X: torch.Tensor, Y: t
     feats = input_map(s.inputs, sm.gp_box, sm.setup.space.defaults, s.inputs_T_C,
                       s.inputs_rate)
     sd = noise_sd if noise_sd is not None else sm.priors.sigma_known
-    trunc = dict(resid_chi2=s.truncation * math.sqrt(2 * Y.shape[1]), noise_sd=sd) \
-        if sd and output == "pca" else {}
+    use = bool(sd) and output == "pca"
     gp = GPSurrogate(sm.gp_box, output=output, kernel=s.kernel, ard=s.ard, mean=s.mean,
-                     inputs=feats, **trunc)
+                     inputs=feats,
+                     resid_chi2=s.truncation * math.sqrt(2 * Y.shape[1]) if use else None,
+                     noise_sd=sd if use else None)
     gp.fit(X, Y)
     log.info("surrogate: %s GP on %d runs, %d outputs, %d component(s)", output, len(X),
              Y.shape[1], gp.basis.shape[1])
