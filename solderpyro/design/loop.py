@@ -218,16 +218,20 @@ def stop_rule(code_chi2: float, fe_chi2: np.ndarray, sur_chi2: np.ndarray, n: in
     return code_chi2 <= s.code_tol * tol, fe_ok, tol
 
 
-class _Laps:
-    """Seconds per step of a round."""
+class StageClock:
+    """Seconds per named step since the last call (summed when a name repeats); with
+    ``log_each`` every step is also a log line (``stage NAME: 1.2 s``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, log_each: bool = False) -> None:
         self.seconds: dict[str, float] = {}
+        self._log = log_each
         self._t = time.perf_counter()
 
     def __call__(self, name: str) -> None:
         now = time.perf_counter()
-        self.seconds[name] = round(now - self._t, 2)
+        self.seconds[name] = round(self.seconds.get(name, 0.0) + now - self._t, 2)
+        if self._log:
+            log.info("stage %s: %.1f s", name, now - self._t)
         self._t = now
 
 
@@ -276,7 +280,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         t0 = time.perf_counter()
         if int(ok.sum()) < box.dim + 2:
             raise RuntimeError(f"design: only {int(ok.sum())} of {len(X)} FE runs converged")
-        lap = _Laps()
+        lap = StageClock()
 
         gp = p.fit(X[ok], V[ok])
         lap("fit")

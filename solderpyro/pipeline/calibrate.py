@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -26,6 +25,7 @@ from solderpyro.calibration import predict_observation_model
 from solderpyro.calibration.mcmc import WarmStart, format_summary, write_summary
 from solderpyro.calibration.predictive import Bands
 from solderpyro.configure import Setup
+from solderpyro.design.loop import StageClock
 from solderpyro.io.measurements import Measurements
 from solderpyro.pipeline.adaptive import adaptive_design
 from solderpyro.pipeline.fe_check import FE_CHECK_DRAWS, fe_check
@@ -35,20 +35,6 @@ from solderpyro.pipeline.problem import SpecimenModel
 from solderpyro.settings import CalibrationSettings
 
 log = logging.getLogger("solderpyro")
-
-
-class _Clock:
-    """Seconds per stage, for the log and run.json."""
-
-    def __init__(self) -> None:
-        self.timing: dict[str, float] = {}
-        self._t = time.perf_counter()
-
-    def __call__(self, name: str) -> None:
-        now = time.perf_counter()
-        self.timing[name] = round(self.timing.get(name, 0.0) + now - self._t, 2)
-        log.info("stage %s: %.1f s", name, now - self._t)
-        self._t = now
 
 
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
@@ -75,7 +61,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     s = settings or CalibrationSettings()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    clock = _Clock()
+    clock = StageClock(log_each=True)
     sm = SpecimenModel.build(setup, meas, s.store, s.batch, s.progress)
     s.validate(sm.n_fe)
     y_liu = sm.literature()
@@ -139,7 +125,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                   "inputs_T_C": sg.inputs_T_C, "inputs_rate": sg.inputs_rate,
                   "n_runs": int(len(loop.X)), "design": loop.as_dict(),
                   "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
-                  "fe_check": chk, "timing_s": clock.timing, "trust": trust,
+                  "fe_check": chk, "timing_s": clock.seconds, "trust": trust,
                   "posterior": "fe-exact" if saved is not None else "surrogate",
                   **({"exact": ex_info} if ex_info else {})}, draws=saved)
         last = loop.rounds[-1]
@@ -180,7 +166,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         clock("exact")
     print(format_summary(rows))
     info = json.loads((out / "run.json").read_text())
-    info["timing_s"] = clock.timing
+    info["timing_s"] = clock.seconds
     (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
     n_ok = int(loop.ok.sum())
     return SpecimenCalibration(out, post, rows, loo, n_ok, int(len(loop.ok)) - n_ok,
