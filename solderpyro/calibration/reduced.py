@@ -291,7 +291,7 @@ def reduced_loglik_torch(gp: GPSurrogate, y_obs: torch.Tensor, t: torch.Tensor,
 def pca_flat(inp: Any, priors: Any = None) -> Any:
     """:func:`~.koh.observation_model` with a PCA surrogate (a :class:`GPEmulator` of the
     observations, possibly inside an :class:`ObservedEmulator`) as a
-    :class:`~.fastkoh.FlatModel` on the reduced likelihood, with an analytic gradient.
+    :class:`~.flat.FlatModel` on the reduced likelihood, with an analytic gradient.
 
     Flat vector: ``t_unit (p,)`` then ``sigma``; the same priors and transforms as the Pyro
     model. Observation offsets (``ObservedEmulator``) enter through one torch backward pass
@@ -302,7 +302,7 @@ def pca_flat(inp: Any, priors: Any = None) -> Any:
             priors (the generic path, :func:`~.potential.torch_flat`, covers those).
     """
     from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
-    from solderpyro.calibration.fastkoh import FlatModel, FlatSite, _sigma_site, _unsupported
+    from solderpyro.calibration.flat import FlatModel, FlatSite, _sigma_site, _unsupported
     from solderpyro.calibration.koh import SITE_T, Priors
 
     pr = priors or Priors()
