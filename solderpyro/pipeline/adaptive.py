@@ -95,8 +95,11 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     d = len(names)
-    ncol = d + 2
-    fig, axes = plt.subplots(1, ncol, figsize=(3.0 * ncol, 3.2))
+    ncol = max(d, 2)
+    fig, grid = plt.subplots(2, ncol, figsize=(3.0 * ncol, 6.4), squeeze=False)
+    axes = [*grid[0, :d], grid[1, 0], grid[1, 1]]  # parameters on top; rule and runs below
+    for ax in [*grid[0, d:], *grid[1, 2:]]:
+        ax.axis("off")
     rounds = [q.round for q in r.rounds]
     X = r.X.numpy()
     rnd = np.asarray(r.round)
@@ -133,6 +136,8 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
         ax.set_ylabel(names[1])
         ax.legend(fontsize=6)
         ax.set_title("where the runs went", fontsize=9)
+    else:
+        ax.axis("off")
     fig.suptitle(f"adaptive design: {len(X)} FE runs, {len(r.rounds)} rounds"
                  + (f" ({r.reason})" if r.reason in ("converged", "budget") else ""),
                  fontsize=10)
