@@ -35,6 +35,8 @@ from solderpyro.pipeline.problem import SpecimenModel
 from solderpyro.settings import CalibrationSettings
 
 log = logging.getLogger("solderpyro")
+#: chains that agree to this R-hat are taken as converged (the report warns above it)
+RHAT_OK = 1.01
 
 
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
@@ -107,6 +109,11 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
              "the surrogate posterior, with care: the design's budget ran out before the FE "
              "confirmed the surrogate" + (" (the FE-exact posterior follows)" if run_exact
                                           else ""))
+    rhat = max((float(r["r_hat"]) for r in rows if np.isfinite(float(r["r_hat"]))),
+               default=float("nan"))
+    if rhat > RHAT_OK:  # the surrogate may be right and its posterior still not sampled
+        trust += (f"; but the chains disagree (R-hat up to {rhat:.2f} > {RHAT_OK}): the "
+                  "intervals are not reliable until a longer run (--warmup, --draws) agrees")
 
     def write_all(rows: list[dict], bands: Any, problems: list[str], ex: Any = None,
                   ex_info: dict[str, Any] | None = None, ex_rows: list[dict] | None = None,
