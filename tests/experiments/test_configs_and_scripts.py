@@ -152,6 +152,14 @@ def test_demo_command_runs_tiny(tmp_path):
     assert info["settings"]["design"]["budget"] == 22
     assert info["settings"]["exact"]["mode"] == "off"
     assert isinstance(info["trust"], str) and info["trust"]
+    # the trust line names what to trust (no FE-exact step here: the surrogate posterior),
+    # and says so when the chains disagree
+    assert info["trust"].startswith("the surrogate posterior")
+    import arviz as az
+
+    rh = az.rhat(az.from_netcdf(str(cal / "posterior.nc")))
+    rmax = max(float(rh[v].max()) for v in rh.data_vars)
+    assert ("the chains disagree" in info["trust"]) == (rmax > 1.01), (rmax, info["trust"])
     assert des["reason"] in ("converged", "budget") and des["message"]
     # the design's arithmetic: 10 LHS runs; each round 4 checks, and 4 acquired runs when it
     # does not stop and the budget leaves room for them and the next round's checks; at 22
