@@ -139,7 +139,7 @@ def greedy_draws(gp: GPSurrogate, criterion: str, mc_theta: torch.Tensor,
     hyperparameters a new run at ``c`` lowers the coefficients' posterior covariance by the
     rank-1 term ``S[:, c] S[c, :] / (S[c, c] + tau)``, so one posterior covariance over the
     draws, candidates and pending runs ``(k, N + C + P, N + C + P)`` and rank-1 updates give
-    every candidate's value. Measured on the full-field case (k = 12 components, 256 draws,
+    every candidate's value. Measured on the full-field case (k = 8 components, 256 draws,
     512 candidates, q = 8): BoTorch's fantasies took 353 s per round, this 1.4 s
     (5-6 s with 15-16 components).
 
