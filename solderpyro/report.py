@@ -116,8 +116,11 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
     lines += ["", "## Warnings", ""] + ([f"- {w}" for w in warn] or ["- none"])
     if exact_rows and exact is not None:
         lines += _exact_section(exact_rows, exact, save, _truth(meas))
-    lines += ["", "## Figures", "",
-              f"![literature constants vs data]({f8})", "",
+    lines += ["", "## Figures", ""]
+    if (out / "design.png").exists():  # the adaptive design's rounds (solderpyro.design)
+        lines += ["![adaptive design: marginals per round, stopping rule, where the runs went]"
+                  "(design.png)", ""]
+    lines += [f"![literature constants vs data]({f8})", "",
               f"![posterior traces and marginals]({f9})", "",
               f"![posterior predictive]({f10})", "",
               f"![surrogate validation]({fl})", "",
