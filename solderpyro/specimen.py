@@ -56,16 +56,19 @@ def split_effects(setup: Setup, times: tuple[float, ...]
 
 def observation_offset(fx_obs: EffectSet, problem: Any, names: Sequence[str], n_time: int,
                        ti: np.ndarray, oi: np.ndarray) -> Any:
-    """``q (n_q,) -> (n_obs,)``: what additive observation effects add to each observation, um
-    (they act on V after the FE: ``EffectSet.observe`` of a zero field)."""
+    """``q (n_q,) -> (n_obs,)`` (or a batch ``(B, n_q) -> (B, n_obs)``): what additive
+    observation effects add to each observation, um (they act on V after the FE:
+    ``EffectSet.observe`` of a zero field)."""
     pts = output_points(problem)
     x = torch.tensor([pts[n][0] for n in names], dtype=torch.float64)
     x_O = float(problem.origin[0])
     tt, oo = torch.as_tensor(ti), torch.as_tensor(oi)
 
     def offset(q: torch.Tensor) -> torch.Tensor:
-        z = torch.zeros(1, n_time, len(names), dtype=q.dtype)
-        return fx_obs.observe(z, x, x_O, q.reshape(1, -1))[0, tt, oo]
+        qb = q.reshape(-1, q.shape[-1])
+        z = torch.zeros(qb.shape[0], n_time, len(names), dtype=q.dtype)
+        out = fx_obs.observe(z, x, x_O, qb)[:, tt, oo]
+        return out[0] if q.ndim == 1 else out
 
     return offset
 

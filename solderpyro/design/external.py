@@ -16,7 +16,6 @@ import csv
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from solderpyro.surrogate import GPSurrogate
@@ -69,6 +68,7 @@ def propose_external(gp: GPSurrogate, x_obs: torch.Tensor, theta_draws: torch.Te
         pending runs before the next); to be run at every row of ``x_obs``.
     """
     from solderpyro.design.acquisition import integrated_code_variance
+    from solderpyro.design.loop import spread_indices
     from solderpyro.design.model import botorch_model, observed_weights
 
     if q < 1:
@@ -81,11 +81,11 @@ def propose_external(gp: GPSurrogate, x_obs: torch.Tensor, theta_draws: torch.Te
         tt = th[:, None, :].expand(-1, n_obs, -1)
         return gp.box.to_unit(torch.cat([xx, tt], -1).to(torch.float64))
 
-    pick = np.linspace(0, N - 1, min(n_mc, N)).round().astype(int)
+    pick = spread_indices(N, n_mc)
     mc = pairs(theta_draws[pick]).reshape(-1, gp.box.dim)
     model = botorch_model(gp)
     w = observed_weights(gp, sigma)  # (1,): code variance in output units / sigma^2
-    cidx = np.unique(np.linspace(0, N - 1, min(n_candidates, N)).round().astype(int))
+    cidx = spread_indices(N, n_candidates)
     cand_t = theta_draws[cidx]
     if pending is not None and len(pending):  # never offer a pending set again
         cand_t = still_pending(cand_t, pending)

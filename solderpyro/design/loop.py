@@ -153,9 +153,15 @@ class Round:
     seconds: float = 0.0
     timing: dict[str, float] = field(default_factory=dict)  # s per step: fit, posterior, ...
 
+    @property
+    def fe_gap(self) -> float:
+        """``max_j |chi2_FE - chi2_surrogate|`` over the checked draws (nan without any)."""
+        if not self.fe_chi2:
+            return float("nan")
+        return float(np.max(np.abs(np.subtract(self.fe_chi2, self.surrogate_chi2))))
+
     def line(self) -> str:
-        d = np.max(np.abs(np.subtract(self.fe_chi2, self.surrogate_chi2))) \
-            if self.fe_chi2 else float("nan")
+        d = self.fe_gap
         return (f"design round {self.round}: {self.runs} FE runs; code chi2 "
                 f"{self.code_chi2:.3g} ({'ok' if self.code_ok else 'too large'}), |FE - "
                 f"surrogate| chi2 {d:.3g} ({'ok' if self.fe_ok else 'disagree'}), tolerance "
@@ -235,7 +241,9 @@ class StageClock:
         self._t = now
 
 
-def _spread(n: int, m: int) -> np.ndarray:
+def spread_indices(n: int, m: int) -> np.ndarray:
+    """``min(m, n)`` distinct indices spread evenly over ``0 .. n - 1`` (first and last
+    included): draws taken evenly through the chains."""
     return np.linspace(0, n - 1, min(m, n)).round().astype(int)
 
 
@@ -287,7 +295,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         draws = p.sample(gp, draws, False)
         lap("posterior")
         N = len(draws.theta)
-        chk = _spread(N, s.check)
+        chk = spread_indices(N, s.check)
         th_chk = draws.theta[chk]
         Vc, okc = p.fe(th_chk)
         lap("check")
@@ -308,10 +316,10 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         room = s.budget - len(X) - s.check  # keep room for the next round's check
         if not stop and room >= 1:
             qn = min(s.batch, room)
-            mi = _spread(N, s.mc_points)
+            mi = spread_indices(N, s.mc_points)
             mc = box.to_unit(draws.theta[mi])
             sig = float(draws.sigma.median())
-            cand_th = draws.theta[_spread(N, s.candidates)]
+            cand_th = draws.theta[spread_indices(N, s.candidates)]
             off_mc = None if draws.offset is None else draws.offset[mi]
             if s.optimizer == "draws":  # closed form, the same choice as BoTorch's (tested)
                 idx, val = greedy_draws(gp, s.criterion, draws.theta[mi], cand_th, qn, sig, y,
@@ -353,7 +361,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         why = [] if code_ok else [f"code chi2 {rounds[-1].code_chi2:.3g}"]
         if not fe_ok:
             why.append("the FE disagrees with the surrogate at posterior draws (max |d chi2| "
-                       f"{np.max(np.abs(fe_c2 - sur_c2)):.3g})")
+                       f"{rounds[-1].fe_gap:.3g})")
         reason, msg = "budget", (
             f"the FE budget ran out ({len(X)} of {s.budget} runs, {r} rounds) before the "
             f"surrogate was confirmed: {'; '.join(why)} > sqrt(2n) = {tol:.3g}")

@@ -44,22 +44,19 @@ def adaptive_design(sm: SpecimenModel, s: CalibrationSettings, out: Path,
         final ``(Posterior, ObsInputs)``.
     """
 
-    def sample(gp: GPSurrogate, prev: Draws | None, final: bool) -> Draws:
-        w = prev.posterior[0].warm if prev is not None else warm
-        post, inp = sample_posterior(sm, gp, s.sampler, s.seed, w, final, s.progress)
-        return as_draws(sm, post, inp)
-
     last: list[float | None] = [None]  # the latest posterior's noise sd (PCA truncation)
 
     def fit(X: torch.Tensor, Y: torch.Tensor) -> GPSurrogate:
         return fit_surrogate(sm, s.surrogate, X, Y, last[0])
 
-    def sample_and_keep(gp: GPSurrogate, prev: Draws | None, final: bool) -> Draws:
-        d = sample(gp, prev, final)
+    def sample(gp: GPSurrogate, prev: Draws | None, final: bool) -> Draws:
+        w = prev.posterior[0].warm if prev is not None else warm
+        post, inp = sample_posterior(sm, gp, s.sampler, s.seed, w, final, s.progress)
+        d = as_draws(sm, post, inp)
         last[0] = float(d.sigma.median())
         return d
 
-    p = LoopProblem(sm.gp_box, sm.y, sm.fe, fit, sample_and_keep)
+    p = LoopProblem(sm.gp_box, sm.y, sm.fe, fit, sample)
     log.info("design: %d Latin-hypercube runs over %s, then rounds of %d acquired + %d check "
              "runs (%s criterion) up to %d FE runs", s.design.start, ", ".join(sm.gp_box.names),
              s.design.batch, s.design.check, s.design.criterion, s.design.budget)
@@ -118,8 +115,7 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
             ax.legend(fontsize=6)
     ax = axes[d]
     code = [rec.code_chi2 for rec in r.rounds]
-    dfe = [float(np.max(np.abs(np.subtract(rec.fe_chi2, rec.surrogate_chi2))))
-           for rec in r.rounds]
+    dfe = [rec.fe_gap for rec in r.rounds]
     tol = r.rounds[-1].tolerance
     ax.semilogy(rounds, code, "C0o-", label="code chi2 at posterior draws")
     ax.semilogy(rounds, np.maximum(dfe, 1e-3), "C3s-", label="max |FE - surrogate| chi2")

@@ -25,7 +25,7 @@ from solderpyro.calibration import predict_observation_model
 from solderpyro.calibration.mcmc import WarmStart, format_summary, write_summary
 from solderpyro.calibration.predictive import Bands
 from solderpyro.configure import Setup
-from solderpyro.design.loop import StageClock
+from solderpyro.design.loop import StageClock, spread_indices
 from solderpyro.io.measurements import Measurements
 from solderpyro.pipeline.adaptive import adaptive_design
 from solderpyro.pipeline.fe_check import FE_CHECK_DRAWS, fe_check
@@ -82,7 +82,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     pr = sm.priors
     sig_fe = pr.sigma_known or float(post.flat("sigma").median())
     draws = post.flat("t").detach().cpu().numpy()
-    pick = np.linspace(0, len(draws) - 1, min(FE_CHECK_DRAWS, len(draws))).round().astype(int)
+    pick = spread_indices(len(draws), FE_CHECK_DRAWS)
     V_chk = sm.observed(draws[pick])
     chk = fe_check(V_chk, sm.y, sig_fe)
     clock("fe_check")
@@ -140,7 +140,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                  f"adaptive design: {len(loop.X)} FE runs in {len(loop.rounds)} rounds "
                  f"({loop.reason}): {loop.message} (design.png, design.csv)",
                  f"last round: code chi2 {last.code_chi2:.3g}, max |FE - surrogate| chi2 "
-                 f"{np.max(np.abs(np.subtract(last.fe_chi2, last.surrogate_chi2))):.3g}, "
+                 f"{last.fe_gap:.3g}, "
                  f"tolerance {last.tolerance:.3g}",
                  f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), "
                  f"best RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} "

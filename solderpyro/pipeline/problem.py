@@ -177,7 +177,7 @@ class SpecimenModel:
         if off is None:
             return None
         with torch.no_grad():
-            return torch.stack([off(r[self.n_fe:]) for r in rows.to(torch.float64)])
+            return off(rows.to(torch.float64)[:, self.n_fe:])
 
     def observed(self, rows: np.ndarray) -> np.ndarray:
         """``(b, n_obs)`` um: the FE plus observation-side effects at full parameter rows

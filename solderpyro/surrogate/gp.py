@@ -154,7 +154,6 @@ class GPSurrogate:
         x, y = self._check_xy(x, y)
         self._x_train, self._y_train = x, y
         self.std = Standardizer.fit(y)
-        self._scale2 = self.std.scale.square()
         ys = self.std.forward(y)  # (n, n_y)
         self.basis, self.resid_var = self._basis(ys)  # (n_y, k), (n_y,)
         z = (ys @ self.basis).T.contiguous()  # (k, n)
@@ -209,7 +208,7 @@ class GPSurrogate:
         k = self.n_pc or int((frac < self.var_explained).sum().item()) + 1
         if self.n_pc is None and self.noise_sd is not None and self.resid_chi2 is not None:
             # truncation chi-square after k components: sum_i scale_i^2 sum_{j>k} (U S V^T)^2/n
-            sc2 = self._scale2 / self.noise_sd**2  # (n_y,)
+            sc2 = self.std.scale.square() / self.noise_sd**2  # (n_y,)
             per = (vt.square() * sc2).sum(1) * s.square() / ys.shape[0]  # (r,) per component
             tail = per.flip(0).cumsum(0).flip(0)  # tail[j]: left when keeping j components
             left = torch.cat([tail[1:], tail.new_zeros(1)])
