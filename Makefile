@@ -4,7 +4,8 @@
 PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
-PIN_SPEC ?= gpytorch==1.15.2 linear-operator==0.6.1 pyro-ppl==1.9.2 botorch==0.18.1
+PIN_SPEC ?= gpytorch==1.15.2 linear-operator==0.6.1 pyro-ppl==1.9.2 botorch==0.18.1 \
+            dask==2026.8.0 distributed==2026.8.0
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 

@@ -31,6 +31,7 @@ from solderpyro.configure import build, compose
 from solderpyro.coords import sampling_coords
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.exact import profile_intervals
+from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
@@ -59,6 +60,11 @@ def main() -> None:
                     help="also the 95 %% profile-likelihood intervals through the FE "
                          "(solderpyro.exact.profile_intervals) and whether they hold the truth")
     ap.add_argument("--work", default="runs/coverage_exact")
+    ap.add_argument("--cluster", default=None, metavar="local:N",
+                    help="run the FE batches (fits, AMIS rounds, profiles) on a Dask "
+                         "LocalCluster of N workers (solderpyro.executor)")
+    ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                    help="run the FE batches on a running Dask cluster")
     ap.add_argument("--out", default="benchmarks/results_coverage_exact.json")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -69,9 +75,6 @@ def main() -> None:
     else:
         seeds = [int(v) for v in a.seeds.split(",")]
     out = Path(a.out)
-    done = json.loads(out.read_text()) if out.exists() else {"cases": []}
-    seen = {(c["effect"], c["seed"], c.get("times", "seed"), "profile_ci" in c)
-            for c in done["cases"]}
     times = tuple(SEED_TIMES if a.times == "seed" else EXTENDED_TIMES)
     ov = [f"loading.output_times=[{','.join(str(t) for t in times)}]", f"effects=[{a.effect}]"]
     setup = build(compose(ov))
@@ -82,6 +85,15 @@ def main() -> None:
     store = RunStore(Path(a.work) / "store")
     h = store.register(setup.problem, times, True, setup.dtype, effects=fx_fe or ())
     base = build(compose([]))
+    with executor_from_options(a.cluster, a.scheduler):  # where the FE batches run
+        _run_seeds(a, seeds, setup, space, coords, solver, store, h, base, times, out)
+
+
+def _run_seeds(a, seeds, setup, space, coords, solver, store, h, base, times, out):
+    """Each noise seed in turn: data, FE-exact posterior, profiles; recorded as done."""
+    done = json.loads(out.read_text()) if out.exists() else {"cases": []}
+    seen = {(c["effect"], c["seed"], c.get("times", "seed"), "profile_ci" in c)
+            for c in done["cases"]}
     start = None
     for seed in seeds:
         if (a.effect, seed, a.times, a.profile_ci) in seen:

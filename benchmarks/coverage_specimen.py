@@ -7,6 +7,7 @@ Usage: python benchmarks/coverage_specimen.py [--datasets 20] [--runs 50] [--cha
        [--workflow [--budget N] [--start N] [--exact auto|on|off] --work runs/coverage]
        [--only i,j,...]
        [--store runs/store] [--out benchmarks/results_coverage.json]
+       [--cluster local:2 | --scheduler tcp://HOST:PORT]
 
 Truths are drawn from the prior (uniform on the seed box), so for an exact posterior the
 coverage of a 95 % interval is 95 % on average. Each dataset: the FE at the truth at the seed
@@ -30,10 +31,12 @@ import torch
 from solderpyro.calibration import Priors, calibrate_modular
 from solderpyro.configure import build, compose
 from solderpyro.design import lhs
+from solderpyro.executor import executor_from_options
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.store import RunStore, run_doe
 from solderpyro.surrogate import GPSurrogate
 from solderpyro.surrogate.features import input_map
+from solderpyro.sweep import sweep
 
 
 def _workflow(setup, tv, y, i, a):
@@ -110,6 +113,10 @@ def main() -> None:
                     "(default: all; the truths and noise draws do not depend on it)")
     ap.add_argument("--store", default="runs/store")
     ap.add_argument("--out", default="benchmarks/results_coverage.json")
+    ap.add_argument("--cluster", default=None, metavar="local:N",
+                    help="run the datasets in parallel on a Dask LocalCluster")
+    ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                    help="run the datasets on a running Dask cluster")
     a = ap.parse_args()
     setup = build(compose([]))
     sp, times = setup.space, setup.times
@@ -130,38 +137,47 @@ def main() -> None:
     truths = lhs(sp, a.datasets, 12345)  # prior draws, stratified
     tv = run_doe(solver, store, h, sp.full(truths), times)
     rng = np.random.default_rng(0)
-    hits = np.zeros((a.datasets, sp.dim), dtype=bool)
-    t0 = time.perf_counter()
-    rows: list[dict] = []
+    ys = [tv.V[i].reshape(-1) + a.noise * torch.as_tensor(rng.standard_normal(y_sim.shape[1]))
+          for i in range(a.datasets)]  # drawn in order: the noise does not depend on --only
     only = {int(v) for v in a.only.split(",") if v.strip()} or set(range(a.datasets))
-    for i in range(a.datasets):
-        y = tv.V[i].reshape(-1) + a.noise * torch.as_tensor(rng.standard_normal(y_sim.shape[1]))
-        if i not in only:
-            continue
+
+    def job(name: str) -> dict:
+        """One dataset: its 95 % intervals and whether they hold the truth."""
+        i = int(name)
         if a.workflow:
-            lo, hi = _workflow(setup, tv, y, i, a)
+            lo, hi = _workflow(setup, tv, ys[i], i, a)
         else:
             pr = Priors(sigma_known=a.noise)  # the data state their noise, as the demo's do
-            post, _ = calibrate_modular(gp, y, sp, priors=pr, chains=a.chains,
+            post, _ = calibrate_modular(gp, ys[i], sp, priors=pr, chains=a.chains,
                                         warmup=a.warmup, draws=a.draws, seed=i,
                                         progress=False, init="sir")  # as calibrate_specimen
             t = post.flat("t").numpy()
             lo, hi = np.quantile(t, 0.025, axis=0), np.quantile(t, 0.975, axis=0)
-        hits[i] = (lo <= truths[i].numpy()) & (truths[i].numpy() <= hi)
-        cov = dict(zip(sp.names, hits[i].tolist(), strict=True))
-        rows.append({"truth": truths[i].tolist(), "lo": lo.tolist(), "hi": hi.tolist(),
-                     "covered": hits[i].tolist()})
-        print(f"dataset {i + 1}/{a.datasets}: covered {cov}; truth "
-              f"{np.round(truths[i].numpy(), 3).tolist()} lo {np.round(lo, 3).tolist()} "
-              f"hi {np.round(hi, 3).tolist()}", flush=True)
-        with open(a.out + ".partial", "w") as f:  # nothing computed is lost on a crash
-            json.dump({"per_dataset": rows}, f)
+        hit = (lo <= truths[i].numpy()) & (truths[i].numpy() <= hi)
+        return {"truth": truths[i].tolist(), "lo": np.asarray(lo).tolist(),
+                "hi": np.asarray(hi).tolist(), "covered": hit.tolist()}
+
+    t0 = time.perf_counter()
+    # one sweep job per dataset (solderpyro.sweep), each kept in OUT.sweep.json as it ends:
+    # in turn, or in parallel with --cluster
+    with executor_from_options(a.cluster, a.scheduler) as ex:
+        done = sweep([str(i) for i in sorted(only)], job, a.out + ".sweep.json", ex)
+    bad = {k: v.get("error") for k, v in done.items() if not v.get("ok")}
+    if bad:
+        raise SystemExit(f"datasets failed: {bad}")
+    rows = [done[str(i)] for i in sorted(only)]
+    hits = np.array([r["covered"] for r in rows], dtype=bool)
+    for i, r in zip(sorted(only), rows, strict=True):
+        print(f"dataset {i + 1}/{a.datasets}: covered "
+              f"{dict(zip(sp.names, r['covered'], strict=True))}; truth "
+              f"{np.round(r['truth'], 3).tolist()} lo {np.round(r['lo'], 3).tolist()} "
+              f"hi {np.round(r['hi'], 3).tolist()}", flush=True)
     res = {"datasets": a.datasets, "runs": a.runs, "noise_um": a.noise, "output": a.output,
            "kernel": kernel, "inputs": inputs,
            "workflow": a.workflow,
            **({"budget": a.budget, "start": a.start, "exact": a.exact} if a.workflow else {}),
            "n_pc": int(gp.basis.shape[1]),
-           "coverage": dict(zip(sp.names, hits[sorted(only)].mean(0).tolist(), strict=True)),
+           "coverage": dict(zip(sp.names, hits.mean(0).tolist(), strict=True)),
            "only": sorted(only),
            "loo_rmse_rel": gp.loo().rmse_rel, "seconds_sampling": time.perf_counter() - t0,
            "per_dataset": rows}

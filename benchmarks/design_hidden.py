@@ -13,6 +13,11 @@ in noise sd, ok), which truths lie in the 95 % intervals (summary.csv), the trus
 
 Usage: python benchmarks/design_hidden.py [--cases modulus_temperature,none,...]
        [--work runs/design_hidden] [--out benchmarks/results_design_hidden.json]
+       [--cluster local:2 | --scheduler tcp://HOST:PORT]
+
+The cases run as one sweep (:mod:`solderpyro.sweep`): one after another by default, in
+parallel on a Dask cluster with ``--cluster``/``--scheduler``; each finished case is kept in
+WORK/sweep.json as it ends, so a rerun resumes.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from __future__ import annotations
 import argparse
 import ast
 import csv
+import functools
 import json
 import subprocess
 import sys
@@ -28,7 +34,9 @@ from pathlib import Path
 
 from solderpyro.configure import build, compose
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
+from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import SEED_TIMES
+from solderpyro.sweep import sweep
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
 
@@ -71,6 +79,10 @@ def main() -> None:
     ap.add_argument("--work", default="runs/design_hidden")
     ap.add_argument("--out", default="benchmarks/results_design_hidden.json")
     ap.add_argument("--seed", type=int, default=0, help="noise seed of the data")
+    ap.add_argument("--cluster", default=None, metavar="local:N",
+                    help="run the cases in parallel on a Dask LocalCluster (solderpyro.sweep)")
+    ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                    help="run the cases on a running Dask cluster")
     ap.add_argument("--record", default="", metavar="CASE:DATA:RUN_DIR:WALL_S",
                     help="record a run made by hand with this script's command instead")
     a = ap.parse_args()
@@ -88,32 +100,40 @@ def main() -> None:
         outp.write_text(json.dumps(done, indent=1) + "\n")
         print(json.dumps(rec, indent=1))
         return
-    for case in [c.strip() for c in a.cases.split(",") if c.strip()]:
-        if case in have:
-            print(f"{case}: done already")
-            continue
-        data = work / f"data_{case}.csv"
-        if not data.exists():  # the finer FE makes the data
-            make_dataset(build(compose(FINE)), None if case == "none" else case, data, True,
-                         SEED_TIMES, noise=0.05, seed=a.seed)
-        run = work / f"cal_{case}"
-        cmd = [sys.executable, "-m", "solderpyro.cli", "calibrate", "--data", str(data),
-               "--out", str(run), "--store", str(work / "store"), "--quiet"]
-        if case != "none":
-            cmd.append(f"effects=[{case}]")
-        t0 = time.perf_counter()
-        r = subprocess.run(cmd, capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        (work / f"cal_{case}.log").write_text(r.stdout + r.stderr)
-        if r.returncode != 0:
-            print(f"{case}: calibrate failed (rc {r.returncode}); see cal_{case}.log")
-            rec = {"case": case, "rc": r.returncode, "wall_s": wall}
-        else:
-            rec = record(case, data, run, " ".join(cmd[1:]), wall)
-        done["cases"].append(rec)
-        outp.write_text(json.dumps(done, indent=1) + "\n")
+    cases = [c.strip() for c in a.cases.split(",") if c.strip()]
+    todo = [c for c in cases if c not in have]
+    for c in set(cases) - set(todo):
+        print(f"{c}: done already")
+    # one sweep job per case (solderpyro.sweep): in turn, or in parallel with --cluster
+    with executor_from_options(a.cluster, a.scheduler) as ex:
+        jobs = sweep(todo, functools.partial(run_case, work=str(work.resolve()), seed=a.seed),
+                     work / "sweep.json", ex)
+    for case in todo:
+        rec = jobs[case] if jobs[case].get("ok") else {"case": case, **jobs[case]}
+        done["cases"] = [c for c in done["cases"] if c["case"] != case] + [rec]
         print(json.dumps(rec, indent=1))
+    outp.write_text(json.dumps(done, indent=1) + "\n")
 
+
+def run_case(case: str, work: str, seed: int) -> dict:
+    """One case: the finer FE makes the data (unless there), then the default calibrate."""
+    w = Path(work)
+    data = w / f"data_{case}.csv"
+    if not data.exists():  # the finer FE makes the data
+        make_dataset(build(compose(FINE)), None if case == "none" else case, data, True,
+                     SEED_TIMES, noise=0.05, seed=seed)
+    run = w / f"cal_{case}"
+    cmd = [sys.executable, "-m", "solderpyro.cli", "calibrate", "--data", str(data),
+           "--out", str(run), "--store", str(w / "store"), "--quiet"]
+    if case != "none":
+        cmd.append(f"effects=[{case}]")
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    (w / f"cal_{case}.log").write_text(r.stdout + r.stderr)
+    if r.returncode != 0:
+        raise RuntimeError(f"{case}: calibrate failed (rc {r.returncode}); see cal_{case}.log")
+    return record(case, data, run, " ".join(cmd[1:]), wall)
 
 if __name__ == "__main__":
     main()

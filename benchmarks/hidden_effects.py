@@ -4,15 +4,17 @@
 Usage: python benchmarks/hidden_effects.py [--kind field|point|both] [--effects a,b,...]
        [--budget N] [--start N] [--q N] [--chains 2] [--warmup 300] [--draws 500]
        [--exact auto|on|off] [--work runs/hidden] [--store DIR]
-       [--out benchmarks/results_hidden.json]
+       [--out benchmarks/results_hidden.json] [--cluster local:2 | --scheduler ADDRESS]
 
 Every calibration is ``solderpyro calibrate``'s (solderpyro.pipeline.calibrate_specimen: the
 adaptive design up to ``--budget`` FE runs, then NUTS); the FE-exact posterior and profile
 intervals (``--exact``) apply to the 'add it' calibrations only: the base one misfits by
 design (the hidden effect), so it runs with ``exact.mode=off``.
 
-Each case's result is appended to the JSON file as soon as it is done (a rerun skips finished
-cases; FE runs are reused from the run store). Full-field data: the 31 x 18 grid (+ A, B) at
+The cases run as one sweep (solderpyro.sweep): one after another, or in parallel on a Dask
+cluster with ``--cluster``/``--scheduler``. Each case's result is kept in WORK/sweep.json as
+soon as it is done (a rerun skips finished cases; FE runs are reused from the run store), and
+the JSON file gets every case at the end. Full-field data: the 31 x 18 grid (+ A, B) at
 the four seed times; point data: A and B at the seven extended times; noise 0.05 um; the truth's
 Anand constants are solderpyro.diagnose.hidden.TRUTH.
 """
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import json
 import logging
 import time
@@ -33,6 +36,7 @@ from solderpyro.diagnose import diagnose
 from solderpyro.diagnose.compare import compare
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.effects import EFFECTS
+from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
@@ -43,6 +47,7 @@ from solderpyro.settings import (
     SurrogateSettings,
 )
 from solderpyro.specimen import output_points
+from solderpyro.sweep import sweep
 
 
 def _settings(setup, a, refit: bool) -> CalibrationSettings:
@@ -108,6 +113,10 @@ def main() -> None:
     ap.add_argument("--no-profile-ci", action="store_true",
                     help="skip the profile-likelihood intervals after the FE-exact step "
                          "(else: whether they hold the truth is recorded)")
+    ap.add_argument("--cluster", default=None, metavar="local:N",
+                    help="run the cases in parallel on a Dask LocalCluster (solderpyro.sweep)")
+    ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                    help="run the cases on a running Dask cluster")
     ap.add_argument("--with-dir", default="with_{e}",
                     help="directory name of an 'add it' calibration ({e}: the effect)")
     a = ap.parse_args()
@@ -118,81 +127,91 @@ def main() -> None:
     seen = {(r["kind"], r["hidden"]) for r in done}
     kinds = ("field", "point") if a.kind == "both" else (a.kind,)
     hidden = [h.strip() for h in a.effects.split(",") if h.strip()] or ["none", *EFFECTS]
+    jobs = [f"{kind}/{h}" for kind in kinds for h in hidden if (kind, h) not in seen]
+    # one sweep job per case (solderpyro.sweep): in turn, or in parallel with --cluster
+    with executor_from_options(a.cluster, a.scheduler) as ex:
+        res = sweep(jobs, functools.partial(run_case, a=a), Path(a.work) / "sweep.json", ex)
+    for j in jobs:
+        kind, h = j.split("/")
+        rec = res[j] if res[j].get("ok") else {"kind": kind, "hidden": h, **res[j]}
+        done.append(rec)
+        print(json.dumps(rec), flush=True)
+    out.write_text(json.dumps(done, indent=2) + "\n")
+
+
+def run_case(job: str, a: argparse.Namespace) -> dict:
+    """One case ``KIND/HIDDEN``: make the data, calibrate, diagnose, add the top effect."""
+    torch.set_num_threads(1)
+    kind, h = job.split("/")
     base = build(compose([]))
-    for kind in kinds:
-        times = SEED_TIMES if kind == "field" else EXTENDED_TIMES
-        ov = [f"loading.output_times=[{','.join(str(t) for t in times)}]"]
-        for h in hidden:
-            if (kind, h) in seen:
-                continue
-            t0 = time.perf_counter()
-            d = Path(a.work) / kind / h
-            d.mkdir(parents=True, exist_ok=True)
-            data = d / "data.csv"
-            if not data.exists():  # a rerun reuses the dataset it wrote
-                make_dataset(base, None if h == "none" else h, data, kind == "field", times,
-                             seed=1)
-            meta = read_measurements(data).meta
-            if not (d / "base" / "draws.npz").exists():  # a rerun re-diagnoses finished ones
-                _calibrate(ov, data, d / "base", a)
-            dg = diagnose(d / "base", n_draws=2, progress=False)
-            run = json.loads((d / "base" / "run.json").read_text())
-            rec = {"kind": kind, "hidden": h, "hidden_values": meta.get("hidden_values"),
-                   "surrogate": f"{run.get('surrogate_inputs')} ({run.get('kernel')})",
-                   "design_base": {k: (run.get("design") or {}).get(k)
-                                   for k in ("reason", "fe_runs")},
-                   "hidden_rms_point_um": meta.get("hidden_rms_point_um"),
-                   "misfit": dg.misfit, "verdict": dg.verdict,
-                   "ranking": [(r["effect"], r["evidence"], r["flagged"]) for r in dg.ranking],
-                   "indistinguishable": dg.indistinguishable,
-                   "rank_of_hidden": next((i + 1 for i, r in enumerate(dg.ranking)
-                                           if r["effect"] == h), None)}
-            top = next((r["effect"] for r in dg.ranking if r["flagged"]), None)
-            if top is not None:
-                # the tool will not pick between effects it cannot tell apart: refit each one
-                # of the top group, as a user would, and keep the best by ELPD
-                group = next((g for g in dg.indistinguishable if top in g), [top])
-                refits = {}
-                for e in group:
-                    wd = d / a.with_dir.format(e=e)
-                    if not (wd / "draws.npz").exists():
-                        _calibrate([*ov, f"effects=[{e}]"], data, wd, a, refit=True)
-                    cmp = compare(d / "base", wd)
-                    truth = dict(TRUTH)
-                    if h == e and meta.get("hidden_values"):
-                        truth.update(ast.literal_eval(meta["hidden_values"]))
-                    info = json.loads((wd / "run.json").read_text())
-                    ex = info.get("exact") or {}
-                    refits[e] = {"rms_after_um": cmp["after"]["rms_um"],
-                                 "elpd_gain": cmp["elpd_gain"],
-                                 "covered_after": _covered(wd, truth),
-                                 "intervals": _intervals(wd),
-                                 "fe_check": info.get("fe_check"),
-                                 "design": {k: (info.get("design") or {}).get(k)
-                                            for k in ("reason", "fe_runs")},
-                                 "posterior": info.get("posterior", "surrogate"),
-                                 **({"exact": {k: ex.get(k) for k in (
-                                     "ess", "khat", "reliable", "fe_runs", "coordinates")}}
-                                    if ex else {}),
-                                 **({"identifiability": ex["identifiability"]["advice"]}
-                                    if ex.get("identifiability") else {}),
-                                 **({"profile_ci": {p["parameter"]: [p["lower"], p["upper"]]
-                                                    for p in ex["profile_ci"]},
-                                     "covered_profile_ci": {
-                                         p["parameter"]: p["lower"] <= truth[p["parameter"]]
-                                         <= p["upper"] for p in ex["profile_ci"]
-                                         if p["parameter"] in truth}}
-                                    if ex.get("profile_ci") else {})}
-                best = max(refits, key=lambda e: refits[e]["elpd_gain"])
-                rec.update({"added": best, "rms_before_um": cmp["before"]["rms_um"],
-                            **refits[best]})
-                if len(refits) > 1:
-                    rec["group_refits"] = refits
-            rec["covered_base"] = _covered(d / "base", TRUTH)
-            rec["seconds"] = time.perf_counter() - t0
-            done.append(rec)
-            out.write_text(json.dumps(done, indent=2) + "\n")
-            print(json.dumps(rec), flush=True)
+    times = SEED_TIMES if kind == "field" else EXTENDED_TIMES
+    ov = [f"loading.output_times=[{','.join(str(t) for t in times)}]"]
+    t0 = time.perf_counter()
+    d = Path(a.work) / kind / h
+    d.mkdir(parents=True, exist_ok=True)
+    data = d / "data.csv"
+    if not data.exists():  # a rerun reuses the dataset it wrote
+        make_dataset(base, None if h == "none" else h, data, kind == "field", times,
+                     seed=1)
+    meta = read_measurements(data).meta
+    if not (d / "base" / "draws.npz").exists():  # a rerun re-diagnoses finished ones
+        _calibrate(ov, data, d / "base", a)
+    dg = diagnose(d / "base", n_draws=2, progress=False)
+    run = json.loads((d / "base" / "run.json").read_text())
+    rec = {"kind": kind, "hidden": h, "hidden_values": meta.get("hidden_values"),
+           "surrogate": f"{run.get('surrogate_inputs')} ({run.get('kernel')})",
+           "design_base": {k: (run.get("design") or {}).get(k)
+                           for k in ("reason", "fe_runs")},
+           "hidden_rms_point_um": meta.get("hidden_rms_point_um"),
+           "misfit": dg.misfit, "verdict": dg.verdict,
+           "ranking": [(r["effect"], r["evidence"], r["flagged"]) for r in dg.ranking],
+           "indistinguishable": dg.indistinguishable,
+           "rank_of_hidden": next((i + 1 for i, r in enumerate(dg.ranking)
+                                   if r["effect"] == h), None)}
+    top = next((r["effect"] for r in dg.ranking if r["flagged"]), None)
+    if top is not None:
+        # the tool will not pick between effects it cannot tell apart: refit each one
+        # of the top group, as a user would, and keep the best by ELPD
+        group = next((g for g in dg.indistinguishable if top in g), [top])
+        refits = {}
+        for e in group:
+            wd = d / a.with_dir.format(e=e)
+            if not (wd / "draws.npz").exists():
+                _calibrate([*ov, f"effects=[{e}]"], data, wd, a, refit=True)
+            cmp = compare(d / "base", wd)
+            truth = dict(TRUTH)
+            if h == e and meta.get("hidden_values"):
+                truth.update(ast.literal_eval(meta["hidden_values"]))
+            info = json.loads((wd / "run.json").read_text())
+            ex = info.get("exact") or {}
+            refits[e] = {"rms_after_um": cmp["after"]["rms_um"],
+                         "elpd_gain": cmp["elpd_gain"],
+                         "covered_after": _covered(wd, truth),
+                         "intervals": _intervals(wd),
+                         "fe_check": info.get("fe_check"),
+                         "design": {k: (info.get("design") or {}).get(k)
+                                    for k in ("reason", "fe_runs")},
+                         "posterior": info.get("posterior", "surrogate"),
+                         **({"exact": {k: ex.get(k) for k in (
+                             "ess", "khat", "reliable", "fe_runs", "coordinates")}}
+                            if ex else {}),
+                         **({"identifiability": ex["identifiability"]["advice"]}
+                            if ex.get("identifiability") else {}),
+                         **({"profile_ci": {p["parameter"]: [p["lower"], p["upper"]]
+                                            for p in ex["profile_ci"]},
+                             "covered_profile_ci": {
+                                 p["parameter"]: p["lower"] <= truth[p["parameter"]]
+                                 <= p["upper"] for p in ex["profile_ci"]
+                                 if p["parameter"] in truth}}
+                            if ex.get("profile_ci") else {})}
+        best = max(refits, key=lambda e: refits[e]["elpd_gain"])
+        rec.update({"added": best, "rms_before_um": cmp["before"]["rms_um"],
+                    **refits[best]})
+        if len(refits) > 1:
+            rec["group_refits"] = refits
+    rec["covered_base"] = _covered(d / "base", TRUTH)
+    rec["seconds"] = time.perf_counter() - t0
+    return rec
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
     python experiments/calibrate.py data.path=runs/demo/data.csv
     python experiments/calibrate.py data.path=FILE.csv calibration.design.budget=80
     python experiments/calibrate.py -m data.path=FILE.csv surrogate=gaussian,matern  # sweep
+    python experiments/calibrate.py data.path=FILE.csv cluster=local cluster.local=local:4
 
 Same workflow as ``solderpyro calibrate``; writes report.md, summary.csv, posterior.nc and the
 figures into Hydra's run directory. The run store (calibration.store) is shared between runs.
@@ -17,6 +18,7 @@ import hydra
 from omegaconf import DictConfig
 
 from solderpyro.configure import build, calibration_settings, task_overrides
+from solderpyro.executor import executor_from_options
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline import calibrate_specimen
 from solderpyro.specimen import output_points
@@ -34,8 +36,11 @@ def main(cfg: DictConfig) -> None:
     out = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     s = calibration_settings(cfg, setup.surrogate)
     s.store = hydra.utils.to_absolute_path(s.store)
-    res = calibrate_specimen(setup, meas, out, s,
-                             record={"overrides": task_overrides(), "data": str(cfg.data.path)})
+    cl = cfg.get("cluster") or {}
+    with executor_from_options(cl.get("local"), cl.get("scheduler")):
+        res = calibrate_specimen(setup, meas, out, s,
+                                 record={"overrides": task_overrides(),
+                                         "data": str(cfg.data.path)})
     log.info("report: %s", res.out / "report.html")
 
 

@@ -150,6 +150,9 @@ class SpecimenSolver:
     def __init__(self, problem: Problem, field_points=None, dtype=torch.float64,
                  device="cpu", effects: EffectSet | Sequence[str | Effect] = (),
                  _band: PlasticBand | None = None) -> None:
+        # what __reduce__ rebuilds from: the solver holds native (ctypes) factorizations that
+        # do not pickle, so a copy (a Dask worker's) is built anew from its inputs
+        self._init_args = (problem, field_points, dtype, str(device), effects, _band)
         self.problem = problem
         self.effects: EffectSet | None = (effects if isinstance(effects, EffectSet)
                                           else EffectSet(effects) if effects else None)
@@ -245,6 +248,11 @@ class SpecimenSolver:
                                           self.effects or (), _band=spec)
         self.stats = {"factor": 0, "iter": 0}
         self._fcache: dict[str, torch.Tensor] | None = None
+
+    def __reduce__(self) -> tuple:
+        """Pickle as the constructor's inputs (a copy is set up anew, e.g. once per Dask
+        worker); the solver's results do not depend on its history."""
+        return (type(self), self._init_args)
 
     def param_names(self, times=None) -> list[str]:
         """Names of the ``params`` columns: the nine Anand constants, then the effects'

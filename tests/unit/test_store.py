@@ -160,8 +160,15 @@ def test_record_round_trip_is_exact(tmp_path):
                                                               ("A", "B"))
     assert (back.n_steps, back.n_substeps, back.batch_size) == (75, 2, 3)
     assert back.created and back.version
-    d = json.loads(path.read_text())  # plain JSON: NaN stored as null, parameters by name
-    assert d["V"][1][0] is None and set(d["params"]) == set(ANAND_NAMES)
+    d = json.loads(path.read_text())  # plain JSON: V as float64 bytes, parameters by name
+    assert d["V"]["dtype"] == "<f8" and d["V"]["shape"] == [4, 2]
+    assert set(d["params"]) == set(ANAND_NAMES)
+    # a record written before the base64 form (V as lists, NaN as null) still reads exactly
+    d["V"] = [[None if np.isnan(x) else float(x) for x in row] for row in V.tolist()]
+    path.write_text(json.dumps(d))
+    old = store.get("cfg", vals)
+    assert old is not None
+    np.testing.assert_array_equal(old.V, V)
     assert store.get("cfg", [v * 1.01 for v in vals]) is None
     assert store.get("other", vals) is None
 

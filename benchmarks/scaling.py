@@ -1,0 +1,158 @@
+"""Scale-out measurements (issue 22): a 512-run DOE in-process vs on 1 and 2 Dask workers, and
+reading a 10,000-run store back.
+
+    python benchmarks/scaling.py doe   [--runs 512] [--batch 64] [--repeats 1]
+    python benchmarks/scaling.py store [--runs 10000]
+
+``doe``: an LHS design over the reference case's box (specimen.md: the seed's four times,
+points A and B, default mesh), solved through ``run_doe`` into a fresh store, under three
+executors, each in its own process so that thread settings do not leak:
+
+* ``inproc``: in this process with 2 torch threads (the default of a plain command);
+* ``dask1`` / ``dask2``: ``--cluster local:1`` / ``local:2`` (single-threaded workers).
+
+For the Dask runs the overhead is ``1 - sum(FE seconds of the tasks) / (workers x wall)``:
+everything that is not the FE (scheduling, pickling, building the solver on each worker, store
+writes, a worker idle at the end) as a share of the worker time. Cluster start-up is timed
+apart. The configurations run in turn, ``--repeats`` rounds; medians are reported.
+
+``store``: writes ``--runs`` synthetic full-field records (4 times x 560 outputs, the size of a
+calibration's field run) in the record format of the store, and times ``RunStore.records``
+reading them all back; the same for 1/5 as many records in the old format (V as lists of
+numbers), for scale.
+
+Results: benchmarks/results_scaling.json (merged per subcommand).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+OUT = Path(__file__).with_name("results_scaling.json")
+
+DOE_CHILD = """
+import json, sys, time, torch
+from pathlib import Path
+from solderpyro.configure import build, compose
+from solderpyro.design import lhs
+from solderpyro.executor import DaskExecutor, InProcess
+from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.store import RunStore, run_doe
+
+mode, n, batch, root = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+s = build(compose([]))
+solver = SpecimenSolver(s.problem, None, dtype=s.dtype, device=s.device)
+P = s.space.full(lhs(s.space, n, seed=7))
+store = RunStore(root)
+h = store.register(s.problem, s.times, False, s.dtype)
+t0 = time.perf_counter()
+if mode == "inproc":
+    torch.set_num_threads(2)
+    ex, start = InProcess(), 0.0
+else:
+    ex = DaskExecutor.start(f"local:{int(mode[4:])}")
+    ex.client.wait_for_workers(int(mode[4:]))
+    start = time.perf_counter() - t0
+t1 = time.perf_counter()
+res = run_doe(solver, store, h, P, s.times, batch_size=batch, progress=False, executor=ex)
+wall = time.perf_counter() - t1
+workers = 1 if mode == "inproc" else int(mode[4:])
+print(json.dumps({"mode": mode, "wall_s": wall, "start_s": start, "fe_s": res.fe_s,
+                  "workers": workers, "n_ok": int(res.ok.sum()), "n": n,
+                  "overhead": 1 - res.fe_s / (workers * wall)}))
+if mode != "inproc":
+    ex.close()
+"""
+
+
+def bench_doe(a: argparse.Namespace) -> dict:
+    rows: list[dict] = []
+    for r in range(a.repeats):
+        for mode in ("inproc", "dask1", "dask2"):
+            with tempfile.TemporaryDirectory() as tmp:
+                out = subprocess.run([sys.executable, "-c", DOE_CHILD, mode, str(a.runs),
+                                      str(a.batch), tmp], capture_output=True, text=True,
+                                     check=True)
+            row = json.loads(out.stdout.strip().splitlines()[-1])
+            row["round"] = r
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    med = {m: statistics.median(x["wall_s"] for x in rows if x["mode"] == m)
+           for m in ("inproc", "dask1", "dask2")}
+    over = {m: statistics.median(x["overhead"] for x in rows if x["mode"] == m)
+            for m in ("dask1", "dask2")}
+    return {"runs": a.runs, "batch": a.batch, "repeats": a.repeats, "rows": rows,
+            "median_wall_s": med,
+            "speedup_2_vs_1_worker": med["dask1"] / med["dask2"],
+            "speedup_2_workers_vs_inproc_2_threads": med["inproc"] / med["dask2"],
+            "median_overhead": over}
+
+
+def _records(root: Path, n: int, legacy: bool) -> float:
+    """Write ``n`` synthetic field records under ``root``; returns write seconds."""
+    import numpy as np
+
+    from solderpyro.params import ANAND_NAMES
+    from solderpyro.store import RunRecord, RunStore, _write_atomic
+
+    store = RunStore(root)
+    names = tuple(["A", "B"] + [f"g_{i:02d}_{j:02d}" for i in range(31) for j in range(18)])
+    rng = np.random.default_rng(0)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        rec = RunRecord(dict(zip(ANAND_NAMES, rng.uniform(1, 2, 9).tolist(), strict=True)),
+                        True, "", (600.0, 2700.0, 4800.0, 7800.0), names,
+                        rng.normal(size=(4, len(names))))
+        d = rec.to_json()
+        if legacy:  # the format before base64: V as nested lists of numbers
+            d["V"] = rec.V.tolist()
+        _write_atomic(store.path("cfg", rec.values), d)
+    return time.perf_counter() - t0
+
+
+def bench_store(a: argparse.Namespace) -> dict:
+    from solderpyro.store import RunStore
+
+    out = {}
+    for label, n, legacy in (("base64", a.runs, False), ("lists", a.runs // 5, True)):
+        with tempfile.TemporaryDirectory(dir=a.tmp) as tmp:
+            w = _records(Path(tmp), n, legacy)
+            t0 = time.perf_counter()
+            recs = RunStore(tmp).records("cfg")
+            r = time.perf_counter() - t0
+            size = sum(p.stat().st_size for p in (Path(tmp) / "cfg" / "runs").glob("*.json"))
+        assert len(recs) == n
+        out[label] = {"runs": n, "write_s": round(w, 2), "read_s": round(r, 2),
+                      "read_ms_per_run": round(1e3 * r / n, 3), "bytes_per_run": size // n}
+        print(label, json.dumps(out[label]), flush=True)
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="what", required=True)
+    d = sub.add_parser("doe")
+    d.add_argument("--runs", type=int, default=512)
+    d.add_argument("--batch", type=int, default=64)
+    d.add_argument("--repeats", type=int, default=1)
+    s = sub.add_parser("store")
+    s.add_argument("--runs", type=int, default=10000)
+    s.add_argument("--tmp", default=None, help="where to write the records (default: $TMPDIR)")
+    a = p.parse_args()
+    res = bench_doe(a) if a.what == "doe" else bench_store(a)
+    done = json.loads(OUT.read_text()) if OUT.exists() else {}
+    done[a.what] = {"command": " ".join(["python", *sys.argv]),
+                    "cpus": __import__("os").cpu_count(), **res}
+    OUT.write_text(json.dumps(done, indent=2) + "\n")
+    print(json.dumps({k: v for k, v in res.items() if k != "rows"}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

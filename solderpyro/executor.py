@@ -1,0 +1,335 @@
+"""Where FE batches run: in this process (the default) or on a Dask cluster.
+
+Every FE campaign of the package (the calibration's start design and acquisition batches, the
+FE check, the FE-exact step and the profiles, ``diagnose``'s Jacobians and refits, the
+sensitivity DOE) reaches the solver through :func:`solderpyro.store.run_doe`, and ``run_doe``
+hands its batches to the *current executor*:
+
+* :class:`InProcess` (default): one batch after another in this process, as before; Dask is
+  never imported on this path.
+* :class:`DaskExecutor`: one Dask task per FE batch on a ``dask.distributed`` cluster
+  (``--cluster local:N`` starts a ``LocalCluster`` of N single-threaded workers;
+  ``--scheduler tcp://HOST:PORT`` joins a running one, e.g. a ``dask_jobqueue.SLURMCluster``).
+  Each task solves its batch and writes its runs to the run store itself (the store is the
+  meeting point: a shared filesystem on a real cluster), so nothing a worker finished is lost
+  when the client dies; the client also stores, as each task completes (``as_completed``),
+  whatever a worker could not write. A worker killed mid-task: the scheduler reruns the task
+  elsewhere. A batch whose workers died ``distributed.scheduler.allowed-failures + 1`` times
+  comes back as failed members with that reason and is *not* stored, so a rerun tries again.
+
+Choose the executor for a block of code with :func:`use_executor` (a context variable, so
+threads and nested calls see the right one)::
+
+    from solderpyro.executor import DaskExecutor, use_executor
+    with DaskExecutor.start("local:2") as ex, use_executor(ex):
+        calibrate_specimen(...)            # every FE batch goes to the two workers
+
+Results do not depend on the executor: the FE solves each member independently (members of
+one batch agree with the same members solved alone to ~1e-15 um), and ``run_doe`` assembles
+rows in their input order.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import hashlib
+import logging
+import math
+import os
+import re
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+if TYPE_CHECKING:  # no Dask import on the in-process path
+    from solderpyro.store import RunRecord, RunStore
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BatchOutcome:
+    """What one FE batch gave back.
+
+    Attributes:
+        index: the batch's position in the campaign (0-based).
+        records: one :class:`~solderpyro.store.RunRecord` per member, in row order.
+        stored: whether the records are already in the store (written where they were solved).
+        seconds: FE wall time of the batch where it ran, s (NaN when unknown).
+        lost: the batch was never solved (its workers died): failed records that must not be
+            stored, so that a rerun tries again.
+    """
+
+    index: int
+    records: list[RunRecord]
+    stored: bool
+    seconds: float = float("nan")
+    lost: bool = False
+
+
+def solve_batch(solver: Any, P: torch.Tensor, times: Sequence[float],
+                names: Sequence[str]) -> list[RunRecord]:
+    """Solve one batch ``P (b, 9 + n_eff)`` over ``times`` (s, sorted): one
+    :class:`~solderpyro.store.RunRecord` per member (``names``: the columns of ``P``)."""
+    from solderpyro.store import _batch_records, _solve
+
+    tt = [float(t) for t in times]
+    return _batch_records(_solve(solver, P, tt), P, tt, names)
+
+
+#: solvers built on this (worker) process, by the hash of their pickled inputs
+_SOLVERS: dict[str, Any] = {}
+
+
+def _worker_solver(key: str, blob: bytes) -> Any:
+    """The solver pickled as ``blob`` (``key``: its sha256), built once per worker process."""
+    if key not in _SOLVERS:
+        import cloudpickle
+
+        _SOLVERS.clear()  # one campaign's solver at a time: bounded memory
+        _SOLVERS[key] = cloudpickle.loads(blob)
+    return _SOLVERS[key]
+
+
+def _task(key: str, blob: bytes, P: torch.Tensor, times: list[float], names: list[str],
+          store_root: str | None, cfg_hash: str) -> tuple[list[RunRecord], bool, float]:
+    """One Dask task: solve a batch and store its runs where the worker can reach the store.
+    Returns ``(records, stored, seconds)``."""
+    from solderpyro.store import RunStore
+
+    torch.set_num_threads(1)  # one thread per worker: the cluster, not torch, spreads the work
+    solver = _worker_solver(key, blob)
+    t0 = time.perf_counter()
+    recs = solve_batch(solver, P, times, names)
+    dt = time.perf_counter() - t0
+    stored = False
+    if store_root is not None:
+        try:
+            store = RunStore(store_root)
+            for r in recs:
+                store.put(cfg_hash, r)
+            stored = True
+        except OSError as e:  # no shared filesystem here: the client stores them
+            log.warning("worker could not write the run store %s (%s); the client will",
+                        store_root, e)
+    return recs, stored, dt
+
+
+class InProcess:
+    """Run FE batches one after another in this process (the default executor).
+
+    ``n_workers`` is 1; batches are the rows in order, ``batch_size`` at a time.
+    """
+
+    n_workers = 1
+
+    def partition(self, n: int, batch_size: int) -> list[list[int]]:
+        """Split ``n`` rows into batches of ``batch_size`` (the last one shorter)."""
+        return [list(range(j, min(n, j + batch_size))) for j in range(0, n, batch_size)]
+
+    def run(self, solver: Any, batches: Sequence[torch.Tensor], times: Sequence[float],
+            names: Sequence[str], store: RunStore, cfg_hash: str) -> Iterator[BatchOutcome]:
+        """Solve each batch ``(b_i, 9 + n_eff)`` in turn and yield its outcome (not yet
+        stored: :func:`~solderpyro.store.run_doe` stores it)."""
+        for i, P in enumerate(batches):
+            t0 = time.perf_counter()
+            recs = solve_batch(solver, P, times, names)
+            yield BatchOutcome(i, recs, False, time.perf_counter() - t0)
+
+    def describe(self) -> str:
+        return "in-process"
+
+
+_LOCAL = re.compile(r"^local(?::(\d+))?$")
+
+
+def parse_cluster(spec: str) -> int:
+    """Workers of a ``--cluster`` spec: ``local:N`` (N >= 1) or ``local`` (one per core)."""
+    m = _LOCAL.match(spec.strip())
+    if m is None:
+        raise ValueError(f"--cluster must be 'local' or 'local:N' (N workers), got {spec!r}; "
+                         f"to join a running cluster use --scheduler tcp://HOST:PORT")
+    n = int(m.group(1)) if m.group(1) else (os.cpu_count() or 1)
+    if n < 1:
+        raise ValueError(f"--cluster local:N needs N >= 1 workers, got {n}")
+    return n
+
+
+class DaskExecutor:
+    """Run FE batches as Dask tasks, one task per batch (see the module docstring).
+
+    Args:
+        client: a connected ``distributed.Client``.
+        owns: close the client (and its cluster) in :meth:`close`.
+        retries: extra attempts of a task that *raised* (not of one whose worker died: the
+            scheduler's ``allowed-failures`` governs those).
+
+    Build one with :meth:`start`, which also checks the address.
+    """
+
+    def __init__(self, client: Any, owns: bool = False, retries: int = 0) -> None:
+        self.client = client
+        self.owns = owns
+        self.retries = retries
+
+    @classmethod
+    def start(cls, cluster: str | None = None, scheduler: str | None = None,
+              timeout: float = 10.0) -> DaskExecutor:
+        """Start a ``LocalCluster`` (``cluster='local:N'``: N single-threaded worker
+        processes) or join a running scheduler (``scheduler='tcp://HOST:PORT'``).
+
+        Raises:
+            ValueError: neither or both given, or a malformed spec.
+            ConnectionError: no scheduler answered at ``scheduler`` within ``timeout`` s.
+        """
+        if (cluster is None) == (scheduler is None):
+            raise ValueError("give exactly one of --cluster local:N and --scheduler ADDRESS")
+        from distributed import Client, LocalCluster
+
+        for name in ("distributed", "bokeh", "tornado"):  # no third-party INFO chatter
+            logging.getLogger(name).setLevel(logging.WARNING)
+        if cluster is not None:
+            n = parse_cluster(cluster)
+            lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                              dashboard_address=":0", silence_logs=logging.ERROR)
+            log.info("Dask LocalCluster: %d single-threaded workers (%s)", n,
+                     lc.scheduler_address)
+            return cls(Client(lc), owns=True)
+        addr = str(scheduler)
+        if not re.match(r"^[a-z]+://[^\s/]+:\d+$", addr):
+            raise ValueError(f"--scheduler must look like tcp://HOST:PORT, got {addr!r}")
+        try:
+            client = Client(addr, timeout=f"{timeout}s")
+        except (OSError, TimeoutError) as e:
+            raise ConnectionError(f"--scheduler {addr}: no Dask scheduler answered within "
+                                  f"{timeout:g} s ({type(e).__name__}: {e})") from e
+        n = len(client.scheduler_info().get("workers", {}))
+        log.info("Dask scheduler %s: %d workers", addr, n)
+        return cls(client, owns=False)
+
+    @property
+    def n_workers(self) -> int:
+        """Total worker threads of the cluster (at least 1)."""
+        info = self.client.scheduler_info().get("workers", {})
+        return max(1, sum(int(w.get("nthreads", 1)) for w in info.values()))
+
+    def partition(self, n: int, batch_size: int) -> list[list[int]]:
+        """Split ``n`` rows into batches of at most ``batch_size`` whose sizes differ by at
+        most one, their number a multiple of the cluster's worker threads (while rows last),
+        so that every worker gets the same share."""
+        if n == 0:
+            return []
+        w = self.n_workers
+        k = min(n, w * math.ceil(math.ceil(n / batch_size) / w))
+        edges = [round(i * n / k) for i in range(k + 1)]
+        return [list(range(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+    @staticmethod
+    def _solver_blob(solver: Any) -> tuple[str, bytes]:
+        """``(sha256, pickled solver)``. Sent with every task (a SpecimenSolver pickles as
+        its inputs, ~16 kB) rather than scattered: scattered data dies with the workers that
+        hold it, a task's own arguments are resent when it is rescheduled. Each worker builds
+        the solver once (:func:`_worker_solver`)."""
+        import cloudpickle
+
+        blob = cloudpickle.dumps(solver)
+        return hashlib.sha256(blob).hexdigest(), blob
+
+    def run(self, solver: Any, batches: Sequence[torch.Tensor], times: Sequence[float],
+            names: Sequence[str], store: RunStore, cfg_hash: str) -> Iterator[BatchOutcome]:
+        """Submit one task per batch ``(b_i, 9 + n_eff)`` and yield outcomes as tasks
+        complete (not in batch order)."""
+        from distributed import as_completed
+        from distributed.scheduler import KilledWorker
+
+        if not batches:
+            return
+        key, blob = self._solver_blob(solver)
+        root = str(Path(store.root).resolve())
+        tt, nm = [float(t) for t in times], [str(n) for n in names]
+        futs = {self.client.submit(_task, key, blob, P, tt, nm, root, cfg_hash, pure=False,
+                                   retries=self.retries): i for i, P in enumerate(batches)}
+        try:
+            for fut in as_completed(list(futs)):
+                i = futs[fut]
+                try:
+                    recs, stored, dt = fut.result()
+                except KilledWorker as e:
+                    yield BatchOutcome(i, _failed(batches[i], tt, names, solver,
+                                                  f"FE batch lost: its worker died on every "
+                                                  f"attempt ({e}); not stored, a rerun "
+                                                  f"retries it"), False, lost=True)
+                    continue
+                yield BatchOutcome(i, recs, stored, dt)
+        finally:
+            for f in futs:
+                f.release()
+
+    def describe(self) -> str:
+        return f"Dask ({self.client.scheduler.address}, {self.n_workers} worker threads)"
+
+    def close(self) -> None:
+        """Close the client, and the cluster when this executor started it."""
+        cluster = getattr(self.client, "cluster", None) if self.owns else None
+        self.client.close()
+        if cluster is not None:
+            cluster.close()
+
+    def __enter__(self) -> DaskExecutor:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _failed(P: torch.Tensor, times: list[float], names: Sequence[str], solver: Any,
+            reason: str) -> list[RunRecord]:
+    """Failed records (``ok=False``, NaN outputs) for every member of a lost batch."""
+    import numpy as np
+
+    from solderpyro.store import RunRecord
+
+    outs = list(getattr(solver, "names", None) or ())
+    V = np.full((len(times), len(outs)), np.nan)
+    return [RunRecord(dict(zip(names, row, strict=True)), False, reason, tuple(times),
+                      tuple(str(n) for n in outs), V) for row in P.tolist()]
+
+
+Executor = InProcess | DaskExecutor
+
+_CURRENT: contextvars.ContextVar[Executor | None] = contextvars.ContextVar(
+    "solderpyro_executor", default=None)
+_DEFAULT = InProcess()
+
+
+def current_executor() -> Executor:
+    """The executor FE batches go to now (:class:`InProcess` unless :func:`use_executor`)."""
+    return _CURRENT.get() or _DEFAULT
+
+
+@contextlib.contextmanager
+def use_executor(executor: Executor | None) -> Iterator[Executor]:
+    """Send every FE batch of the enclosed block to ``executor`` (None: in-process)."""
+    tok = _CURRENT.set(executor)
+    try:
+        yield current_executor()
+    finally:
+        _CURRENT.reset(tok)
+
+
+@contextlib.contextmanager
+def executor_from_options(cluster: str | None, scheduler: str | None,
+                          timeout: float = 10.0) -> Iterator[Executor]:
+    """The CLI's seam: in-process when both are None, else a :class:`DaskExecutor` started
+    (and closed afterwards) from ``--cluster`` / ``--scheduler``, current for the block."""
+    if cluster is None and scheduler is None:
+        with use_executor(None) as ex:
+            yield ex
+        return
+    with DaskExecutor.start(cluster, scheduler, timeout) as dex, use_executor(dex) as ex:
+        yield ex
