@@ -16,6 +16,7 @@ import cloudpickle
 import numpy as np
 import pytest
 import torch
+from test_store import cheap_problem  # tests/unit is on sys.path under pytest
 
 from solderpyro.executor import (
     DaskExecutor,
@@ -25,9 +26,7 @@ from solderpyro.executor import (
     parse_cluster,
     use_executor,
 )
-from solderpyro.fem.loading import SEED_TIMES, TimeStepping
-from solderpyro.fem.mesh import Layer, MeshSpec
-from solderpyro.fem.problem import Problem
+from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.params import ParameterSpace
 from solderpyro.store import RunStore, param_hash, run_doe
@@ -36,16 +35,6 @@ from solderpyro.store import RunStore, param_hash, run_doe
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
 pytestmark = pytest.mark.timeout(300)
-
-
-def cheap_problem() -> Problem:
-    """A coarse problem: about a second per FE solve."""
-    layers = (Layer("copper", "copper", -4.0, 0.0, 3, 0.25, "top"),
-              Layer("solder", "solder", 0.0, 0.5, 2),
-              Layer("steel", "steel", 0.5, 4.5, 3, 0.25, "bottom"))
-    return Problem(layers=layers, mesh=MeshSpec(nx=8),
-                   stepping=TimeStepping(dT_max=25.0, dwell_dt0=100.0, growth=2.0,
-                                         dt_max=1800.0))
 
 
 def _params(n: int) -> torch.Tensor:
