@@ -11,10 +11,14 @@ executors, each in its own process so that thread settings do not leak:
 * ``inproc``: in this process with 2 torch threads (the default of a plain command);
 * ``dask1`` / ``dask2``: ``--cluster local:1`` / ``local:2`` (single-threaded workers).
 
-For the Dask runs the overhead is ``1 - sum(FE seconds of the tasks) / (workers x wall)``:
-everything that is not the FE (scheduling, pickling, building the solver on each worker, store
-writes, a worker idle at the end) as a share of the worker time. Cluster start-up is timed
-apart. The configurations run in turn, ``--repeats`` rounds; medians are reported.
+For the Dask runs two overheads are reported. ``overhead`` is ``1 - sum(FE seconds of the
+tasks) / (workers x wall)``: everything that is not the FE (scheduling, pickling, building the
+solver on each worker, store writes, the client and scheduler on the same two cores, a worker
+idle at the end) as a share of the worker time. ``per_task_overhead`` is Dask's cost per task
+against its FE time, from the task stream: the time a task occupies its worker beyond the FE
+(solver lookup, records, store writes) plus the gaps between consecutive tasks on a worker
+(scheduling, transfers). Cluster start-up is timed apart. The configurations run in turn,
+``--repeats`` rounds; medians are reported.
 
 ``store``: writes ``--runs`` synthetic full-field records (4 times x 560 outputs, the size of a
 calibration's field run) in the record format of the store, and times ``RunStore.records``
@@ -61,12 +65,29 @@ else:
     ex.client.wait_for_workers(int(mode[4:]))
     start = time.perf_counter() - t0
 t1 = time.perf_counter()
-res = run_doe(solver, store, h, P, s.times, batch_size=batch, progress=False, executor=ex)
+extra = {}
+if mode == "inproc":
+    res = run_doe(solver, store, h, P, s.times, batch_size=batch, progress=False, executor=ex)
+else:
+    from distributed import get_task_stream
+    with get_task_stream(ex.client) as ts:
+        res = run_doe(solver, store, h, P, s.times, batch_size=batch, progress=False,
+                      executor=ex)
+    spans = sorted((r["worker"], ss["start"], ss["stop"]) for r in ts.data
+                   for ss in r["startstops"] if ss["action"] == "compute")
+    busy = sum(b - a for _, a, b in spans)
+    gaps = [a2 - b1 for (w1, _, b1), (w2, a2, _) in zip(spans, spans[1:]) if w1 == w2]
+    # in a task beyond its FE (solver lookup, records, store writes), and between two tasks
+    # on a worker (scheduling, transfers): the Dask overhead per task, against its FE time
+    extra = {"tasks": len(spans), "task_s": busy,
+             "in_task_overhead": busy / res.fe_s - 1,
+             "gap_s_mean": sum(gaps) / len(gaps) if gaps else 0.0,
+             "per_task_overhead": (busy + sum(gaps)) / res.fe_s - 1}
 wall = time.perf_counter() - t1
 workers = 1 if mode == "inproc" else int(mode[4:])
 print(json.dumps({"mode": mode, "wall_s": wall, "start_s": start, "fe_s": res.fe_s,
                   "workers": workers, "n_ok": int(res.ok.sum()), "n": n,
-                  "overhead": 1 - res.fe_s / (workers * wall)}))
+                  "overhead": 1 - res.fe_s / (workers * wall), **extra}))
 if mode != "inproc":
     ex.close()
 """
@@ -74,8 +95,9 @@ if mode != "inproc":
 
 def bench_doe(a: argparse.Namespace) -> dict:
     rows: list[dict] = []
+    modes = a.modes.split(",")
     for r in range(a.repeats):
-        for mode in ("inproc", "dask1", "dask2"):
+        for mode in modes:
             with tempfile.TemporaryDirectory() as tmp:
                 out = subprocess.run([sys.executable, "-c", DOE_CHILD, mode, str(a.runs),
                                       str(a.batch), tmp], capture_output=True, text=True,
@@ -84,15 +106,18 @@ def bench_doe(a: argparse.Namespace) -> dict:
             row["round"] = r
             rows.append(row)
             print(json.dumps(row), flush=True)
-    med = {m: statistics.median(x["wall_s"] for x in rows if x["mode"] == m)
-           for m in ("inproc", "dask1", "dask2")}
-    over = {m: statistics.median(x["overhead"] for x in rows if x["mode"] == m)
-            for m in ("dask1", "dask2")}
-    return {"runs": a.runs, "batch": a.batch, "repeats": a.repeats, "rows": rows,
-            "median_wall_s": med,
-            "speedup_2_vs_1_worker": med["dask1"] / med["dask2"],
-            "speedup_2_workers_vs_inproc_2_threads": med["inproc"] / med["dask2"],
-            "median_overhead": over}
+    med = {m: statistics.median(x["wall_s"] for x in rows if x["mode"] == m) for m in modes}
+    out = {"runs": a.runs, "batch": a.batch, "repeats": a.repeats, "rows": rows,
+           "median_wall_s": med}
+    for key in ("overhead", "per_task_overhead"):
+        out[f"median_{key}"] = {m: statistics.median(x[key] for x in rows if x["mode"] == m)
+                                for m in modes if m != "inproc"
+                                and all(key in x for x in rows if x["mode"] == m)}
+    if {"dask1", "dask2"} <= set(med):
+        out["speedup_2_vs_1_worker"] = med["dask1"] / med["dask2"]
+    if {"inproc", "dask2"} <= set(med):
+        out["speedup_2_workers_vs_inproc_2_threads"] = med["inproc"] / med["dask2"]
+    return out
 
 
 def _records(root: Path, n: int, legacy: bool) -> float:
@@ -142,13 +167,17 @@ def main() -> None:
     d.add_argument("--runs", type=int, default=512)
     d.add_argument("--batch", type=int, default=64)
     d.add_argument("--repeats", type=int, default=1)
+    d.add_argument("--modes", default="inproc,dask1,dask2",
+                   help="which of inproc, dask1, dask2 to run, in this order each round")
     s = sub.add_parser("store")
     s.add_argument("--runs", type=int, default=10000)
     s.add_argument("--tmp", default=None, help="where to write the records (default: $TMPDIR)")
     a = p.parse_args()
     res = bench_doe(a) if a.what == "doe" else bench_store(a)
     done = json.loads(OUT.read_text()) if OUT.exists() else {}
-    done[a.what] = {"command": " ".join(["python", *sys.argv]),
+    modes = getattr(a, "modes", "inproc,dask1,dask2")
+    key = a.what if modes == "inproc,dask1,dask2" else f"{a.what}_{modes}"
+    done[key] = {"command": " ".join(["python", *sys.argv]),
                     "cpus": __import__("os").cpu_count(), **res}
     OUT.write_text(json.dumps(done, indent=2) + "\n")
     print(json.dumps({k: v for k, v in res.items() if k != "rows"}, indent=2))

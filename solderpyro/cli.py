@@ -216,7 +216,42 @@ def cmd_calibrate(a, overrides) -> int:
                              warm=warm)
     print(f"\ndesign: {res.design['message'] if res.design else ''}")
     print(f"report:  {res.out / 'report.html'}\nsummary: {res.out / 'summary.csv'}")
+    print(f"index:   {res.out / 'index.html'} (open in a browser)")
     return 0
+
+
+def cmd_sweep(a, overrides) -> int:
+    import glob
+
+    from .executor import current_executor
+    from .sweep import calibrate_job, sweep
+
+    files = sorted({f for pat in a.data for f in (glob.glob(pat) or [pat])})
+    missing = [f for f in files if not Path(f).is_file()]
+    if missing:
+        raise FileNotFoundError(f"--data: no such measurement file(s): {', '.join(missing)}")
+    stems = [Path(f).stem for f in files]
+    if len(set(stems)) != len(stems):
+        raise ValueError(f"--data: file names must differ (each names its run directory), "
+                         f"got {stems}")
+    out = Path(a.out)
+    store = str(Path(a.store).resolve())
+    extra = [*a.args.split(), *overrides]
+    by_stem = dict(zip(stems, files, strict=True))
+
+    def job(stem: str) -> dict:
+        return calibrate_job(str(Path(by_stem[stem]).resolve()),
+                             str((out / stem).resolve()), store, extra)
+
+    res = sweep(stems, job, out / "sweep.json", current_executor())
+    print(f"\n{'dataset':<24} {'ok':<4} {'wall_s':>8}  design / FE check")
+    for k, r in res.items():
+        info = (f"{r['design']['reason']} ({r['design']['fe_runs']} FE runs); FE check "
+                f"{r['fe_check_rms_sd']:.2f} sd" if r.get("ok") else r.get("error", ""))
+        ok = "yes" if r.get("ok") else "NO"
+        print(f"{k:<24} {ok:<4} {r.get('wall_s', 0):8.0f}  {info}")
+    print(f"\nrecord: {out / 'sweep.json'}")
+    return 0 if all(r.get("ok") for r in res.values()) else 1
 
 
 def cmd_diagnose(a, overrides) -> int:
@@ -238,6 +273,7 @@ def cmd_diagnose(a, overrides) -> int:
     for s in dg.suggestions:
         print(f"suggestion: {s}")
     print(f"\ndiagnosis: {Path(a.run_dir) / 'diagnosis.json'} and diagnosis.html")
+    print(f"index:     {Path(a.run_dir) / 'index.html'} (open in a browser)")
     return 0
 
 
@@ -273,8 +309,12 @@ def cmd_compare(a, overrides) -> int:
     r = compare(a.before, a.after, a.out)
     print(f"RMS residual {r['before']['rms_um']:.4g} -> {r['after']['rms_um']:.4g} um; "
           f"ELPD {r['before']['elpd']:.2f} -> {r['after']['elpd']:.2f} "
-          f"(gain {r['elpd_gain']:.2f} nats)")
+          f"(gain {r['elpd_gain']:.2f} +- {r['elpd_gain_se']:.2f} nats, "
+          f"{r['after']['elpd_method']})")
+    for w in r["warnings"]:
+        print(f"warning: {w}")
     print(f"comparison: {Path(a.out or a.after) / 'comparison.md'}")
+    print(f"index:      {Path(a.out or a.after) / 'index.html'} (open in a browser)")
     return 0
 
 
@@ -326,6 +366,18 @@ def _add_design(p: argparse.ArgumentParser) -> None:
                    f"{es.profile}; 0: none)")
     p.add_argument("--no-profile-ci", action="store_true",
                    help="skip the 95 %% profile-likelihood intervals after the FE-exact step")
+
+
+def _add_cluster(p: argparse.ArgumentParser) -> None:
+    """``--cluster`` / ``--scheduler``: where FE batches (or sweep jobs) run."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--cluster", default=None, metavar="local:N",
+                   help="run FE batches on a Dask LocalCluster of N single-threaded worker "
+                        "processes (default: in this process)")
+    g.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="run FE batches on a running Dask cluster (e.g. dask_jobqueue's "
+                        "SLURMCluster; see docs/scaling.md); the run store must be on a "
+                        "filesystem the workers share")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -392,8 +444,20 @@ def build_parser() -> argparse.ArgumentParser:
                    "last positions and mass matrix, matched by parameter name), e.g. the base "
                    "run when recalibrating with one more effect")
     c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
+    _add_cluster(c)
     _add_design(c)
     _add_nuts(c)
+    w = sub.add_parser("sweep", help="calibrate many datasets, one job each, in parallel on a "
+                       "Dask cluster (--cluster local:N) or one after another; each dataset's "
+                       "run directory is OUT/<file stem>, results recorded in OUT/sweep.json "
+                       "as each job ends (a rerun skips finished ones)")
+    w.add_argument("--data", nargs="+", required=True, metavar="CSV",
+                   help="measurement CSVs or glob patterns")
+    w.add_argument("--out", required=True, help="output directory")
+    w.add_argument("--store", default="runs/store", help="run store shared by the jobs")
+    w.add_argument("--args", default="", help="extra 'solderpyro calibrate' options for every "
+                   "job, e.g. \"--budget 80 --chains 2\"")
+    _add_cluster(w)
     g = sub.add_parser("diagnose", help="does the calibrated model fit the data, and which "
                        "physical effect is missing? Posterior predictive checks, a misfit test "
                        "and a score test per candidate effect through the FE; writes "
@@ -409,6 +473,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "not at the FE's best fit started from it (Levenberg-Marquardt, ~8 FE "
                    "solves)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_cluster(g)
     v = sub.add_parser("sensitivity", help="rank the nine Anand constants by their influence "
                        "on V_A, V_B over a prior box: DGSM through the FE (autograd) and Sobol "
                        "main/total indices through a GP surrogate; writes sensitivity.csv/.json/"
@@ -435,6 +500,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "of the runs, for the surrogate's standard error of S_T (0: none)")
     v.add_argument("--batch", type=int, default=64, help="FE runs per batched DOE solve")
     v.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_cluster(v)
     q = sub.add_parser("compare", help="before/after of two calibrations on the same data "
                        "(e.g. without and with effects=[NAME]): RMS residual, misfit, ELPD, "
                        "posterior shifts; writes comparison.md/.json")
@@ -444,18 +510,34 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _setup_logging(a: argparse.Namespace) -> None:
+    """solderpyro's INFO lines (DEBUG with ``-v``); other packages' loggers from WARNING only
+    (no ``arviz.preview`` chatter). Progress bars only on a terminal: into a file or a pipe
+    (``sys.stderr`` not a TTY) ``--quiet`` is implied, and the log is one line per stage or
+    NUTS chain, with its time."""
+    import warnings
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("solderpyro").setLevel(logging.DEBUG if a.verbose else logging.INFO)
+    warnings.filterwarnings("ignore", category=FutureWarning, module="arviz")
+    if hasattr(a, "quiet") and not sys.stderr.isatty():
+        a.quiet = True
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     a, rest = parser.parse_known_args(argv)
-    logging.basicConfig(level=logging.DEBUG if a.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
+    _setup_logging(a)
     try:
         overrides = _split_overrides(rest)
         cmds = {"simulate": cmd_simulate, "demo": cmd_demo, "example": cmd_example,
                 "koh": cmd_koh, "calibrate": cmd_calibrate, "diagnose": cmd_diagnose,
-                "sensitivity": cmd_sensitivity, "compare": cmd_compare}
-        return cmds[a.command](a, overrides)
-    except (ValueError, FileNotFoundError, RuntimeError) as e:
+                "sensitivity": cmd_sensitivity, "compare": cmd_compare, "sweep": cmd_sweep}
+        from .executor import executor_from_options
+
+        with executor_from_options(getattr(a, "cluster", None), getattr(a, "scheduler", None)):
+            return cmds[a.command](a, overrides)
+    except (ValueError, FileNotFoundError, RuntimeError, ConnectionError) as e:
         print(f"solderpyro {a.command}: error: {e}", file=sys.stderr)
         return 2
 

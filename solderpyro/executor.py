@@ -38,6 +38,7 @@ import logging
 import math
 import os
 import re
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -104,8 +105,17 @@ def _task(key: str, blob: bytes, P: torch.Tensor, times: list[float], names: lis
 
     torch.set_num_threads(1)  # one thread per worker: the cluster, not torch, spreads the work
     solver = _worker_solver(key, blob)
+    # The task runs beside the worker's event-loop thread; at Python's 5 ms switch interval the
+    # solver's Python steps kept handing the GIL to it: a 64-run batch took 15.8 s in a worker
+    # against 11.4-12.0 s in a plain process, 13.2 s with 100 ms (the loop still runs whenever
+    # the solver is in native code, which releases the GIL).
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(0.1)
     t0 = time.perf_counter()
-    recs = solve_batch(solver, P, times, names)
+    try:
+        recs = solve_batch(solver, P, times, names)
+    finally:
+        sys.setswitchinterval(switch)
     dt = time.perf_counter() - t0
     stored = False
     if store_root is not None:
@@ -146,6 +156,16 @@ class InProcess:
 
 
 _LOCAL = re.compile(r"^local(?::(\d+))?$")
+
+
+#: Dask settings of the workers a ``--cluster local:N`` starts, measured on the FE (a 64-run
+#: batch on one thread; BENCHMARKS.md, issue 22): glibc's memory trimming at 64 kB, which Dask
+#: sets for its workers, made the solver's many medium-sized tensor allocations 12 % slower, and
+#: the statistical profiler (a thread sampling the stack every 10 ms) took a few per cent more.
+#: A cluster started elsewhere (``--scheduler``) keeps its own settings: docs/scaling.md says
+#: which to use.
+WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": 1 << 30,
+                 "distributed.worker.profile.enabled": False}
 
 
 def parse_cluster(spec: str) -> int:
@@ -189,14 +209,16 @@ class DaskExecutor:
         """
         if (cluster is None) == (scheduler is None):
             raise ValueError("give exactly one of --cluster local:N and --scheduler ADDRESS")
-        from distributed import Client, LocalCluster
+        import dask
+        from distributed import Client, LocalCluster  # loads distributed's config defaults
 
         for name in ("distributed", "bokeh", "tornado"):  # no third-party INFO chatter
             logging.getLogger(name).setLevel(logging.WARNING)
         if cluster is not None:
             n = parse_cluster(cluster)
-            lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                              dashboard_address=":0", silence_logs=logging.ERROR)
+            with dask.config.set(WORKER_CONFIG):
+                lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0", silence_logs=logging.ERROR)
             log.info("Dask LocalCluster: %d single-threaded workers (%s)", n,
                      lc.scheduler_address)
             return cls(Client(lc), owns=True)

@@ -257,12 +257,17 @@ def decode_array(v: Any) -> np.ndarray:
                     dtype=np.float64)
 
 
+_UMASK = os.umask(0)  # the process's umask, read once (os.umask can only read by setting)
+os.umask(_UMASK)
+
+
 def _write_atomic(path: Path, payload: dict) -> None:
     """Write ``payload`` as JSON to ``path``: temp file in the same dir, fsync, rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w") as f:
+        os.fchmod(fd, 0o666 & ~_UMASK)  # as open() would: mkstemp's 0600 hides the record
+        with os.fdopen(fd, "w") as f:  # from the other users of a shared store
             json.dump(payload, f, indent=1, allow_nan=False)
             f.flush()
             os.fsync(f.fileno())

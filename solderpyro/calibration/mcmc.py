@@ -85,15 +85,28 @@ class Posterior:
         """Scalar parameters by display name -> ``(chain, draw)`` arrays."""
         return flatten_sites(self.samples, self.labels)
 
-    def to_inference_data(self) -> Any:
-        """ArviZ InferenceData (posterior group; divergences in sample_stats)."""
+    def to_inference_data(self, predictive: dict[str, np.ndarray] | None = None) -> Any:
+        """ArviZ InferenceData: posterior group; divergences in sample_stats; with
+        ``predictive`` also ``observed_data``, ``posterior_predictive`` and
+        ``log_likelihood`` (variable ``y``, dimension ``obs``), so that ``az.plot_ppc``,
+        ``az.loo`` and ``az.compare`` work on the file directly.
+
+        Args:
+            predictive: ``{"y": (n_obs,) data, "index": (k,) flat indices into (chain, draw)
+                taken at the same draws of every chain (:func:`thin_index`), "observed":
+                (k, n_obs) predictive draws of a new measurement, "log_likelihood": (k, n_obs)
+                pointwise log density of the data (nats)}``.
+        """
         az = _arviz()
         cols = self.columns()
         n_draw = next(iter(cols.values())).shape[1]
         div = np.zeros((self.n_chains, n_draw), dtype=bool)
         for c, k in enumerate(self.divergences):
             div[c, :k] = True  # counts only; positions are not kept
-        return az.from_dict(posterior=cols, sample_stats={"diverging": div})
+        idata = az.from_dict(posterior=cols, sample_stats={"diverging": div})
+        if predictive is not None:
+            idata.add_groups(**_predictive_groups(predictive, self.n_chains, n_draw))
+        return idata
 
     def summary(self) -> list[dict[str, float | str]]:
         """Rows in the seed's layout (2.5 %, median, mean, 97.5 %) plus R-hat and ESS."""
@@ -114,12 +127,46 @@ class Posterior:
         """Smallest bulk ESS over the scalar parameters."""
         return min(float(r["ess_bulk"]) for r in self.summary())
 
-    def save(self, path: str | Path) -> Path:
-        """Write the draws as ArviZ NetCDF; returns the path."""
+    def save(self, path: str | Path, predictive: dict[str, np.ndarray] | None = None
+             ) -> Path:
+        """Write the draws as ArviZ NetCDF (with ``predictive``: the groups of
+        :meth:`to_inference_data`); returns the path."""
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)
-        self.to_inference_data().to_netcdf(str(p))
+        self.to_inference_data(predictive).to_netcdf(str(p))
         return p
+
+
+def thin_index(chains: int, draws: int, most: int) -> np.ndarray:
+    """Flat indices into ``(chain, draw)`` of at most ``most`` draws, the same evenly spread
+    draws of every chain (``(chains * m,)``, chain-major), so that the thinned draws keep
+    their chains (ArviZ's LOO takes its relative efficiency from them)."""
+    m = max(1, min(draws, most // max(chains, 1)))
+    pos = np.linspace(0, draws - 1, m).round().astype(int)
+    return (np.arange(chains)[:, None] * draws + pos[None]).reshape(-1)
+
+
+def _predictive_groups(pr: dict[str, np.ndarray], chains: int, draws: int
+                       ) -> dict[str, Any]:
+    """``observed_data``, ``posterior_predictive`` and ``log_likelihood`` as xarray
+    Datasets (see :meth:`Posterior.to_inference_data`); float32 for the draws (file size)."""
+    import xarray as xr
+
+    idx = np.asarray(pr["index"], int)
+    m = len(idx) // chains
+    if m * chains != len(idx) or not np.array_equal(idx.reshape(chains, m) // draws,
+                                                    np.repeat(np.arange(chains)[:, None], m, 1)):
+        raise ValueError("predictive draws must be the same draws of every chain (thin_index)")
+    pos = idx[:m] % draws
+    y = np.asarray(pr["y"], float)
+    co = {"chain": np.arange(chains), "draw": pos, "obs": np.arange(len(y))}
+
+    def ds(name: str) -> Any:
+        v = np.asarray(pr[name], np.float32).reshape(chains, m, len(y))
+        return xr.Dataset({"y": (("chain", "draw", "obs"), v)}, coords=co)
+
+    return {"observed_data": xr.Dataset({"y": (("obs",), y)}, coords={"obs": co["obs"]}),
+            "posterior_predictive": ds("observed"), "log_likelihood": ds("log_likelihood")}
 
 
 def write_summary(rows: Sequence[dict], path: str | Path,

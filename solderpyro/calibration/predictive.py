@@ -37,11 +37,31 @@ class Bands:
         mean, median, lo, hi: ``(n_new,)`` process mean, median and 2.5 / 97.5 % quantiles.
         obs_lo, obs_hi: ``(n_new,)`` 2.5 / 97.5 % quantiles of a new observation.
         sigma: ``(n_draws,)`` the noise sd of each draw (None where not recorded).
+        loc, var: ``(n_draws, n_new)`` the process's mean and variance (code uncertainty,
+            plus the discrepancy's) given each draw's parameters, from which ``draws`` were
+            sampled: the pointwise likelihood ``N(y_i; loc_i, var_i + sigma^2)`` of an
+            observation (None where not recorded, e.g. conditioned draws).
+        index: ``(n_draws,)`` which posterior draws (flat index into ``(chain, draw)``).
     """
 
     draws: torch.Tensor
     obs_draws: torch.Tensor
     sigma: torch.Tensor | None = None
+    loc: torch.Tensor | None = None
+    var: torch.Tensor | None = None
+    index: torch.Tensor | None = None
+
+    def log_likelihood(self, y: torch.Tensor) -> torch.Tensor:
+        """``(n_draws, n_new)`` pointwise log density ``log N(y_i; loc_i, var_i + sigma^2)``
+        of observations ``y (n_new,)`` under each draw (nats).
+
+        Raises:
+            ValueError: when ``loc``, ``var`` or ``sigma`` were not recorded.
+        """
+        if self.loc is None or self.var is None or self.sigma is None:
+            raise ValueError("these bands carry no per-draw mean and variance")
+        v = self.var + self.sigma[:, None] ** 2
+        return -0.5 * ((y - self.loc) ** 2 / v + torch.log(2 * torch.pi * v))
 
     @property
     def mean(self) -> torch.Tensor:
@@ -97,7 +117,8 @@ def _gaussian_draw(m: torch.Tensor, c: torch.Tensor, gen: torch.Generator) -> to
 
 def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tensor | None,
                               u_new: torch.Tensor | None = None, n_draws: int = 500,
-                              seed: int = 0, condition: bool | None = None) -> Bands:
+                              seed: int = 0, condition: bool | None = None,
+                              index: torch.Tensor | None = None) -> Bands:
     """Predictive bands for a direct or modular calibration.
 
     ``condition`` (default: True for new inputs, False for ``x_new=None``) conditions the
@@ -111,13 +132,19 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
         inp: the model's inputs.
         x_new: ``(n_new, n_x)`` new inputs; None predicts the observed outputs themselves.
         u_new: ``(n_new, n_x)`` unit-cube x_new, needed with a discrepancy.
+        index: ``(k,)`` flat indices of the posterior draws to use (into ``(chain, draw)``);
+            default ``n_draws`` drawn at random.
+    Returns:
+        :class:`Bands`; without new inputs and conditioning also each draw's ``loc`` and
+        ``var`` (the pointwise likelihood of the observations) and ``index``.
     """
     gen = torch.Generator().manual_seed(seed)
     y = inp.y_obs
     n_o = y.shape[0]
     cond = (x_new is not None) if condition is None else condition
-    proc, obs, sigmas = [], [], []
-    for i in _pick(post, n_draws, gen).tolist():
+    proc, obs, sigmas, locs, vars_ = [], [], [], [], []
+    pick = _pick(post, n_draws, gen) if index is None else torch.as_tensor(index)
+    for i in pick.tolist():
         t = inp.theta_box.from_unit(_raw(post, SITE_T, i))
         sigma = _raw(post, SITE_SIGMA, i)
         sigmas.append(sigma)
@@ -126,6 +153,8 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
                 emulator_lowrank(inp.emulator, t)
             if lr is not None:  # PCA: draw through the factor, never forming the n x n cov
                 m0, F, dg = lr
+                locs.append(m0)
+                vars_.append(F.square().sum(1) + dg)
                 draw = m0 + F @ torch.randn(F.shape[1], generator=gen, dtype=m0.dtype) \
                     + dg.sqrt() * torch.randn(m0.shape, generator=gen, dtype=m0.dtype)
                 proc.append(draw)
@@ -139,6 +168,10 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
                 kd = _raw(post, SITE_SIGMA_D, i).square() * gaussian(
                     uu, uu, _raw(post, SITE_CORR_D, i))
                 cov = kd if cov is None else cov + kd
+            if not cond:
+                locs.append(mean[n_o:])
+                vars_.append(torch.zeros_like(mean[n_o:]) if cov is None
+                             else cov[n_o:, n_o:].diagonal().clone())
             if cov is None:
                 draw = mean[n_o:]
             elif not cond:
@@ -147,7 +180,10 @@ def predict_observation_model(post: Posterior, inp: ObsInputs, x_new: torch.Tens
                 draw = _conditional_draw(mean, cov, y, n_o, sigma.square(), gen)
         proc.append(draw)
         obs.append(draw + sigma * torch.randn(draw.shape, generator=gen, dtype=draw.dtype))
-    return Bands(torch.stack(proc), torch.stack(obs), torch.stack(sigmas).reshape(-1))
+    both = len(locs) == len(proc)
+    return Bands(torch.stack(proc), torch.stack(obs), torch.stack(sigmas).reshape(-1),
+                 torch.stack(locs) if both else None, torch.stack(vars_) if both else None,
+                 pick.clone())
 
 
 def _stacked(inp: ObsInputs, t: torch.Tensor, x_new: torch.Tensor | None

@@ -1,7 +1,14 @@
-"""Figures of a diagnosis: where the model fails, and which effect's pattern matches."""
+"""Figures of a diagnosis: where the model fails, and which effect's pattern matches.
+
+Full-field data are drawn as maps of the specimen at its true aspect ratio (30 mm x 8.5 mm,
+one cell per grid node), one panel per measured time, one colour scale per row symmetric
+about zero, in um and in noise sd. Point data (A, B) are drawn against time with the
+temperature of the cycle on a twin axis.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -9,113 +16,236 @@ import numpy as np
 
 from solderpyro.plots import plt
 
-
-def _panels(meas: Any, n_times: int):
-    field = len(meas.points()) > 4
-    if field:
-        fig, axes = plt.subplots(1, n_times, figsize=(3.2 * n_times + 1, 3.4), squeeze=False)
-        return fig, list(axes[0]), True
-    fig, ax = plt.subplots(figsize=(7.5, 4.2))
-    return fig, [ax], False
+#: a map row: (label, values (n,) um row for row with the data, z (n,) or None); where z is
+#: given, the cells inside the band (|z| <= 2: noise could have made them) are dotted
+MapRow = tuple[str, np.ndarray, "np.ndarray | None"]
 
 
-def _draw(ax_list, meas: Any, values: np.ndarray, label: str, field: bool, color: str,
-          vmax: float | None = None, marker: str = "o-"):
-    """Values row for row with ``meas``: lines over time per point, or maps per time."""
-    if not field:
-        ax = ax_list[0]
-        for k, p in enumerate(meas.points()):
-            rows = np.flatnonzero(meas.point == p)
-            ax.plot(meas.time_s[rows] / 60, values[rows], marker=marker[0],
-                    color=color if len(meas.points()) == 1 else f"C{k}",
-                    ls="-" if marker == "o-" else "--", label=f"{label} ({p})")
-        return None
-    im = None
-    for ax, t in zip(ax_list, meas.times(), strict=False):
-        rows = np.flatnonzero(meas.time_s == t)
-        vm = vmax or float(np.abs(values).max()) or 1.0
-        im = ax.scatter(meas.x_mm[rows], meas.y_mm[rows], c=values[rows], cmap="RdBu_r",
-                        vmin=-vm, vmax=vm, s=14, marker="s")
-        ax.set_title(f"{label}, t = {t / 60:.0f} min", fontsize=8)
-        ax.set_xlabel("x (mm)")
-    ax_list[0].set_ylabel("y (mm)")
-    return im
+def is_field(meas: Any) -> bool:
+    """Full-field data (more than the four named points)."""
+    return len(meas.points()) > 4
 
 
-def plot_residuals(meas: Any, residual: np.ndarray, pc: Any, sigma: float, path: Path) -> str:
-    """Refitted FE residuals (um) per point over time (or as maps per time for full-field
-    data), with the +-2 sigma noise band and the predictive check's z-scores.
+def grid_image(meas: Any, values: np.ndarray, t: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The values at time ``t`` (s) on the 31 x 18 reference grid.
 
     Args:
-        meas: the measurements (n rows); residual: ``(n,)`` um; pc: ``PredictiveCheck``;
-        sigma: noise sd, um; path: the PNG to write.
+        meas: measurements (n rows); values: ``(n,)`` row for row with ``meas``.
+    Returns:
+        ``(img (n_y, n_x), x (n_x,), y (n_y,))``: NaN where the grid node was not measured
+        (named points such as A and B are left out); coordinates in mm.
+    """
+    from solderpyro.fem.problem import reference_grid
+
+    g = reference_grid()[1]
+    xs, ys = np.unique(g[:, 0]), np.unique(g[:, 1])
+    img = np.full((len(ys), len(xs)), np.nan)
+    rows = np.flatnonzero(np.isclose(meas.time_s, t))
+    i = np.clip(np.searchsorted(xs, meas.x_mm[rows] - 1e-6), 0, len(xs) - 1)
+    j = np.clip(np.searchsorted(ys, meas.y_mm[rows] - 1e-6), 0, len(ys) - 1)
+    on = np.isclose(xs[i], meas.x_mm[rows]) & np.isclose(ys[j], meas.y_mm[rows])
+    img[j[on], i[on]] = np.asarray(values, float)[rows[on]]
+    return img, xs, ys
+
+
+def _edges(c: np.ndarray) -> np.ndarray:
+    h = np.diff(c) / 2
+    return np.concatenate([[c[0] - h[0]], c[:-1] + h, [c[-1] + h[-1]]])
+
+
+def plot_maps(meas: Any, rows: Sequence[MapRow], sigma: float, path: Path, title: str,
+              shared: bool = False) -> str:
+    """Rows of maps (one per measured time) at the specimen's aspect ratio.
+
+    Args:
+        meas: full-field measurements (n rows).
+        rows: :data:`MapRow` list, drawn top to bottom.
+        sigma: noise sd, um (the colour bars' second scale).
+        path: the PNG to write.
+        shared: one colour scale for every row (else one per row).
     Returns:
         the file name.
     """
-    fig, axes, field = _panels(meas, len(meas.times()))
-    im = _draw(axes, meas, residual, "residual", field, "C0")
-    if field:
-        fig.colorbar(im, ax=axes, label="residual (um)")
-    else:
-        ax = axes[0]
-        ax.axhspan(-2 * sigma, 2 * sigma, color="0.85", label="+-2 sigma noise")
-        ax.axhline(0, color="k", lw=0.8)
-        ax.set_xlabel("time (min)")
-        ax.set_ylabel("measured - model (um)")
-        ax.grid(alpha=0.3)
-        ax2 = ax.twinx()
-        ax2.plot(meas.time_s / 60, pc.z, "k.", ms=5, alpha=0.6, label="predictive z")
-        ax2.set_ylabel("standardized residual z (posterior predictive)")
-        ax.legend(fontsize=8, loc="upper left")
-        fig.tight_layout()
-    fig.suptitle("Where the calibrated model misses the data", fontsize=10)
+    fig = plt.figure(figsize=map_size(meas, len(rows)), layout="constrained")
+    draw_maps(fig, meas, rows, sigma, shared)
+    fig.suptitle(title, fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path.name
 
 
-def plot_ranking(meas: Any, residual: np.ndarray, scores: list[Any], sigma: float,
-                 path: Path, top: int = 3) -> str:
-    """Evidence per candidate effect (bars) and, for the best ``top`` ones, the residual beside
-    the effect's fitted pattern (what it would change, after the calibrated parameters refit).
+def map_size(meas: Any, n_rows: int) -> tuple[float, float]:
+    """Figure size (in) of ``n_rows`` rows of maps, one per measured time, at the specimen's
+    aspect ratio (30 mm x 8.5 mm)."""
+    w = 3.7
+    return (w * len(meas.times()) + 1.9, (w * 8.5 / 30 + 0.62) * n_rows + 0.5)
+
+
+def draw_maps(fig: Any, meas: Any, rows: Sequence[MapRow], sigma: float,
+              shared: bool = False) -> None:
+    """Draw :func:`plot_maps`'s rows into ``fig`` (a Figure or SubFigure)."""
+    times = list(meas.times())
+    nt, nr = len(times), len(rows)
+    axes = fig.subplots(nr, nt, squeeze=False)
+    vall = max((float(np.nanmax(np.abs(v))) for _, v, _ in rows), default=1.0) or 1.0
+    for r, (label, vals, z) in enumerate(rows):
+        vm = vall if shared else float(np.nanmax(np.abs(vals)))
+        if not vm > 0:  # a denoised map with no structure above the noise: +-1 noise sd
+            vm, label = sigma, f"{label}: no structure above the noise"
+        im = None
+        for c, t in enumerate(times):
+            ax = axes[r, c]
+            img, xs, ys = grid_image(meas, vals, t)
+            im = ax.pcolormesh(_edges(xs), _edges(ys), img, cmap="RdBu_r", vmin=-vm, vmax=vm)
+            if z is not None and np.any(vals):
+                zi = np.abs(grid_image(meas, z, t)[0])
+                ax.contourf(xs, ys, zi, levels=[0.0, 2.0], colors="none", hatches=["...."])
+            ax.set_aspect("equal")
+            ax.tick_params(labelsize=7)
+            ax.set_title(f"{label}, t = {t / 60:.0f} min" if c == 0 else f"t = {t / 60:.0f} min",
+                         fontsize=8, loc="left" if c == 0 else "center")
+            if r == nr - 1:
+                ax.set_xlabel("x (mm)", fontsize=7)
+            if c == 0:
+                ax.set_ylabel("y (mm)", fontsize=7)
+        assert im is not None
+        cb = fig.colorbar(im, ax=list(axes[r]), fraction=0.02, pad=0.01)
+        cb.set_label("um", fontsize=7)
+        cb.ax.tick_params(labelsize=6)
+
+        def to_sd(v: Any) -> Any:
+            return np.asarray(v) / sigma
+
+        def to_um(v: Any) -> Any:
+            return np.asarray(v) * sigma
+
+        sec = cb.ax.secondary_yaxis(-1.6, functions=(to_sd, to_um))
+        sec.set_ylabel("noise sd", fontsize=7)
+        sec.tick_params(labelsize=6)
+
+
+def _temperature(ax: Any, cycle: Callable[[float], float] | None, t_end: float) -> None:
+    """The cycle's temperature (degC) on a twin axis over ``[0, t_end]`` s."""
+    if cycle is None:
+        return
+    tt = np.linspace(0.0, t_end, 300)
+    ax2 = ax.twinx()
+    ax2.plot(tt / 60, [cycle(float(v)) for v in tt], color="0.6", lw=1, ls=":")
+    ax2.set_ylabel("temperature (degC, dotted)", fontsize=8, color="0.4")
+    ax2.tick_params(labelsize=7, colors="0.4")
+
+
+def plot_point_residuals(meas: Any, pred: np.ndarray, fe_residual: np.ndarray, sigma: float,
+                         path: Path, cycle: Callable[[float], float] | None = None,
+                         t_end: float | None = None) -> str:
+    """Point data: the residual against time at each point, with the predictive band.
 
     Args:
-        meas: measurements; residual: ``(n,)`` um; scores: ``Score`` list, best first;
-        sigma: noise sd, um; path: the PNG to write.
+        meas: measurements (n rows, <= 4 points).
+        pred: ``(n_draws, n)`` posterior predictive draws of a new measurement, um.
+        fe_residual: ``(n,)`` the FE residual at its best fit, um.
+        sigma: noise sd, um. path: the PNG to write.
+        cycle: temperature (degC) as a function of time (s), drawn on a twin axis.
+        t_end: the cycle's end, s (default the last measured time).
     Returns:
         the file name.
     """
-    field = len(meas.points()) > 4
-    k = min(top, len(scores))
-    fig = plt.figure(figsize=(11, 3.2 * (k + 1)))
-    ax0 = fig.add_subplot(k + 1, 1, 1)
-    ev = [s.evidence for s in scores]
-    ax0.barh([s.effect for s in scores][::-1], ev[::-1], color="C1")
-    ax0.axvline(-np.log10(0.01 / max(len(scores), 1)), color="k", ls="--", lw=0.8,
-                label="1 % (Bonferroni)")
-    ax0.set_xlabel("evidence: -log10 p (score test, or likelihood ratio of the FE refit)")
-    ax0.legend(fontsize=8)
-    for i, s in enumerate(scores[:k]):
-        ax = fig.add_subplot(k + 1, 1, i + 2)
-        if field:
-            order = np.lexsort((meas.x_mm, meas.y_mm, meas.time_s))
-            ax.plot(residual[order], ".", ms=2, color="0.4", label="residual")
-            ax.plot(s.pattern[order], "-", lw=0.8, color="C3", label=f"{s.effect} pattern")
-            ax.set_xlabel("observation (time, then y, then x)")
-        else:
-            for j, p in enumerate(meas.points()):
-                rows = np.flatnonzero(meas.point == p)
-                t = meas.time_s[rows] / 60
-                ax.plot(t, residual[rows], "s", color=f"C{j}", label=f"residual ({p})")
-                ax.plot(t, s.pattern[rows], "--", color=f"C{j}", label=f"{s.effect} ({p})")
-            ax.set_xlabel("time (min)")
-        ax.axhspan(-2 * sigma, 2 * sigma, color="0.9")
-        ax.set_ylabel("um")
-        ax.set_title(f"{s.effect}: score {s.statistic:.1f} on {s.dof} dof, identifiable "
-                     f"{s.identifiable:.2f}", fontsize=9)
-        ax.legend(fontsize=7, ncol=2)
+    y = np.asarray(meas.value_um, float)
+    med = np.median(pred, 0)
+    lo, hi = np.quantile(pred, [0.025, 0.975], 0)
+    pts = list(meas.points())
+    fig, axes = plt.subplots(len(pts), 1, figsize=(8, 2.8 * len(pts) + 0.4), squeeze=False,
+                             sharex=True, layout="constrained")
+    for k, p in enumerate(pts):
+        ax = axes[k, 0]
+        rows = np.flatnonzero(meas.point == p)
+        rows = rows[np.argsort(meas.time_s[rows])]
+        t = meas.time_s[rows] / 60
+        ax.fill_between(t, lo[rows] - med[rows], hi[rows] - med[rows], color="C0", alpha=0.2,
+                        label="95 % predictive band (new measurement)")
+        ax.plot(t, y[rows] - med[rows], "o-", color="C0", label="data - predictive median")
+        ax.plot(t, fe_residual[rows], "s--", color="C3", ms=4,
+                label="data - FE at its best fit")
+        ax.axhline(0, color="k", lw=0.7)
+        ax.set_ylabel(f"residual at {p} (um)", fontsize=8)
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+        ax.legend(fontsize=7, loc="upper left")
+        _temperature(ax, cycle, t_end or float(meas.time_s.max()))
+    axes[-1, 0].set_xlabel("time (min)")
+    fig.suptitle(f"Where the calibrated model misses the data (noise sd {sigma:.3g} um)",
+                 fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def plot_point_fingerprints(meas: Any, residual: np.ndarray,
+                            fps: Sequence[tuple[str, np.ndarray, np.ndarray, float]],
+                            sigma: float, path: Path,
+                            cycle: Callable[[float], float] | None = None,
+                            t_end: float | None = None) -> str:
+    """Point data: each candidate's signature over the cycle beside the residual.
+
+    Args:
+        meas: measurements (n rows). residual: ``(n,)`` um.
+        fps: per candidate ``(name, signature (n,) um, residual after adding it (n,) um,
+            correlation with the residual)``.
+        sigma: noise sd, um. path: the PNG to write. cycle, t_end: as
+            :func:`plot_point_residuals`.
+    Returns:
+        the file name.
+    """
+    k = max(len(fps), 1)
+    fig, axes = plt.subplots(k, 1, figsize=(8, 2.7 * k + 0.4), squeeze=False, sharex=True,
+                             layout="constrained")
+    for i, (name, sig, after, corr) in enumerate(fps):
+        ax = axes[i, 0]
+        for j, p in enumerate(meas.points()):
+            rows = np.flatnonzero(meas.point == p)
+            rows = rows[np.argsort(meas.time_s[rows])]
+            t = meas.time_s[rows] / 60
+            ax.plot(t, residual[rows], "s", color=f"C{j}", label=f"residual ({p})")
+            ax.plot(t, sig[rows], "-", color=f"C{j}", label=f"{name} signature ({p})")
+            ax.plot(t, after[rows], "x:", color=f"C{j}", ms=5, label=f"after adding it ({p})")
+        ax.axhspan(-2 * sigma, 2 * sigma, color="0.9", zorder=0)
+        ax.axhline(0, color="k", lw=0.7)
+        ax.set_ylabel("um", fontsize=8)
+        ax.set_title(f"{name}: shape correlation with the residual r = {corr:.2f}",
+                     fontsize=9, loc="left")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, ncol=3, loc="upper left")
+        _temperature(ax, cycle, t_end or float(meas.time_s.max()))
+    axes[-1, 0].set_xlabel("time (min)")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Path) -> str:
+    """Evidence per candidate effect (bars, best at the top), each labelled with the shape
+    correlation of its fingerprint with the (denoised) residual.
+
+    Args:
+        scores: ``Score`` list, best first; correlation: effect -> correlation;
+        path: the PNG to write.
+    Returns:
+        the file name.
+    """
+    names = [s.effect for s in scores][::-1]
+    ev = [s.evidence for s in scores][::-1]
+    fig, ax = plt.subplots(figsize=(8, 0.42 * len(names) + 1.3), layout="constrained")
+    bars = ax.barh(names, ev, color="C1")
+    ax.axvline(-np.log10(0.01 / max(len(names), 1)), color="k", ls="--", lw=0.8,
+               label="1 % (Bonferroni)")
+    for b, n in zip(bars, names, strict=True):
+        if n in correlation:
+            ax.annotate(f"fingerprint r = {correlation[n]:.2f}", (b.get_width(), b.get_y()
+                        + b.get_height() / 2), xytext=(4, 0), textcoords="offset points",
+                        va="center", fontsize=7)
+    ax.set_xlabel("evidence: -log10 p (score test, or likelihood ratio of the FE refit)")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_xlim(0, max(ev + [1.0]) * 1.35)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path.name

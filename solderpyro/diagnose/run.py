@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from scipy.stats import chi2 as _chi2
 
+from solderpyro.diagnose.fingerprint import Fingerprints, fingerprints
 from solderpyro.diagnose.stats import (
     Misfit,
     PredictiveCheck,
@@ -64,6 +65,8 @@ MIN_IDENTIFIABLE = 0.01
 APART_CHI2 = float(2.0 * np.log(20.0))
 #: magnitudes (share of the way from "off" to the box's far edge) of the likelihood-ratio ladder
 LADDER = (0.15, 0.4, 1.0)
+#: candidates whose fingerprints are drawn (best first)
+TOP = 3
 
 
 @dataclass
@@ -80,12 +83,14 @@ class Diagnosis:
     #: stage -> ``{"seconds", "fe_runs" (computed), "fe_reused" (read from the run store or
     #: shared with another row)}``, then ``"total"``
     timing: dict[str, dict[str, float | int]] = dataclasses.field(default_factory=dict)
+    #: the denoised residual (full-field data): :meth:`~.denoise.Smooth.summary`
+    denoise: dict | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {"misfit": self.misfit, "verdict": self.verdict, "ranking": self.ranking,
                 "check": self.check, "indistinguishable": self.indistinguishable,
                 "suggestions": self.suggestions, "separation": self.separation,
-                "timing": self.timing}
+                "denoise": self.denoise, "timing": self.timing}
 
 
 @dataclass
@@ -242,6 +247,7 @@ STAGES = {"load": "loading the run", "predictive_check": "posterior predictive c
           "fe_jacobians": "FE Jacobians (+ ladder runs)", "score_tests": "score tests",
           "ladder": "likelihood-ratio ladder", "profile_refits": "profile refits",
           "verdict": "ranking and verdict", "separation": "separation",
+          "fingerprints": "fingerprints (refit predictions, denoising)",
           "write": "writing (figures)"}
 
 
@@ -702,14 +708,55 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
             diag.separation = separation(setup, run_effects, candidates, fits, group, meas,
                                          sigma, fe=fe)
             diag.suggestions.insert(0, diag.separation["advice"])
+    with cost.stage("fingerprints"):
+        preds = None
+        base = fits["baseline"]["chi2"] if fits is not None else float("inf")
+        if fits is not None and base <= 1.01 * mf.chi2 + APART_CHI2:
+            # exact fingerprints from the refits when the baseline's refit is about as good as
+            # the linearised one, except where a candidate's refit fits worse than the
+            # baseline's (it stopped short: its shape would mislead)
+            preds = {m: v for m, v in refit_predictions(setup, run_effects, candidates, fits,
+                                                        meas, fe).items()
+                     if m == "baseline" or fits[m]["chi2"] <= base}
+        top = tuple(r["effect"] for r in diag.ranking[:TOP])
+        fp = fingerprints(meas, mf.residual, scores, sigma, preds, field, top)
+        for r in diag.ranking:
+            r["fingerprint_correlation"] = round(fp.correlation[r["effect"]], 4)
+            r["fingerprint"] = fp.source[r["effect"]]
+        diag.denoise = fp.smooth.summary() if fp.smooth is not None else None
     with cost.stage("write"):
-        figs = _figures(d, diag, meas, mf, pc, scores, sigma)
+        figs = _figures(d, diag, meas, pc, fp, sigma, dr, setup)
     diag.timing = cost.table()
     tot = diag.timing["total"]
     log.info("diagnose: total %.1f s, %d FE runs computed, %d reused (store %s)",
              tot["seconds"], tot["fe_runs"], tot["fe_reused"], fe.store.root)
     _write(d, diag, mf, pc, sigma, figs)
+    from solderpyro.index import write_index
+
+    write_index(d)
     return diag
+
+
+def refit_predictions(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],
+                      fits: dict[str, dict[str, Any]], meas: Any, fe: FeRuns
+                      ) -> dict[str, np.ndarray]:
+    """The FE at each refit of :func:`profile_fits` (``"baseline"`` and every candidate), row
+    for row with ``meas``; their rows were solved by the refits, so the run store serves them.
+
+    Returns:
+        model -> ``(n,)`` V, um.
+    """
+    from solderpyro.effects import effect_set
+    from solderpyro.specimen import fe_params, observation_index
+
+    times = tuple(float(t) for t in meas.times())
+    field = any(p not in setup.problem.points for p in meas.points())
+    fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
+    names = list(fits)
+    X = torch.tensor(np.array([fits[m]["x"] for m in names]), dtype=torch.float64)
+    res = fe.solve(fe_params(setup, X), times, field, fx_all)
+    ti, oi = observation_index(meas, res.times, res.names)
+    return {m: res.V[k][ti, oi] for k, m in enumerate(names) if res.ok[k]}
 
 
 def _targeted(scores: list[Score], n_cand: int) -> list[Score]:
@@ -958,16 +1005,46 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
     return Diagnosis(bool(bad), verdict, ranking, check, groups, suggestions)
 
 
-def _figures(d: Path, diag: Diagnosis, meas: Any, mf: Misfit, pc: PredictiveCheck,
-             scores: list[Score], sigma: float) -> tuple[str, str]:
-    """The residual and ranking figures; returns their paths."""
-    from solderpyro.diagnose.plots import plot_ranking, plot_residuals
+def _figures(d: Path, diag: Diagnosis, meas: Any, pc: PredictiveCheck, fp: Fingerprints,
+             sigma: float, dr: dict[str, np.ndarray], setup: Any) -> tuple[str, str, str]:
+    """The residual, fingerprint and ranking figures; returns their file names.
 
-    f1 = plot_residuals(meas, mf.residual, pc, sigma, d / "diagnosis_residuals.png")
-    by = {s.effect: s for s in scores}
-    f2 = plot_ranking(meas, mf.residual, [by[r["effect"]] for r in diag.ranking], sigma,
-                      d / "diagnosis_ranking.png")
-    return f1, f2
+    Full-field data: maps (raw and denoised residual; per top candidate its fingerprint and
+    the denoised residual after adding it). Point data: residuals against time with the
+    predictive band, and each top candidate's signature, the cycle's temperature beside."""
+    from solderpyro.diagnose import plots
+
+    top = [r["effect"] for r in diag.ranking[:TOP]]
+    corr = {r["effect"]: r["fingerprint_correlation"] for r in diag.ranking}
+    cyc, t_end = setup.problem.cycle, float(setup.problem.cycle.end)
+    if fp.smooth is not None:
+        sm = fp.smooth
+        f1 = plots.plot_maps(meas, [("residual", fp.residual, None),
+                                    ("denoised residual", sm.mean, sm.z)], sigma,
+                             d / "diagnosis_residuals.png",
+                             "Where the model misses the data: residual (data - FE at its best "
+                             "fit) and its GP-denoised part (dotted: inside its 95 % band, "
+                             "noise could have made it)")
+        rows: list[Any] = [("denoised residual", sm.mean, sm.z)]
+        for e in top:
+            rows.append((f"{e} fingerprint (r = {corr[e]:.2f})", fp.signature[e], None))
+            if e in fp.smooth_after:
+                rows.append((f"denoised residual after {e}", fp.smooth_after[e].mean,
+                             fp.smooth_after[e].z))
+        f2 = plots.plot_maps(meas, rows, sigma, d / "diagnosis_fingerprints.png",
+                             "Which effect's fingerprint matches the residual (r: shape "
+                             "correlation with the denoised residual)")
+    else:
+        f1 = plots.plot_point_residuals(meas, dr["observed"], fp.residual, sigma,
+                                        d / "diagnosis_residuals.png", cyc, t_end)
+        f2 = plots.plot_point_fingerprints(
+            meas, fp.residual, [(e, fp.signature[e], fp.after[e], corr[e]) for e in top],
+            sigma, d / "diagnosis_fingerprints.png", cyc, t_end)
+    del pc
+    by = {s: corr[s] for s in corr}
+    f3 = plots.plot_ranking([SimpleNamespace(effect=r["effect"], evidence=r["evidence"])
+                             for r in diag.ranking], by, d / "diagnosis_ranking.png")
+    return f1, f2, f3
 
 
 def _cost_lines(timing: dict[str, dict[str, float | int]]) -> list[str]:
@@ -983,8 +1060,8 @@ def _cost_lines(timing: dict[str, dict[str, float | int]]) -> list[str]:
 
 
 def _write(d: Path, diag: Diagnosis, mf: Misfit, pc: PredictiveCheck, sigma: float,
-           figs: tuple[str, str]) -> None:
-    f1, f2 = figs
+           figs: tuple[str, str, str]) -> None:
+    f1, f2, f3 = figs
     (d / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2) + "\n")
     lines = ["# solderpyro diagnosis", "", f"**Verdict:** {diag.verdict}.", "",
              f"- misfit chi2 {mf.chi2:.2f} on {mf.dof} dof (p = {mf.p_value:.3g}); RMS residual "
@@ -993,18 +1070,34 @@ def _write(d: Path, diag: Diagnosis, mf: Misfit, pc: PredictiveCheck, sigma: flo
              f"{np.abs(pc.z).max():.2f}", "",
              "## Candidate effects (best first)", "",
              "| effect | evidence (-log10 p) | score | dof | identifiable | explains | "
-             "RMS after (um) | flagged |", "|---|---|---|---|---|---|---|---|"]
+             "RMS after (um) | fingerprint r | flagged |", "|---|---|---|---|---|---|---|---|---|"]
     for r in diag.ranking:
         lines.append(f"| {r['effect']} | {r['evidence']:.2f} | {r['statistic']:.2f} | "
                      f"{r['dof']} | {r['identifiable']:.2f} | {r['explained_share']:.0%} | "
-                     f"{r['rms_after_um']:.3g} | {'yes' if r['flagged'] else ''} |")
+                     f"{r['rms_after_um']:.3g} | {r.get('fingerprint_correlation', 0):.2f} | "
+                     f"{'yes' if r['flagged'] else ''} |")
+    lines += ["", "Fingerprint r: shape correlation (Pearson, every value) of what the effect "
+              "changes with the " + ("GP-denoised residual" if diag.denoise else "residual")
+              + "; the change is exact (the FE refitted with the effect on, minus refitted "
+              "without) where the refits ran, the baseline's refit is about as good as the "
+              "linearised one and the effect's refit no worse than the baseline's, else "
+              "linearised at off after the calibrated parameters took their share "
+              "(`fingerprint` in diagnosis.json says which)."]
+    if diag.denoise:
+        dn = diag.denoise
+        lines.append(f"Denoised residual: RMS {dn['rms_um']:.3g} um against noise "
+                     f"{dn['noise_um']:.3g} um; {dn['share_above_band']:.0%} of the values "
+                     f"outside its 95 % band (length scales {dn['lengthscale_mm'][0]:.3g} x "
+                     f"{dn['lengthscale_mm'][1]:.3g} mm).")
     if diag.indistinguishable:
         lines += ["", "Cannot be told apart from these data: "
                   + "; ".join(", ".join(g) for g in diag.indistinguishable)]
     lines += ["", "## Suggestions", ""] + ([f"- {s}" for s in diag.suggestions] or ["- none"])
     if diag.timing:
         lines += [""] + _cost_lines(diag.timing)
-    lines += ["", "## Figures", "", f"![residuals]({f1})", "", f"![ranking]({f2})", ""]
+    lines += ["", "## Figures", "", f"![where the model misses the data]({f1})", "",
+              f"![fingerprints of the best candidates beside the residual]({f2})", "",
+              f"![evidence per candidate]({f3})", ""]
     (d / "diagnosis.md").write_text("\n".join(lines) + "\n")
     from solderpyro.report import write_html
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import predict_observation_model
-from solderpyro.calibration.mcmc import WarmStart, format_summary, write_summary
+from solderpyro.calibration.mcmc import WarmStart, format_summary, thin_index, write_summary
 from solderpyro.calibration.predictive import Bands
 from solderpyro.configure import Setup
 from solderpyro.design.loop import StageClock, spread_indices
@@ -37,6 +37,9 @@ from solderpyro.settings import CalibrationSettings
 log = logging.getLogger("solderpyro")
 #: chains that agree to this R-hat are taken as converged (the report warns above it)
 RHAT_OK = 1.01
+#: posterior draws (the same ones of every chain) in the predictive, draws.npz and the
+#: posterior_predictive / log_likelihood groups of posterior.nc
+PREDICTIVE_DRAWS = 1000
 
 
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
@@ -99,8 +102,14 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     space = sm.space
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
-    post.save(out / "posterior.nc")
-    bands = predict_observation_model(post, inp, None, seed=s.seed)
+    n_draw = next(iter(post.samples.values())).shape[1]
+    pick_pp = torch.as_tensor(thin_index(post.n_chains, n_draw, PREDICTIVE_DRAWS))
+    bands = predict_observation_model(post, inp, None, seed=s.seed, index=pick_pp)
+    # posterior.nc: the surrogate posterior with the data, the predictive and the pointwise
+    # log-likelihood at the same draws (az.plot_ppc, az.loo, az.compare on the file)
+    post.save(out / "posterior.nc", predictive={
+        "y": sm.y.numpy(), "index": pick_pp.numpy(), "observed": bands.obs_draws.numpy(),
+        "log_likelihood": bands.log_likelihood(sm.y).numpy()})
     nk = {"chains": s.sampler.chains, "draws": s.sampler.draws, "warmup": s.sampler.warmup}
     run_exact = s.exact.mode == "on" or (
         s.exact.mode == "auto" and not loop.converged and not loop.rounds[-1].fe_ok)
@@ -175,6 +184,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     info = json.loads((out / "run.json").read_text())
     info["timing_s"] = clock.seconds
     (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
+    from solderpyro.index import write_index
+
+    write_index(out)
     n_ok = int(loop.ok.sum())
     return SpecimenCalibration(out, post, rows, loo, n_ok, int(len(loop.ok)) - n_ok,
                                loop.as_dict())

@@ -18,10 +18,12 @@ def nuts_options(s: SamplerSettings, seed: int, progress: bool, final: bool = Tr
     """Keyword arguments of :func:`~solderpyro.calibration.mcmc.run_nuts`: the full length
     when ``final``, else the design rounds' (never longer than the final one). Chains start
     at likelihood-resampled prior draws: the specimen posterior can have minor modes a random
-    start never leaves."""
+    start never leaves. Each chain is one INFO log line with its time whatever ``progress``
+    says (a line, not a bar: a log written to a file keeps it)."""
+    del progress  # NUTS draws no bars; its per-chain lines are wanted in every log
     nk = dict(chains=s.chains, warmup=s.warmup if final else min(s.round_warmup, s.warmup),
               draws=s.draws if final else min(s.round_draws, s.draws), seed=seed,
-              progress=progress, init="sir", workers=s.workers or None)
+              progress=True, init="sir", workers=s.workers or None)
     if not final:
         nk["max_tree_depth"] = s.round_max_depth
     return nk

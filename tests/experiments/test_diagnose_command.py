@@ -2,6 +2,9 @@
 mesh): the contract files, a hidden effect found, a clean dataset not flagged, the error falling."""
 
 import json
+import re
+import shutil
+import subprocess
 
 import numpy as np
 import pytest
@@ -49,8 +52,18 @@ def test_diagnosis_contract_and_hidden_effect_found(runs):
     assert top == "thermal_lag" or any({top, "thermal_lag"} <= set(g)
                                        for g in dg["indistinguishable"]), dg["verdict"]
     for f in ("diagnosis.md", "diagnosis.html", "diagnosis_residuals.png",
-              "diagnosis_ranking.png"):
+              "diagnosis_fingerprints.png", "diagnosis_ranking.png", "index.html"):
         assert (runs / "lag" / f).stat().st_size > 100, f
+    # every candidate's fingerprint correlation is recorded; point data: against the raw
+    # residual (no denoising); exact (FE refits) or linearised
+    for r in dg["ranking"]:
+        assert -1.0 <= r["fingerprint_correlation"] <= 1.0
+        assert r["fingerprint"] in ("refit", "linearised")
+    assert dg["denoise"] is None
+    # the hidden effect's exact fingerprint (FE refitted with it, minus without) has the
+    # residual's shape: with 6 values and a lag of 120 s it is nearly all of the misfit
+    lag = next(r for r in dg["ranking"] if r["effect"] == "thermal_lag")
+    assert lag["fingerprint_correlation"] > 0.9, lag
 
 
 def test_second_diagnosis_reuses_every_fe_run(runs):
@@ -93,6 +106,24 @@ def test_calibrate_with_the_effect_and_compare(runs):
     cmp = json.loads((out / "comparison.json").read_text())
     assert cmp["after"]["rms_um"] < cmp["before"]["rms_um"]
     assert cmp["elpd_gain"] > 0
+    # the ELPD is ArviZ's PSIS-LOO, read from posterior.nc: a user's own az.loo / az.compare
+    # on the two run directories give the same numbers
+    import arviz as az
+
+    ids = {k: az.from_netcdf(str(d / "posterior.nc")) for k, d in (("before", runs / "lag"),
+                                                                    ("after", out))}
+    for k, idata in ids.items():
+        assert {"posterior", "sample_stats", "observed_data", "posterior_predictive",
+                "log_likelihood"} <= set(idata.groups()), k
+        n = idata.observed_data["y"].size
+        assert idata.posterior_predictive["y"].shape[-1] == n == cmp[k]["n"]
+        assert cmp[k]["elpd_method"] == "psis-loo"
+        assert float(az.loo(idata).elpd_loo) == pytest.approx(cmp[k]["elpd"], rel=1e-9)
+    tab = az.compare(ids, ic="loo")
+    assert tab.index[0] == "after"
+    assert float(tab.loc["before", "elpd_diff"]) == pytest.approx(cmp["elpd_gain"], rel=1e-6)
+    assert (out / "comparison.png").stat().st_size > 10_000
+    assert "comparison.png" in (out / "index.html").read_text()
 
 
 def test_diagnose_rejects_a_directory_without_a_run(tmp_path, capsys):
@@ -148,3 +179,87 @@ def test_hidden_moire_dataset_at_other_times_than_its_ladder(tmp_path):
     assert len(a) == 6 and len(b) == 4
     assert (b["moire_c_1"], b["moire_c_2"]) == (a["moire_c_1"], a["moire_c_3"])
     assert (b["moire_w_1"], b["moire_w_2"]) == (a["moire_w_1"], a["moire_w_3"])
+
+
+def _chromium():
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.skip("headless Chromium is not installed (Debian: apt-get install chromium); "
+                    "the browser check of index.html needs it")
+    return exe
+
+
+#: flags of a headless Chromium that touches no network and no profile but its own
+CHROMIUM = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            "--virtual-time-budget=10000"]
+#: appended to a copy of index.html: records every image's natural size once the page loaded
+PROBE = ("<script>window.addEventListener('load',()=>{const p=document.createElement('pre');"
+         "p.id='probe';p.textContent=JSON.stringify([...document.images].map(i=>[i.getAttribute("
+         "'src'),i.naturalWidth,i.naturalHeight]));document.body.appendChild(p);});</script>")
+
+
+def render_index(run_dir, tmp_path):
+    """index.html of ``run_dir`` in headless Chromium: ``(images [[src, width, height]], the
+    page's text, screenshot path)``."""
+    exe = _chromium()
+    page = (run_dir / "index.html").read_text()
+    probe = run_dir / "_probe.html"  # beside index.html: the same relative image links
+    probe.write_text(page.replace("</body>", PROBE + "</body>"))
+    try:
+        dom = subprocess.run([exe, *CHROMIUM, f"--user-data-dir={tmp_path / 'prof1'}",
+                              "--dump-dom", probe.as_uri()], capture_output=True, text=True,
+                             timeout=120).stdout
+    finally:
+        probe.unlink()
+    shot = tmp_path / "index.png"
+    subprocess.run([exe, *CHROMIUM, f"--user-data-dir={tmp_path / 'prof2'}",
+                    "--window-size=1400,1800", f"--screenshot={shot}",
+                    (run_dir / "index.html").as_uri()], capture_output=True, timeout=120)
+    m = re.search(r'<pre id="probe">(.*?)</pre>', dom, re.S)
+    assert m, dom[-2000:]
+    import html as _html
+
+    return json.loads(_html.unescape(m.group(1))), re.sub(r"<[^>]+>", " ", dom), shot
+
+
+def test_index_html_renders_in_a_browser(runs, tmp_path):
+    """The run directory's index.html in a real browser: every image loads (no broken link),
+    the verdict comes first, and a screenshot is drawn."""
+    d = runs / "lag"
+    page = (d / "index.html").read_text()
+    assert "http://" not in page and "https://" not in page  # self-contained, no network
+    imgs, text, shot = render_index(d, tmp_path)
+    n_img = page.count("<img ")
+    assert n_img >= 4 and len(imgs) == n_img
+    broken = [src for src, w, h in imgs if not (w > 0 and h > 0)]
+    assert not broken, broken
+    assert {"diagnosis_residuals.png", "diagnosis_fingerprints.png"} <= {i[0] for i in imgs}
+    dg = json.loads((d / "diagnosis.json").read_text())
+    assert text.index("Diagnosis:") < text.index("Figures")  # the verdict comes first
+    assert dg["verdict"].split(";")[0][:40] in text
+    assert shot.stat().st_size > 20_000  # a screenshot with content, not a blank page
+
+
+def test_log_into_a_file_is_one_line_per_stage_or_chain(runs, tmp_path):
+    """`calibrate` and `diagnose` with their output piped (not a terminal) and no --quiet: no
+    progress bar (no carriage return), no third-party INFO chatter (arviz.preview), one line
+    per NUTS chain with its time, and a short log."""
+    import sys
+
+    cal = [a for a in CAL if a != "--quiet"]
+    for argv in (["calibrate", "--data", str(runs / "lag.csv"), "--out", str(tmp_path / "c"),
+                  "--store", str(runs / "store"), *cal, *TINY],
+                 ["diagnose", str(tmp_path / "c"), "--draws", "1",
+                  "--effects", "thermal_lag"]):
+        r = subprocess.run([sys.executable, "-m", "solderpyro.cli", *argv], capture_output=True,
+                           text=True, timeout=900)
+        assert r.returncode == 0, r.stderr[-2000:]
+        log = r.stdout + r.stderr
+        assert "\r" not in log and "it/s" not in log
+        assert "arviz.preview" not in log and "INFO arviz" not in log
+        assert len(log.splitlines()) < 200, len(log.splitlines())
+        if argv[0] == "calibrate":
+            chains = [ln for ln in log.splitlines() if "NUTS chain" in ln]
+            assert chains and all(re.search(r"in \d+\.\d s", ln) for ln in chains)
+            assert "index:" in log

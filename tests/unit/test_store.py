@@ -317,3 +317,16 @@ def test_kill_minus_9_mid_doe_loses_nothing_computed(tmp_path):
     fresh = solver.solve(params, SEED_TIMES)  # all four, one batch, in this process
     assert fresh.ok.all()
     torch.testing.assert_close(res.V, fresh.V.to(torch.float64), rtol=0, atol=1e-10)
+
+
+def test_records_are_readable_by_the_other_users_of_a_shared_store(tmp_path):
+    """A record gets the permissions open() would give it (0666 less the umask), not
+    mkstemp's 0600: workers of a cluster may run as other users of a shared filesystem."""
+    old = os.umask(0o022)
+    try:
+        p = RunStore(tmp_path).put("cfg", _record(list(LIU2008.values())))
+    finally:
+        os.umask(old)
+    import solderpyro.store as st
+
+    assert p.stat().st_mode & 0o777 == 0o666 & ~st._UMASK

@@ -1,0 +1,190 @@
+"""``index.html``: the one page of a run directory that a person opens in a browser.
+
+Verdict first (the diagnosis's, the comparison's, the calibration's trust line), then the
+figures that show where the model misses the data, the tables, the warnings, and links to the
+full reports (``report.html``, ``diagnosis.html``, ``comparison.md``) and files. It is
+rebuilt from whatever the directory holds by ``calibrate``, ``diagnose`` and ``compare``, so it
+is always the latest state. Self-contained: inline style, images beside it as relative links,
+nothing fetched from a network.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+#: figures, in the order a reader needs them: where it fails, which effect, the fall, the rest
+FIGURES = (
+    ("diagnosis_residuals.png", "Where the model misses the data: the residual and its "
+     "denoised part (maps per measured time; point data: against time with the predictive "
+     "band)"),
+    ("diagnosis_fingerprints.png", "The best candidates' fingerprints beside the residual, and "
+     "the residual left after adding each"),
+    ("comparison.png", "Before / after adding the effect: residuals and marginals"),
+    ("diagnosis_ranking.png", "Evidence per candidate effect"),
+    ("fig10_predictive.png", "Posterior predictive against the data"),
+    ("design.png", "Adaptive design: marginals per round, where the FE runs went"),
+    ("fig9_posterior.png", "Posterior traces and marginals"),
+    ("exact_posterior.png", "FE-exact posterior against the surrogate's"),
+    ("fig8_literature.png", "Literature constants against the data"),
+    ("surrogate_loo.png", "Surrogate leave-one-out check"),
+)
+LINKS = (("report.html", "calibration report"), ("diagnosis.html", "diagnosis"),
+         ("comparison.md", "comparison (Markdown)"), ("summary.csv", "posterior summary (CSV)"),
+         ("posterior.nc", "posterior, predictive and log-likelihood (ArviZ NetCDF)"),
+         ("diagnosis.json", "diagnosis (JSON)"), ("comparison.json", "comparison (JSON)"),
+         ("run.json", "run settings (JSON)"))
+STYLE = ("body{font-family:sans-serif;max-width:100em;margin:1.5em auto;padding:0 1em;"
+         "color:#222}.verdict{border-left:.5em solid #888;padding:.6em 1em;margin:1em 0;"
+         "background:#f4f4f4;font-size:1.1em}.bad{border-color:#c0392b;background:#fdecea}"
+         ".good{border-color:#27ae60;background:#eafaf1}table{border-collapse:collapse;"
+         "margin:.5em 0}td,th{border:1px solid #bbb;padding:.2em .6em;text-align:right}"
+         "th{background:#eee}td:first-child{text-align:left}img{max-width:100%;"
+         "border:1px solid #ddd}figcaption{color:#555;font-size:.9em;margin-bottom:1.5em}")
+
+
+def _json(p: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(p.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _e(s: Any) -> str:
+    return html.escape(str(s), quote=True)
+
+
+def _table(head: list[str], rows: list[list[Any]]) -> str:
+    return ("<table><tr>" + "".join(f"<th>{_e(h)}</th>" for h in head) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>"
+                      for r in rows) + "</table>")
+
+
+def _num(v: Any, fmt: str = ".4g") -> str:
+    try:
+        return format(float(v), fmt)
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def _verdicts(d: Path, diag: dict | None, cmp: dict | None, run: dict | None
+              ) -> list[tuple[str, str]]:
+    """``(css class, html)`` of each verdict, most telling first."""
+    out: list[tuple[str, str]] = []
+    if diag is not None:
+        top = diag["ranking"][0] if diag.get("ranking") else None
+        extra = ""
+        if top is not None and diag.get("misfit"):
+            extra = (f" Best candidate: <b>{_e(top['effect'])}</b> (evidence "
+                     f"{_num(top['evidence'], '.1f')}; its fingerprint's shape correlation "
+                     f"with the residual r = {_num(top.get('fingerprint_correlation'), '.2f')}"
+                     ").")
+        out.append(("bad" if diag.get("misfit") else "good",
+                     f"<b>Diagnosis:</b> {_e(diag['verdict'])}.{extra}"))
+    if cmp is not None:
+        b, a = cmp["before"], cmp["after"]
+        loo = ("PSIS-LOO ELPD" if a.get("elpd_method", "").startswith("psis") else
+               "log predictive density")
+        diff = (f" ({_num(cmp['elpd_gain'], '.1f')} &plusmn; "
+                f"{_num(cmp.get('elpd_gain_se', float('nan')), '.1f')} nats)")
+        added = ", ".join(a.get("effects", [])) or "nothing"
+        good = cmp["elpd_gain"] > 0 and a["rms_um"] < b["rms_um"]
+        out.append(("good" if good else "bad",
+                     f"<b>Compared with the run before</b> (effects on now: {_e(added)}): RMS "
+                     f"residual {_num(b['rms_um'])} &rarr; {_num(a['rms_um'])} um; {loo} "
+                     f"{_num(b['elpd'], '.1f')} &rarr; {_num(a['elpd'], '.1f')}{diff}."))
+    if run is not None:
+        chk = run.get("fe_check") or {}
+        ok = chk.get("ok", True)
+        txt = f"<b>Calibration:</b> trust {_e(run.get('trust', ''))}."
+        if chk:
+            txt += (f" FE check: best RMS residual {_num(chk.get('rms_um'))} um = "
+                    f"{_num(chk.get('rms_over_sigma'), '.2f')} noise sd.")
+        out.append(("good" if ok and diag is None else "", txt))
+    if not out:
+        out.append(("", f"{_e(d)} holds no solderpyro run yet."))
+    return out
+
+
+def _warnings(d: Path, diag: dict | None, cmp: dict | None) -> list[str]:
+    out: list[str] = []
+    rep = d / "report.md"
+    if rep.is_file():
+        on = False
+        for ln in rep.read_text().splitlines():
+            if ln.startswith("## "):
+                on = ln.strip() == "## Warnings"
+            elif on and ln.startswith("- ") and ln[2:].strip() != "none":
+                out.append(ln[2:].replace("**", "").replace("`", ""))
+    if diag is not None:
+        out += [f"diagnosis: {s}" for s in diag.get("suggestions", [])]
+    if cmp is not None:
+        out += [f"comparison: {w}" for w in cmp.get("warnings", [])]
+    return out
+
+
+def _summary_rows(d: Path) -> list[list[str]]:
+    p = d / "summary.csv"
+    if not p.is_file():
+        return []
+    with p.open(newline="") as fh:
+        return [[r["parameter"], _num(r["q2.5"]), _num(r["median"]), _num(r["q97.5"]),
+                 _num(r.get("r_hat", "nan"), ".3f"), _num(r.get("ess_bulk", "nan"), ".0f")]
+                for r in csv.DictReader(fh)]
+
+
+def write_index(run_dir: str | Path) -> Path:
+    """Write ``run_dir/index.html`` from what the directory holds (module docstring).
+
+    Args:
+        run_dir: a run directory (calibration, diagnosis, comparison).
+    Returns:
+        the path of ``index.html``.
+    """
+    d = Path(run_dir)
+    diag, cmp, run = (_json(d / "diagnosis.json"), _json(d / "comparison.json"),
+                      _json(d / "run.json"))
+    body = [f"<h1>solderpyro run: {_e(d.name)}</h1>"]
+    body += [f'<div class="verdict {c}">{t}</div>' for c, t in _verdicts(d, diag, cmp, run)]
+    figs = [(f, cap) for f, cap in FIGURES if (d / f).is_file()]
+    if figs:
+        body.append("<h2>Figures</h2>")
+        body += [f'<figure><img src="{_e(f)}" alt="{_e(cap)}"><figcaption>{_e(cap)} '
+                 f'(<a href="{_e(f)}">{_e(f)}</a>)</figcaption></figure>' for f, cap in figs]
+    if diag is not None and diag.get("ranking"):
+        body.append("<h2>Candidate effects (best first)</h2>")
+        body.append(_table(["effect", "evidence (-log10 p)", "fingerprint r", "explains",
+                            "RMS after (um)", "flagged"],
+                           [[r["effect"], _num(r["evidence"], ".2f"),
+                             _num(r.get("fingerprint_correlation"), ".2f"),
+                             f"{float(r['explained_share']):.0%}",
+                             _num(r["rms_after_um"], ".3g"), "yes" if r["flagged"] else ""]
+                            for r in diag["ranking"]]))
+    rows = _summary_rows(d)
+    if rows:
+        body.append("<h2>Posterior</h2>")
+        body.append(_table(["parameter", "2.5 %", "median", "97.5 %", "R-hat", "ESS"], rows))
+    warn = _warnings(d, diag, cmp)
+    body.append("<h2>Warnings</h2>")
+    body.append("<ul>" + "".join(f"<li>{_e(w)}</li>" for w in warn) + "</ul>" if warn
+                else "<p>none</p>")
+    links = [(f, lab) for f, lab in LINKS if (d / f).is_file()]
+    if cmp is not None and cmp.get("before_dir"):
+        rel = os.path.relpath(Path(cmp["before_dir"]) / "index.html", d)
+        links.append((rel, "the run before (its index)"))
+    if cmp is not None and cmp.get("after_dir") and Path(cmp["after_dir"]).resolve() \
+            != d.resolve():
+        rel = os.path.relpath(Path(cmp["after_dir"]) / "index.html", d)
+        links.append((rel, "the run after (its index)"))
+    body.append("<h2>Reports and files</h2><ul>" + "".join(
+        f'<li><a href="{_e(f)}">{_e(lab)}</a> ({_e(f)})</li>' for f, lab in links) + "</ul>")
+    page = (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>solderpyro: '
+            f"{_e(d.name)}</title><style>{STYLE}</style></head><body>\n" + "\n".join(body)
+            + "\n</body></html>\n")
+    p = d / "index.html"
+    p.write_text(page, encoding="utf-8")
+    return p
