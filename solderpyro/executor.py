@@ -216,9 +216,14 @@ class DaskExecutor:
             logging.getLogger(name).setLevel(logging.WARNING)
         if cluster is not None:
             n = parse_cluster(cluster)
-            with dask.config.set(WORKER_CONFIG):
-                lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                  dashboard_address=":0", silence_logs=logging.ERROR)
+            env = dict(os.environ)
+            try:
+                with dask.config.set(WORKER_CONFIG):
+                    lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                      dashboard_address=":0", silence_logs=logging.ERROR)
+            finally:  # the nanny leaves its workers' settings (OMP_NUM_THREADS=1,
+                os.environ.clear()  # PYTHONHASHSEED, ...) in this process's environment,
+                os.environ.update(env)  # where later subprocesses would inherit them
             log.info("Dask LocalCluster: %d single-threaded workers (%s)", n,
                      lc.scheduler_address)
             return cls(Client(lc), owns=True)

@@ -498,8 +498,8 @@ def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
     n_reused = sum(k in found for k in keys)
     missing = [first[k] for k in sorted(first, key=first.__getitem__) if k not in found]
     where = store.config_dir(cfg_hash)
-    log.info("run store %s: %d of %d runs reused, %d parameter sets to compute", where,
-             n_reused, len(keys), len(missing))
+    log.debug("run store %s: %d of %d runs reused, %d parameter sets to compute", where,
+              n_reused, len(keys), len(missing))
     from tqdm.auto import tqdm
 
     from .executor import current_executor
@@ -538,8 +538,10 @@ def _param_names(solver: Any, times: list[float],
 def _log_summary(where: Path, n_reused: int, n_computed: int, ok: torch.Tensor,
                  reasons: list[str], p: torch.Tensor, names: Sequence[str]) -> None:
     bad = torch.nonzero(~ok).squeeze(1).tolist()
-    log.info("DOE done: %d rows, %d reused, %d computed, %d failed; store %s", len(ok),
-             n_reused, n_computed, len(bad), where)
+    # one DEBUG line per call (the calibration makes dozens; its stages log their FE counts);
+    # failed rows are warnings
+    log.debug("DOE done: %d rows, %d reused, %d computed, %d failed; store %s", len(ok),
+              n_reused, n_computed, len(bad), where)
     for i in bad[:10]:
         log.warning("DOE row %d failed (params %s): %s",
                     i, dict(zip(names, p[i].tolist(), strict=True)), reasons[i])

@@ -394,6 +394,13 @@ class _ChainJob:
     step0: float
 
     def __call__(self, c: int) -> dict:
+        # a trajectory that leaves the typical set overflows the density (exp, log of 0): the
+        # sampler rejects a non-finite energy as it should, so NumPy's warnings about it are
+        # noise (tens of lines in a log that should have one per chain)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore", under="ignore"):
+            return self._chain(c)
+
+    def _chain(self, c: int) -> dict:
         t0 = time.perf_counter()
         rng = np.random.default_rng(self.seed + c)
         f = self.f

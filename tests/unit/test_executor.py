@@ -194,6 +194,16 @@ def test_a_batch_that_kills_every_worker_is_failed_not_hung(tmp_path):
             assert bool(ok.ok.all()) and ok.n_computed == 2
 
 
+def test_starting_a_local_cluster_leaves_this_process_environment_alone():
+    """Dask's nanny writes its workers' settings (OMP_NUM_THREADS=1, PYTHONHASHSEED, ...) into
+    the client's os.environ; a later subprocess of the client must not inherit them."""
+    pytest.importorskip("distributed")
+    before = dict(os.environ)
+    with DaskExecutor.start("local:1"):
+        assert dict(os.environ) == before
+    assert dict(os.environ) == before
+
+
 def test_executor_from_options_is_in_process_by_default():
     with executor_from_options(None, None) as ex:
         assert isinstance(ex, InProcess) and current_executor() is ex

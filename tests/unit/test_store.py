@@ -227,7 +227,7 @@ def test_doe_stores_failed_members_and_never_recomputes_them(tmp_path, caplog):
     n_fail = int((params[:, 0] > 30).sum())
     assert 0 < n_fail < len(params)
     store, solver = RunStore(tmp_path), FakeSolver()
-    with caplog.at_level(logging.INFO, logger="solderpyro"):
+    with caplog.at_level(logging.DEBUG, logger="solderpyro"):  # the summary line is DEBUG
         res = run_doe(solver, store, "cfg", params, SEED_TIMES, batch_size=4, progress=False)
     assert solver.calls == [4, 4, 2] and (res.n_reused, res.n_computed) == (0, 10)
     assert res.V.shape == (12, 4, 2) and res.n_failed == n_fail
