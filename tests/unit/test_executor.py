@@ -37,6 +37,17 @@ cloudpickle.register_pickle_by_value(sys.modules[__name__])
 pytestmark = pytest.mark.timeout(300)
 
 
+@pytest.fixture(autouse=True)
+def _keep_environment():
+    """Dask's nanny writes its workers' settings (OMP_NUM_THREADS=1, PYTHONHASHSEED, ...) into
+    this process's environment whenever it (re)starts a worker: restore it after each test so
+    that the tests after these run as they would alone."""
+    env = dict(os.environ)
+    yield
+    os.environ.clear()
+    os.environ.update(env)
+
+
 def _params(n: int) -> torch.Tensor:
     """``(n, 9)`` stiff parameter sets (few Newton iterations), all distinct."""
     th = [[16.0 + 0.5 * i, 11000.0 + 100 * i, 2.0 + 0.2 * i, 0.3 + 0.01 * i] for i in range(n)]
