@@ -76,12 +76,16 @@ def test_interval_coverage_without_model_error():
     assert 0.85 * n_rep <= covered <= n_rep, covered
 
 
-def test_surrogate_posterior_matches_direct_with_20_runs():
+def test_surrogate_posterior_matches_direct_with_30_runs():
+    """With 30 LHS runs the modular surrogate posterior of t matches the direct one within
+    Monte Carlo error. (With 20 the GP's own error at x = 0, outside the runs, shifted the
+    median by 3.2-4.3 MCSE, depending on linear_operator's settings, which importing BoTorch
+    changes: docs/calibration.md.)"""
     from scipy.stats import qmc
 
     x, y = make_data(0)
     box = Box(("x", "t"), (0.0, T_BOX.lower[0]), (3.0, T_BOX.upper[0]))
-    u = torch.as_tensor(qmc.LatinHypercube(d=2, seed=4).random(20), dtype=DT)
+    u = torch.as_tensor(qmc.LatinHypercube(d=2, seed=4).random(30), dtype=DT)
     runs = box.from_unit(u)
     ys = 5 * torch.exp(-runs[:, 1] * runs[:, 0])
     gp = GPSurrogate(box, ard=True).fit(runs, ys)
