@@ -34,18 +34,8 @@ from solderpyro.store import RunStore, param_hash, run_doe
 # the stand-in solvers below travel to the workers by value (the workers cannot import tests)
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
-pytestmark = pytest.mark.timeout(300)
-
-
-@pytest.fixture(autouse=True)
-def _keep_environment():
-    """Dask's nanny writes its workers' settings (OMP_NUM_THREADS=1, PYTHONHASHSEED, ...) into
-    this process's environment whenever it (re)starts a worker: restore it after each test so
-    that the tests after these run as they would alone."""
-    env = dict(os.environ)
-    yield
-    os.environ.clear()
-    os.environ.update(env)
+# keep_environment: Dask's nanny writes its workers' settings into os.environ
+pytestmark = [pytest.mark.timeout(300), pytest.mark.usefixtures("keep_environment")]
 
 
 def _params(n: int) -> torch.Tensor:

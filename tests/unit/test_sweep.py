@@ -15,17 +15,8 @@ from solderpyro.executor import DaskExecutor, InProcess
 from solderpyro.sweep import sweep
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
-
-
-@pytest.fixture(autouse=True)
-def _keep_environment():
-    """Dask's nanny writes its workers' settings (OMP_NUM_THREADS=1, PYTHONHASHSEED, ...) into
-    this process's environment whenever it (re)starts a worker: restore it after each test so
-    that the tests after these run as they would alone."""
-    env = dict(os.environ)
-    yield
-    os.environ.clear()
-    os.environ.update(env)
+# keep_environment: Dask's nanny writes its workers' settings into os.environ
+pytestmark = pytest.mark.usefixtures("keep_environment")
 
 
 def square(name: str) -> dict:
