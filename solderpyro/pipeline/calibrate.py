@@ -256,7 +256,7 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
                f"stays the surrogate's; a larger calibration.exact.runs or more rounds")
         log.warning(msg)
         problems = [*problems, msg]
-        trust = ("neither posterior is confirmed: the design's budget ran out with the FE "
+        trust = ("neither posterior: the design's budget ran out with the FE "
                  "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
                  "--budget; the profile intervals (profile_ci.csv) are the FE's own")
     write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
