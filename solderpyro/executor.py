@@ -58,7 +58,6 @@ class BatchOutcome:
     """What one FE batch gave back.
 
     Attributes:
-        index: the batch's position in the campaign (0-based).
         records: one :class:`~solderpyro.store.RunRecord` per member, in row order.
         stored: whether the records are already in the store (written where they were solved).
         seconds: FE wall time of the batch where it ran, s (NaN when unknown).
@@ -66,7 +65,6 @@ class BatchOutcome:
             stored, so that a rerun tries again.
     """
 
-    index: int
     records: list[RunRecord]
     stored: bool
     seconds: float = float("nan")
@@ -146,10 +144,10 @@ class InProcess:
             names: Sequence[str], store: RunStore, cfg_hash: str) -> Iterator[BatchOutcome]:
         """Solve each batch ``(b_i, 9 + n_eff)`` in turn and yield its outcome (not yet
         stored: :func:`~solderpyro.store.run_doe` stores it)."""
-        for i, P in enumerate(batches):
+        for P in batches:
             t0 = time.perf_counter()
             recs = solve_batch(solver, P, times, names)
-            yield BatchOutcome(i, recs, False, time.perf_counter() - t0)
+            yield BatchOutcome(recs, False, time.perf_counter() - t0)
 
     def describe(self) -> str:
         return "in-process"
@@ -287,12 +285,12 @@ class DaskExecutor:
                 try:
                     recs, stored, dt = fut.result()
                 except KilledWorker as e:
-                    yield BatchOutcome(i, _failed(batches[i], tt, names, solver,
+                    yield BatchOutcome(_failed(batches[i], tt, names, solver,
                                                   f"FE batch lost: its worker died on every "
                                                   f"attempt ({e}); not stored, a rerun "
                                                   f"retries it"), False, lost=True)
                     continue
-                yield BatchOutcome(i, recs, stored, dt)
+                yield BatchOutcome(recs, stored, dt)
         finally:
             for f in futs:
                 f.release()
