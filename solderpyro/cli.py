@@ -266,10 +266,13 @@ def cmd_diagnose(a, overrides) -> int:
     dg = diagnose(a.run_dir, candidates=cands, n_draws=a.draws, seed=a.seed,
                   progress=not a.quiet, refit=not a.no_refit)
     print(f"\nverdict: {dg.verdict}\n")
-    print(f"{'effect':26s} {'evidence':>9s} {'score':>9s} {'dof':>4s} {'ident.':>7s}  flagged")
-    for r in dg.ranking:
-        print(f"{r['effect']:26s} {r['evidence']:9.2f} {r['statistic']:9.2f} {r['dof']:4d} "
-              f"{r['identifiable']:7.2f}  {'yes' if r['flagged'] else ''}")
+    print(f"{'effect':26s} {'LR/score':>10s} {'dof':>4s} {'RMS after':>10s} {'systematic':>10s}"
+          f" {'floor':>6s}  flagged  refit")
+    for r in dg.ranking + dg.failed:
+        print(f"{r['effect']:26s} {r['statistic']:10.1f} {r['dof']:4d} "
+              f"{r['rms_after_sd']:7.2f} sd {r['systematic_share']:10.0%} "
+              f"{'clears' if r['clears_floor'] else 'below':>6s}  "
+              f"{'yes' if r['flagged'] else '':7s}  {r['refit']}")
     for s in dg.suggestions:
         print(f"suggestion: {s}")
     print(f"\ndiagnosis: {Path(a.run_dir) / 'diagnosis.json'} and diagnosis.html")

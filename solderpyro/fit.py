@@ -2,7 +2,7 @@
 
 Used where the exact model (not the surrogate) must say where the data are fitted best: the
 FE anchor of a calibration's refinement (:func:`solderpyro.pipeline.calibrate_specimen`) and the
-profile refits of the diagnosis (:func:`solderpyro.diagnose.run.profile_fits`). Several starts
+profile refits of the diagnosis (:func:`solderpyro.diagnose.refits.fit_models`). Several starts
 (or models with different free parameters) advance together, so every FE call is one batch.
 
 Units: parameters in their physical units, predictions and data in um, sigma in um.
@@ -28,6 +28,8 @@ class LMFit:
             parameters scaled to the unit box (``df / du``, um), at the last point where it was
             evaluated (the last accepted step's start; None if never).
         iters: accepted steps; history: chi-square at each evaluation.
+        converged: the stopping rule of :func:`lm_fit`'s ``tol`` was met (always False
+            without ``tol``).
     """
 
     x: np.ndarray
@@ -36,6 +38,7 @@ class LMFit:
     J: np.ndarray | None = None
     iters: int = 0
     history: list[float] = field(default_factory=list)
+    converged: bool = False
 
     def jacobian_unit(self, lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray,
                       log_scale: Sequence[bool]) -> np.ndarray | None:
@@ -70,7 +73,7 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
            lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, y: np.ndarray,
            sigma: float,
            free: Sequence[np.ndarray] | None = None, iters: int = 5, rel: float = 1e-3,
-           lam0: float = 1e-2) -> list[LMFit]:
+           lam0: float = 1e-2, tol: float | None = None) -> list[LMFit]:
     """Bounded Levenberg-Marquardt from ``S`` starts at once, forward differences.
 
     Each iteration makes two calls of ``fun``: the points and their difference steps (``S``
@@ -83,7 +86,13 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
         lo, hi: ``(p,)`` box.
         y: ``(n,)`` data, um; sigma: noise sd, um.
         free: per start, the indices it fits (default: all ``p``).
-        iters: iterations; rel: difference step as a share of the box width.
+        iters: iterations (the most, with ``tol``); rel: difference step as a share of the
+            box width.
+        tol: stop a start once an iteration lowers its chi-square by less than ``tol``
+            (absolute; the chi-square's own sampling sd is ``sqrt(2 n)``, so 0.1 is far below
+            anything a test could see), or once no step is accepted at damping above 1e6
+            (a bound or a kink holds it); stopped starts cost no more FE rows. None: run all
+            ``iters``.
     Returns:
         ``S`` :class:`LMFit`, in the order of ``x0``.
     """
@@ -103,20 +112,25 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
     width = hi_a - lo_a
     for _ in range(iters):
         rows: list[np.ndarray] = []
-        where = []
-        for ft in fits:
-            where.append(len(rows))
+        where: dict[int, int] = {}
+        for s, ft in enumerate(fits):
+            if ft.converged:
+                continue
+            where[s] = len(rows)
             rows.append(ft.x)
             for j in ft.free:
                 sgn = 1.0 if ft.x[j] + h_all[j] <= hi_a[j] else -1.0
                 xj = ft.x.copy()
                 xj[j] += sgn * h_all[j]
                 rows.append(xj)
+        if not rows:
+            break
         V = fun(np.array(rows))
         trials: list[np.ndarray] = []
         tw: dict[int, int] = {}
-        for s, ft in enumerate(fits):
-            i0, fr = where[s], ft.free
+        for s, i0 in where.items():
+            ft = fits[s]
+            fr = ft.free
             r = y - V[i0]
             ft.chi2 = float(((r / sigma) ** 2).sum())
             ft.history.append(ft.chi2)
@@ -141,11 +155,14 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
             c2 = np.where(np.isfinite(c2), c2, np.inf)
             k = int(np.argmin(c2))
             if c2[k] < ft.chi2:
+                gain = ft.chi2 - float(c2[k])
                 ft.x, ft.chi2 = trials[i0 + k], float(c2[k])
                 lam[s] = max(lam[s] * (0.1 if k == 0 else 10.0 ** k), 1e-6)
                 ft.iters += 1
+                ft.converged = tol is not None and gain < tol
             else:
                 lam[s] *= 1e3
+                ft.converged = tol is not None and lam[s] > 1e6
     for ft in fits:
         if not ft.history or ft.chi2 < ft.history[-1]:
             ft.history.append(ft.chi2)

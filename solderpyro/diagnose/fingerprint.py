@@ -1,7 +1,7 @@
 """Each candidate effect's fingerprint: what it would change in the data, to set beside the
 residual.
 
-With the FE refits of the diagnosis (:func:`~solderpyro.diagnose.run.profile_fits`: the FE
+With the FE refits of the diagnosis (:func:`~solderpyro.diagnose.refits.refit_candidates`: the FE
 refitted to the data with each candidate on, and without any), the fingerprint of effect c is
 exact: ``V(x_c) - V(x_0)``, the change of the prediction when c is added and every parameter
 is refitted, and the residual after adding it is ``y - V(x_c)``; the residual shown is then

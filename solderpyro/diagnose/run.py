@@ -39,7 +39,24 @@ import numpy as np
 import torch
 from scipy.stats import chi2 as _chi2
 
+from solderpyro.diagnose.decide import (
+    ALPHA,
+    APART_CHI2,
+    EXPLAINED_SD,
+    REFIT_TOL,
+    Floor,
+    Judged,
+    Refit,
+    effect_size,
+    explained,
+    forward_step,
+    forward_steps,
+    judge,
+    load_floor,
+    remains,
+)
 from solderpyro.diagnose.fingerprint import Fingerprints, fingerprints
+from solderpyro.diagnose.refits import MAX_REFITS, base_fit, layout, refit_candidates
 from solderpyro.diagnose.stats import (
     Misfit,
     PredictiveCheck,
@@ -50,19 +67,13 @@ from solderpyro.diagnose.stats import (
     predictive_check,
     score_test,
 )
-from solderpyro.fit import lm_fit
 
 log = logging.getLogger("solderpyro")
 
-#: significance of the misfit test and (Bonferroni over candidates) of each effect
-ALPHA = 0.01
 #: an effect whose signature the calibrated parameters mimic to within this share is not
 #: flagged however large its statistic: below it the linearised projection (finite-difference
 #: Jacobians, steps 1e-3 of the box) is not accurate enough to trust what is left
 MIN_IDENTIFIABLE = 0.01
-#: two significant effects whose best fits differ by less than this chi-square cannot be told
-#: apart by the data (a likelihood ratio below 20, "strong" on the Kass-Raftery scale)
-APART_CHI2 = float(2.0 * np.log(20.0))
 #: magnitudes (share of the way from "off" to the box's far edge) of the likelihood-ratio ladder
 LADDER = (0.15, 0.4, 1.0)
 #: candidates whose fingerprints are drawn (best first)
@@ -85,10 +96,25 @@ class Diagnosis:
     timing: dict[str, dict[str, float | int]] = dataclasses.field(default_factory=dict)
     #: the denoised residual (full-field data): :meth:`~.denoise.Smooth.summary`
     denoise: dict | None = None
+    #: the FE's best fit every statistic is taken at (start, chi2 history, parameters)
+    base: dict | None = None
+    #: candidates whose refit ended above its base after a retry: reported, never ranked
+    failed: list[dict] = dataclasses.field(default_factory=list)
+    #: effects the forward steps added, in order
+    selected: list[str] = dataclasses.field(default_factory=list)
+    #: True: the selected effects (or a tie) explain the misfit; False: none of the candidates
+    #: does; None: no misfit
+    explained: bool | None = None
+    #: the discretization floor used (:class:`~solderpyro.diagnose.decide.Floor`)
+    floor: dict | None = None
+    #: per forward step, each refit judged (:func:`~solderpyro.diagnose.decide.judge`)
+    steps: list[list[dict]] = dataclasses.field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
-        return {"misfit": self.misfit, "verdict": self.verdict, "ranking": self.ranking,
-                "check": self.check, "indistinguishable": self.indistinguishable,
+        return {"misfit": self.misfit, "explained": self.explained, "verdict": self.verdict,
+                "selected": self.selected, "ranking": self.ranking, "failed": self.failed,
+                "check": self.check, "base": self.base, "floor": self.floor,
+                "steps": self.steps, "indistinguishable": self.indistinguishable,
                 "suggestions": self.suggestions, "separation": self.separation,
                 "denoise": self.denoise, "timing": self.timing}
 
@@ -521,100 +547,6 @@ def likelihood_ratio(chi2_base: float, y: np.ndarray, V_ladder: np.ndarray,
     return np.array([chi2_base - misfit(y - v, J_theta, w).chi2 for v in V_ladder])
 
 
-def fe_best_fit(setup: Any, theta0: np.ndarray, run_effects: tuple[str, ...],
-                meas: Any, sigma: float, iters: int = 4, rel: float = 1e-3,
-                fe: FeRuns | None = None) -> tuple[np.ndarray, list[float]]:
-    """The FE's own best fit near ``theta0``: Levenberg-Marquardt on the calibrated parameters
-    through the FE, inside the prior box (:func:`profile_fits` with no candidate).
-
-    The surrogate's posterior median can sit where the GP, not the FE, fits best; the misfit and
-    score tests are then taken at this point, so a surrogate error is not mistaken for a missing
-    effect.
-
-    Args:
-        theta0: ``(n_cal,)`` start (physical units); meas: the data; sigma: noise sd, um.
-        fe: the diagnosis's :class:`FeRuns` (run store, solvers); None: solve directly.
-    Returns:
-        ``(theta (n_cal,), chi2 history)``.
-    """
-    fit = profile_fits(setup, theta0, run_effects, (), {}, meas, sigma, iters, rel,
-                       fe=fe)["baseline"]
-    return fit["x"], fit["history"]
-
-
-def profile_fits(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
-                 candidates: tuple[str, ...], start: dict[str, float], meas: Any,
-                 sigma: float, iters: int = 5, rel: float = 1e-3, fe: FeRuns | None = None
-                 ) -> dict[str, dict[str, Any]]:
-    """Refit the FE with each candidate effect switched on (its parameters and the calibrated
-    ones free), all candidates in one batched solve per step (Levenberg-Marquardt, forward
-    differences, inside the boxes), and the baseline alongside.
-
-    The chi-square drop against the baseline's refit is the likelihood-ratio statistic of the
-    effect: the gain in fit when it is added, with no linearisation, so it ranks large misfits
-    correctly where the score test (first order at "off") cannot.
-
-    Through the run store (``fe``), every row already computed (the Jacobians' base and forward
-    rows at the same point, the ladder's magnitudes, a step that was not taken) is read back,
-    and rows that several models share (the calibrated parameters' difference steps of each
-    model starting at the same point) are solved once.
-
-    Args:
-        theta: ``(n_cal,)`` start of the calibrated parameters (physical units).
-        start: per candidate with one parameter, its start value (e.g. the best ladder
-            magnitude; a threshold effect does not move from "off" by its gradient).
-        fe: the diagnosis's :class:`FeRuns` (run store, solvers set up once, e.g. the one
-            :func:`fe_jacobians` used); None: solve directly.
-    Returns:
-        ``{name: {"chi2": float, "x": (n_col,) row, "iters": int, "history": [chi2, ...]}}``
-        with ``"baseline"``.
-    """
-    from solderpyro.effects import effect_set
-    from solderpyro.specimen import calibration_box, fe_params, observation_index
-
-    fe = fe if fe is not None else FeRuns(setup)
-    field = any(p not in setup.problem.points for p in meas.points())
-    times = tuple(float(t) for t in meas.times())
-    fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
-    cal = calibration_box(setup, effect_set(run_effects, times, setup.effect_bounds)
-                          if run_effects else None)
-    n_cal = cal.dim
-    lo, hi, off, owner = list(cal.lower), list(cal.upper), [], []
-    for e in fx_all.effects[len(run_effects):]:
-        lo += list(e.params.lower)
-        hi += list(e.params.upper)
-        off += list(e.off)
-        owner += [e.name] * e.n_params
-    lo_a, hi_a = np.array(lo, float), np.array(hi, float)
-    y = np.asarray(meas.value_um, float)
-    ow = np.array(owner)
-    models = {"baseline": np.arange(n_cal)}
-    for c in candidates:
-        models[c] = np.concatenate([np.arange(n_cal), n_cal + np.flatnonzero(ow == c)])
-    x0 = np.concatenate([np.asarray(theta, float), np.array(off, float)])
-    starts = []
-    for m, free in models.items():
-        x = x0.copy()
-        if m in start and len(free) == n_cal + 1:
-            x[free[-1]] = start[m]
-        starts.append(x)
-    idx: dict[str, Any] = {}
-
-    def run(rows: np.ndarray) -> np.ndarray:  # one batched call per lm_fit step
-        P = torch.tensor(rows, dtype=torch.float64)
-        res = fe.solve(fe_params(setup, P), times, field, fx_all)
-        if "ti" not in idx:
-            idx["ti"], idx["oi"] = observation_index(meas, res.times, res.names)
-        V = res.V[:, idx["ti"], idx["oi"]]
-        V[~res.ok] = np.nan
-        return V
-
-    out = lm_fit(run, np.array(starts), lo_a, hi_a, y, sigma, list(models.values()), iters,
-                 rel)
-    return {m: {"chi2": f.chi2, "x": f.x, "iters": f.iters, "history": f.history}
-            for m, f in zip(models, out, strict=True)}
-
-
 def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_draws: int = 3,
              seed: int = 0, progress: bool = True, refit: bool = True,
              batch_size: int = 64) -> Diagnosis:
@@ -628,11 +560,14 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         run_dir: a directory written by ``solderpyro calibrate``.
         candidates: effect names to test (default: every registered effect that the run did
             not switch on).
-        n_draws: posterior draws at which the FE and its Jacobians are evaluated (the first is
-            the one nearest the posterior median; the ranking uses it, the others show how
-            stable the evidence is over the posterior).
-        refit: move the first draw to the FE's own best fit (:func:`fe_best_fit`) before the
-            tests, so that a surrogate error is not read as a missing effect.
+        n_draws: posterior draws at which the FE and its Jacobians are evaluated when the FE
+            check accepted the posterior (the first is the FE's best fit from the draw nearest
+            the posterior median; the ranking uses it, the others show how stable the screen
+            is over the posterior); one, the best fit, when the FE check rejected it.
+        refit: take every statistic at the FE's own best fit
+            (:func:`~solderpyro.diagnose.refits.base_fit`) and let the FE refits with each
+            screened candidate decide (:mod:`solderpyro.diagnose.decide`); False: at the
+            posterior draw, the linearised statistics standing in for the refits.
         batch_size: FE runs per batched solve (each batch is stored as soon as it finishes).
     Returns:
         :class:`Diagnosis`.
@@ -661,13 +596,23 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         pc = predictive_check(y, dr["process"], dr["sigma_pred"], seed=seed)
     field = any(p not in setup.problem.points for p in meas.points())
     times = tuple(float(t) for t in meas.times())
-    idx = _pick_draws(dr["theta"], n_draws, seed)
+    n = len(y)
+    lay = layout(setup, run_effects, candidates, meas)
+    floor = load_floor("field" if field else "points")
+    # other posterior draws only where the FE check accepted the posterior (issue 20: never a
+    # draw the FE rejected)
+    fe_ok = bool((info.get("fe_check") or {}).get("ok", False))
+    idx = _pick_draws(dr["theta"], n_draws if fe_ok else 1, seed)
     thetas = dr["theta"][idx].copy()
+    base: dict[str, Any] | None = None
     if refit:
         with cost.stage("best_fit"):
-            thetas[0], hist = fe_best_fit(setup, thetas[0], run_effects, meas, sigma, fe=fe)
-            log.info("diagnose: FE best fit from the posterior median, chi2 %s",
-                     " -> ".join(f"{c:.1f}" for c in hist))
+            base = base_fit(lay, fe, meas, sigma, _starts(setup, dr["theta"], idx, fe_ok))
+            thetas[0] = base["x"][:lay.n_cal]
+            log.info("diagnose: FE best fit (start: %s%s), chi2 %s", base["start"],
+                     "" if not base["scouts"] else "; scouts " + ", ".join(
+                         f"{k} {v:.1f}" for k, v in base["scouts"].items()),
+                     " -> ".join(f"{c:.1f}" for c in base["history"]))
     with cost.stage("fe_jacobians"):
         fej = fe_jacobians(setup, thetas, run_effects, candidates, times, field,
                            progress=progress, fe=fe)
@@ -679,29 +624,31 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     with cost.stage("ladder"):
         lad = {k: (v, VL[:, ti, oi]) for k, (v, VL) in fej["ladder"].items()}
         apply_ladder(mf, scores, y, J[0], fej["cols"], sigma, lad)
+    base_chi2 = base["chi2"] if base is not None else mf.chi2
+    mf.chi2_refit = base_chi2
     fits = None
-    if refit and candidates and (mf.p_value < ALPHA or _targeted(scores, len(candidates))):
-        # a misfit: refit the FE with each candidate on (no linearisation) and use the
-        # likelihood ratio where it is the larger statistic
+    steps: list[list[Judged]] = []
+    chosen: tuple[str, ...] = ()
+    tie: list[str] = []
+    screened = sorted(_targeted(scores, len(candidates)), key=lambda sc: -sc.statistic)
+    if not refit:  # the linearised statistics stand in for the refits
+        steps = [judge([Refit((sc.effect,), sc.chi2_after, max(sc.dof, 1), np.zeros(0),
+                              mf.chi2) for sc in scores], n, lay.n_cal, sigma, floor,
+                       len(candidates))]
+        chosen, tie = forward_step(steps[0], ())
+    elif base is not None and screened:
         with cost.stage("profile_refits"):
-            start = {sc.effect: sc.lr_value for sc in scores
-                     if sc.lr_value is not None and (sc.lr or 0.0) > 0.0}
-            fits = profile_fits(setup, thetas[0], run_effects, candidates, start, meas, sigma,
-                                fe=fe)
-            base = min(fits["baseline"]["chi2"], mf.chi2)
-            log.info("diagnose: profile refits, baseline chi2 %.1f; %s", base, ", ".join(
-                f"{m} {f['chi2']:.1f}" for m, f in fits.items() if m != "baseline"))
-            for sc in scores:
-                lr = base - fits[sc.effect]["chi2"]
-                sc.profile_chi2 = fits[sc.effect]["chi2"]
-                if lr > sc.statistic:
-                    sc.statistic, sc.dof = float(lr), max(sc.dof, 1)
-                    sc.p_value = float(_chi2.sf(lr, sc.dof))
-                    sc.evidence = evidence(lr, sc.dof)
-                    sc.chi2_after = fits[sc.effect]["chi2"]
-            mf.chi2_refit = base
+            fits, steps, chosen, tie = _refit_steps(lay, fe, meas, sigma, base, scores,
+                                                   screened[:MAX_REFITS], floor,
+                                                   len(candidates))
     with cost.stage("verdict"):
-        diag = _verdict(mf, pc, scores, per_draw, sigma, len(candidates))
+        diag = _verdict(mf, pc, scores, per_draw, sigma, steps, chosen, tie, base_chi2,
+                        lay.n_cal, floor)
+        diag.base = None if base is None else {
+            "chi2": base["chi2"], "start": base["start"], "scouts": base["scouts"],
+            "history": base["history"], "converged": base["converged"],
+            "fe_check_ok": fe_ok, "x": {nm: float(v) for nm, v in zip(
+                fej["cols"].names[:lay.n_cal], base["x"][:lay.n_cal], strict=True)}}
     if diag.indistinguishable and fits is not None:
         with cost.stage("separation"):
             group = diag.indistinguishable[0]
@@ -710,20 +657,20 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
             diag.suggestions.insert(0, diag.separation["advice"])
     with cost.stage("fingerprints"):
         preds = None
-        base = fits["baseline"]["chi2"] if fits is not None else float("inf")
-        if fits is not None and base <= 1.01 * mf.chi2 + APART_CHI2:
-            # exact fingerprints from the refits when the baseline's refit is about as good as
-            # the linearised one, except where a candidate's refit fits worse than the
-            # baseline's (it stopped short: its shape would mislead)
+        if fits is not None:
+            # exact fingerprints from the refits, except where a candidate's refit failed
+            # (it stopped short: its shape would mislead)
             preds = {m: v for m, v in refit_predictions(setup, run_effects, candidates, fits,
                                                         meas, fe).items()
-                     if m == "baseline" or fits[m]["chi2"] <= base}
+                     if m == "baseline" or fits[m]["chi2"] <= base_chi2 + REFIT_TOL}
         top = tuple(r["effect"] for r in diag.ranking[:TOP])
         fp = fingerprints(meas, mf.residual, scores, sigma, preds, field, top)
         for r in diag.ranking:
             r["fingerprint_correlation"] = round(fp.correlation[r["effect"]], 4)
             r["fingerprint"] = fp.source[r["effect"]]
         diag.denoise = fp.smooth.summary() if fp.smooth is not None else None
+        if diag.explained is False:
+            diag.verdict += "; " + _where(meas, fp, sigma)
     with cost.stage("write"):
         figs = _figures(d, diag, meas, pc, fp, sigma, dr, setup)
     diag.timing = cost.table()
@@ -740,8 +687,9 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
 def refit_predictions(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],
                       fits: dict[str, dict[str, Any]], meas: Any, fe: FeRuns
                       ) -> dict[str, np.ndarray]:
-    """The FE at each refit of :func:`profile_fits` (``"baseline"`` and every candidate), row
-    for row with ``meas``; their rows were solved by the refits, so the run store serves them.
+    """The FE at each refit of the first step (:func:`~.refits.refit_candidates`;
+    ``"baseline"`` and every candidate), row for row with ``meas``; their rows were solved by
+    the refits, so the run store serves them.
 
     Returns:
         model -> ``(n,)`` V, um.
@@ -771,15 +719,15 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
                sigma: float, fe: FeRuns | None = None) -> dict[str, Any]:
     """Which measurement would tell the effects in ``group`` apart?
 
-    Each effect's profile fit (:func:`profile_fits`: the FE with that effect on, refitted to the
-    data) explains the data about equally well. The FE is run at each fit over a richer set of
-    outputs (V at the points and on the 31 x 18 grid, at the measured and the extended times);
-    for each candidate measurement (what it adds to the data) the fits' predictions are
-    compared: where they differ by many noise sd, that measurement separates them
+    Each effect's refit (:func:`~.refits.refit_candidates`: the FE with that effect on,
+    refitted to the data) explains the data about equally well. The FE is run at each fit over
+    a richer set of outputs (V at the points and on the 31 x 18 grid, at the measured and the
+    extended times); for each candidate measurement (what it adds to the data) the fits'
+    predictions are compared: where they differ by many noise sd, that measurement separates them
     (:func:`separation_options`).
 
     Args:
-        fits: :func:`profile_fits`'s output (rows laid out as calibrated parameters, then the
+        fits: the first step's refits (rows laid out as calibrated parameters, then the
             candidates' parameters bound to the measured times); group: effect names (>= 2).
         meas: the data; sigma: noise sd, um; fe: the diagnosis's :class:`FeRuns` (run store);
         None: solve directly.
@@ -919,90 +867,206 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
     return options, None
 
 
-def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
-             per_draw: list[list[Score]], sigma: float, n_cand: int) -> Diagnosis:
-    # misfit: the global chi-square test, or a targeted one (an identifiable candidate's test
-    # at the Bonferroni level over the candidates; far more powerful against that effect)
-    targeted = _targeted(scores, n_cand)
-    bad = mf.p_value < ALPHA or bool(targeted)
-    base_chi2 = mf.chi2_refit if mf.chi2_refit is not None else mf.chi2
-    order = sorted(range(len(scores)), key=lambda i: -scores[i].evidence)
-    ranking: list[dict[str, Any]] = []
-    for i in order:
-        s = scores[i]
-        ev_draws = [pd[i].evidence for pd in per_draw]
-        flag = bad and s.p_value < ALPHA / max(n_cand, 1) \
-            and s.identifiable >= MIN_IDENTIFIABLE
-        ranking.append({
-            "effect": s.effect, "evidence": round(float(s.evidence), 4),
-            "statistic": float(s.statistic), "dof": s.dof, "p_value": float(s.p_value),
-            "identifiable": float(s.identifiable),
-            "explained_share": float(min(s.statistic / base_chi2, 1.0)) if base_chi2 > 0
-            else 0.0,
-            "profile_chi2": s.profile_chi2,
-            "chi2_after": float(s.chi2_after),
-            "rms_after_um": float(np.sqrt(max(s.chi2_after, 0.0) / len(mf.residual)) * sigma),
-            "delta": [float(v) for v in s.delta], "flagged": bool(flag),
-            "likelihood_ratio": s.lr, "best_magnitude": s.lr_value,
-            "evidence_over_draws": [round(float(e), 3) for e in ev_draws]})
-    if scores:
-        top_s = scores[order[0]]
-        for r, i in zip(ranking, order, strict=True):
-            # how alike the signatures are after the calibrated parameters took their share
-            r["correlation_with_top"] = round(confusion(top_s, scores[i]), 4)
-    flagged = [r for r in ranking if r["flagged"]]
-    # cannot tell apart: flagged effects whose best fits are within APART_CHI2 of each other
-    # (the data prefer neither by a likelihood ratio of 20), whatever their signatures look like
-    groups: list[list[str]] = []
-    for r in flagged:
-        if any(r["effect"] in g for g in groups):
-            continue
-        g = [r["effect"]] + [q["effect"] for q in flagged if q is not r
-                             and not any(q["effect"] in h for h in groups)
-                             and abs(q["chi2_after"] - r["chi2_after"]) < APART_CHI2]
-        if len(g) > 1:
-            groups.append(g)
-    confounded = [r["effect"] for r in ranking if bad and r["identifiable"] < MIN_IDENTIFIABLE]
-    suggestions: list[str] = []
-    if not bad:
-        verdict = (f"the model fits: chi2 = {mf.chi2:.1f} on {mf.dof} dof (p = {mf.p_value:.2g})"
-                   f", RMS residual {mf.rms:.3g} um against noise {sigma:.3g} um; no effect is "
-                   "flagged")
-    elif mf.p_value >= ALPHA:
-        top = flagged[0]
-        verdict = (f"misfit found by a targeted test: the global chi2 = {mf.chi2:.1f} on "
-                   f"{mf.dof} dof (p = {mf.p_value:.2g}, RMS {mf.rms:.3g} um vs noise "
-                   f"{sigma:.3g} um) hides it, but {top['effect']} explains a share of it far "
-                   f"beyond chance (score {top['statistic']:.1f} on {top['dof']} dof, "
-                   f"p = {top['p_value']:.2g})")
-    elif not flagged:
-        verdict = (f"misfit (chi2 = {mf.chi2:.1f} on {mf.dof} dof, p = {mf.p_value:.2g}; RMS "
-                   f"{mf.rms:.3g} um vs noise {sigma:.3g} um) that no candidate effect explains:"
-                   " an unknown effect")
-    else:
-        top = flagged[0]
-        left = top["chi2_after"]
-        verdict = (f"misfit (chi2 = {mf.chi2:.1f} on {mf.dof} dof, p = {mf.p_value:.2g}; RMS "
-                   f"{mf.rms:.3g} um vs noise {sigma:.3g} um). Best explanation: "
-                   f"{top['effect']} (score {top['statistic']:.1f} on {top['dof']} dof, "
-                   f"explains {top['explained_share']:.0%} of the chi2)")
-        from scipy import stats as _st
+def _starts(setup: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool
+            ) -> dict[str, np.ndarray]:
+    """Starts of the base fit: the draw nearest the posterior median; where the FE check
+    rejected the posterior, also the literature constants (the run's own effects at their
+    posterior median) and the posterior draw farthest from the median in scaled units."""
+    out = {"posterior median": theta[idx[0]]}
+    if fe_ok:
+        return out
+    lit = np.median(theta, 0)
+    lit[:setup.space.dim] = [setup.anand[nm] for nm in setup.space.names]
+    out["literature constants"] = lit
+    z = (theta - np.median(theta, 0)) / (theta.std(0) + 1e-300)
+    out["farthest posterior draw"] = theta[int(np.argmax((z**2).sum(1)))]
+    return out
 
-        if _st.chi2.sf(left, max(mf.dof - top["dof"], 1)) < ALPHA:
-            verdict += "; a misfit remains after it: more than one effect, or an unknown one"
-    if bad and flagged and groups and flagged[0]["effect"] in groups[0]:
-        verdict += (f". The data cannot tell apart: {', '.join(groups[0])} (their best fits "
-                    f"differ by less than chi2 {APART_CHI2:.1f}, a likelihood ratio of 20); "
-                    "do not pick one on these data")
+
+def _refit_steps(lay: Any, fe: FeRuns, meas: Any, sigma: float, base: dict[str, Any],
+                 scores: list[Score], screened: list[Score], floor: Floor, n_cand: int
+                 ) -> tuple[dict[str, dict[str, Any]], list[list[Judged]], tuple[str, ...],
+                            list[str]]:
+    """The refits of the screened candidates from the base point, then the forward steps.
+
+    Returns:
+        ``(fits, steps, chosen, tie)``: ``fits`` ``{"baseline"|effect: {"chi2", "x"}}`` of the
+        first step (for fingerprints and separation); ``steps`` the judged refits per step;
+        ``chosen`` the effects added; ``tie`` the candidates that could not be told apart where
+        the steps stopped (empty if none).
+    """
+    n = len(meas.value_um)
+    ladder = {sc.effect: sc.lr_value for sc in scores
+              if sc.lr_value is not None and (sc.lr or 0.0) > 0.0}
+    x_b = np.asarray(base["x"], float)
+    starts = {}
+    for sc in screened:
+        x = x_b.copy()
+        if sc.effect in ladder and len(lay.cols(sc.effect)) == 1:
+            x[lay.cols(sc.effect)] = ladder[sc.effect]
+        starts[sc.effect] = x
+    first = refit_candidates(lay, fe, meas, sigma, x_b, base["chi2"], (), starts)
+    log.info("diagnose: refits from the base point (chi2 %.1f): %s", base["chi2"], ", ".join(
+        f"{r.name} {r.chi2:.1f}{'' if r.ok else ' (failed)'}" for r in first))
+    fits: dict[str, dict[str, Any]] = {"baseline": {"chi2": base["chi2"], "x": x_b}}
+    fits.update({r.name: {"chi2": r.chi2, "x": r.x} for r in first})
+    single = {r.name: r for r in first}
+
+    def refit_next(cur: Refit, chosen: tuple[str, ...], others: list[str]) -> list[Refit]:
+        st = {}
+        for c in others:  # from the chosen model's fit, c where its own refit put it
+            x = cur.x.copy()
+            x[lay.cols(c)] = single[c].x[lay.cols(c)]
+            st[c] = x
+        nxt = refit_candidates(lay, fe, meas, sigma, cur.x, cur.chi2, chosen, st)
+        log.info("diagnose: forward step, with %s on (chi2 %.1f): %s", " + ".join(chosen),
+                 cur.chi2, ", ".join(f"+{r.name} {r.chi2:.1f}{'' if r.ok else ' (failed)'}"
+                                     for r in nxt))
+        return nxt
+
+    steps, chosen, tie = forward_steps(first, refit_next, n, lay.n_cal, sigma, floor, n_cand)
+    return fits, steps, chosen, tie
+
+
+def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
+             per_draw: list[list[Score]], sigma: float, steps: list[list[Judged]],
+             chosen: tuple[str, ...], tie: list[str], base_chi2: float, n_cal: int,
+             floor: Floor) -> Diagnosis:
+    """Ranking and verdict from the judged refits (:mod:`solderpyro.diagnose.decide`'s rules)."""
+    n = len(mf.residual)
+    first = {j.refit.name: j for j in steps[0]} if steps else {}
+    bad_global = remains(base_chi2, n, n_cal)
+    any_flag = any(j.flagged for j in first.values())
+    bad = bool(bad_global or any_flag)
+    corr_top = None
+    entries: list[tuple[dict[str, Any], Score]] = []
+    failed: list[tuple[dict[str, Any], Score]] = []
+    for i, s in enumerate(scores):
+        j = first.get(s.effect)
+        ev_draws = [pd[i].evidence for pd in per_draw]
+        e: dict[str, Any] = {
+            "effect": s.effect, "identifiable": float(s.identifiable),
+            "score_statistic": float(s.statistic), "score_dof": s.dof,
+            "score_p_value": float(s.p_value), "delta": [float(v) for v in s.delta],
+            "likelihood_ratio": s.lr, "best_magnitude": s.lr_value,
+            "evidence_over_draws": [round(float(v), 3) for v in ev_draws]}
+        if j is not None:
+            stat, dof = j.refit.lr, j.refit.dof
+            sz = j.size
+            e.update({"refit": "converged" if j.refit.ok else "failed",
+                      "refit_starts": j.refit.starts, "profile_chi2": j.refit.chi2,
+                      "statistic": float(stat), "dof": dof, "p_value": j.p_value,
+                      "evidence": round(evidence(stat, dof) if j.refit.ok else 0.0, 4),
+                      "chi2_after": j.refit.chi2, **sz.to_json(),
+                      "floor_um2": j.floor_um2, "clears_floor": j.clears_floor,
+                      "flagged": bool(j.flagged)})
+        else:
+            sz = effect_size(base_chi2, s.chi2_after, n, n_cal, sigma)
+            e.update({"refit": f"not run (screen p = {s.p_value:.2g})", "refit_starts": 0,
+                      "profile_chi2": None, "statistic": float(s.statistic), "dof": s.dof,
+                      "p_value": float(s.p_value), "evidence": round(float(s.evidence), 4),
+                      "chi2_after": float(s.chi2_after), **sz.to_json(),
+                      "floor_um2": floor.of(s.effect), "clears_floor": False, "flagged": False})
+        e["explained_share"] = e["systematic_share"]
+        (failed if e["refit"] == "failed" else entries).append((e, s))
+    # refitted candidates by likelihood ratio, then the screened-out ones by their screen
+    entries.sort(key=lambda es: (es[0]["refit"] != "converged", -es[0]["statistic"]))
+    ranking = [e for e, _ in entries]
+    if entries:
+        corr_top = entries[0][1]
+        for e, s in entries + failed:
+            e["correlation_with_top"] = round(confusion(corr_top, s), 4)
+    failed_list = [e for e, _ in failed]
+    last = next((j.refit for j in steps[-1] if chosen and j.refit.name == chosen[-1]), None) \
+        if steps else None
+    chi2_final = last.chi2 if last is not None else base_chi2
+    ok_expl = bool(chosen) and not tie and explained(chi2_final, n, sigma, floor)
+    ok_tie = bool(tie) and explained(min(j.refit.chi2 for j in steps[-1]
+                                         if j.refit.name in tie), n, sigma, floor)
+    head = (f"chi2 = {base_chi2:.1f} on {n - n_cal} dof at the FE's best fit; RMS "
+            f"{np.sqrt(base_chi2 / n) * sigma:.3g} um = {np.sqrt(base_chi2 / n):.2f} noise sd "
+            f"(noise {sigma:.3g} um)")
+    suggestions: list[str] = []
+    groups = [tie] if tie else []
+    explained_flag: bool | None = None
+    if not bad:
+        verdict = f"the model fits: {head}; no effect clears the discretization floor"
+    elif ok_expl:
+        explained_flag = True
+        fin = np.sqrt(chi2_final / n)
+        names = " + ".join(chosen)
+        j0 = first[chosen[0]]
+        verdict = (f"misfit ({head}). Best explanation: {names}: the RMS falls to "
+                   f"{fin * sigma:.3g} um = {fin:.2f} noise sd, removing "
+                   f"{min(1.0, (base_chi2 - chi2_final) / max(base_chi2 - (n - n_cal), 1e-9)):.0%}"
+                   f" of the systematic misfit (likelihood ratio {j0.refit.lr:.1f} on "
+                   f"{j0.refit.dof} dof for {chosen[0]})")
+        if len(chosen) > 1:
+            verdict += "; found in forward steps: " + " then ".join(chosen)
+        suggestions.append("recalibrate with it: solderpyro calibrate ... effects=["
+                           + ",".join(chosen) + "]")
+    elif ok_tie:
+        explained_flag = True
+        pre = f"with {' + '.join(chosen)} on, " if chosen else ""
+        verdict = (f"misfit ({head}). {pre}the data cannot tell apart: {', '.join(tie)} "
+                   f"(their refits differ by less than chi2 {APART_CHI2:.1f}, a likelihood "
+                   "ratio of 20; each explains it); do not pick one on these data")
         suggestions.append("measure where the candidates differ (see 'separation' in "
                            "diagnosis.json): the full-field V or more times")
+    else:
+        explained_flag = False
+        if chosen or tie:
+            best = np.sqrt(min(j.refit.chi2 for st in steps for j in st if j.refit.ok) / n)
+            part = (f"; the candidates' best refit leaves {best:.2f} noise sd, above the "
+                    f"{EXPLAINED_SD} that would explain it")
+        else:
+            part = "; no candidate's refit clears the discretization floor"
+        verdict = (f"misfit ({head}): the model is missing something none of the candidates "
+                   f"describes{part}")
+        for e in ranking:
+            e["flagged"] = False
+    if chosen and ok_expl and remains(chi2_final, n, n_cal + sum(
+            first[c].refit.dof for c in chosen if c in first)):
+        verdict += (" (a misfit within the noise-sd bound remains significant on "
+                    f"{n} values)")
+    confounded = [e["effect"] for e in ranking if bad and e["identifiable"] < MIN_IDENTIFIABLE]
     if confounded:
         suggestions.append(f"not identifiable from these data (confounded with the calibrated "
                            f"parameters): {', '.join(confounded)}")
-    check = {"chi2": mf.chi2, "dof": mf.dof, "p_value": mf.p_value, "rms_um": mf.rms,
-             "noise_um": sigma, "ppc_p_value": pc.p_value,
-             "max_abs_z": float(np.abs(pc.z).max())}
-    return Diagnosis(bool(bad), verdict, ranking, check, groups, suggestions)
+    if failed_list:
+        suggestions.append("refits that ended above the base fit after a retry (failed, not "
+                           "ranked): " + ", ".join(e["effect"] for e in failed_list))
+    check = {"chi2": base_chi2, "dof": n - n_cal, "p_value": float(_chi2.sf(base_chi2,
+                                                                          max(n - n_cal, 1))),
+             "rms_um": float(np.sqrt(base_chi2 / n) * sigma), "noise_um": sigma,
+             "ppc_p_value": pc.p_value, "max_abs_z": float(np.abs(pc.z).max()),
+             "chi2_linearised": mf.chi2}
+    diag = Diagnosis(bad, verdict, ranking, check, groups, suggestions)
+    diag.failed = failed_list
+    diag.selected = list(chosen)
+    diag.explained = explained_flag
+    diag.floor = floor.to_json()
+    diag.steps = [[{"effects": list(j.refit.effects), "chi2": j.refit.chi2,
+                    "base_chi2": j.refit.base_chi2, "lr": j.refit.lr, "dof": j.refit.dof,
+                    "p_value": j.p_value, "ok": j.refit.ok, "flagged": j.flagged,
+                    **j.size.to_json()} for j in st] for st in steps]
+    return diag
+
+
+def _where(meas: Any, fp: Fingerprints, sigma: float) -> str:
+    """Where the misfit is largest: the denoised residual's peak (field data) or the largest
+    standardized residual (point data), in words."""
+    if fp.smooth is not None:
+        m = np.asarray(fp.smooth.mean)
+        k = int(np.argmax(np.abs(m)))
+        return (f"it is largest at t = {meas.time_s[k]:g} s, x = {meas.x_mm[k]:.1f} mm, "
+                f"y = {meas.y_mm[k]:.1f} mm ({m[k]:+.3g} um denoised, "
+                f"{fp.smooth.share_above_band:.0%} of the values outside the noise band; see "
+                "diagnosis_residuals.png)")
+    r = np.asarray(fp.residual)
+    k = int(np.argmax(np.abs(r)))
+    return (f"it is largest at point {meas.point[k]}, t = {meas.time_s[k]:g} s "
+            f"({r[k] / sigma:+.1f} noise sd; see diagnosis_residuals.png)")
 
 
 def _figures(d: Path, diag: Diagnosis, meas: Any, pc: PredictiveCheck, fp: Fingerprints,

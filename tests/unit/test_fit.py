@@ -51,3 +51,24 @@ def test_lm_rejects_bad_input():
         lm_fit(_exp, np.array([[1.0, 1.0]]), [0, 0], [2, 2], np.zeros(11), 0.0)
     with pytest.raises(ValueError, match="columns"):
         lm_fit(_exp, np.array([[1.0, 1.0, 1.0]]), [0, 0], [2, 2], np.zeros(11), 1.0)
+
+
+def test_lm_tol_stops_each_start_when_converged_and_spends_no_more_rows_on_it():
+    """With ``tol``, a start that has converged is not evaluated again: the noise-free fit
+    still reaches (5, 0.7), a start already at the optimum stops after its first iteration, and
+    the rows evaluated are fewer than with the fixed 40 iterations."""
+    y = 5.0 * np.exp(-0.7 * X)
+    n_rows = {"tol": 0, "fixed": 0}
+
+    def counted(key):
+        def f(rows):
+            n_rows[key] += len(rows)
+            return _exp(rows)
+        return f
+
+    x0 = np.array([[2.0, 0.2], [5.0, 0.7]])
+    fits = lm_fit(counted("tol"), x0, [0.1, 0.01], [10.0, 3.0], y, 0.1, iters=40, tol=1e-6)
+    lm_fit(counted("fixed"), x0, [0.1, 0.01], [10.0, 3.0], y, 0.1, iters=40)
+    assert fits[0].x == pytest.approx([5.0, 0.7], abs=1e-5) and fits[0].converged
+    assert fits[1].converged and fits[1].iters == 0 and fits[1].chi2 < 1e-20
+    assert n_rows["tol"] < n_rows["fixed"] / 2

@@ -1,0 +1,291 @@
+"""Which candidate effects the data ask for: likelihood ratios through the FE, effect sizes, a
+floor calibrated against discretization, and forward steps (issue 20).
+
+Pure arithmetic on chi-squares of FE refits (:func:`solderpyro.diagnose.run.diagnose` runs the
+refits), so every rule here is checked on toys (tests/unit/test_diagnose_decide.py).
+
+The rules, as the diagnosis states them:
+
+* **One base point.** Every statistic is taken against the FE's own best fit (multi-start
+  Levenberg-Marquardt), never at a posterior draw that the FE check rejected.
+* **Likelihood ratios decide.** For a candidate refitted with the FE (its parameters and the
+  calibrated ones free), ``LR = chi2_base - chi2_refit``, compared with chi2(dof of the
+  effect) at ``ALPHA`` Bonferroni-corrected over the candidates. The score test is only the
+  screen that picks which refits to run. Where the two disagree, the refit decides; a refit
+  that ends above the base chi-square (by more than :data:`REFIT_TOL`) after its retries is a
+  *failed* fit, reported as failed and never ranked, whatever its score.
+* **Effect size beside p.** Each refit reports the RMS before and after (um and noise sd), the
+  mean-square reduction ``LR sigma^2 / n`` (um^2 per value) and the share of the *systematic*
+  misfit it removes, ``LR / (chi2_base - (n - p))`` (the part of the chi-square above what
+  noise alone gives).
+* **The floor.** Two FE discretizations never agree exactly. On noise-free data made by a finer
+  mesh and time step than the calibration's, the FE's best fit leaves a mean-square residual
+  (the baseline floor) and each candidate "explains" a mean-square share of it
+  (:func:`floor_from_fits`; ``python benchmarks/diagnosis_floor.py`` measures both and writes
+  ``floor.json`` beside this module). A candidate is *flagged* only when its mean-square
+  reduction exceeds :data:`FLOOR_MARGIN` times its floor, however small its p.
+* **Forward steps.** The best flagged candidate is added; if a misfit remains, the others that
+  cleared the floor are refitted with it, and so on while one clears the floor again.
+  Two candidates whose refits are within :data:`APART_CHI2` of each other cannot be told apart:
+  the steps stop there and neither is named.
+* **Explained or not.** The selected effects explain the misfit when the RMS they leave is at
+  most :data:`EXPLAINED_SD` noise sd (above the baseline floor). Otherwise the verdict says the
+  model misses something none of the candidates describes, and names none.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2 as _chi2
+
+log = logging.getLogger("solderpyro")
+
+#: significance of the misfit test and (Bonferroni over candidates) of each effect
+ALPHA = 0.01
+#: two refits within this chi-square of each other cannot be told apart (a likelihood ratio
+#: below 20, "strong" on the Kass-Raftery scale)
+APART_CHI2 = float(2.0 * np.log(20.0))
+#: a refit may end this far above the base chi-square and still count as converged (the LM's
+#: stopping tolerance is 0.5 per iteration); beyond it the fit failed
+REFIT_TOL = 1.0
+#: a candidate is flagged only when its mean-square reduction exceeds this multiple of what it
+#: explains of the discretization difference alone (its floor)
+FLOOR_MARGIN = 2.0
+#: the selected effects explain the misfit when they leave an RMS of at most this many noise sd
+#: (the issue's "RMS falling to at most 1.5 noise sd")
+EXPLAINED_SD = 1.5
+#: forward steps at most (effects added one at a time)
+MAX_STEPS = 3
+#: the floor measured by benchmarks/diagnosis_floor.py
+FLOOR_FILE = Path(__file__).with_name("floor.json")
+
+
+@dataclass
+class Refit:
+    """One FE refit: the base model plus ``effects``, refitted to the data.
+
+    Attributes:
+        effects: the candidates switched on beyond the base model (one for a first step).
+        chi2: chi-square at the end, against the noise sd.
+        dof: parameters the candidate added (its own, not the ones already on).
+        x: ``(n_col,)`` the row at the end (physical units).
+        base_chi2: chi-square of the model it is nested in (the base, or the previous step).
+        starts: starts tried (a retry after a failed first start adds one).
+        ok: ended at most :data:`REFIT_TOL` above ``base_chi2`` (a converged nested fit
+            cannot end above the model it contains).
+    """
+
+    effects: tuple[str, ...]
+    chi2: float
+    dof: int
+    x: np.ndarray
+    base_chi2: float
+    starts: int = 1
+    ok: bool = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.ok = bool(np.isfinite(self.chi2) and self.chi2 <= self.base_chi2 + REFIT_TOL)
+
+    @property
+    def name(self) -> str:
+        """The candidate this refit tests (the last effect added)."""
+        return self.effects[-1]
+
+    @property
+    def lr(self) -> float:
+        """Likelihood-ratio statistic ``base_chi2 - chi2`` (>= 0 for a converged fit)."""
+        return float(max(self.base_chi2 - self.chi2, 0.0))
+
+
+@dataclass
+class Floor:
+    """What discretization alone lets the model and each candidate explain.
+
+    Attributes:
+        baseline_ms_um2: mean-square residual of the FE's best fit to noise-free data made by a
+            finer FE, um^2 per value.
+        candidates: effect -> mean-square reduction its refit achieves on those data, um^2.
+        source: where it was measured (the command, the data).
+    """
+
+    baseline_ms_um2: float = 0.0
+    candidates: dict[str, float] = field(default_factory=dict)
+    source: str = "none: no floor measured for this data layout"
+
+    def of(self, effect: str) -> float:
+        """The candidate's floor, um^2 per value (0 when not measured)."""
+        return float(self.candidates.get(effect, 0.0))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"baseline_ms_um2": self.baseline_ms_um2, "candidates": self.candidates,
+                "source": self.source, "margin": FLOOR_MARGIN}
+
+
+def floor_from_fits(ss_base: float, ss_candidates: dict[str, float], n: int,
+                    source: str) -> Floor:
+    """The floor from fits to noise-free data made by a finer FE.
+
+    Args:
+        ss_base: sum of squared residuals of the FE's best fit (no candidate), um^2.
+        ss_candidates: effect -> sum of squared residuals of its refit, um^2.
+        n: values fitted. source: how they were made.
+    Returns:
+        :class:`Floor`: ``ss_base / n`` and ``max(ss_base - ss_e, 0) / n`` per candidate.
+    """
+    if n < 1:
+        raise ValueError(f"floor_from_fits: n must be >= 1, got {n}")
+    return Floor(float(ss_base) / n,
+                 {e: float(max(ss_base - s, 0.0)) / n for e, s in ss_candidates.items()},
+                 source)
+
+
+def load_floor(kind: str, path: str | Path = FLOOR_FILE) -> Floor:
+    """The floor measured for data layout ``kind`` (``"field"`` or ``"points"``); a zero floor
+    (nothing subtracted) with a warning when it was not measured."""
+    p = Path(path)
+    if p.is_file():
+        d = json.loads(p.read_text()).get(kind)
+        if d:
+            return Floor(float(d["baseline_ms_um2"]),
+                         {k: float(v) for k, v in d["candidates"].items()}, str(d["source"]))
+    log.warning("diagnose: no discretization floor measured for %s data (%s); effects are "
+                "flagged on significance alone", kind, p)
+    return Floor()
+
+
+@dataclass
+class Size:
+    """Effect size of a refit against its base (see the module's rules)."""
+
+    rms_before_um: float
+    rms_after_um: float
+    rms_before_sd: float
+    rms_after_sd: float
+    ms_reduction_um2: float
+    systematic_share: float
+
+    def to_json(self) -> dict[str, float]:
+        return {k: float(v) for k, v in self.__dict__.items()}
+
+
+def effect_size(chi2_base: float, chi2_after: float, n: int, n_params: int,
+                sigma: float) -> Size:
+    """Effect size of going from ``chi2_base`` to ``chi2_after`` on ``n`` values with noise sd
+    ``sigma`` (um); ``n_params`` parameters fitted in the base model (the systematic misfit is
+    the chi-square above its expectation ``n - n_params`` under noise alone)."""
+    rb = math.sqrt(max(chi2_base, 0.0) / n)
+    ra = math.sqrt(max(chi2_after, 0.0) / n)
+    systematic = chi2_base - (n - n_params)
+    share = (chi2_base - chi2_after) / systematic if systematic > 0 else 0.0
+    return Size(rb * sigma, ra * sigma, rb, ra, (chi2_base - chi2_after) * sigma**2 / n,
+                float(min(max(share, 0.0), 1.0)))
+
+
+@dataclass
+class Judged:
+    """A refit judged: its likelihood ratio's p, its size, whether it clears the floor."""
+
+    refit: Refit
+    p_value: float
+    size: Size
+    floor_um2: float
+    significant: bool
+    clears_floor: bool
+
+    @property
+    def flagged(self) -> bool:
+        return self.refit.ok and self.significant and self.clears_floor
+
+
+def judge(refits: list[Refit], n: int, n_params: int, sigma: float, floor: Floor,
+          n_tests: int) -> list[Judged]:
+    """Judge each refit: significance of its likelihood ratio at ``ALPHA / n_tests``, effect
+    size against its own base, the floor. Failed refits are judged too (so they can be
+    reported) but are never flagged."""
+    out = []
+    for r in refits:
+        p = float(_chi2.sf(r.lr, max(r.dof, 1))) if r.ok else 1.0
+        sz = effect_size(r.base_chi2, r.chi2, n, n_params, sigma)
+        fl = floor.of(r.name)
+        out.append(Judged(r, p, sz, fl, p < ALPHA / max(n_tests, 1),
+                          sz.ms_reduction_um2 > FLOOR_MARGIN * fl))
+    return out
+
+
+def rank(judged: list[Judged]) -> list[Judged]:
+    """The converged refits, largest likelihood ratio first; failed refits are left out."""
+    return sorted((j for j in judged if j.refit.ok), key=lambda j: -j.refit.lr)
+
+
+def ties(ranked: list[Judged]) -> list[str]:
+    """The flagged candidates whose refits are within :data:`APART_CHI2` of the best flagged
+    one (the best included); a single name when nothing ties."""
+    fl = [j for j in ranked if j.flagged]
+    if not fl:
+        return []
+    return [j.refit.name for j in fl if fl[0].refit.chi2 + APART_CHI2 > j.refit.chi2]
+
+
+def explained(chi2_after: float, n: int, sigma: float, floor: Floor) -> bool:
+    """Whether a model leaving ``chi2_after`` on ``n`` values explains the data: its RMS at most
+    :data:`EXPLAINED_SD` noise sd, over and above the baseline discretization floor."""
+    ms = max(chi2_after, 0.0) * sigma**2 / n
+    return ms <= (EXPLAINED_SD * sigma) ** 2 + floor.baseline_ms_um2
+
+
+def remains(chi2_after: float, n: int, n_params: int) -> bool:
+    """Whether a misfit remains: ``chi2_after`` beyond chi2(n - n_params) at ``ALPHA``."""
+    return bool(_chi2.sf(chi2_after, max(n - n_params, 1)) < ALPHA)
+
+
+def forward_step(judged: list[Judged], chosen: tuple[str, ...]
+                 ) -> tuple[tuple[str, ...], list[str]]:
+    """One forward step's decision: add the best flagged candidate to ``chosen``, unless another
+    flagged one is within :data:`APART_CHI2` of it (then the tie names them, nothing added).
+
+    Returns:
+        ``(chosen, tie)``.
+    """
+    t = ties(rank(judged))
+    if len(t) == 1:
+        return (*chosen, t[0]), []
+    return tuple(chosen), t
+
+
+def forward_steps(first: list[Refit], refit_next: Any, n: int, n_params: int, sigma: float,
+                  floor: Floor, n_cand: int
+                  ) -> tuple[list[list[Judged]], tuple[str, ...], list[str]]:
+    """Forward selection from the first step's refits (see the module's rules).
+
+    Args:
+        first: the candidates' refits from the base point.
+        refit_next: ``(current, chosen, others) -> list[Refit]``: refit ``chosen + (c,)`` for
+            each ``c`` in ``others``, nested in ``current`` (the refit of ``chosen``).
+        n: values; n_params: calibrated parameters of the base model; sigma: noise sd, um.
+        floor: the discretization floor; n_cand: candidates tested (Bonferroni).
+    Returns:
+        ``(steps, chosen, tie)``: the judged refits per step, the effects added in order, and
+        the candidates that could not be told apart where the steps stopped (empty if none).
+    """
+    steps = [judge(first, n, n_params, sigma, floor, n_cand)]
+    chosen, tie = forward_step(steps[0], ())
+    added = bool(chosen)
+    while added and not tie and len(chosen) < MAX_STEPS:
+        cur = next(j.refit for j in steps[-1] if j.refit.name == chosen[-1])
+        n_par = n_params + sum(j.refit.dof for j in steps[0] if j.refit.name in chosen)
+        others = [j.refit.name for j in steps[-1] if j.flagged and j.refit.name not in chosen]
+        if not remains(cur.chi2, n, n_par) or not others:
+            break
+        steps.append(judge(refit_next(cur, chosen, others), n, n_par, sigma, floor,
+                           len(others)))
+        before = len(chosen)
+        chosen, tie = forward_step(steps[-1], chosen)
+        added = len(chosen) > before
+    return steps, chosen, tie

@@ -1,0 +1,200 @@
+"""The FE fits of a diagnosis: its one base point and the candidates' refits (issue 20).
+
+* :func:`base_fit`: the FE's own best fit. Several starts (the posterior median, and where the
+  FE check rejected the posterior also the literature constants and another draw) take
+  :data:`SCOUT_ITERS` Levenberg-Marquardt steps together in one batch per step; the best goes
+  on until an iteration gains less than :data:`LM_TOL` in chi-square (at most
+  :data:`LM_ITERS`). Every statistic of the diagnosis is taken against this point.
+* :func:`refit_candidates`: each candidate (or, in a forward step, the effects already chosen
+  plus one more) refitted with the FE from the base point, all models in one batch per step.
+  A refit that ends above its base (:attr:`~solderpyro.diagnose.decide.Refit.ok` false) is
+  retried once from the base point with the candidate at "off"; if it still ends above, it is
+  a failed fit.
+
+Rows are laid out as :class:`Layout` says: the calibrated parameters (``setup.space``, then the
+run's own effects), then every candidate's parameters bound to the measured times. Every FE
+row goes through the diagnosis's :class:`~solderpyro.diagnose.run.FeRuns` (the run store), so
+rows shared with the Jacobians or an earlier diagnosis are read back, not solved.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from solderpyro.diagnose.decide import Refit
+from solderpyro.fit import LMFit, lm_fit
+
+log = logging.getLogger("solderpyro")
+
+#: stop a fit once an iteration gains less than this chi-square (its sampling sd on 2,240
+#: values is 67; APART_CHI2 is 6)
+LM_TOL = 0.5
+#: most Levenberg-Marquardt iterations of the base fit's best start and of each refit
+LM_ITERS = 12
+#: iterations every start of the base fit takes before the best one goes on alone
+SCOUT_ITERS = 3
+#: refits run per step at most (the screen's strongest candidates)
+MAX_REFITS = 4
+
+
+@dataclass
+class Layout:
+    """The row layout of a diagnosis's fits.
+
+    Attributes:
+        setup: the run's Setup; run_effects, candidates: effect names.
+        fx_all: the :class:`~solderpyro.effects.EffectSet` of both, bound to ``times`` (s).
+        field: whether the data include the 31 x 18 grid.
+        n_cal: calibrated parameters (Anand constants, then the run's effects' parameters).
+        lo, hi: ``(n_col,)`` box of every column; off: ``(n_col - n_cal,)`` each candidate
+            parameter's "off" value; owner: ``(n_col - n_cal,)`` the candidate of each.
+    """
+
+    setup: Any
+    run_effects: tuple[str, ...]
+    candidates: tuple[str, ...]
+    times: tuple[float, ...]
+    field: bool
+    fx_all: Any
+    n_cal: int
+    lo: np.ndarray
+    hi: np.ndarray
+    off: np.ndarray
+    owner: np.ndarray
+
+    def cols(self, effect: str) -> np.ndarray:
+        """Column indices of a candidate's parameters."""
+        return self.n_cal + np.flatnonzero(self.owner == effect)
+
+    def free(self, effects: tuple[str, ...]) -> np.ndarray:
+        """Columns a model fits: the calibrated parameters and ``effects``'."""
+        return np.concatenate([np.arange(self.n_cal), *[self.cols(e) for e in effects]])
+
+    def row(self, theta: np.ndarray) -> np.ndarray:
+        """A full row ``(n_col,)`` from calibrated parameters ``theta (n_cal,)``, every candidate
+        at "off"."""
+        return np.concatenate([np.asarray(theta, float), self.off])
+
+
+def layout(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],
+           meas: Any) -> Layout:
+    """The :class:`Layout` of a diagnosis of ``meas`` (its times and whether it is field data)."""
+    from solderpyro.effects import effect_set
+    from solderpyro.specimen import calibration_box
+
+    field = any(p not in setup.problem.points for p in meas.points())
+    times = tuple(float(t) for t in meas.times())
+    fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
+    cal = calibration_box(setup, effect_set(run_effects, times, setup.effect_bounds)
+                          if run_effects else None)
+    lo, hi, off, owner = list(cal.lower), list(cal.upper), [], []
+    for e in fx_all.effects[len(run_effects):]:
+        lo += list(e.params.lower)
+        hi += list(e.params.upper)
+        off += list(e.off)
+        owner += [e.name] * e.n_params
+    return Layout(setup, tuple(run_effects), tuple(candidates), times, field, fx_all, cal.dim,
+                  np.array(lo, float), np.array(hi, float), np.array(off, float),
+                  np.array(owner, dtype=object))
+
+
+def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,
+               models: dict[str, tuple[tuple[str, ...], np.ndarray]],
+               iters: int = LM_ITERS, tol: float | None = LM_TOL, rel: float = 1e-3
+               ) -> dict[str, LMFit]:
+    """Fit several models through the FE at once (one batched solve per LM step).
+
+    Args:
+        lay: the layout; fe: the diagnosis's FeRuns; meas: the data; sigma: noise sd, um.
+        models: name -> (the candidates it fits beside the calibrated parameters, its start
+            row ``(n_col,)``, physical units).
+        iters, tol, rel: of :func:`~solderpyro.fit.lm_fit`.
+    Returns:
+        name -> :class:`~solderpyro.fit.LMFit` (``x`` a full row).
+    """
+    from solderpyro.specimen import fe_params, observation_index
+
+    y = np.asarray(meas.value_um, float)
+    idx: dict[str, Any] = {}
+
+    def run(rows: np.ndarray) -> np.ndarray:
+        P = torch.tensor(rows, dtype=torch.float64)
+        res = fe.solve(fe_params(lay.setup, P), lay.times, lay.field, lay.fx_all)
+        if "ti" not in idx:
+            idx["ti"], idx["oi"] = observation_index(meas, res.times, res.names)
+        V = res.V[:, idx["ti"], idx["oi"]]
+        V[~res.ok] = np.nan
+        return V
+
+    names = list(models)
+    X0 = np.array([np.clip(models[m][1], lay.lo, lay.hi) for m in names])
+    out = lm_fit(run, X0, lay.lo, lay.hi, y, sigma, [lay.free(models[m][0]) for m in names],
+                 iters, rel, tol=tol)
+    return dict(zip(names, out, strict=True))
+
+
+def base_fit(lay: Layout, fe: Any, meas: Any, sigma: float,
+             starts: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The FE's best fit of the calibrated parameters (see the module docstring).
+
+    Args:
+        starts: label -> ``(n_cal,)`` start, physical units (clipped into the box).
+    Returns:
+        ``{"x": (n_col,) row (candidates off), "chi2", "history": [chi2, ...] of the winner,
+        "start": its label, "scouts": {label: chi2 after the scouting steps}, "converged"}``.
+    """
+    if not starts:
+        raise ValueError("base_fit: no start given")
+    rows = {k: lay.row(v) for k, v in starts.items()}
+    scouts: dict[str, float] = {}
+    hist: list[float] = []
+    if len(rows) > 1:
+        sc = fit_models(lay, fe, meas, sigma, {k: ((), r) for k, r in rows.items()},
+                        iters=SCOUT_ITERS)
+        scouts = {k: float(f.chi2) for k, f in sc.items()}
+        best = min(sc, key=lambda k: sc[k].chi2)
+        x0, hist = sc[best].x, list(sc[best].history)
+    else:
+        best, x0 = next(iter(rows.items()))
+    f = fit_models(lay, fe, meas, sigma, {"baseline": ((), x0)})["baseline"]
+    return {"x": f.x, "chi2": float(f.chi2), "history": hist + list(f.history),
+            "start": best, "scouts": scouts, "converged": bool(f.converged)}
+
+
+def refit_candidates(lay: Layout, fe: Any, meas: Any, sigma: float, base_x: np.ndarray,
+                     base_chi2: float, chosen: tuple[str, ...], starts: dict[str, np.ndarray]
+                     ) -> list[Refit]:
+    """Refit ``chosen + (c,)`` for each candidate ``c`` of ``starts`` (see the module docstring).
+
+    Args:
+        base_x: ``(n_col,)`` the base model's fit (``chosen`` on, the others off);
+        base_chi2: its chi-square; chosen: effects already added (forward steps).
+        starts: candidate -> start row ``(n_col,)`` (e.g. ``base_x`` with the candidate at its
+            best ladder magnitude).
+    Returns:
+        one :class:`~solderpyro.diagnose.decide.Refit` per candidate, in the order of
+        ``starts``; ``starts`` counts the retry.
+    """
+    if not starts:
+        return []
+    fits = fit_models(lay, fe, meas, sigma,
+                      {c: (chosen + (c,), x) for c, x in starts.items()})
+    out = {c: Refit(chosen + (c,), float(f.chi2), len(lay.cols(c)), f.x, base_chi2)
+           for c, f in fits.items()}
+    retry = {c: base_x for c, r in out.items()
+             if not r.ok and not np.array_equal(starts[c], base_x)}
+    if retry:
+        log.info("diagnose: refits above their base chi2 %.1f (%s); retrying from the base "
+                 "point with the effect off", base_chi2,
+                 ", ".join(f"{c} {out[c].chi2:.1f}" for c in retry))
+        again = fit_models(lay, fe, meas, sigma, {c: (chosen + (c,), x) for c, x in retry.items()})
+        for c, f in again.items():
+            r = Refit(chosen + (c,), float(f.chi2), len(lay.cols(c)), f.x, base_chi2, starts=2)
+            out[c] = r if r.chi2 < out[c].chi2 else Refit(
+                out[c].effects, out[c].chi2, out[c].dof, out[c].x, base_chi2, starts=2)
+    return [out[c] for c in starts]

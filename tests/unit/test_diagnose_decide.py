@@ -1,0 +1,167 @@
+"""The diagnosis's decision rules (solderpyro.diagnose.decide) on linear toys, where every refit
+is an exact least-squares fit: a failed refit is never ranked, the floor is what the module says
+it is, forward steps find two effects, a model-form misfit is called unexplained."""
+
+import numpy as np
+import pytest
+
+from solderpyro.diagnose.decide import (
+    APART_CHI2,
+    FLOOR_MARGIN,
+    REFIT_TOL,
+    Floor,
+    Refit,
+    effect_size,
+    floor_from_fits,
+    forward_steps,
+    judge,
+    rank,
+)
+from solderpyro.diagnose.stats import misfit, predictive_check, score_test
+
+N = 400
+X = np.linspace(0.0, 1.0, N)
+JT = np.column_stack([np.ones(N), X])  # the calibrated parameters: offset and slope
+SIG = {"a": np.sin(3 * np.pi * X), "b": np.exp(-((X - 0.3) / 0.05) ** 2),
+       "c": np.cos(7 * np.pi * X), "d": X**3}
+
+
+def _ss(y, cols):
+    A = np.column_stack(cols)
+    r = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
+    return float(r @ r)
+
+
+def _refit(y, sigma, chosen, c, base_chi2):
+    """Exact refit of base + chosen + c (a linear model: least squares is the converged fit)."""
+    chi2 = _ss(y, [JT, *[SIG[e][:, None] for e in (*chosen, c)]]) / sigma**2
+    return Refit((*chosen, c), chi2, 1, np.zeros(0), base_chi2)
+
+
+def _first(y, sigma, names):
+    base = _ss(y, [JT]) / sigma**2
+    return base, [_refit(y, sigma, (), c, base) for c in names]
+
+
+def _next(y, sigma):
+    def f(cur, chosen, others):
+        return [_refit(y, sigma, chosen, c, cur.chi2) for c in others]
+    return f
+
+
+def test_floor_is_the_mean_square_each_candidate_removes_from_the_discretization_difference():
+    """Noise-free 'fine' data = coarse model + a discretization term d: the baseline floor is
+    |P d|^2 / n and a candidate's is the squared projection of P d on P J_e over n (closed
+    form), which is what floor_from_fits gives from the two least-squares fits."""
+    d = 0.02 * np.sin(11 * X) + 0.01 * X**2
+    y = JT @ np.array([1.0, 2.0]) + d
+    ss_b = _ss(y, [JT])
+    fl = floor_from_fits(ss_b, {e: _ss(y, [JT, SIG[e][:, None]]) for e in SIG}, N, "toy")
+    P = np.eye(N) - JT @ np.linalg.pinv(JT)
+    assert fl.baseline_ms_um2 == pytest.approx((P @ d) @ (P @ d) / N, rel=1e-10)
+    for e, s in SIG.items():
+        pe = P @ s
+        assert fl.of(e) == pytest.approx((pe @ (P @ d)) ** 2 / (pe @ pe) / N, rel=1e-8)
+    with pytest.raises(ValueError, match="n must be"):
+        floor_from_fits(1.0, {}, 0, "toy")
+
+
+def test_a_significant_candidate_below_its_floor_is_not_flagged():
+    """A tiny effect with tiny noise: its likelihood ratio is huge (p ~ 0) but the mean square
+    it removes is below FLOOR_MARGIN times its floor, so it is not flagged; with a floor 10x
+    smaller it is."""
+    rng = np.random.default_rng(0)
+    sigma = 1e-4
+    y = JT @ np.array([1.0, 2.0]) + 2e-3 * SIG["a"] + sigma * rng.standard_normal(N)
+    base, first = _first(y, sigma, ["a"])
+    ms = (base - first[0].chi2) * sigma**2 / N
+    hi = judge(first, N, 2, sigma, Floor(0.0, {"a": ms}, "toy"), 1)[0]
+    assert hi.p_value < 1e-100 and hi.significant and not hi.clears_floor and not hi.flagged
+    lo = judge(first, N, 2, sigma, Floor(0.0, {"a": ms / (10 * FLOOR_MARGIN)}, "toy"), 1)[0]
+    assert lo.flagged
+    sz = effect_size(base, first[0].chi2, N, 2, sigma)
+    assert sz.ms_reduction_um2 == pytest.approx(ms) and 0.9 < sz.systematic_share <= 1.0
+
+
+def test_a_failed_refit_is_never_ranked_or_chosen_whatever_its_score():
+    """A refit that ended above its base chi-square (a stalled LM) is judged failed: it is left
+    out of the ranking and the forward steps, even though its score test is the largest; the
+    verdict lists it under 'failed'."""
+    from solderpyro.diagnose.run import _verdict
+
+    rng = np.random.default_rng(1)
+    sigma = 0.05
+    y = JT @ np.array([1.0, 2.0]) + 0.3 * SIG["b"] + sigma * rng.standard_normal(N)
+    base, first = _first(y, sigma, ["a", "b"])
+    first[1] = Refit(("b",), base + 5 * REFIT_TOL, 1, np.zeros(0), base)  # stalled above base
+    assert not first[1].ok and first[1].lr == 0.0
+    steps, chosen, tie = forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), 2)
+    assert [j.refit.name for j in rank(steps[0])] == ["a"] and "b" not in chosen
+    w = np.full(N, 1 / sigma**2)
+    r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
+    scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in ("a", "b")]
+    assert scores[1].statistic > scores[0].statistic  # the screen prefers the failed one
+    pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
+    dg = _verdict(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen, tie, base, 2,
+                  Floor())
+    assert [e["effect"] for e in dg.ranking] == ["a"]
+    assert [e["effect"] for e in dg.failed] == ["b"] and dg.failed[0]["refit"] == "failed"
+    assert "b" not in dg.selected and "Best explanation: b" not in dg.verdict
+
+
+def test_forward_steps_find_both_hidden_effects():
+    """Data with effects a and b: step 1 adds the larger, a misfit remains, step 2 adds the
+    other; the unrelated c and d are never chosen and the final RMS is at the noise."""
+    rng = np.random.default_rng(2)
+    sigma = 0.05
+    y = (JT @ np.array([1.0, 2.0]) + 0.2 * SIG["a"] + 0.1 * SIG["b"]
+         + sigma * rng.standard_normal(N))
+    base, first = _first(y, sigma, list(SIG))
+    steps, chosen, tie = forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), len(SIG))
+    assert chosen == ("a", "b") and tie == [] and len(steps) >= 2
+    final = next(j.refit for j in steps[1] if j.refit.name == "b")
+    assert np.sqrt(final.chi2 / N) < 1.2
+
+
+def test_near_twins_tie_and_neither_is_named():
+    """Effect a and a near-twin (0.999 correlated): their refits are within APART_CHI2, so the
+    step names both as a tie and adds neither; the unrelated c is not flagged. With c in place
+    of the twin, a is chosen alone."""
+    rng = np.random.default_rng(3)
+    sigma = 0.05
+    SIG["a2"] = SIG["a"] + 0.002 * rng.standard_normal(N)
+    try:
+        y = JT @ np.array([1.0, 2.0]) + 0.2 * SIG["a"] + sigma * rng.standard_normal(N)
+        base, first = _first(y, sigma, ["a", "a2", "c"])
+        steps, chosen, tie = forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), 3)
+        assert chosen == () and sorted(tie) == ["a", "a2"]
+        assert abs(first[0].chi2 - first[1].chi2) < APART_CHI2
+        assert not next(j for j in steps[0] if j.refit.name == "c").flagged
+        # a distinct second candidate: a alone is chosen, no tie
+        base, first = _first(y, sigma, ["a", "c"])
+        assert forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), 2)[1:] == (("a",), [])
+    finally:
+        del SIG["a2"]
+
+
+def test_a_misfit_no_candidate_describes_is_called_unexplained():
+    """A model-form misfit (a kink no candidate has) that candidate a explains a little of:
+    a is significant and clears a zero floor, but leaves > EXPLAINED_SD noise sd, so the
+    verdict names no effect, flags none, and says so."""
+    from solderpyro.diagnose.run import _verdict
+
+    rng = np.random.default_rng(4)
+    sigma = 0.05
+    y = (JT @ np.array([1.0, 2.0]) + 2.0 * np.abs(X - 0.62) ** 0.5
+         + sigma * rng.standard_normal(N))
+    base, first = _first(y, sigma, ["a", "b"])
+    steps, chosen, tie = forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), 2)
+    w = np.full(N, 1 / sigma**2)
+    r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
+    scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in ("a", "b")]
+    pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
+    dg = _verdict(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen, tie, base, 2,
+                  Floor())
+    assert dg.misfit and dg.explained is False
+    assert "none of the candidates" in dg.verdict and "Best explanation" not in dg.verdict
+    assert not any(e["flagged"] for e in dg.ranking)
