@@ -168,14 +168,15 @@ def run_case(job: str, a: argparse.Namespace) -> dict:
            "indistinguishable": dg.indistinguishable,
            "rank_of_hidden": next((i + 1 for i, r in enumerate(dg.ranking)
                                    if r["effect"] == h), None)}
-    top = next((r["effect"] for r in dg.ranking if r["flagged"]), None)
-    if top is not None:
-        # the tool will not pick between effects it cannot tell apart: refit each one
-        # of the top group, as a user would, and keep the best by ELPD
-        group = next((g for g in dg.indistinguishable if top in g), [top])
+    # what the diagnosis says to add (forward steps: possibly several effects); where it
+    # cannot tell candidates apart, refit each one as a user would and keep the best by ELPD
+    group = ([",".join(dg.selected)] if dg.selected and not dg.indistinguishable
+             else list(dg.indistinguishable[0]) if dg.indistinguishable else [])
+    rec["selected"], rec["explained"] = dg.selected, dg.explained
+    if group:
         refits = {}
         for e in group:
-            wd = d / a.with_dir.format(e=e)
+            wd = d / a.with_dir.format(e=e.replace(",", "+"))
             if not (wd / "draws.npz").exists():
                 _calibrate([*ov, f"effects=[{e}]"], data, wd, a, refit=True)
             cmp = compare(d / "base", wd)

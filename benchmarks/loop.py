@@ -87,7 +87,8 @@ def main() -> None:
     res["stages"]["diagnose"] = _run(exe + ["diagnose", str(base), "--quiet"],
                                      out / "diagnose.log")
     dg = json.loads((base / "diagnosis.json").read_text())
-    top = next((r["effect"] for r in dg["ranking"] if r.get("flagged")), None)
+    # the effects the diagnosis selected (forward steps), none where it found a tie or none
+    top = ",".join(dg.get("selected") or []) or None
     res["verdict"], res["top"] = dg["verdict"], top
     if top is not None:
         res["stages"]["recalibrate"] = _run(

@@ -82,20 +82,25 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     return lad[k], float(rms[k])
 
 
-def make_dataset(setup: Any, effect: str | None, path: str | Path, field: bool,
-                 times: tuple[float, ...], noise: float = 0.05, seed: int = 0,
+def make_dataset(setup: Any, effect: str | tuple[str, ...] | None, path: str | Path,
+                 field: bool, times: tuple[float, ...], noise: float = 0.05, seed: int = 0,
                  values: np.ndarray | None = None, anand: dict[str, float] | None = None
                  ) -> Path:
     """Write a measurement CSV with a hidden ``effect`` (None: a clean dataset).
 
     Args:
-        setup: typed problem. effect: registry name or None.
+        setup: typed problem (its FE makes the data: e.g. ``mesh=fine``, or
+            ``experiment=plane_strain`` for a misfit no candidate describes).
+        effect: registry name, a tuple of names (several hidden effects, each at its own
+            :func:`hidden_values` size), or None.
         path: the CSV to write. field: the 31 x 18 grid (plus A, B) instead of A and B only.
         times: observation times, s. noise: sd of the added Gaussian noise, um.
-        values: the effect's parameters (default :func:`hidden_values`).
+        values: the effects' parameters, concatenated in the order of ``effect`` (default
+            :func:`hidden_values` per effect).
         anand: Anand constants of the truth (default :data:`TRUTH`).
     Returns:
-        the path; metadata lines name the truth (``hidden_effect``, ``hidden_values``).
+        the path; metadata lines name the truth (``hidden_effect``, ``hidden_values``;
+        several effects joined by ``+``).
     """
     from solderpyro.effects import effect_set
     from solderpyro.fem.problem import reference_grid
@@ -103,27 +108,32 @@ def make_dataset(setup: Any, effect: str | None, path: str | Path, field: bool,
     from solderpyro.io.measurements import from_arrays, write_measurements
     from solderpyro.params import anand_tensor
 
+    names = () if effect is None else ((effect,) if isinstance(effect, str) else tuple(effect))
     truth = dict(anand or TRUTH)
     a = anand_tensor(truth, base=setup.anand, dtype=torch.float64)[None]
     meta = {"generator": "solderpyro hidden-effect dataset", "truth": str(truth),
-            "noise_sigma_um": str(noise), "hidden_effect": effect or "none"}
-    if effect is not None:
+            "noise_sigma_um": str(noise), "hidden_effect": "+".join(names) or "none"}
+    grid = reference_grid() if field else None
+    if names:
+        fx = effect_set(names, times, setup.effect_bounds)
         if values is None:
-            values, rms = hidden_values(setup, effect, seed=seed, anand=truth)
-            meta["hidden_rms_point_um"] = f"{rms:.4g}"
-        fx = effect_set((effect,), times, setup.effect_bounds)
+            parts, sizes = [], []
+            for nm in names:
+                v, rms = hidden_values(setup, nm, seed=seed, anand=truth)
+                parts.append(np.atleast_1d(np.asarray(v, float)))
+                sizes.append(f"{rms:.4g}")
+            values = np.concatenate(parts)
+            meta["hidden_rms_point_um"] = ",".join(sizes)
         if np.asarray(values).size != fx.n_params:  # per-image values sized at other times
             t_l = _ladder_times(setup)
-            values = effect_set((effect,), t_l, setup.effect_bounds).rebind_params(
+            values = effect_set(names, t_l, setup.effect_bounds).rebind_params(
                 torch.as_tensor(np.asarray(values, float))[None], t_l, times)[0].numpy()
         meta["hidden_values"] = str(dict(zip(fx.names, np.asarray(values).tolist(),
                                              strict=True)))
         a = torch.cat([a, torch.tensor(np.asarray(values, float))[None]], 1)
-        solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                                dtype=setup.dtype, effects=fx)
+        solver = SpecimenSolver(setup.problem, grid, dtype=setup.dtype, effects=fx)
     else:
-        solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                                dtype=setup.dtype)
+        solver = SpecimenSolver(setup.problem, grid, dtype=setup.dtype)
     res = solver.solve(a, times)
     if not bool(res.ok.all()):
         raise RuntimeError(f"the FE solve of the hidden-effect data failed: {res.reasons[0]}")

@@ -156,3 +156,35 @@ def test_pca_keeps_components_until_the_truncation_chi_square_is_below_its_bound
     assert few.basis.shape[1] == 6 and left(few) > 0.01
     with pytest.raises(ValueError, match="go together"):
         GPSurrogate(box, output="pca", noise_sd=0.1)
+
+
+_FIT = """
+import sys, torch
+if sys.argv[1] == "botorch":
+    import botorch  # noqa: F401  (sets linear_operator's global defaults at import)
+from scipy.stats import qmc
+from linear_operator import settings as ls
+from solderpyro.params import Box
+from solderpyro.surrogate import GPSurrogate
+box = Box(("x", "t"), (0.0, 0.2), (3.0, 1.5), (False, True))
+x = box.from_unit(torch.as_tensor(qmc.LatinHypercube(d=2, seed=1).random(40)))
+y = torch.stack([5.0 * torch.exp(-x[:, 1] * x[:, 0]) + 0.1 * k * x[:, 0] for k in range(3)], 1)
+gp = GPSurrogate(box, output="batched", kernel="matern52", ard=True).fit(x, y)
+m, v = gp.predict(box.from_unit(torch.rand(9, 2, generator=torch.Generator().manual_seed(0),
+                                           dtype=torch.float64)))
+print(repr([ls.max_cholesky_size.value(), ls._fast_solves.on(), ls.cholesky_max_tries.value()]))
+print(repr(m.flatten().tolist() + v.flatten().tolist()))
+"""
+
+
+def test_gp_fit_does_not_depend_on_whether_botorch_was_imported():
+    """Importing BoTorch sets linear_operator's global defaults (Cholesky to 4,096 rows, no
+    fast solves); the GP module sets the same ones, so a fit in an interpreter that imported
+    BoTorch first is identical to one that did not."""
+    import subprocess
+    import sys
+
+    out = [subprocess.run([sys.executable, "-c", _FIT, arg], capture_output=True, text=True,
+                          check=True).stdout.splitlines() for arg in ("plain", "botorch")]
+    assert out[0][0] == out[1][0] == "[4096, False, 6]"
+    assert out[0][1] == out[1][1]

@@ -1,0 +1,155 @@
+"""The diagnosis on data nobody here calibrates with (issue 20, "Done when").
+
+Per case, exactly what a user types, default flags, on a measurement CSV made by a finer FE
+than the calibration's (``mesh=fine``, 2 K / 150 s steps; see benchmarks/design_hidden.py):
+
+    solderpyro calibrate --data DATA --out WORK/NAME/base --store STORE --quiet
+    solderpyro diagnose WORK/NAME/base --quiet
+    solderpyro calibrate --data DATA --out WORK/NAME/with --store STORE --quiet \
+        --warm-from WORK/NAME/base effects=[SELECTED]          # when the diagnosis selects
+    solderpyro compare WORK/NAME/base WORK/NAME/with
+
+A base run directory already there (e.g. from ``solderpyro sweep``) is used as it is
+(``--base NAME=DIR``). Recorded per case (``--out`` JSON, each case as it ends; a rerun skips
+finished ones): the hidden effects, the verdict, what was selected, whether it is explained,
+each candidate's likelihood ratio, RMS after and flag, failed refits, the RMS before/after by
+``compare`` (noise sd), the FE check after, which truths the intervals hold, the diagnosis's
+cost. The cases run as one sweep (``--cluster local:2``: two at a time).
+
+Usage: python benchmarks/diagnosis_cases.py --data NAME=CSV ... [--base NAME=DIR ...]
+       [--work runs/i20] [--out benchmarks/results_diagnosis_cases.json] [--no-recalibrate]
+       [--cluster local:2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import csv
+import functools
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from solderpyro.diagnose.hidden import TRUTH
+from solderpyro.executor import executor_from_options
+from solderpyro.sweep import sweep
+
+
+def _cli(args: list[str], log: Path) -> float:
+    """Run ``solderpyro ARGS`` in a subprocess, its output to ``log``; returns the wall s."""
+    t0 = time.perf_counter()
+    with log.open("w") as f:
+        rc = subprocess.run([sys.executable, "-m", "solderpyro.cli", *args], stdout=f,
+                            stderr=subprocess.STDOUT).returncode
+    if rc != 0:
+        raise RuntimeError(f"solderpyro {args[0]} exited {rc}: see {log}")
+    return round(time.perf_counter() - t0, 1)
+
+
+def _truth(data: Path) -> tuple[str, dict[str, float]]:
+    hidden, truth = "none", dict(TRUTH)
+    for line in data.read_text().splitlines():
+        if line.startswith("# hidden_effect:"):
+            hidden = line.split(":", 1)[1].strip()
+        if line.startswith("# hidden_values:"):
+            truth.update(ast.literal_eval(line.split(":", 1)[1].strip()))
+    return hidden, truth
+
+
+def _covered(run: Path, truth: dict[str, float]) -> dict[str, bool]:
+    with (run / "summary.csv").open() as f:
+        rows = {r["parameter"]: r for r in csv.DictReader(f)}
+    return {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
+            for k, v in truth.items() if k in rows}
+
+
+def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, store: str,
+             recalibrate: bool) -> dict:
+    """One case: calibrate (unless its base exists), diagnose, recalibrate, compare."""
+    w = Path(work) / name
+    w.mkdir(parents=True, exist_ok=True)
+    csv_p = Path(data[name]).resolve()
+    base = Path(bases.get(name, w / "base"))
+    wall: dict[str, float] = {}
+    if not (base / "draws.npz").exists():
+        wall["calibrate"] = _cli(["calibrate", "--data", str(csv_p), "--out", str(base),
+                                  "--store", store, "--quiet"], w / "calibrate.log")
+    wall["diagnose"] = _cli(["diagnose", str(base), "--quiet"], w / "diagnose.log")
+    dg = json.loads((base / "diagnosis.json").read_text())
+    hidden, truth = _truth(csv_p)
+    rec: dict = {
+        "case": name, "data": str(csv_p), "hidden": hidden, "base": str(base),
+        "verdict": dg["verdict"], "misfit": dg["misfit"], "explained": dg.get("explained"),
+        "selected": dg.get("selected", []), "tie": dg.get("indistinguishable", []),
+        "base_fit": {k: (dg.get("base") or {}).get(k) for k in ("chi2", "start", "converged")},
+        "ranking": [{k: r.get(k) for k in ("effect", "refit", "statistic", "dof",
+                                           "rms_after_sd", "systematic_share", "clears_floor",
+                                           "flagged", "fingerprint_correlation")}
+                    for r in dg["ranking"]],
+        "failed": [r["effect"] for r in dg.get("failed", [])],
+        "first_is_hidden": bool(dg["ranking"]) and dg["ranking"][0]["effect"] in
+        hidden.split("+"),
+        "diagnose_timing": dg.get("timing", {}).get("total"), "wall_s": wall}
+    if recalibrate and rec["selected"] and not rec["tie"]:
+        eff = ",".join(rec["selected"])
+        wd = w / "with"
+        if not (wd / "draws.npz").exists():
+            wall["recalibrate"] = _cli(["calibrate", "--data", str(csv_p), "--out", str(wd),
+                                        "--store", store, "--quiet", "--warm-from", str(base),
+                                        f"effects=[{eff}]"], w / "recalibrate.log")
+        wall["compare"] = _cli(["compare", str(base), str(wd)], w / "compare.log")
+        cmp = json.loads((wd / "comparison.json").read_text())
+        info = json.loads((wd / "run.json").read_text())
+        sig = float(info.get("sigma_known") or 0.05)
+        rec.update({"rms_before_sd": cmp["before"]["rms_um"] / sig,
+                    "rms_after_sd": cmp["after"]["rms_um"] / sig,
+                    "fe_check_after": {k: (info.get("fe_check") or {}).get(k)
+                                       for k in ("rms_over_sigma", "ok")},
+                    "covered_after": _covered(wd, truth)})
+    return rec
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", nargs="+", required=True, metavar="NAME=CSV")
+    ap.add_argument("--base", nargs="*", default=[], metavar="NAME=DIR",
+                    help="existing base run directories (default WORK/NAME/base, calibrated "
+                         "here when missing)")
+    ap.add_argument("--work", default="runs/i20")
+    ap.add_argument("--store", default=None, help="FE run store (default WORK/store)")
+    ap.add_argument("--out", default="benchmarks/results_diagnosis_cases.json")
+    ap.add_argument("--no-recalibrate", action="store_true")
+    ap.add_argument("--cluster", default=None, metavar="local:N")
+    ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT")
+    a = ap.parse_args()
+
+    def pairs(items: list[str], what: str) -> dict[str, str]:
+        bad = [s for s in items if "=" not in s]
+        if bad:
+            raise SystemExit(f"--{what} takes NAME=PATH, got {bad}")
+        return dict(s.split("=", 1) for s in items)
+
+    data, bases = pairs(a.data, "data"), pairs(a.base, "base")
+    work = Path(a.work).resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    store = str(Path(a.store).resolve()) if a.store else str(work / "store")
+    outp = Path(a.out)
+    done = json.loads(outp.read_text()) if outp.exists() else {"cases": []}
+    with executor_from_options(a.cluster, a.scheduler) as ex:
+        jobs = sweep(list(data), functools.partial(
+            run_case, data=data, bases={k: str(Path(v).resolve()) for k, v in bases.items()},
+            work=str(work), store=store, recalibrate=not a.no_recalibrate),
+            work / "diagnosis_sweep.json", ex)
+    for name in data:
+        rec = jobs[name] if jobs[name].get("ok") else {"case": name, **jobs[name]}
+        done["cases"] = [c for c in done["cases"] if c.get("case") != name] + [rec]
+        print(json.dumps({k: rec.get(k) for k in ("case", "hidden", "selected", "explained",
+                                                   "rms_after_sd", "error")}))
+    outp.write_text(json.dumps(done, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
