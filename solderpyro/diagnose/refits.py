@@ -1,10 +1,11 @@
 """The FE fits of a diagnosis: its one base point and the candidates' refits (issue 20).
 
 * :func:`base_fit`: the FE's own best fit. Several starts (the posterior median, and where the
-  FE check rejected the posterior also the literature constants and another draw) take
-  :data:`SCOUT_ITERS` Levenberg-Marquardt steps together in one batch per step; the best goes
-  on until an iteration gains less than :data:`LM_TOL` in chi-square (at most
-  :data:`LM_ITERS`). Every statistic of the diagnosis is taken against this point.
+  FE check rejected the posterior also the literature constants and another draw) advance
+  together by Levenberg-Marquardt, one batch per step, each until an iteration gains less than
+  :data:`LM_TOL` in chi-square (at most :data:`LM_ITERS`); every :data:`SCOUT_ITERS`
+  iterations the starts far behind the best stop. Every statistic of the diagnosis is taken
+  against the best.
 * :func:`refit_candidates`: each candidate (or, in a forward step, the effects already chosen
   plus one more) refitted with the FE from the base point, all models in one batch per step.
   A refit that ends above its base (:attr:`~solderpyro.diagnose.decide.Refit.ok` false) is
@@ -34,9 +35,9 @@ log = logging.getLogger("solderpyro")
 #: stop a fit once an iteration gains less than this chi-square (its sampling sd on 2,240
 #: values is 67; APART_CHI2 is 6)
 LM_TOL = 0.5
-#: most Levenberg-Marquardt iterations of the base fit's best start and of each refit
-LM_ITERS = 12
-#: iterations every start of the base fit takes before the best one goes on alone
+#: most Levenberg-Marquardt iterations of the base fit and of each refit
+LM_ITERS = 15
+#: the base fit's starts are compared (and the poor ones stopped) after every this many
 SCOUT_ITERS = 3
 #: refits run per step at most (the screen's strongest candidates)
 MAX_REFITS = 4
@@ -142,28 +143,36 @@ def base_fit(lay: Layout, fe: Any, meas: Any, sigma: float,
              starts: dict[str, np.ndarray]) -> dict[str, Any]:
     """The FE's best fit of the calibrated parameters (see the module docstring).
 
+    The starts advance together, :data:`SCOUT_ITERS` iterations at a time (one batched solve
+    per step); after each round a start that has converged, or whose chi-square is more than
+    twice the best one's (+ 50), stops; at most :data:`LM_ITERS` iterations in all.
+
     Args:
         starts: label -> ``(n_cal,)`` start, physical units (clipped into the box).
     Returns:
         ``{"x": (n_col,) row (candidates off), "chi2", "history": [chi2, ...] of the winner,
-        "start": its label, "scouts": {label: chi2 after the scouting steps}, "converged"}``.
+        "start": its label, "scouts": {label: chi2 where it stopped}, "converged"}``.
     """
     if not starts:
         raise ValueError("base_fit: no start given")
-    rows = {k: lay.row(v) for k, v in starts.items()}
-    scouts: dict[str, float] = {}
-    hist: list[float] = []
-    if len(rows) > 1:
-        sc = fit_models(lay, fe, meas, sigma, {k: ((), r) for k, r in rows.items()},
-                        iters=SCOUT_ITERS)
-        scouts = {k: float(f.chi2) for k, f in sc.items()}
-        best = min(sc, key=lambda k: sc[k].chi2)
-        x0, hist = sc[best].x, list(sc[best].history)
-    else:
-        best, x0 = next(iter(rows.items()))
-    f = fit_models(lay, fe, meas, sigma, {"baseline": ((), x0)})["baseline"]
-    return {"x": f.x, "chi2": float(f.chi2), "history": hist + list(f.history),
-            "start": best, "scouts": scouts, "converged": bool(f.converged)}
+    x = {k: lay.row(v) for k, v in starts.items()}
+    chi = {k: np.inf for k in x}
+    hist: dict[str, list[float]] = {k: [] for k in x}
+    conv = dict.fromkeys(x, False)
+    alive = list(x)
+    done = 0
+    while alive and done < LM_ITERS:
+        fits = fit_models(lay, fe, meas, sigma, {k: ((), x[k]) for k in alive},
+                          iters=min(SCOUT_ITERS, LM_ITERS - done))
+        done += SCOUT_ITERS
+        for k, f in fits.items():
+            x[k], chi[k], conv[k] = f.x, float(f.chi2), bool(f.converged)
+            hist[k] += [c for c in f.history if not hist[k] or c != hist[k][-1]]
+        best = min(chi.values())
+        alive = [k for k in alive if not conv[k] and chi[k] <= 2.0 * best + 50.0]
+    win = min(chi, key=lambda k: chi[k])
+    return {"x": x[win], "chi2": chi[win], "history": hist[win], "start": win,
+            "scouts": chi if len(chi) > 1 else {}, "converged": conv[win]}
 
 
 def refit_candidates(lay: Layout, fe: Any, meas: Any, sigma: float, base_x: np.ndarray,
