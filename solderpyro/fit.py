@@ -73,6 +73,27 @@ class LMFit:
 TRIALS = np.array([0.01, 0.1, 1.0, 10.0, 100.0])
 
 
+def _step(A: np.ndarray, g: np.ndarray, lam: float, x: np.ndarray, lo: np.ndarray,
+          hi: np.ndarray) -> np.ndarray:
+    """The damped Gauss-Newton step ``(k,)`` (unit-box scale) with the parameters that sit on a
+    bound and would step out of the box held (an active set): clipping such a step afterwards
+    turns it, and a fit whose optimum lies beyond a bound then crept along it."""
+    act = np.ones(len(g), bool)
+    du = np.zeros(len(g))
+    tiny = 1e-12 * (hi - lo)
+    for _ in range(len(g)):
+        Aa = A[np.ix_(act, act)]
+        du[:] = 0.0
+        du[act] = np.linalg.solve(Aa + lam * np.diag(np.diag(Aa) + 1e-12), g[act])
+        out = act & (((x <= lo + tiny) & (du < 0)) | ((x >= hi - tiny) & (du > 0)))
+        if not out.any():
+            break
+        act &= ~out
+        if not act.any():
+            return np.zeros(len(g))
+    return du
+
+
 def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
            lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, y: np.ndarray,
            sigma: float,
@@ -154,9 +175,9 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
             A, g = J.T @ J / sigma**2, J.T @ r / sigma**2
             tw[s] = len(trials)
             for lm in lam[s] * TRIALS:
-                du = np.linalg.solve(A + lm * np.diag(np.diag(A) + 1e-12), g)
                 xt = ft.x.copy()
-                xt[fr] = np.clip(xt[fr] + du * width[fr], lo_a[fr], hi_a[fr])
+                xt[fr] = np.clip(xt[fr] + _step(A, g, lm, ft.x[fr], lo_a[fr], hi_a[fr])
+                                 * width[fr], lo_a[fr], hi_a[fr])
                 trials.append(xt)
         if not trials:
             break

@@ -44,6 +44,8 @@ def test_lm_stays_in_the_box_and_laplace_sd_matches_linear_regression():
     assert f.laplace_sd(lo, hi, 0.1) == pytest.approx(se, rel=1e-4)
     g = lm_fit(lin, np.array([[0.0, 0.0]]), lo, [5.0, 1.5], y, 0.1, iters=30)[0]
     assert g.x[1] == 1.5 and g.chi2 > f.chi2
+    # on the bound the rest is the constrained optimum (c0 refitted with c1 held at 1.5)
+    assert g.x[0] == pytest.approx(float(np.mean(y - 1.5 * X)), abs=1e-6)
 
 
 def test_lm_rejects_bad_input():
