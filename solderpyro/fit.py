@@ -75,23 +75,33 @@ TRIALS = np.array([0.01, 0.1, 1.0, 10.0, 100.0])
 
 def _step(A: np.ndarray, g: np.ndarray, lam: float, x: np.ndarray, lo: np.ndarray,
           hi: np.ndarray) -> np.ndarray:
-    """The damped Gauss-Newton step ``(k,)`` (unit-box scale) with the parameters that sit on a
-    bound and would step out of the box held (an active set): clipping such a step afterwards
-    turns it, and a fit whose optimum lies beyond a bound then crept along it."""
-    act = np.ones(len(g), bool)
-    du = np.zeros(len(g))
+    """The damped Gauss-Newton step ``(k,)`` (unit-box scale) with the binding parameters held:
+    those on a bound whose descent direction ``g`` (``J' W r``) points out of the box (the
+    binding set of a projected Newton method, Bertsekas 1982). Without it, a step clipped
+    afterwards turns, and a fit whose optimum lies beyond a bound crept along it."""
     tiny = 1e-12 * (hi - lo)
-    for _ in range(len(g)):
+    act = ~(((x <= lo + tiny) & (g < 0)) | ((x >= hi - tiny) & (g > 0)))
+    du = np.zeros(len(g))
+    if act.any():
         Aa = A[np.ix_(act, act)]
-        du[:] = 0.0
         du[act] = np.linalg.solve(Aa + lam * np.diag(np.diag(Aa) + 1e-12), g[act])
-        out = act & (((x <= lo + tiny) & (du < 0)) | ((x >= hi - tiny) & (du > 0)))
-        if not out.any():
-            break
-        act &= ~out
-        if not act.any():
-            return np.zeros(len(g))
     return du
+
+
+def _truncate(x: np.ndarray, step: np.ndarray, lo: np.ndarray, hi: np.ndarray
+              ) -> np.ndarray:
+    """``x + alpha step`` with the largest ``alpha <= 1`` that stays in the box, after holding
+    the components on a bound that would step out: the step keeps its direction up to the
+    first bound it meets. Clipping each component instead sent a Gauss-Newton step from far
+    away into a corner of the box, all bounds at once (a local optimum of chi2 17,239 where
+    one from a damped path reached 4,499: the hidden-modulus field data)."""
+    tiny = 1e-12 * (hi - lo)
+    step = np.where(((x <= lo + tiny) & (step < 0)) | ((x >= hi - tiny) & (step > 0)),
+                    0.0, step)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        room = np.where(step > 0, (hi - x) / step, np.where(step < 0, (lo - x) / step, np.inf))
+    alpha = float(min(1.0, np.min(room))) if len(room) else 1.0
+    return np.clip(x + max(alpha, 0.0) * step, lo, hi)
 
 
 def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
@@ -104,7 +114,9 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
     Each iteration makes two calls of ``fun``: the points and their difference steps (``S``
     starts x ``(1 + n_free)`` rows), then five trial steps per start (damping lam x 0.01, 0.1,
     1, 10, 100); the best trial is taken if it lowers chi-square, and the next iteration's
-    damping is a tenth of the one taken. Steps are clipped to the box.
+    damping is a tenth of the one taken. A step that would leave the box is shortened along
+    its direction to the first bound it meets, and parameters held on a bound by the descent
+    direction stay there (:func:`_step`, :func:`_truncate`).
 
     Trials below the current damping let a start that was damped hard (after a rejected step)
     take full Gauss-Newton steps again at once: with only lam, 10 lam and 100 lam, a fit
@@ -176,8 +188,8 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
             tw[s] = len(trials)
             for lm in lam[s] * TRIALS:
                 xt = ft.x.copy()
-                xt[fr] = np.clip(xt[fr] + _step(A, g, lm, ft.x[fr], lo_a[fr], hi_a[fr])
-                                 * width[fr], lo_a[fr], hi_a[fr])
+                xt[fr] = _truncate(ft.x[fr], _step(A, g, lm, ft.x[fr], lo_a[fr], hi_a[fr])
+                                   * width[fr], lo_a[fr], hi_a[fr])
                 trials.append(xt)
         if not trials:
             break

@@ -961,11 +961,14 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
                       "floor_um2": j.floor_um2, "clears_floor": j.clears_floor,
                       "flagged": bool(j.flagged)})
         else:
-            sz = effect_size(base_chi2, s.chi2_after, n, n_cal, sigma)
+            # the screen's statistic is a linearised chi-square drop: its size is measured
+            # against the base fit's chi-square, as a refit's would be
+            after = max(base_chi2 - float(s.statistic), 0.0)
+            sz = effect_size(base_chi2, after, n, n_cal, sigma)
             e.update({"refit": f"not run (screen p = {s.p_value:.2g})", "refit_starts": 0,
                       "profile_chi2": None, "statistic": float(s.statistic), "dof": s.dof,
                       "p_value": float(s.p_value), "evidence": round(float(s.evidence), 4),
-                      "chi2_after": float(s.chi2_after), **sz.to_json(),
+                      "chi2_after": after, **sz.to_json(),
                       "floor_um2": floor.of(s.effect), "clears_floor": False, "flagged": False})
         e["explained_share"] = e["systematic_share"]
         (failed if e["refit"] == "failed" else entries).append((e, s))
