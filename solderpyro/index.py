@@ -76,13 +76,14 @@ def _verdicts(d: Path, diag: dict | None, cmp: dict | None, run: dict | None
     """``(css class, html)`` of each verdict, most telling first."""
     out: list[tuple[str, str]] = []
     if diag is not None:
-        top = diag["ranking"][0] if diag.get("ranking") else None
+        by = {r["effect"]: r for r in diag.get("ranking", [])}
+        sel = [e for e in diag.get("selected", []) if e in by]
         extra = ""
-        if top is not None and diag.get("misfit"):
-            extra = (f" Best candidate: <b>{_e(top['effect'])}</b> (evidence "
-                     f"{_num(top['evidence'], '.1f')}; its fingerprint's shape correlation "
-                     f"with the residual r = {_num(top.get('fingerprint_correlation'), '.2f')}"
-                     ").")
+        if sel and diag.get("misfit") and diag.get("explained"):
+            # only what the diagnosis selected (an unexplained misfit names no effect)
+            extra = " Add: " + ", ".join(
+                f"<b>{_e(e)}</b> (its fingerprint's shape correlation with the residual r = "
+                f"{_num(by[e].get('fingerprint_correlation'), '.2f')})" for e in sel) + "."
         out.append(("bad" if diag.get("misfit") else "good",
                      f"<b>Diagnosis:</b> {_e(diag['verdict'])}.{extra}"))
     if cmp is not None:
@@ -157,13 +158,16 @@ def write_index(run_dir: str | Path) -> Path:
                  f'(<a href="{_e(f)}">{_e(f)}</a>)</figcaption></figure>' for f, cap in figs]
     if diag is not None and diag.get("ranking"):
         body.append("<h2>Candidate effects (best first)</h2>")
-        body.append(_table(["effect", "evidence (-log10 p)", "fingerprint r", "explains",
-                            "RMS after (um)", "flagged"],
-                           [[r["effect"], _num(r["evidence"], ".2f"),
-                             _num(r.get("fingerprint_correlation"), ".2f"),
+        body.append(_table(["effect", "FE refit", "likelihood ratio (or screen)",
+                            "RMS after (noise sd)", "systematic misfit removed",
+                            "fingerprint r", "flagged"],
+                           [[r["effect"], _e(str(r.get("refit", ""))),
+                             _num(r["statistic"], ".1f"),
+                             _num(r.get("rms_after_sd", float("nan")), ".2f"),
                              f"{float(r['explained_share']):.0%}",
-                             _num(r["rms_after_um"], ".3g"), "yes" if r["flagged"] else ""]
-                            for r in diag["ranking"]]))
+                             _num(r.get("fingerprint_correlation"), ".2f"),
+                             "yes" if r["flagged"] else ""]
+                            for r in diag["ranking"] + diag.get("failed", [])]))
     rows = _summary_rows(d)
     if rows:
         body.append("<h2>Posterior</h2>")

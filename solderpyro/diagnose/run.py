@@ -1131,17 +1131,25 @@ def _write(d: Path, diag: Diagnosis, mf: Misfit, pc: PredictiveCheck, sigma: flo
     f1, f2, f3 = figs
     (d / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2) + "\n")
     lines = ["# solderpyro diagnosis", "", f"**Verdict:** {diag.verdict}.", "",
-             f"- misfit chi2 {mf.chi2:.2f} on {mf.dof} dof (p = {mf.p_value:.3g}); RMS residual "
-             f"{mf.rms:.4g} um, noise {sigma:.4g} um",
+             f"- at the FE's best fit ({(diag.base or {}).get('start', 'the posterior draw')}"
+             f"): chi2 {diag.check['chi2']:.2f} on {diag.check['dof']} dof (p = "
+             f"{diag.check['p_value']:.3g}); RMS residual {diag.check['rms_um']:.4g} um, noise "
+             f"{sigma:.4g} um",
+             f"- discretization floor: {(diag.floor or {}).get('source', 'none')}",
              f"- posterior predictive p-value {pc.p_value:.3g}; largest |z| "
              f"{np.abs(pc.z).max():.2f}", "",
              "## Candidate effects (best first)", "",
-             "| effect | evidence (-log10 p) | score | dof | identifiable | explains | "
-             "RMS after (um) | fingerprint r | flagged |", "|---|---|---|---|---|---|---|---|---|"]
-    for r in diag.ranking:
-        lines.append(f"| {r['effect']} | {r['evidence']:.2f} | {r['statistic']:.2f} | "
-                     f"{r['dof']} | {r['identifiable']:.2f} | {r['explained_share']:.0%} | "
-                     f"{r['rms_after_um']:.3g} | {r.get('fingerprint_correlation', 0):.2f} | "
+             "Refitted candidates by their likelihood ratio through the FE, then those the "
+             "screen (score test) left out; failed refits last, not ranked.", "",
+             "| effect | FE refit | LR (or screen) | dof | evidence (-log10 p) | RMS after "
+             "(um / noise sd) | systematic misfit removed | above the floor | identifiable | "
+             "fingerprint r | flagged |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in diag.ranking + diag.failed:
+        lines.append(f"| {r['effect']} | {r['refit']} | {r['statistic']:.1f} | {r['dof']} | "
+                     f"{r['evidence']:.2f} | {r['rms_after_um']:.3g} / "
+                     f"{r['rms_after_sd']:.2f} | {r['systematic_share']:.0%} | "
+                     f"{'yes' if r['clears_floor'] else 'no'} | {r['identifiable']:.2f} | "
+                     f"{r.get('fingerprint_correlation', 0):.2f} | "
                      f"{'yes' if r['flagged'] else ''} |")
     lines += ["", "Fingerprint r: shape correlation (Pearson, every value) of what the effect "
               "changes with the " + ("GP-denoised residual" if diag.denoise else "residual")
