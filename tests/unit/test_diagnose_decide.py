@@ -165,3 +165,37 @@ def test_a_misfit_no_candidate_describes_is_called_unexplained():
     assert dg.misfit and dg.explained is False
     assert "none of the candidates" in dg.verdict and "Best explanation" not in dg.verdict
     assert not any(e["flagged"] for e in dg.ranking)
+
+
+def test_a_refit_above_its_base_is_retried_from_the_base_point_then_reported_failed(monkeypatch):
+    """refit_candidates: a candidate whose first start ends above the base chi-square is refitted
+    again from the base point with the effect off; the better of the two is kept (starts = 2),
+    and one that still ends above the base is a failed Refit (ok False)."""
+    from types import SimpleNamespace
+
+    import solderpyro.diagnose.refits as R
+    from solderpyro.fit import LMFit
+
+    base_x, base_chi2 = np.zeros(3), 100.0
+    calls = []
+
+    def fake_fit_models(lay, fe, meas, sigma, models, **kw):
+        calls.append(sorted(models))
+        out = {}
+        for c, (_, x0) in models.items():
+            at_base = np.array_equal(x0, base_x)
+            chi2 = {"good": 90.0, "stuck": 100.0 + 10 * REFIT_TOL,
+                    "cured": 95.0 if at_base else 130.0}[c]
+            out[c] = LMFit(x0.copy(), chi2, np.arange(3))
+        return out
+
+    monkeypatch.setattr(R, "fit_models", fake_fit_models)
+    lay = SimpleNamespace(cols=lambda c: np.array([2]))
+    away = np.array([0.0, 0.0, 1.0])
+    refits = R.refit_candidates(lay, None, None, 0.05, base_x, base_chi2, (),
+                                {"good": away, "stuck": away, "cured": away})
+    by = {r.name: r for r in refits}
+    assert calls == [["cured", "good", "stuck"], ["cured", "stuck"]]  # one batched retry
+    assert by["good"].ok and by["good"].starts == 1 and by["good"].lr == 10.0
+    assert by["cured"].ok and by["cured"].starts == 2 and by["cured"].chi2 == 95.0
+    assert not by["stuck"].ok and by["stuck"].starts == 2 and by["stuck"].lr == 0.0
