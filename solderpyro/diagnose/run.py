@@ -1046,7 +1046,7 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
              "chi2_linearised": mf.chi2}
     diag = Diagnosis(bad, verdict, ranking, check, groups, suggestions)
     diag.failed = failed_list
-    diag.selected = list(chosen)
+    diag.selected = list(chosen) if ok_expl else []  # an unexplained misfit names nothing
     diag.explained = explained_flag
     diag.floor = floor.to_json()
     diag.steps = [[{"effects": list(j.refit.effects), "chi2": j.refit.chi2,

@@ -162,7 +162,7 @@ def test_a_misfit_no_candidate_describes_is_called_unexplained():
     pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
     dg = _verdict(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen, tie, base, 2,
                   Floor())
-    assert dg.misfit and dg.explained is False
+    assert dg.misfit and dg.explained is False and dg.selected == []
     assert "none of the candidates" in dg.verdict and "Best explanation" not in dg.verdict
     assert not any(e["flagged"] for e in dg.ranking)
 
