@@ -261,6 +261,7 @@ def cmd_diagnose(a, overrides) -> int:
     if a.draws < 1:
         raise ValueError(f"--draws must be >= 1, got {a.draws}")
     from .diagnose import diagnose
+    from .diagnose.decide import share_text
 
     cands = tuple(_names(a.effects)) if a.effects else None
     dg = diagnose(a.run_dir, candidates=cands, n_draws=a.draws, seed=a.seed,
@@ -270,7 +271,7 @@ def cmd_diagnose(a, overrides) -> int:
           f" {'floor':>6s}  flagged  refit")
     for r in dg.ranking + dg.failed:
         print(f"{r['effect']:26s} {r['statistic']:10.1f} {r['dof']:4d} "
-              f"{r['rms_after_sd']:7.2f} sd {r['systematic_share']:10.0%} "
+              f"{r['rms_after_sd']:7.2f} sd {share_text(r['systematic_share']):>10s} "
               f"{'clears' if r['clears_floor'] else 'below':>6s}  "
               f"{'yes' if r['flagged'] else '':7s}  {r['refit']}")
     for s in dg.suggestions:

@@ -157,6 +157,8 @@ def write_index(run_dir: str | Path) -> Path:
         body += [f'<figure><img src="{_e(f)}" alt="{_e(cap)}"><figcaption>{_e(cap)} '
                  f'(<a href="{_e(f)}">{_e(f)}</a>)</figcaption></figure>' for f, cap in figs]
     if diag is not None and diag.get("ranking"):
+        from solderpyro.diagnose.decide import share_text
+
         body.append("<h2>Candidate effects (best first)</h2>")
         body.append(_table(["effect", "FE refit", "likelihood ratio (or screen)",
                             "RMS after (noise sd)", "systematic misfit removed",
@@ -164,7 +166,7 @@ def write_index(run_dir: str | Path) -> Path:
                            [[r["effect"], _e(str(r.get("refit", ""))),
                              _num(r["statistic"], ".1f"),
                              _num(r.get("rms_after_sd", float("nan")), ".2f"),
-                             f"{float(r['explained_share']):.0%}",
+                             share_text(r.get("explained_share")),
                              _num(r.get("fingerprint_correlation"), ".2f"),
                              "yes" if r["flagged"] else ""]
                             for r in diag["ranking"] + diag.get("failed", [])]))

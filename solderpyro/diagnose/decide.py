@@ -169,10 +169,12 @@ class Size:
     rms_before_sd: float
     rms_after_sd: float
     ms_reduction_um2: float
-    systematic_share: float
+    #: None where the base chi-square is not above its noise expectation (no systematic misfit
+    #: to share out; a targeted test can still find an effect there)
+    systematic_share: float | None
 
-    def to_json(self) -> dict[str, float]:
-        return {k: float(v) for k, v in self.__dict__.items()}
+    def to_json(self) -> dict[str, float | None]:
+        return {k: (None if v is None else float(v)) for k, v in self.__dict__.items()}
 
 
 def effect_size(chi2_base: float, chi2_after: float, n: int, n_params: int,
@@ -183,9 +185,9 @@ def effect_size(chi2_base: float, chi2_after: float, n: int, n_params: int,
     rb = math.sqrt(max(chi2_base, 0.0) / n)
     ra = math.sqrt(max(chi2_after, 0.0) / n)
     systematic = chi2_base - (n - n_params)
-    share = (chi2_base - chi2_after) / systematic if systematic > 0 else 0.0
-    return Size(rb * sigma, ra * sigma, rb, ra, (chi2_base - chi2_after) * sigma**2 / n,
-                float(min(max(share, 0.0), 1.0)))
+    share = (float(min(max((chi2_base - chi2_after) / systematic, 0.0), 1.0))
+             if systematic > 0 else None)
+    return Size(rb * sigma, ra * sigma, rb, ra, (chi2_base - chi2_after) * sigma**2 / n, share)
 
 
 @dataclass
@@ -289,3 +291,8 @@ def forward_steps(first: list[Refit], refit_next: Any, n: int, n_params: int, si
         chosen, tie = forward_step(steps[-1], chosen)
         added = len(chosen) > before
     return steps, chosen, tie
+
+
+def share_text(v: float | None) -> str:
+    """A share (0..1) as a percentage, "-" where undefined (None)."""
+    return "-" if v is None else f"{v:.0%}"

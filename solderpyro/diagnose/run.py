@@ -54,6 +54,7 @@ from solderpyro.diagnose.decide import (
     judge,
     load_floor,
     remains,
+    share_text,
 )
 from solderpyro.diagnose.fingerprint import Fingerprints, fingerprints
 from solderpyro.diagnose.refits import MAX_REFITS, base_fit, layout, refit_candidates
@@ -999,11 +1000,13 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
         fin = np.sqrt(chi2_final / n)
         names = " + ".join(chosen)
         j0 = first[chosen[0]]
+        share = effect_size(base_chi2, chi2_final, n, n_cal, sigma).systematic_share
         verdict = (f"misfit ({head}). Best explanation: {names}: the RMS falls to "
-                   f"{fin * sigma:.3g} um = {fin:.2f} noise sd, removing "
-                   f"{min(1.0, (base_chi2 - chi2_final) / max(base_chi2 - (n - n_cal), 1e-9)):.0%}"
-                   f" of the systematic misfit (likelihood ratio {j0.refit.lr:.1f} on "
-                   f"{j0.refit.dof} dof for {chosen[0]})")
+                   f"{fin * sigma:.3g} um = {fin:.2f} noise sd, "
+                   + (f"removing {share:.0%} of the systematic misfit" if share is not None
+                      else "though the global chi-square is within the noise")
+                   + f" (likelihood ratio {j0.refit.lr:.1f} on {j0.refit.dof} dof for "
+                   f"{chosen[0]})")
         if len(chosen) > 1:
             verdict += "; found in forward steps: " + " then ".join(chosen)
         suggestions.append("recalibrate with it: solderpyro calibrate ... effects=["
@@ -1147,7 +1150,8 @@ def _write(d: Path, diag: Diagnosis, mf: Misfit, pc: PredictiveCheck, sigma: flo
     for r in diag.ranking + diag.failed:
         lines.append(f"| {r['effect']} | {r['refit']} | {r['statistic']:.1f} | {r['dof']} | "
                      f"{r['evidence']:.2f} | {r['rms_after_um']:.3g} / "
-                     f"{r['rms_after_sd']:.2f} | {r['systematic_share']:.0%} | "
+                     f"{r['rms_after_sd']:.2f} | "
+                     f"{share_text(r['systematic_share'])} | "
                      f"{'yes' if r['clears_floor'] else 'no'} | {r['identifiable']:.2f} | "
                      f"{r.get('fingerprint_correlation', 0):.2f} | "
                      f"{'yes' if r['flagged'] else ''} |")
