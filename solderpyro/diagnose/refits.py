@@ -3,7 +3,7 @@
 * :func:`base_fit`: the FE's own best fit. Several starts (the posterior median, and where the
   FE check rejected the posterior also the literature constants and another draw) advance
   together by Levenberg-Marquardt, one batch per step, each until an iteration gains less than
-  :data:`LM_TOL` in chi-square (at most :data:`LM_ITERS`); every :data:`SCOUT_ITERS`
+  :data:`LM_TOL` in chi-square (at most :data:`BASE_ITERS`); every :data:`SCOUT_ITERS`
   iterations the starts far behind the best stop. Every statistic of the diagnosis is taken
   against the best.
 * :func:`refit_candidates`: each candidate (or, in a forward step, the effects already chosen
@@ -35,8 +35,12 @@ log = logging.getLogger("solderpyro")
 #: stop a fit once an iteration gains less than this chi-square (its sampling sd on 2,240
 #: values is 67; APART_CHI2 is 6)
 LM_TOL = 0.5
-#: most Levenberg-Marquardt iterations of the base fit and of each refit
+#: most Levenberg-Marquardt iterations of each refit
 LM_ITERS = 15
+#: most iterations of the base fit (every statistic is measured from it: a base that has not
+#: converged lends its remaining gain to every refit's likelihood ratio; on the hidden
+#: stress-free-temperature field data it still gained 6 chi2 per iteration at 15)
+BASE_ITERS = 30
 #: the base fit's starts are compared (and the poor ones stopped) after every this many
 SCOUT_ITERS = 3
 #: refits run per step at most (the screen's strongest candidates)
@@ -145,7 +149,8 @@ def base_fit(lay: Layout, fe: Any, meas: Any, sigma: float,
 
     The starts advance together, :data:`SCOUT_ITERS` iterations at a time (one batched solve
     per step); after each round a start that has converged, or whose chi-square is more than
-    twice the best one's (+ 50), stops; at most :data:`LM_ITERS` iterations in all.
+    twice the best one's (+ 50), stops; the last one goes on to convergence, at most
+    :data:`BASE_ITERS` iterations in all.
 
     Args:
         starts: label -> ``(n_cal,)`` start, physical units (clipped into the box).
@@ -161,10 +166,12 @@ def base_fit(lay: Layout, fe: Any, meas: Any, sigma: float,
     conv = dict.fromkeys(x, False)
     alive = list(x)
     done = 0
-    while alive and done < LM_ITERS:
+    while alive and done < BASE_ITERS:
+        # several starts: compare them every SCOUT_ITERS; one left: on to convergence
+        step = SCOUT_ITERS if len(alive) > 1 else BASE_ITERS - done
         fits = fit_models(lay, fe, meas, sigma, {k: ((), x[k]) for k in alive},
-                          iters=min(SCOUT_ITERS, LM_ITERS - done))
-        done += SCOUT_ITERS
+                          iters=min(step, BASE_ITERS - done))
+        done += step
         for k, f in fits.items():
             x[k], chi[k], conv[k] = f.x, float(f.chi2), bool(f.converged)
             hist[k] += [c for c in f.history if not hist[k] or c != hist[k][-1]]
