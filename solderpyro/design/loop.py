@@ -300,7 +300,10 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         Vc, okc = p.fe(th_chk)
         lap("check")
         off = 0 if draws.offset is None else draws.offset[chk]
-        fe_c2 = (((Vc - y - off) / draws.sigma[chk, None]) ** 2).sum(1).numpy()
+        # the residual y - (FE + observation-side offset), as chi2_terms takes it for the
+        # surrogate (the offset's sign was flipped here before: every calibration with Moire
+        # rigid motion on disagreed with the FE by ~5e5 in chi-square and never stopped)
+        fe_c2 = (((y - Vc - off) / draws.sigma[chk, None]) ** 2).sum(1).numpy()
         fe_c2[~okc.numpy()] = np.inf
         sur_c2, code = chi2_terms(gp, draws, y, chk)
         code_ok, fe_ok, tol = stop_rule(code, fe_c2, sur_c2, n, s)

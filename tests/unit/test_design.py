@@ -211,6 +211,26 @@ def test_the_stopping_rule_stops_on_an_exact_surrogate_and_not_on_a_biased_one()
     assert len(biased.X) <= s.budget
 
 
+def test_the_fe_check_adds_observation_side_offsets_as_the_surrogate_does():
+    """Data with an observation-side offset (e.g. a Moire rigid shift, 0.3 um, known at every
+    draw): an exact surrogate with the offset added to both sides converges; the FE check's
+    chi-square at each checked draw equals the surrogate's to within the sampling sd."""
+    shift = 0.3
+    base = _toy_problem()
+    y = base.y + shift
+
+    def sample(gp, prev, final):
+        d = _toy_posterior(gp, base.y)  # the FE part's posterior (the shift is known)
+        d.offset = torch.full((len(d.theta), len(y)), shift, dtype=torch.float64)
+        return d
+
+    s = LoopSettings(start=4, batch=2, check=3, budget=30, mc_points=100, candidates=200)
+    res = run_loop(LoopProblem(BOX1, y, base.fe, base.fit, sample), s, seed=0)
+    last = res.rounds[-1]
+    assert res.reason == "converged" and last.fe_ok
+    assert max(last.fe_chi2) < 3 * len(y)  # ~ chi2(12), not ~ (2 x 0.3 / sigma)^2 per value
+
+
 def test_stop_rule_tolerance_is_the_chi_square_sampling_sd():
     s = LoopSettings()
     code_ok, fe_ok, tol = stop_rule(1.0, np.array([100.0]), np.array([100.0 + 19.9]), 200, s)
