@@ -35,6 +35,7 @@ from pathlib import Path
 
 from solderpyro.diagnose.hidden import TRUTH
 from solderpyro.executor import executor_from_options
+from solderpyro.io.measurements import read_measurements
 from solderpyro.sweep import sweep
 
 
@@ -50,13 +51,12 @@ def _cli(args: list[str], log: Path) -> float:
 
 
 def _truth(data: Path) -> tuple[str, dict[str, float]]:
-    hidden, truth = "none", dict(TRUTH)
-    for line in data.read_text().splitlines():
-        if line.startswith("# hidden_effect:"):
-            hidden = line.split(":", 1)[1].strip()
-        if line.startswith("# hidden_values:"):
-            truth.update(ast.literal_eval(line.split(":", 1)[1].strip()))
-    return hidden, truth
+    """The hidden effects' names and every true value, from the data file's metadata."""
+    meta = read_measurements(data).meta
+    truth = dict(TRUTH)
+    if meta.get("hidden_values"):
+        truth.update(ast.literal_eval(meta["hidden_values"]))
+    return meta.get("hidden_effect", "none"), truth
 
 
 def _covered(run: Path, truth: dict[str, float]) -> dict[str, bool]:

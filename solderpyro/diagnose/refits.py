@@ -20,6 +20,7 @@ rows shared with the Jacobians or an earlier diagnosis are read back, not solved
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Any
@@ -202,15 +203,13 @@ def refit_candidates(lay: Layout, fe: Any, meas: Any, sigma: float, base_x: np.n
                       {c: (chosen + (c,), x) for c, x in starts.items()})
     out = {c: Refit(chosen + (c,), float(f.chi2), len(lay.cols(c)), f.x, base_chi2)
            for c, f in fits.items()}
-    retry = {c: base_x for c, r in out.items()
-             if not r.ok and not np.array_equal(starts[c], base_x)}
+    retry = [c for c, r in out.items() if not r.ok and not np.array_equal(starts[c], base_x)]
     if retry:
         log.info("diagnose: refits above their base chi2 %.1f (%s); retrying from the base "
                  "point with the effect off", base_chi2,
                  ", ".join(f"{c} {out[c].chi2:.1f}" for c in retry))
-        again = fit_models(lay, fe, meas, sigma, {c: (chosen + (c,), x) for c, x in retry.items()})
+        again = fit_models(lay, fe, meas, sigma, {c: (chosen + (c,), base_x) for c in retry})
         for c, f in again.items():
             r = Refit(chosen + (c,), float(f.chi2), len(lay.cols(c)), f.x, base_chi2, starts=2)
-            out[c] = r if r.chi2 < out[c].chi2 else Refit(
-                out[c].effects, out[c].chi2, out[c].dof, out[c].x, base_chi2, starts=2)
+            out[c] = r if r.chi2 < out[c].chi2 else dataclasses.replace(out[c], starts=2)
     return [out[c] for c in starts]

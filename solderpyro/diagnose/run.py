@@ -595,10 +595,9 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         sig_known = info.get("sigma_known")
         sigma = float(sig_known) if sig_known else float(np.median(sigma_draws))
         pc = predictive_check(y, dr["process"], dr["sigma_pred"], seed=seed)
-    field = any(p not in setup.problem.points for p in meas.points())
-    times = tuple(float(t) for t in meas.times())
     n = len(y)
     lay = layout(setup, run_effects, candidates, meas)
+    field, times = lay.field, lay.times
     floor = load_floor("field" if field else "points")
     # other posterior draws only where the FE check accepted the posterior (issue 20: never a
     # draw the FE rejected)
@@ -626,7 +625,6 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         lad = {k: (v, VL[:, ti, oi]) for k, (v, VL) in fej["ladder"].items()}
         apply_ladder(mf, scores, y, J[0], fej["cols"], sigma, lad)
     base_chi2 = base["chi2"] if base is not None else mf.chi2
-    mf.chi2_refit = base_chi2
     fits = None
     steps: list[list[Judged]] = []
     chosen: tuple[str, ...] = ()
@@ -939,7 +937,6 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
     bad_global = remains(base_chi2, n, n_cal)
     any_flag = any(j.flagged for j in first.values())
     bad = bool(bad_global or any_flag)
-    corr_top = None
     entries: list[tuple[dict[str, Any], Score]] = []
     failed: list[tuple[dict[str, Any], Score]] = []
     for i, s in enumerate(scores):

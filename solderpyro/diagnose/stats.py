@@ -111,7 +111,6 @@ class Misfit:
         chi2: ``r' P' W P r``; dof: ``n - rank(J_theta)``; p_value: ``P(chi2_dof >= chi2)``.
         rms: root mean square of the refitted residual, um; rms_noise: the noise sd, um.
         residual: ``(n,)`` the refitted residual ``P r``, um.
-        chi2_refit: the baseline chi-square after a full (nonlinear) FE refit, when done.
     """
 
     chi2: float
@@ -120,7 +119,6 @@ class Misfit:
     rms: float
     rms_noise: float
     residual: np.ndarray
-    chi2_refit: float | None = None
 
 
 def misfit(r: np.ndarray, J_theta: np.ndarray, w: np.ndarray) -> Misfit:
