@@ -92,9 +92,9 @@ def _truncate(x: np.ndarray, step: np.ndarray, lo: np.ndarray, hi: np.ndarray
               ) -> np.ndarray:
     """``x + alpha step`` with the largest ``alpha <= 1`` that stays in the box, after holding
     the components on a bound that would step out: the step keeps its direction up to the
-    first bound it meets. Clipping each component instead sent a Gauss-Newton step from far
-    away into a corner of the box, all bounds at once (a local optimum of chi2 17,239 where
-    one from a damped path reached 4,499: the hidden-modulus field data)."""
+    first bound it meets, where clipping each component turns it. Measured once by hand on
+    the hidden-modulus field data, from the posterior median: the same optimum (chi2 17,239,
+    on three bounds) in 5 iterations instead of 10."""
     tiny = 1e-12 * (hi - lo)
     step = np.where(((x <= lo + tiny) & (step < 0)) | ((x >= hi - tiny) & (step > 0)),
                     0.0, step)
@@ -135,8 +135,7 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
             (absolute; the chi-square's own sampling sd is ``sqrt(2 n)``, so 0.1 is far below
             anything a test could see), or once two iterations in a row accept no step (the
             second one's trials damped 1e3 x more: a bound or a kink holds it); stopped starts
-            cost no more FE rows. None: run all
-            ``iters``.
+            cost no more FE rows. None: run all ``iters``.
     Returns:
         ``S`` :class:`LMFit`, in the order of ``x0``.
     """

@@ -36,7 +36,7 @@ def _exact_linear_algebra() -> None:
     training rows, whether or not BoTorch was imported: importing BoTorch sets exactly these
     global defaults (botorch/__init__.py), so without this a fit depended on import order
     (measured: the surrogate-vs-direct calibration test moved by 4 Monte Carlo standard errors).
-    tests/unit/test_gp.py checks a fit is identical with and without BoTorch imported."""
+    tests/unit/test_surrogate.py checks a fit is identical with and without BoTorch imported."""
     from gpytorch import settings as gp_settings
     from linear_operator import settings as linop_settings
 
