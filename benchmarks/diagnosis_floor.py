@@ -29,7 +29,7 @@ from solderpyro.configure import build, compose
 from solderpyro.diagnose.decide import FLOOR_FILE, floor_from_fits
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.diagnose.refits import base_fit, layout, refit_candidates
-from solderpyro.diagnose.run import LADDER, FeRuns
+from solderpyro.diagnose.run import FeRuns, ladder_values
 from solderpyro.effects import EFFECTS
 from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import SEED_TIMES
@@ -58,14 +58,11 @@ def measure(kind: str, out: Path, store: RunStore) -> dict:
     lit = np.array([setup.anand[n] for n in setup.space.names])
     base = base_fit(lay, fe, meas, SIGMA, {"truth": truth, "literature constants": lit})
     starts = {}
-    for c in cands:  # as the diagnosis: a one-parameter effect from its first ladder rung
+    for eff in lay.fx_all.effects:  # as the diagnosis: a one-parameter effect from a rung
         x = base["x"].copy()
-        cols = lay.cols(c)
-        if len(cols) == 1:
-            o, lo, hi = lay.off[cols[0] - lay.n_cal], lay.lo[cols[0]], lay.hi[cols[0]]
-            far = hi if hi - o >= o - lo else lo
-            x[cols] = o + LADDER[0] * (far - o)
-        starts[c] = x
+        if eff.n_params == 1:
+            x[lay.cols(eff.name)] = ladder_values(eff)[0]
+        starts[eff.name] = x
     refits = refit_candidates(lay, fe, meas, SIGMA, base["x"], base["chi2"], (), starts)
     n = len(meas.value_um)
     fl = floor_from_fits(base["chi2"] * SIGMA**2,

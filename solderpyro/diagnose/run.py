@@ -434,10 +434,7 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         if eff.n_params != 1:
             continue
         j = n_cal + int(np.flatnonzero(np.array(cols.owner[n_cal:]) == ename)[0])
-        b = eff.params
-        o = float(eff.off[0])
-        far = b.upper[0] if b.upper[0] - o >= o - b.lower[0] else b.lower[0]
-        ladder[ename] = o + np.asarray(LADDER) * (far - o)
+        ladder[ename] = ladder_values(eff)
         for v in ladder[ename]:
             r = base0.copy()
             r[j] = v
@@ -475,6 +472,15 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
     return {"V": Vb, "J": J, "cols": cols, "names": list(res.names), "n_cal": n_cal,
             "fe": fe, "ladder": VL, "n_ladder": n_lad,
             "times": tuple(float(t) for t in res.times)}
+
+
+def ladder_values(eff: Any) -> np.ndarray:
+    """``(len(LADDER),)`` magnitudes of a one-parameter effect ``eff`` (bound
+    :class:`~solderpyro.effects.Effect`): the shares :data:`LADDER` of the way from "off" to
+    the farther edge of its box, in its own units."""
+    b, o = eff.params, float(eff.off[0])
+    far = b.upper[0] if b.upper[0] - o >= o - b.lower[0] else b.lower[0]
+    return o + np.asarray(LADDER) * (far - o)
 
 
 def _group(cols: _Columns, owner: str) -> np.ndarray:
