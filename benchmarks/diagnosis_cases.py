@@ -18,7 +18,7 @@ cost. The cases run as one sweep (``--cluster local:2``: two at a time).
 
 Usage: python benchmarks/diagnosis_cases.py --data NAME=CSV ... [--base NAME=DIR ...]
        [--work runs/i20] [--out benchmarks/results_diagnosis_cases.json] [--no-recalibrate]
-       [--cluster local:2]
+       [--cluster local:2] [--keep-diagnosis]
 """
 
 from __future__ import annotations
@@ -66,8 +66,28 @@ def _covered(run: Path, truth: dict[str, float]) -> dict[str, bool]:
             for k, v in truth.items() if k in rows}
 
 
+def _recalibrate(csv_p: Path, base: Path, wd: Path, effects: list[str], store: str,
+                 truth: dict[str, float], wall: dict[str, float]) -> dict:
+    """``calibrate --warm-from BASE effects=[...]`` into ``wd`` (unless there), then compare."""
+    eff = ",".join(effects)
+    if not (wd / "draws.npz").exists():
+        wall[f"recalibrate {eff}"] = _cli(
+            ["calibrate", "--data", str(csv_p), "--out", str(wd), "--store", store, "--quiet",
+             "--warm-from", str(base), f"effects=[{eff}]"], wd.parent / f"{wd.name}.log")
+    wall[f"compare {eff}"] = _cli(["compare", str(base), str(wd)],
+                                  wd.parent / f"{wd.name}_compare.log")
+    cmp = json.loads((wd / "comparison.json").read_text())
+    info = json.loads((wd / "run.json").read_text())
+    sig = float(info.get("sigma_known") or 0.05)
+    return {"rms_before_sd": cmp["before"]["rms_um"] / sig,
+            "rms_after_sd": cmp["after"]["rms_um"] / sig,
+            "fe_check_after": {k: (info.get("fe_check") or {}).get(k)
+                               for k in ("rms_over_sigma", "ok")},
+            "covered_after": _covered(wd, truth)}
+
+
 def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, store: str,
-             recalibrate: bool) -> dict:
+             recalibrate: bool, keep_diagnosis: bool = False) -> dict:
     """One case: calibrate (unless its base exists), diagnose, recalibrate, compare."""
     w = Path(work) / name
     w.mkdir(parents=True, exist_ok=True)
@@ -77,7 +97,8 @@ def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, 
     if not (base / "draws.npz").exists():
         wall["calibrate"] = _cli(["calibrate", "--data", str(csv_p), "--out", str(base),
                                   "--store", store, "--quiet"], w / "calibrate.log")
-    wall["diagnose"] = _cli(["diagnose", str(base), "--quiet"], w / "diagnose.log")
+    if not (keep_diagnosis and (base / "diagnosis.json").exists()):
+        wall["diagnose"] = _cli(["diagnose", str(base), "--quiet"], w / "diagnose.log")
     dg = json.loads((base / "diagnosis.json").read_text())
     hidden, truth = _truth(csv_p)
     rec: dict = {
@@ -94,21 +115,12 @@ def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, 
         hidden.split("+"),
         "diagnose_timing": dg.get("timing", {}).get("total"), "wall_s": wall}
     if recalibrate and rec["selected"] and not rec["tie"]:
-        eff = ",".join(rec["selected"])
-        wd = w / "with"
-        if not (wd / "draws.npz").exists():
-            wall["recalibrate"] = _cli(["calibrate", "--data", str(csv_p), "--out", str(wd),
-                                        "--store", store, "--quiet", "--warm-from", str(base),
-                                        f"effects=[{eff}]"], w / "recalibrate.log")
-        wall["compare"] = _cli(["compare", str(base), str(wd)], w / "compare.log")
-        cmp = json.loads((wd / "comparison.json").read_text())
-        info = json.loads((wd / "run.json").read_text())
-        sig = float(info.get("sigma_known") or 0.05)
-        rec.update({"rms_before_sd": cmp["before"]["rms_um"] / sig,
-                    "rms_after_sd": cmp["after"]["rms_um"] / sig,
-                    "fe_check_after": {k: (info.get("fe_check") or {}).get(k)
-                                       for k in ("rms_over_sigma", "ok")},
-                    "covered_after": _covered(wd, truth)})
+        rec.update(_recalibrate(csv_p, base, w / "with", rec["selected"], store, truth, wall))
+    elif recalibrate and rec["tie"]:
+        # The verdict names no winner; a user tries each tied effect, as its advice says.
+        rec["tie_recalibrated"] = {
+            e: _recalibrate(csv_p, base, w / f"with_{e}", [e], store, truth, wall)
+            for e in rec["tie"][0]}
     return rec
 
 
@@ -122,6 +134,8 @@ def main() -> None:
     ap.add_argument("--store", default=None, help="FE run store (default WORK/store)")
     ap.add_argument("--out", default="benchmarks/results_diagnosis_cases.json")
     ap.add_argument("--no-recalibrate", action="store_true")
+    ap.add_argument("--keep-diagnosis", action="store_true",
+                    help="use a base run's diagnosis.json as it is (default: diagnose again)")
     ap.add_argument("--cluster", default=None, metavar="local:N")
     ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT")
     a = ap.parse_args()
@@ -141,7 +155,8 @@ def main() -> None:
     with executor_from_options(a.cluster, a.scheduler) as ex:
         jobs = sweep(list(data), functools.partial(
             run_case, data=data, bases={k: str(Path(v).resolve()) for k, v in bases.items()},
-            work=str(work), store=store, recalibrate=not a.no_recalibrate),
+            work=str(work), store=store, recalibrate=not a.no_recalibrate,
+            keep_diagnosis=a.keep_diagnosis),
             work / "diagnosis_sweep.json", ex)
     for name in data:
         rec = jobs[name] if jobs[name].get("ok") else {"case": name, **jobs[name]}
