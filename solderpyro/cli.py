@@ -207,10 +207,9 @@ def cmd_calibrate(a, overrides) -> int:
     s.validate(setup.space.dim)
     warm = None
     if a.warm_from:
-        from .calibration.mcmc import WarmStart
-        from .specimen import WARM_FILE
+        from .pipeline.warm import warm_start
 
-        warm = WarmStart.load(Path(a.warm_from) / WARM_FILE)
+        warm = warm_start(a.warm_from, setup.effects)
     res = calibrate_specimen(setup, meas, a.out, s,
                              record={"overrides": list(overrides), "data": str(a.data)},
                              warm=warm)

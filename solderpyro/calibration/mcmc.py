@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import logging
+import math
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -16,6 +17,8 @@ from typing import Any
 import numpy as np
 import pyro
 import torch
+
+from solderpyro.params import Box
 
 log = logging.getLogger("solderpyro")
 
@@ -204,12 +207,54 @@ class WarmStart:
         q: ``(chains, d)`` the chains' last positions (unconstrained).
         inv_metric: ``(d,)`` or ``(d, d)`` the adapted inverse mass matrix (chains averaged).
         step_size: the adapted step size (median over chains).
+        point: where the related run's FE refit of the new model ended (``name -> value``,
+            physical units, e.g. from ``solderpyro diagnose``), or None; :meth:`placed` starts
+            the chains there.
     """
 
     coords: list[str]
     q: np.ndarray
     inv_metric: np.ndarray
     step_size: float
+    point: dict[str, float] | None = None
+
+    def placed(self, box: Box, sigma_log: bool, jitter: float = 0.02, seed: int = 0
+               ) -> WarmStart:
+        """This state with every chain started at :attr:`point` (unchanged when it is None).
+
+        Why: a run whose model missed an effect can leave its chains in separate minor modes
+        (R-hat > 1.01), and their last positions then start the recalibration there; the FE's
+        own refit with the effect is where the new posterior is (measured on the Moire-motion
+        field case: every transition of every round divergent from the old positions).
+
+        Args:
+            box: the new calibration box (its names are the coordinates; unit scale, logit).
+            sigma_log: the sigma site is log-transformed (a known noise sd); then a
+                ``point["sigma"]`` (um) starts it too.
+            jitter: sd of the per-chain offsets on the logit scale (dispersed starts for
+                R-hat). seed: their random seed.
+        Returns:
+            a :class:`WarmStart` on ``box.names + ["sigma"]``: the point's coordinates set,
+            the others and the inverse metric taken by name as :meth:`apply` does.
+        """
+        if not self.point:
+            return self
+        names = [*box.names, "sigma"]
+        chains = self.q.shape[0]
+        q, inv, _ = self.apply(names, chains, self.inv_metric.ndim == 2)
+        rng = np.random.default_rng(seed)
+        known = [k for k, nm in enumerate(box.names) if nm in self.point]
+        if known:
+            x = torch.tensor([[self.point.get(nm, (lo + hi) / 2) for nm, lo, hi in zip(
+                box.names, box.lower, box.upper, strict=True)]], dtype=torch.float64)
+            u = box.to_unit(x).numpy()[0].clip(1e-4, 1.0 - 1e-4)
+            z = np.log(u) - np.log1p(-u)
+            for k in known:
+                q[:, k] = z[k] + jitter * rng.standard_normal(chains)
+        sg = self.point.get("sigma")
+        if sigma_log and sg is not None and sg > 0:
+            q[:, -1] = math.log(sg) + jitter * rng.standard_normal(chains)
+        return WarmStart(names, q, inv, self.step_size)
 
     def apply(self, coords: Sequence[str], chains: int, dense: bool
               ) -> tuple[np.ndarray, np.ndarray, float]:
@@ -338,10 +383,10 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             pass
     with _torch_threads(threads), limit:
         fm = flat_model(model, args)
-        coords = coord_names(fm, args)
+        names = coord_names(fm, args)
         q0, inv0, step0 = None, None, None
         if warm is not None:
-            q0, inv0, step0 = warm.apply(coords, chains, full_mass)
+            q0, inv0, step0 = warm.apply(names, chains, full_mass)
         elif init == "sir":
             pts = sir_inits(model, args, chains, init_draws, seed)
             if all(v is not None for v in pts):
@@ -358,7 +403,7 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
                           inv_metric=inv0, step_size=step0,
                           workers=workers or default_workers(chains), on_chain=on_chain)
     inv = np.mean(np.stack(res.inv_metric), 0)
-    ws = WarmStart(coords, res.draws[:, -1].copy(), inv, float(np.median(res.step_size)))
+    ws = WarmStart(names, res.draws[:, -1].copy(), inv, float(np.median(res.step_size)))
     stats = [{"step_size": float(a), "accept_prob": float(b), "n_grad": float(c)}
              for a, b, c in zip(res.step_size, res.accept_prob, res.n_leapfrog, strict=True)]
     return NutsRun(fm.to_samples(res.draws), res.divergences, time.perf_counter() - t0, ws,

@@ -72,6 +72,12 @@ class Layout:
     hi: np.ndarray
     off: np.ndarray
     owner: np.ndarray
+    names: tuple[str, ...] = ()
+
+    def named(self, x: np.ndarray, effects: tuple[str, ...]) -> dict[str, float]:
+        """``name -> value`` of the columns a model with ``effects`` fits, from a full row
+        ``x (n_col,)`` (physical units): what a recalibration with those effects starts from."""
+        return {self.names[k]: float(x[k]) for k in self.free(tuple(effects))}
 
     def cols(self, effect: str) -> np.ndarray:
         """Column indices of a candidate's parameters."""
@@ -99,14 +105,16 @@ def layout(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...]
     cal = calibration_box(setup, effect_set(run_effects, times, setup.effect_bounds)
                           if run_effects else None)
     lo, hi, off, owner = list(cal.lower), list(cal.upper), [], []
+    names = list(cal.names)
     for e in fx_all.effects[len(run_effects):]:
+        names += list(e.params.names)
         lo += list(e.params.lower)
         hi += list(e.params.upper)
         off += list(e.off)
         owner += [e.name] * e.n_params
     return Layout(setup, tuple(run_effects), tuple(candidates), times, field, fx_all, cal.dim,
                   np.array(lo, float), np.array(hi, float), np.array(off, float),
-                  np.array(owner, dtype=object))
+                  np.array(owner, dtype=object), tuple(names))
 
 
 def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,

@@ -649,6 +649,10 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     with cost.stage("verdict"):
         diag = _verdict(mf, pc, scores, per_draw, sigma, steps, chosen, tie, base_chi2,
                         lay.n_cal, floor)
+        for recs, st in zip(diag.steps, steps, strict=True):  # where each refit ended
+            for rec, j in zip(recs, st, strict=True):
+                if len(j.refit.x) == len(lay.names):
+                    rec["x"] = lay.named(j.refit.x, j.refit.effects)
         diag.base = None if base is None else {
             "chi2": base["chi2"], "start": base["start"], "scouts": base["scouts"],
             "history": base["history"], "converged": base["converged"],
