@@ -40,7 +40,6 @@ import torch
 from scipy.stats import chi2 as _chi2
 
 from solderpyro.diagnose.decide import (
-    ALPHA,
     APART_CHI2,
     EXPLAINED_SD,
     REFIT_TOL,
@@ -55,6 +54,7 @@ from solderpyro.diagnose.decide import (
     load_floor,
     remains,
     share_text,
+    to_refit,
 )
 from solderpyro.diagnose.fingerprint import Fingerprints, fingerprints
 from solderpyro.diagnose.refits import MAX_REFITS, base_fit, layout, refit_candidates
@@ -635,7 +635,8 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     steps: list[list[Judged]] = []
     chosen: tuple[str, ...] = ()
     tie: list[str] = []
-    screened = sorted(_targeted(scores, len(candidates)), key=lambda sc: -sc.statistic)
+    screened = to_refit(scores, len(candidates), remains(base_chi2, n, lay.n_cal), MAX_REFITS,
+                        MIN_IDENTIFIABLE)
     if not refit:  # the linearised statistics stand in for the refits
         steps = [judge([Refit((sc.effect,), sc.chi2_after, max(sc.dof, 1), np.zeros(0),
                               mf.chi2) for sc in scores], n, lay.n_cal, sigma, floor,
@@ -644,7 +645,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     elif base is not None and screened:
         with cost.stage("profile_refits"):
             fits, steps, chosen, tie = _refit_steps(lay, fe, meas, sigma, base, scores,
-                                                   screened[:MAX_REFITS], floor,
+                                                   screened, floor,
                                                    len(candidates))
     with cost.stage("verdict"):
         diag = _verdict(mf, pc, scores, per_draw, sigma, steps, chosen, tie, base_chi2,
@@ -714,13 +715,6 @@ def refit_predictions(setup: Any, run_effects: tuple[str, ...], candidates: tupl
     res = fe.solve(fe_params(setup, X), times, field, fx_all)
     ti, oi = observation_index(meas, res.times, res.names)
     return {m: res.V[k][ti, oi] for k, m in enumerate(names) if res.ok[k]}
-
-
-def _targeted(scores: list[Score], n_cand: int) -> list[Score]:
-    """Candidates whose own test is significant at the Bonferroni level over the candidates
-    (and whose signature the calibrated parameters do not mimic entirely)."""
-    return [s for s in scores if s.p_value < ALPHA / max(n_cand, 1)
-            and s.identifiable >= MIN_IDENTIFIABLE]
 
 
 def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],

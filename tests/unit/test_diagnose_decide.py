@@ -199,3 +199,24 @@ def test_a_refit_above_its_base_is_retried_from_the_base_point_then_reported_fai
     assert by["good"].ok and by["good"].starts == 1 and by["good"].lr == 10.0
     assert by["cured"].ok and by["cured"].starts == 2 and by["cured"].chi2 == 95.0
     assert not by["stuck"].ok and by["stuck"].starts == 2 and by["stuck"].lr == 0.0
+
+
+def test_the_screen_picks_significant_scores_and_lets_the_refits_decide_when_a_misfit_remains():
+    """On a toy where the score test (linear at the base fit) misses a candidate: without a
+    remaining misfit only the significant, identifiable ones are refitted, best first; with
+    one, the list is filled up with the other identifiable candidates by score, never with a
+    candidate the calibrated parameters mimic entirely, and never beyond the limit."""
+    from types import SimpleNamespace as S
+
+    from solderpyro.diagnose.decide import to_refit
+
+    sc = [S(name="weak", statistic=1.1, p_value=0.30, identifiable=0.5),
+          S(name="strong", statistic=40.0, p_value=1e-9, identifiable=0.9),
+          S(name="mimicked", statistic=90.0, p_value=1e-20, identifiable=0.001),
+          S(name="mid", statistic=9.0, p_value=0.003, identifiable=0.4),
+          S(name="weaker", statistic=0.2, p_value=0.65, identifiable=0.8)]
+    names = [s.name for s in to_refit(sc, 5, False, 4, 0.01)]
+    assert names == ["strong"]  # mid's p = 0.003 is above 0.01 / 5
+    names = [s.name for s in to_refit(sc, 5, True, 4, 0.01)]
+    assert names == ["strong", "mid", "weak", "weaker"]
+    assert [s.name for s in to_refit(sc, 5, True, 2, 0.01)] == ["strong", "mid"]
