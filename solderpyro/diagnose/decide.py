@@ -177,8 +177,14 @@ class Size:
         return {k: (None if v is None else float(v)) for k, v in self.__dict__.items()}
 
 
+def saturates(dof: int, free_dof: int) -> bool:
+    """Whether a candidate with ``dof`` (projected rank) leaves no residual degree of freedom
+    of the ``free_dof`` the calibrated parameters leave (values minus parameters)."""
+    return dof >= free_dof
+
+
 def to_refit(scores: list[Any], n_cand: int, misfit: bool, limit: int,
-             min_identifiable: float) -> list[Any]:
+             min_identifiable: float, free_dof: int) -> list[Any]:
     """Which candidates to refit through the FE (the screen), best first.
 
     Rule: those whose score test is significant at the Bonferroni level over the candidates
@@ -193,8 +199,13 @@ def to_refit(scores: list[Any], n_cand: int, misfit: bool, limit: int,
             signature the calibrated parameters cannot mimic, 0-1).
         n_cand: candidates tested (the Bonferroni count). limit: refits at most.
         min_identifiable: below this share a candidate is never refitted.
+        free_dof: values minus calibrated parameters; a candidate whose projected rank
+            (``dof``) reaches it is never refitted: with the calibrated parameters it would
+            fit any data exactly (Moire motion's 8 parameters on 8 point values), so its
+            likelihood ratio says nothing (:func:`saturates`).
     """
-    ok = [s for s in scores if s.identifiable >= min_identifiable]
+    ok = [s for s in scores if s.identifiable >= min_identifiable
+          and not saturates(s.dof, free_dof)]
     sig = sorted((s for s in ok if s.p_value < ALPHA / max(n_cand, 1)),
                  key=lambda s: -s.statistic)
     if misfit:

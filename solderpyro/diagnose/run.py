@@ -53,6 +53,7 @@ from solderpyro.diagnose.decide import (
     judge,
     load_floor,
     remains,
+    saturates,
     share_text,
     to_refit,
 )
@@ -636,7 +637,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     chosen: tuple[str, ...] = ()
     tie: list[str] = []
     screened = to_refit(scores, len(candidates), remains(base_chi2, n, lay.n_cal), MAX_REFITS,
-                        MIN_IDENTIFIABLE)
+                        MIN_IDENTIFIABLE, n - lay.n_cal)
     if not refit:  # the linearised statistics stand in for the refits
         steps = [judge([Refit((sc.effect,), sc.chi2_after, max(sc.dof, 1), np.zeros(0),
                               mf.chi2) for sc in scores], n, lay.n_cal, sigma, floor,
@@ -967,7 +968,10 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
             # against the base fit's chi-square, as a refit's would be
             after = max(base_chi2 - float(s.statistic), 0.0)
             sz = effect_size(base_chi2, after, n, n_cal, sigma)
-            e.update({"refit": f"not run (screen p = {s.p_value:.2g})", "refit_starts": 0,
+            why = (f"{s.dof} parameters the data cannot test: with the calibrated ones they "
+                   f"fit any {n} values" if saturates(s.dof, n - n_cal)
+                   else f"screen p = {s.p_value:.2g}")
+            e.update({"refit": f"not run ({why})", "refit_starts": 0,
                       "profile_chi2": None, "statistic": float(s.statistic), "dof": s.dof,
                       "p_value": float(s.p_value), "evidence": round(float(s.evidence), 4),
                       "chi2_after": after, **sz.to_json(),

@@ -215,8 +215,14 @@ def test_the_screen_picks_significant_scores_and_lets_the_refits_decide_when_a_m
           S(name="mimicked", statistic=90.0, p_value=1e-20, identifiable=0.001),
           S(name="mid", statistic=9.0, p_value=0.003, identifiable=0.4),
           S(name="weaker", statistic=0.2, p_value=0.65, identifiable=0.8)]
-    names = [s.name for s in to_refit(sc, 5, False, 4, 0.01)]
+    for s in sc:
+        s.dof = 1
+    names = [s.name for s in to_refit(sc, 5, False, 4, 0.01, 100)]
     assert names == ["strong"]  # mid's p = 0.003 is above 0.01 / 5
-    names = [s.name for s in to_refit(sc, 5, True, 4, 0.01)]
+    names = [s.name for s in to_refit(sc, 5, True, 4, 0.01, 100)]
     assert names == ["strong", "mid", "weak", "weaker"]
-    assert [s.name for s in to_refit(sc, 5, True, 2, 0.01)] == ["strong", "mid"]
+    assert [s.name for s in to_refit(sc, 5, True, 2, 0.01, 100)] == ["strong", "mid"]
+    # a candidate whose rank uses up every degree of freedom the calibrated parameters leave
+    # (8 point values, 4 constants, Moire motion's projected rank 4) would fit any data
+    sc[1].dof = 4
+    assert [s.name for s in to_refit(sc, 5, True, 4, 0.01, 4)] == ["mid", "weak", "weaker"]
