@@ -188,30 +188,30 @@ def to_refit(scores: list[Any], n_cand: int, misfit: bool, limit: int,
     """Which candidates to refit through the FE (the screen), best first.
 
     Rule: those whose score test is significant at the Bonferroni level over the candidates
-    and whose signature the calibrated parameters do not mimic entirely; and when a misfit
-    remains at the base fit (``misfit``), the refits decide even where the linearised screen
-    sees nothing, so the list is filled up to ``limit`` with the other identifiable
-    candidates by score. (On 8 point values the score test, linear at the base fit, put the
-    true stress-free temperature at p = 0.3 while a chi-square of 18 on 4 dof remained.)
+    and whose signature the calibrated parameters do not mimic entirely, at most ``limit``;
+    and when a misfit remains at the base fit (``misfit``) and fewer than ``limit`` pass, every
+    other candidate too, by score, whatever its linear identifiability: the refits, not a
+    test linearised at the base fit, decide. (On 8 point values the score test put the true
+    stress-free temperature at p = 0.3 while a chi-square of 18 on 4 dof remained, and the
+    true modulus(T) at 1.0 % identifiability, just under the 1 % line.)
 
     Args:
-        scores: objects with ``statistic``, ``p_value`` and ``identifiable`` (share of the
-            signature the calibrated parameters cannot mimic, 0-1).
-        n_cand: candidates tested (the Bonferroni count). limit: refits at most.
-        min_identifiable: below this share a candidate is never refitted.
+        scores: objects with ``statistic``, ``p_value``, ``dof`` (projected rank) and
+            ``identifiable`` (share of the signature the calibrated parameters cannot mimic).
+        n_cand: candidates tested (the Bonferroni count). limit: refits at most unless a
+            misfit remains. min_identifiable: below this share no significant score counts.
         free_dof: values minus calibrated parameters; a candidate whose projected rank
-            (``dof``) reaches it is never refitted: with the calibrated parameters it would
-            fit any data exactly (Moire motion's 8 parameters on 8 point values), so its
-            likelihood ratio says nothing (:func:`saturates`).
+            reaches it is never refitted: with the calibrated parameters it would fit any
+            data exactly (Moire motion's 8 parameters on 8 point values), so its likelihood
+            ratio says nothing (:func:`saturates`).
     """
-    ok = [s for s in scores if s.identifiable >= min_identifiable
-          and not saturates(s.dof, free_dof)]
-    sig = sorted((s for s in ok if s.p_value < ALPHA / max(n_cand, 1)),
-                 key=lambda s: -s.statistic)
-    if misfit:
+    ok = [s for s in scores if not saturates(s.dof, free_dof)]
+    sig = sorted((s for s in ok if s.p_value < ALPHA / max(n_cand, 1)
+                  and s.identifiable >= min_identifiable), key=lambda s: -s.statistic)[:limit]
+    if misfit and len(sig) < limit:
         sig += sorted((s for s in ok if all(s is not t for t in sig)),
                       key=lambda s: -s.statistic)
-    return sig[:limit]
+    return sig
 
 
 def effect_size(chi2_base: float, chi2_after: float, n: int, n_params: int,

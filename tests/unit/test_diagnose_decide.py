@@ -202,27 +202,26 @@ def test_a_refit_above_its_base_is_retried_from_the_base_point_then_reported_fai
 
 
 def test_the_screen_picks_significant_scores_and_lets_the_refits_decide_when_a_misfit_remains():
-    """On a toy where the score test (linear at the base fit) misses a candidate: without a
-    remaining misfit only the significant, identifiable ones are refitted, best first; with
-    one, the list is filled up with the other identifiable candidates by score, never with a
-    candidate the calibrated parameters mimic entirely, and never beyond the limit."""
+    """Without a remaining misfit only the significant, identifiable candidates are refitted,
+    best first, at most ``limit``; with one and fewer than ``limit`` of those, every other
+    candidate too (by score, whatever its linear identifiability), never one that saturates
+    the data."""
     from types import SimpleNamespace as S
 
     from solderpyro.diagnose.decide import to_refit
 
-    sc = [S(name="weak", statistic=1.1, p_value=0.30, identifiable=0.5),
-          S(name="strong", statistic=40.0, p_value=1e-9, identifiable=0.9),
-          S(name="mimicked", statistic=90.0, p_value=1e-20, identifiable=0.001),
-          S(name="mid", statistic=9.0, p_value=0.003, identifiable=0.4),
-          S(name="weaker", statistic=0.2, p_value=0.65, identifiable=0.8)]
-    for s in sc:
-        s.dof = 1
+    sc = [S(name="weak", statistic=1.1, p_value=0.30, identifiable=0.5, dof=1),
+          S(name="strong", statistic=40.0, p_value=1e-9, identifiable=0.9, dof=1),
+          S(name="mimicked", statistic=90.0, p_value=1e-20, identifiable=0.001, dof=1),
+          S(name="mid", statistic=9.0, p_value=0.003, identifiable=0.4, dof=1),
+          S(name="weaker", statistic=0.2, p_value=0.65, identifiable=0.8, dof=1)]
     names = [s.name for s in to_refit(sc, 5, False, 4, 0.01, 100)]
-    assert names == ["strong"]  # mid's p = 0.003 is above 0.01 / 5
+    assert names == ["strong"]  # mid's p = 0.003 is above 0.01 / 5; mimicked not identifiable
     names = [s.name for s in to_refit(sc, 5, True, 4, 0.01, 100)]
-    assert names == ["strong", "mid", "weak", "weaker"]
-    assert [s.name for s in to_refit(sc, 5, True, 2, 0.01, 100)] == ["strong", "mid"]
+    assert names == ["strong", "mimicked", "mid", "weak", "weaker"]
+    assert [s.name for s in to_refit(sc, 5, True, 1, 0.01, 100)] == ["strong"]  # enough passed
     # a candidate whose rank uses up every degree of freedom the calibrated parameters leave
     # (8 point values, 4 constants, Moire motion's projected rank 4) would fit any data
     sc[1].dof = 4
-    assert [s.name for s in to_refit(sc, 5, True, 4, 0.01, 4)] == ["mid", "weak", "weaker"]
+    assert [s.name for s in to_refit(sc, 5, True, 4, 0.01, 4)] == ["mimicked", "mid", "weak",
+                                                                   "weaker"]
