@@ -10,6 +10,9 @@
    ran out with the FE disagreeing.
 7. :mod:`.outputs` -- the run directory (and :mod:`solderpyro.report` for the report).
 
+:mod:`.warm` says where a recalibration (``--warm-from``) starts: the related run's sampler
+state, with the chains at the diagnosis's FE refit of the new model where there is one.
+
 :func:`calibrate_specimen` (:mod:`.calibrate`) runs them; :class:`CalibrationSettings`
 (:mod:`solderpyro.settings`, also the Hydra schema of the ``calibration`` group) holds every
 setting. A new stage is a module here and a line in
