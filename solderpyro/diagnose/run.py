@@ -1040,6 +1040,10 @@ def _verdict(mf: Misfit, pc: PredictiveCheck, scores: list[Score],
             first[c].refit.dof for c in chosen if c in first)):
         verdict += (" (a misfit within the noise-sd bound remains significant on "
                     f"{n} values)")
+    untestable = [s.effect for s in scores if saturates(s.dof, n - n_cal)]
+    if bad and untestable:  # the verdict covers the candidates these data can test, only
+        verdict += ("; not testable on these data (with the calibrated parameters they would "
+                    f"fit any {n} values): {', '.join(untestable)}")
     confounded = [e["effect"] for e in ranking if bad and e["identifiable"] < MIN_IDENTIFIABLE]
     if confounded:
         suggestions.append(f"not identifiable from these data (confounded with the calibrated "
