@@ -237,9 +237,11 @@ class WarmStart:
             a :class:`WarmStart` on ``box.names + ["sigma"]``: the point's coordinates set,
             the others and the inverse metric taken by name as :meth:`apply` does.
         """
+        from solderpyro.calibration.koh import SITE_SIGMA
+
         if not self.point:
             return self
-        names = [*box.names, "sigma"]
+        names = [*box.names, SITE_SIGMA]  # as coord_names names the model's coordinates
         chains = self.q.shape[0]
         q, inv, _ = self.apply(names, chains, self.inv_metric.ndim == 2)
         rng = np.random.default_rng(seed)
@@ -251,7 +253,7 @@ class WarmStart:
             z = np.log(u) - np.log1p(-u)
             for k in known:
                 q[:, k] = z[k] + jitter * rng.standard_normal(chains)
-        sg = self.point.get("sigma")
+        sg = self.point.get(SITE_SIGMA)
         if sigma_log and sg is not None and sg > 0:
             q[:, -1] = math.log(sg) + jitter * rng.standard_normal(chains)
         return WarmStart(names, q, inv, self.step_size)
