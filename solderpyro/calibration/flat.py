@@ -57,11 +57,20 @@ class FlatModel:
     Attributes:
         sites: the sampled sites in order; dim: the length ``d`` of the flat vector.
         dtype: the torch dtype of the model's tensors (for :meth:`to_samples`).
+        reparam: None, or ``(idx, coords)``: the flat indices ``idx (k,)`` of unit-interval
+            coordinates that ``coords`` (e.g. :class:`~.flowcoords.SoftFlowCoords`: methods
+            ``forward(q (k,)) -> (t (k,), log|det dt/dq|, vjp)`` and ``inverse(t) -> q``)
+            maps jointly instead of each by its logit; :attr:`coord_suffix` names them.
     """
 
     def __init__(self, sites: list[FlatSite], loglik: Any, prior_mu: float, prior_sd: float,
-                 dtype: torch.dtype) -> None:
+                 dtype: torch.dtype, reparam: tuple[np.ndarray, Any] | None = None) -> None:
         self.sites = sites
+        self.reparam = reparam
+        #: flat index -> a suffix for the coordinate's name (``":flow"``): a coordinate in
+        #: another system than the logit, so a warm start does not take its metric for one
+        self.coord_suffix = ({int(i): ":" + getattr(reparam[1], "name", "reparam")
+                              for i in reparam[0]} if reparam else {})
         self.dim = sum(s.size for s in sites)
         self._loglik = loglik  # constrained x (d,) -> (loglik, d loglik / dx (d,))
         self._mu, self._sd = prior_mu, prior_sd  # LogNormal sigma prior (positive sites)
@@ -100,16 +109,34 @@ class FlatModel:
             z = (q[pi] - self._mu) / self._sd
             lj_all[pi] = -0.5 * z * z - (math.log(self._sd) + _HALF_LOG_2PI)
             grad[pi] = -z / self._sd
+        vjp = None
+        if self.reparam is not None:
+            ri, rc = self.reparam
+            x[ri], ld, vjp = rc.forward(q[ri])  # unit interval sites: x = t
+            lj_all[ri] = 0.0
+            lj_all[ri[0]] = ld
         lj = float(lj_all.sum())
         ll, gx = self._loglik(x)
-        return ll + lj, grad + gx * dx
+        g = grad + gx * dx
+        if vjp is not None:
+            g[ri] = vjp(gx[ri])
+        return ll + lj, g
 
     def to_samples(self, draws: np.ndarray) -> dict[str, torch.Tensor]:
         """Unconstrained draws ``(chain, draw, d)`` -> ``site -> (chain, draw[, size])`` tensors
         in constrained units (Pyro's layout: scalars without a trailing axis)."""
         out = {}
+        if self.reparam is not None:
+            ri, rc = self.reparam
+            flat = draws.reshape(-1, draws.shape[-1])
+            t = np.array([rc.forward(row[ri])[0] for row in flat]).reshape(
+                *draws.shape[:-1], len(ri))
         for s in self.sites:
             v = s.constrain(draws[..., s.offset:s.offset + s.size])
+            if self.reparam is not None:
+                for j, i in enumerate(ri):
+                    if s.offset <= i < s.offset + s.size:
+                        v[..., i - s.offset] = t[..., j]
             out[s.name] = torch.as_tensor(v if s.vector else v[..., 0], dtype=self.dtype)
         return out
 
@@ -123,6 +150,10 @@ class FlatModel:
                 raise ValueError(f"init value of {s.name} has {v.size} elements, expected "
                                  f"{s.size}")
             q[s.offset:s.offset + s.size] = s.unconstrain(v)
+            if self.reparam is not None:
+                ri, rc = self.reparam
+                if all(s.offset <= i < s.offset + s.size for i in ri):
+                    q[ri] = rc.inverse(v[ri - s.offset])
         return q
 
 

@@ -217,6 +217,22 @@ class WarmStart:
     inv_metric: np.ndarray
     step_size: float
     point: dict[str, float] | None = None
+    unit: np.ndarray | None = None
+    unit_names: list[str] | None = None
+
+    def unit_for(self, names: Sequence[str], chains: int) -> np.ndarray:
+        """``(chains, p)`` the chains' positions on the unit cube of a box with these names:
+        from :attr:`unit` where it holds the name, else from a logit coordinate of that name
+        (a state written before :attr:`unit` existed), else 0.5 (the box's middle)."""
+        out = np.full((chains, len(names)), 0.5)
+        rows = np.arange(chains)
+        for j, nm in enumerate(names):
+            if self.unit is not None and self.unit_names and nm in self.unit_names:
+                out[:, j] = self.unit[rows % self.unit.shape[0], self.unit_names.index(nm)]
+            elif nm in self.coords:
+                out[:, j] = 1.0 / (1.0 + np.exp(-self.q[rows % self.q.shape[0],
+                                                        self.coords.index(nm)]))
+        return out
 
     def placed(self, box: Box, sigma_log: bool, jitter: float = 0.02, seed: int = 0
                ) -> WarmStart:
@@ -228,22 +244,22 @@ class WarmStart:
         field case: every transition of every round divergent from the old positions).
 
         Args:
-            box: the new calibration box (its names are the coordinates; unit scale, logit).
+            box: the new calibration box (its names are the parameters).
             sigma_log: the sigma site is log-transformed (a known noise sd); then a
                 ``point["sigma"]`` (um) starts it too.
-            jitter: sd of the per-chain offsets on the logit scale (dispersed starts for
-                R-hat). seed: their random seed.
+            jitter: sd of the per-chain offsets on the logit scale of the unit cube
+                (dispersed starts for R-hat). seed: their random seed.
         Returns:
-            a :class:`WarmStart` on ``box.names + ["sigma"]``: the point's coordinates set,
-            the others and the inverse metric taken by name as :meth:`apply` does.
+            a :class:`WarmStart` whose :attr:`unit` positions (on ``box.names``) are the
+            point's, jittered; coordinates, metric and step size are this state's (taken by
+            name when the sampler starts, :meth:`apply`).
         """
         from solderpyro.calibration.koh import SITE_SIGMA
 
         if not self.point:
             return self
-        names = [*box.names, SITE_SIGMA]  # as coord_names names the model's coordinates
         chains = self.q.shape[0]
-        q, inv, _ = self.apply(names, chains, self.inv_metric.ndim == 2)
+        unit = self.unit_for(box.names, chains)
         rng = np.random.default_rng(seed)
         known = [k for k, nm in enumerate(box.names) if nm in self.point]
         if known:
@@ -252,11 +268,14 @@ class WarmStart:
             u = box.to_unit(x).numpy()[0].clip(1e-4, 1.0 - 1e-4)
             z = np.log(u) - np.log1p(-u)
             for k in known:
-                q[:, k] = z[k] + jitter * rng.standard_normal(chains)
+                unit[:, k] = 1.0 / (1.0 + np.exp(-(z[k] + jitter * rng.standard_normal(chains))))
+        q = self.q.copy()
         sg = self.point.get(SITE_SIGMA)
-        if sigma_log and sg is not None and sg > 0:
-            q[:, -1] = math.log(sg) + jitter * rng.standard_normal(chains)
-        return WarmStart(names, q, inv, self.step_size)
+        if sigma_log and sg is not None and sg > 0 and SITE_SIGMA in self.coords:
+            q[:, self.coords.index(SITE_SIGMA)] = (math.log(sg)
+                                                   + jitter * rng.standard_normal(chains))
+        return WarmStart(list(self.coords), q, self.inv_metric, self.step_size, None, unit,
+                         list(box.names))
 
     def apply(self, coords: Sequence[str], chains: int, dense: bool
               ) -> tuple[np.ndarray, np.ndarray, float]:
@@ -280,8 +299,11 @@ class WarmStart:
     def save(self, path: str | Path) -> Path:
         """Write to ``path`` (``.npz``)."""
         p = Path(path)
-        np.savez(p, coords=np.array(self.coords), q=self.q, inv_metric=self.inv_metric,
-                 step_size=self.step_size)
+        arrays: dict[str, Any] = {"coords": np.array(self.coords), "q": self.q,
+                                  "inv_metric": self.inv_metric, "step_size": self.step_size}
+        if self.unit is not None and self.unit_names:
+            arrays |= {"unit": self.unit, "unit_names": np.array(self.unit_names)}
+        np.savez(p, **arrays)
         return p
 
     @classmethod
@@ -296,8 +318,10 @@ class WarmStart:
             raise FileNotFoundError(f"{p} is missing: the run directory has no sampler state "
                                     "(written by 'solderpyro calibrate' of this version)")
         with np.load(p) as z:
+            unit = z["unit"] if "unit" in z.files else None
+            names = [str(c) for c in z["unit_names"]] if "unit_names" in z.files else None
             return cls([str(c) for c in z["coords"]], z["q"], z["inv_metric"],
-                       float(z["step_size"]))
+                       float(z["step_size"]), None, unit, names)
 
 
 @dataclass
@@ -373,6 +397,7 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
     if workers is not None and (not isinstance(workers, int) or workers < 1):
         raise ValueError(f"run_nuts workers must be a positive integer, got {workers!r}")
     from solderpyro.calibration.fastkoh import flat_model
+    from solderpyro.calibration.koh import SITE_T
     from solderpyro.calibration.nuts import sample_nuts
 
     t0 = time.perf_counter()
@@ -389,6 +414,9 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         q0, inv0, step0 = None, None, None
         if warm is not None:
             q0, inv0, step0 = warm.apply(names, chains, full_mass)
+            box = _theta_box(args)
+            if box is not None:  # the parameters' positions whatever their coordinates
+                q0 = _with_theta(fm, q0, warm.unit_for(box.names, chains))
         elif init == "sir":
             pts = sir_inits(model, args, chains, init_draws, seed)
             if all(v is not None for v in pts):
@@ -405,11 +433,40 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
                           inv_metric=inv0, step_size=step0,
                           workers=workers or default_workers(chains), on_chain=on_chain)
     inv = np.mean(np.stack(res.inv_metric), 0)
-    ws = WarmStart(names, res.draws[:, -1].copy(), inv, float(np.median(res.step_size)))
+    samples = fm.to_samples(res.draws)
+    box = _theta_box(args)
+    unit = (samples[SITE_T][:, -1].reshape(chains, -1).cpu().numpy().astype(float)
+            if box is not None and SITE_T in samples else None)
+    ws = WarmStart(names, res.draws[:, -1].copy(), inv, float(np.median(res.step_size)),
+                   None, unit, list(box.names) if unit is not None and box else None)
     stats = [{"step_size": float(a), "accept_prob": float(b), "n_grad": float(c)}
              for a, b, c in zip(res.step_size, res.accept_prob, res.n_leapfrog, strict=True)]
-    return NutsRun(fm.to_samples(res.draws), res.divergences, time.perf_counter() - t0, ws,
-                   stats)
+    return NutsRun(samples, res.divergences, time.perf_counter() - t0, ws, stats)
+
+
+def _theta_box(args: tuple) -> Any:
+    """The calibration box of a :mod:`.koh` model's inputs (None for other models)."""
+    if not args:
+        return None
+    a0 = args[0]
+    return getattr(a0, "theta_box", None) or getattr(getattr(a0, "data", None), "theta_box",
+                                                     None)
+
+
+def _with_theta(fm: Any, q0: np.ndarray, unit: np.ndarray) -> np.ndarray:
+    """``q0 (chains, d)`` with the theta site's coordinates set to the unit-cube positions
+    ``unit (chains, p)``, through the model's own transform (logit or flow coordinates)."""
+    from solderpyro.calibration.koh import SITE_T
+
+    if SITE_T not in {s.name for s in getattr(fm, "sites", [])}:
+        return q0
+    samp = fm.to_samples(q0[:, None, :])
+    out = q0.copy()
+    for c in range(q0.shape[0]):
+        vals = {k: v[c, 0] for k, v in samp.items()}
+        vals[SITE_T] = torch.as_tensor(unit[c].clip(1e-9, 1.0 - 1e-9))
+        out[c] = fm.to_unconstrained(vals)
+    return out
 
 
 def coord_names(fm: Any, args: tuple) -> list[str]:
@@ -417,11 +474,7 @@ def coord_names(fm: Any, args: tuple) -> list[str]:
     (from the model's inputs), other sites by ``site`` or ``site[i]``."""
     from solderpyro.calibration.koh import SITE_T
 
-    box = None
-    if args:
-        a0 = args[0]
-        box = getattr(a0, "theta_box", None) or getattr(getattr(a0, "data", None),
-                                                        "theta_box", None)
+    box = _theta_box(args)
     names = list(getattr(fm, "coord_names", []))
     if not names:
         names = [f"{s.name}[{i}]" if s.vector else s.name for s in fm.sites
@@ -431,6 +484,8 @@ def coord_names(fm: Any, args: tuple) -> list[str]:
         if len(t_idx) == box.dim:
             for i, nm in zip(t_idx, box.names, strict=True):
                 names[i] = nm
+    for i, suffix in getattr(fm, "coord_suffix", {}).items():
+        names[i] += suffix
     return names
 
 

@@ -288,13 +288,18 @@ def reduced_loglik_torch(gp: GPSurrogate, y_obs: torch.Tensor, t: torch.Tensor,
     return -0.5 * (r.shape[0] * _LOG_2PI + logdet + quad)
 
 
-def pca_flat(inp: Any, priors: Any = None) -> Any:
+def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
     """:func:`~.koh.observation_model` with a PCA surrogate (a :class:`GPEmulator` of the
     observations, possibly inside an :class:`ObservedEmulator`) as a
     :class:`~.flat.FlatModel` on the reduced likelihood, with an analytic gradient.
 
-    Flat vector: ``t_unit (p,)`` then ``sigma``; the same priors and transforms as the Pyro
-    model. Observation offsets (``ObservedEmulator``) enter through one torch backward pass
+    Flat vector: ``t_unit (p,)`` then ``sigma``; the same priors as the Pyro model. The
+    transforms: with ``coords="auto"`` and a surrogate on flow-stress inputs whose box holds
+    s0, QR, xi, m (A, s_hat, n fixed), those four are sampled in the soft-walled flow-stress
+    coordinates of :class:`~.flowcoords.SoftFlowCoords` (the same posterior, a far rounder
+    density; BENCHMARKS.md issue 18); every other coordinate, and all of them with
+    ``coords="logit"``, on Pyro's transforms (the logit of the unit interval). Observation
+    offsets (``ObservedEmulator``) enter through one torch backward pass
     through the offset function per gradient.
 
     Raises:
@@ -310,6 +315,8 @@ def pca_flat(inp: Any, priors: Any = None) -> Any:
     base = em.base if isinstance(em, ObservedEmulator) else em
     ok = (isinstance(base, GPEmulator) and base.x_obs is None and base.gp.output == "pca"
           and (not isinstance(em, ObservedEmulator) or isinstance(em.base, GPEmulator)))
+    if coords not in ("auto", "logit"):
+        raise ValueError(f"pca_flat coords must be 'auto' or 'logit', got {coords!r}")
     _unsupported(pr, {"emulators other than a PCA GPEmulator": not ok,
                       "discrepancy=True": inp.discrepancy,
                       "a LocalBox prior": hasattr(inp.theta_box, "log_support")})
@@ -351,4 +358,19 @@ def pca_flat(inp: Any, priors: Any = None) -> Any:
             g[n_fe:p] = gq.numpy()
         return ll, g
 
-    return FlatModel(sites, loglik, mu, sd, inp.y_obs.dtype)
+    return FlatModel(sites, loglik, mu, sd, inp.y_obs.dtype,
+                     _flow_reparam(gp, inp.theta_box) if coords == "auto" else None)
+
+
+def _flow_reparam(gp: GPSurrogate, theta_box: Box) -> tuple[np.ndarray, Any] | None:
+    """``(idx, SoftFlowCoords)`` for a surrogate on flow-stress inputs whose calibration box
+    the transform covers, else None (the logit)."""
+    from solderpyro.calibration.flowcoords import SoftFlowCoords
+    from solderpyro.surrogate.features import FlowStressInputs
+
+    feats = gp.inputs
+    if not isinstance(feats, FlowStressInputs) or SoftFlowCoords.applies(theta_box,
+                                                                          feats.fixed):
+        return None
+    c = SoftFlowCoords(theta_box, feats.fixed, feats.T_ref_K - 273.15, feats.rate_ref)
+    return c.idx.astype(np.int64), c

@@ -94,7 +94,7 @@ def _offset_emulator(gp: GPSurrogate):
 
 def _flat_pair(gp, emulator, box, pr):
     inp = prepare_observation(_y(gp), emulator, box)
-    return pca_flat(inp, pr), torch_flat(observation_model, (inp, pr), jit=False)
+    return pca_flat(inp, pr, coords="logit"), torch_flat(observation_model, (inp, pr), jit=False)
 
 
 @pytest.mark.parametrize("name", ["matern-flow", "gauss-raw-linear"])
@@ -119,6 +119,42 @@ def test_analytic_density_and_gradient_equal_pyro_autograd(gps, name, offsets, p
         diffs.append(la - lg)
         np.testing.assert_allclose(ga, gg, rtol=1e-6, atol=1e-7 * np.abs(gg).max())
     assert np.ptp(diffs) < 1e-7 * max(1.0, abs(lg)), diffs
+
+
+@pytest.mark.parametrize("offsets", [False, True])
+def test_flow_coordinates_are_the_same_posterior(gps, offsets):
+    """With a flow-stress surrogate the default flat model samples (s0, QR, xi, m) in the
+    soft-walled flow coordinates: its density, less that map's log-Jacobian, equals the
+    logit model's, less the logit's, at the same parameters (one constant), and its gradient
+    equals central differences."""
+    gp = gps["matern-flow"]
+    em, box = _offset_emulator(gp) if offsets else (GPEmulator(gp), ANAND)
+    inp = prepare_observation(_y(gp), em, box)
+    pr = Priors(sigma_max=2.0)
+    fa, fl = pca_flat(inp, pr), pca_flat(inp, pr, coords="logit")
+    assert fa.reparam is not None and fl.reparam is None
+    ri, rc = fa.reparam
+    rng = np.random.default_rng(2)
+    diffs = []
+    for _ in range(5):
+        t = rng.uniform(0.05, 0.95, box.dim)
+        q = np.append(np.log(t) - np.log1p(-t), rng.normal(-1.0, 0.3))
+        lq, _ = fl.logp_and_grad(q)
+        qa = q.copy()
+        qa[ri] = rc.inverse(t[ri])
+        la, ga = fa.logp_and_grad(qa)
+        ld = rc.forward(qa[ri])[1]
+        diffs.append((la - ld) - (lq - float(np.log(t[ri] * (1 - t[ri])).sum())))
+        h = 1e-6
+        fd = [(fa.logp_and_grad(qa + h * e)[0] - fa.logp_and_grad(qa - h * e)[0]) / (2 * h)
+              for e in np.eye(fa.dim)]
+        np.testing.assert_allclose(ga, fd, rtol=1e-5, atol=1e-4)
+    assert np.ptp(diffs) < 1e-8 * max(1.0, abs(lq)), diffs
+    draws = np.stack([qa, qa])[None]  # (1 chain, 2 draws, d)
+    np.testing.assert_allclose(fa.to_samples(draws)["t_unit"][0, 0].numpy(), t, atol=1e-10)
+    np.testing.assert_allclose(fa.to_unconstrained(fa.to_samples(draws) | {
+        "t_unit": torch.as_tensor(t), "sigma": fa.to_samples(draws)["sigma"][0, 0]}), qa,
+        atol=1e-8)
 
 
 def test_flow_stress_jacobian_equals_autograd():

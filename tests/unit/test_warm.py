@@ -26,17 +26,26 @@ def test_placed_starts_every_chain_at_the_point_and_keeps_the_metric_by_name() -
     ws = _state()
     ws.point = {"s0": 13.3, "QR": 12180.0, "k_E": 0.0173, "sigma": 0.049}
     p = ws.placed(box, sigma_log=True, jitter=0.02, seed=3)
-    assert p.coords == ["s0", "QR", "k_E", "sigma"]
+    assert p.unit_names == ["s0", "QR", "k_E"]
     u = np.array([(13.3 - 5) / 20, (12180 - 7000) / 6000, 0.0173 / 0.03])
     logit = np.log(u) - np.log1p(-u)
     # every chain within 5 jitter sd of the point (logit scale), sigma at log(0.049)
-    assert np.abs(p.q[:, :3] - logit).max() < 5 * 0.02
-    assert np.abs(p.q[:, 3] - math.log(0.049)).max() < 5 * 0.02
-    assert p.q[:, 0].std() > 0  # dispersed, for R-hat
-    # the metric of shared names carried over, the new coordinate's unit
-    assert p.inv_metric[0, 0] == pytest.approx(0.37) and p.inv_metric[0, 1] == pytest.approx(0.01)
-    assert p.inv_metric[2, 2] == 1.0 and p.inv_metric[2, 0] == 0.0
-    assert p.inv_metric[3, 3] == pytest.approx(2e-4)
+    assert np.abs(np.log(p.unit) - np.log1p(-p.unit) - logit).max() < 5 * 0.02
+    assert np.abs(p.q[:, 2] - math.log(0.049)).max() < 5 * 0.02
+    assert p.unit[:, 0].std() > 0  # dispersed, for R-hat
+    # the metric and coordinates by name are the base run's (the sampler takes them by name)
+    assert p.coords == ws.coords and p.inv_metric is ws.inv_metric
+    q, inv, _ = p.apply(["s0", "QR", "k_E", "sigma"], 4, dense=True)
+    assert inv[0, 0] == pytest.approx(0.37) and inv[0, 1] == pytest.approx(0.01)
+    assert inv[2, 2] == 1.0 and inv[2, 0] == 0.0
+    assert inv[3, 3] == pytest.approx(2e-4)
+
+
+def test_unit_for_reads_old_logit_states_and_defaults_to_the_middle() -> None:
+    ws = _state()  # no unit positions: a state written before they were kept
+    u = ws.unit_for(["QR", "new"], 4)
+    np.testing.assert_allclose(u[:, 0], 1 / (1 + np.exp(-ws.q[:, 1])))
+    np.testing.assert_array_equal(u[:, 1], 0.5)
 
 
 def test_placed_without_a_point_is_unchanged_and_a_bound_stays_finite() -> None:
@@ -45,7 +54,7 @@ def test_placed_without_a_point_is_unchanged_and_a_bound_stays_finite() -> None:
     assert ws.placed(box, True) is ws
     ws.point = {"s0": 25.0, "QR": 7000.0}  # a refit that ended on two box faces
     p = ws.placed(box, sigma_log=False)
-    assert np.isfinite(p.q).all()
+    assert np.isfinite(p.q).all() and ((p.unit > 0) & (p.unit < 1)).all()
     assert np.allclose(p.q[:, 2], ws.q[:, 2])  # sigma without a log site keeps its positions
 
 
