@@ -1,6 +1,6 @@
 """Simulation-based calibration of the NUTS sampler (Talts et al. 2018, arXiv:1804.06788).
 
-Usage: python benchmarks/sbc.py [--reps 200] [--models direct field] [--chains 1]
+Usage: python benchmarks/sbc.py [--reps 200] [--models direct field anand] [--chains 1]
        [--warmup 300] [--draws 300] [--bins 10] [--mutate none|half-lik|double-lik|short]
        [--out benchmarks/results_sbc.json]
 
@@ -15,7 +15,7 @@ uniform on {0, ..., L}; a chi-square test on B bins (each bin (L + 1) / B rank v
 it, and the largest bin deviation and the ECDF's largest distance from the uniform CDF are
 reported beside it.
 
-Two models:
+Three models:
 
 - ``direct``: the seed math example (Section 3), y_i ~ N(5 exp(-t x_i), sigma^2) on the seed's
   11 x, t ~ U(0, 2), sigma ~ U(0, 2) (``Priors(sigma_max=2)``).
@@ -25,12 +25,23 @@ Two models:
   sigma ~ LogNormal(log 0.05, 0.1) (``Priors(sigma_known=0.05)``). Data come from that
   Gaussian, not from f, so the ranks test the sampler, not the surrogate.
 
+- ``anand``: the Anand constants (s0, QR, xi, m on the seed box) through a PCA GP on
+  flow-stress inputs (Matern 5/2, ARD, 4 components, 30 LHS runs) of a 60-value stand-in
+  field linear in the four flow-stress features f (f0 (1 - s) + f1 s + f2 sin(pi s) +
+  f3 cos(2 pi s), s in [0, 1]: identifiable, one mode); sigma ~ LogNormal(log 0.3, 0.1), so
+  posteriors are wide and often reach the box's faces. This is
+  the model whose NUTS runs in the soft-walled flow-stress coordinates
+  (:mod:`solderpyro.calibration.flowcoords`): its ranks test that transform (log-Jacobian,
+  gradient, walls) over the whole box.
+
 Mutations (run once to show the check can fail, not a result): ``half-lik`` samples a posterior
 with the likelihood's log density halved (too wide; through Pyro's potential with autograd,
 slow); ``double-lik`` (direct model only) calibrates on every observation twice, i.e. the
 likelihood squared (too narrow; on the analytic path); ``short`` runs one chain per replication
 with a 10-iteration warm-up and keeps L consecutive draws unthinned (an under-adapted,
-autocorrelated sampler).
+autocorrelated sampler); ``half-jacobian`` (anand model only) samples the flow coordinates
+with half their log-Jacobian (the density and gradient kept consistent: a smooth, wrong
+posterior that leans away from the box's faces).
 """
 
 from __future__ import annotations
@@ -41,7 +52,8 @@ import logging
 import math
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -138,6 +150,44 @@ def field_problem(n_runs: int = 25, seed: int = 0) -> Problem:
                     "sigma_prior": "LogNormal(log 0.05, 0.1)"})
 
 
+ANAND_BOX = Box(("s0", "QR", "xi", "m"), (5.0, 7000.0, 1.0, 0.05), (25.0, 13000.0, 5.0, 0.5))
+ANAND_FIXED = {"A": 4.0e6, "s_hat": 13.79, "n": 0.07}
+ANAND_PRIORS = Priors(sigma_known=0.3)
+
+
+def anand_problem(n_runs: int = 30, seed: int = 0) -> Problem:
+    """The flow-stress PCA-surrogate model of the four Anand constants (see the docstring)."""
+    from solderpyro.design import lhs
+    from solderpyro.surrogate import GPSurrogate
+    from solderpyro.surrogate.features import FlowStressInputs
+
+    feats = FlowStressInputs(ANAND_BOX, ANAND_FIXED)
+    x = torch.linspace(0, 1, 60, dtype=DT)
+
+    def field(th: torch.Tensor) -> torch.Tensor:
+        f = feats(th)
+        return (f[:, :1] * (1 - x) + f[:, 1:2] * x + f[:, 2:3] * torch.sin(math.pi * x)
+                + f[:, 3:4] * torch.cos(2 * math.pi * x))
+
+    th = lhs(ANAND_BOX, n_runs, seed).to(DT)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp = GPSurrogate(ANAND_BOX, output="pca", kernel="matern52", ard=True, n_pc=4,
+                         inputs=feats, restarts=1).fit(th, field(th))
+    emu = GPEmulator(gp)
+    with torch.no_grad():
+        y0 = emu(ANAND_BOX.from_unit(torch.full((4,), 0.5, dtype=DT)))[0]
+    inp = prepare_observation(y0, emu, ANAND_BOX)
+
+    def calibrate(y: torch.Tensor, **nuts: Any) -> Any:
+        return calibrate_emulator(emu, y, ANAND_BOX, ANAND_PRIORS, progress=False, **nuts)[0]
+
+    return Problem("anand", inp, ANAND_PRIORS, list(ANAND_BOX.names), calibrate,
+                   {"box": [ANAND_BOX.lower, ANAND_BOX.upper], "n_obs": 60, "n_runs": n_runs,
+                    "n_pc": int(gp.basis.shape[1]), "inputs": "flow_stress",
+                    "sigma_prior": "LogNormal(log 0.3, 0.1)"})
+
+
 def simulate(p: Problem, seed: int) -> tuple[dict[str, np.ndarray], torch.Tensor]:
     """One draw of (t, sigma) from the prior and y from the likelihood: the model itself, run
     with its observed site un-conditioned. Returns the truth by column name and y."""
@@ -172,6 +222,11 @@ def _columns(p: Problem, y: torch.Tensor, mutate: str, nuts: dict) -> dict[str, 
         post = calibrate_direct(code, torch.cat([x, x]), torch.cat([y, y]), DIRECT_BOX,
                                 DIRECT_PRIORS, progress=False, **nuts)[0]
         return post.columns()
+    if mutate == "half-jacobian":
+        if p.name != "anand":
+            raise NotImplementedError("the half-jacobian mutation is for the anand model")
+        with _half_jacobian():
+            return p.calibrate(y, **nuts).columns()
     if mutate != "half-lik":
         return p.calibrate(y, **nuts).columns()
     inp = ObsInputs(y, p.inp.emulator, p.inp.theta_box, p.inp.u_x)
@@ -180,6 +235,26 @@ def _columns(p: Problem, y: torch.Tensor, mutate: str, nuts: dict) -> dict[str, 
     out = {nm: t[..., i] for i, nm in enumerate(p.names)}
     out["sigma"] = samples[SITE_SIGMA].numpy()
     return out
+
+
+@contextmanager
+def _half_jacobian() -> Iterator[None]:
+    """Mutation: SoftFlowCoords with half its log-Jacobian (``vjp`` is linear in its argument
+    plus the log-Jacobian's gradient ``vjp(0)``, so the gradient stays the density's)."""
+    from solderpyro.calibration.flowcoords import SoftFlowCoords
+
+    orig = SoftFlowCoords.forward
+
+    def forward(self: Any, q: np.ndarray) -> Any:
+        t, ld, vjp = orig(self, q)
+        g0 = vjp(np.zeros(4))
+        return t, 0.5 * ld, lambda g: vjp(g) - 0.5 * g0
+
+    SoftFlowCoords.forward = forward  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        SoftFlowCoords.forward = orig  # type: ignore[method-assign]
 
 
 def _min_ess(cols: dict[str, np.ndarray]) -> float:
@@ -300,19 +375,20 @@ def _print(res: dict, alpha: float) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=200)
-    ap.add_argument("--models", nargs="+", default=["direct", "field"],
-                    choices=["direct", "field"])
+    ap.add_argument("--models", nargs="+", default=["direct", "field", "anand"],
+                    choices=["direct", "field", "anand"])
     ap.add_argument("--chains", type=int, default=1)
     ap.add_argument("--warmup", type=int, default=300)
     ap.add_argument("--draws", type=int, default=300)
     ap.add_argument("--bins", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--family-alpha", type=float, default=0.01)
-    ap.add_argument("--mutate", default="none", choices=["none", "half-lik", "double-lik", "short"])
+    ap.add_argument("--mutate", default="none",
+                    choices=["none", "half-lik", "double-lik", "short", "half-jacobian"])
     ap.add_argument("--out", default="benchmarks/results_sbc.json")
     a = ap.parse_args()
     torch.set_default_dtype(DT)
-    makers = {"direct": direct_problem, "field": field_problem}
+    makers = {"direct": direct_problem, "field": field_problem, "anand": anand_problem}
     results: list[dict] = []
 
     def doc() -> dict:

@@ -217,11 +217,20 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
                              sg.inputs_rate)
     try:
         ex, ex_info = fe_exact(sm.observed, coords, y, pr, draws, starts, ex_s.runs,
-                               ex_s.rounds, ex_s.profile, s.seed, len(draws))
+                               ex_s.rounds, ex_s.profile, s.seed, len(draws),
+                               stop_if_misfit=ex_s.mode == "auto")
     except RuntimeError as err:  # keep the surrogate's results (and the stored runs)
         log.warning("the FE-exact posterior failed: %s", err)
         problems = [*problems, f"the FE-exact posterior failed: {err}"]
         write_all(rows, bands, problems)
+        return rows, bands, problems
+    if ex is None:  # stopped at the FE's best fit: this model cannot fit the data
+        problems = [*problems, ex_info["stopped"]]
+        trust = ("neither posterior: the model misses something the data show (the FE's own "
+                 f"best fit is {ex_info['best_fit']['rms_over_sigma']:.1f} noise sd off), and "
+                 "the design's budget ran out with the FE disagreeing with the surrogate; "
+                 "run solderpyro diagnose")
+        write_all(rows, bands, problems, None, ex_info, None, trust)
         return rows, bands, problems
     ex_rows = exact_rows(ex, rows)
     np.savez(out / "exact_samples.npz", w=ex.result.u, theta=ex.samples,

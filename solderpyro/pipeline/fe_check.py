@@ -16,6 +16,18 @@ FE_CHECK_QUANTILE = 0.999
 FE_CHECK_DRAWS = 8
 
 
+def misfits(chi2: float, n: int) -> bool:
+    """The FE check's rule: a chi-square ``chi2`` (residuals over the noise sd) on ``n``
+    values misfits when it is not finite, or when its RMS residual exceeds
+    :data:`FE_CHECK_RMS` noise sd and it exceeds the :data:`FE_CHECK_QUANTILE` quantile of
+    chi2(n)."""
+    from scipy.stats import chi2 as chi2_dist
+
+    if not np.isfinite(chi2):
+        return True
+    return bool(np.sqrt(chi2 / n) > FE_CHECK_RMS and chi2 > chi2_dist.ppf(FE_CHECK_QUANTILE, n))
+
+
 def fe_check(V: np.ndarray, y_obs: torch.Tensor, sigma: float) -> dict[str, Any]:
     """Does the FE itself fit where the surrogate posterior lies?
 
@@ -33,15 +45,12 @@ def fe_check(V: np.ndarray, y_obs: torch.Tensor, sigma: float) -> dict[str, Any]
         ``ok`` is False when its RMS residual exceeds :data:`FE_CHECK_RMS` noise sd and its
         chi-square the :data:`FE_CHECK_QUANTILE` quantile of chi2(n) (or no draw converged).
     """
-    from scipy.stats import chi2 as chi2_dist
-
     y = y_obs.detach().cpu().numpy()
     r = np.atleast_2d(np.asarray(V, float)) - y
     c2 = np.where(np.isfinite(r).all(1), ((r / sigma) ** 2).sum(1), np.inf)
     k = int(np.argmin(c2))
     n = int(y.size)
     rms = float(np.sqrt(c2[k] / n)) * sigma if np.isfinite(c2[k]) else float("nan")
-    bad = not np.isfinite(c2[k]) or (rms > FE_CHECK_RMS * sigma
-                                      and c2[k] > chi2_dist.ppf(FE_CHECK_QUANTILE, n))
+    bad = misfits(float(c2[k]), n)
     return {"chi2": float(c2[k]), "n": n, "rms_um": rms, "rms_over_sigma": rms / sigma,
             "draws": int(r.shape[0]), "ok": not bad}

@@ -6,15 +6,19 @@ through a PCA GP surrogate (modular mode: a, k, sigma); per replication (t, sigm
 the model's prior, y from the model's own likelihood, NUTS runs one chain (300 warm-up, 300
 draws, doubled up to twice while the bulk ESS is below 99) and the rank of the prior draw among
 99 thinned draws is taken. Ranks of a correct sampler are uniform on {0, ..., 99}: a chi-square
-test on 10 equal bins (20 expected per bin) per parameter. Five tests in all (two parameters
-direct, three field); Bonferroni at a family-wise 1 %: each fails below p = 0.002, so a correct
+test on 10 equal bins (20 expected per bin) per parameter. A third model, the four Anand
+constants through a flow-stress PCA GP, is the one NUTS samples in the soft-walled flow-stress
+coordinates (calibration/flowcoords.py). Ten tests in all (two parameters direct, three field,
+five Anand); Bonferroni at a family-wise 1 %: each fails below p = 0.001, so a correct
 sampler fails the slow suite with probability <= 1 % (Bonferroni is conservative for the
 dependent ranks of one replication).
 
 Measured (benchmarks/results_sbc.json, same seeds as here): p = 0.50 / 0.44 (direct t, sigma),
-0.34 / 0.80 / 0.047 (field a, k, sigma). The check can fail: calibrating on every observation
-twice (likelihood squared, `--mutate double-lik`) gave p = 2e-7 (t) and 0.0018 (sigma), both
-below 0.002. A sampler with a 10-iteration warm-up and 99 consecutive draws of one chain
+0.34 / 0.80 / 0.047 (field a, k, sigma); (benchmarks/results_sbc_anand.json) 0.86 / 0.95 /
+0.45 / 0.33 / 0.30 (Anand s0, QR, xi, m, sigma). The check can fail: calibrating on every
+observation twice (likelihood squared, `--mutate double-lik`) gave p = 2e-7 (t, below the
+0.001 line) and 0.0018 (sigma, below the 0.002 line of the five-test family it was run with). A sampler
+with a 10-iteration warm-up and 99 consecutive draws of one chain
 (`--mutate short`) was NOT detected (p = 0.17, 0.13): on this 2-parameter posterior NUTS
 reaches the typical set within a few iterations.
 
@@ -36,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from sbc import (  # noqa: E402
     DIRECT_BOX,
     L_DRAWS,
+    anand_problem,
     bonferroni_alpha,
     direct_problem,
     field_problem,
@@ -48,8 +53,8 @@ from solderpyro.examples.seed_math import code  # noqa: E402
 
 REPS = 200  # the minimum
 BINS = 10
-N_TESTS = 5  # direct: t, sigma; field: a, k, sigma
-ALPHA = bonferroni_alpha(0.01, N_TESTS)  # 0.002 per chi-square test
+N_TESTS = 10  # direct: t, sigma; field: a, k, sigma; anand: s0, QR, xi, m, sigma
+ALPHA = bonferroni_alpha(0.01, N_TESTS)  # 0.001 per chi-square test
 
 
 def test_rank_stats_pass_uniform_and_fail_wrong_shapes():
@@ -100,3 +105,8 @@ def test_sbc_seed_math_direct():
 @pytest.mark.slow
 def test_sbc_field_pca_modular():
     _check(run_sbc(field_problem(), REPS, chains=1, warmup=300, draws=300, bins=BINS))
+
+
+@pytest.mark.slow
+def test_sbc_anand_flow_coordinates():
+    _check(run_sbc(anand_problem(), REPS, chains=1, warmup=300, draws=300, bins=BINS))

@@ -1,0 +1,52 @@
+"""The automatic FE-exact step stops at the FE's own best fit when the model cannot fit the
+data (pipeline.fe_exact: ``stop_if_misfit``), and runs on when it can."""
+
+import numpy as np
+import torch
+
+from solderpyro.calibration import Priors
+from solderpyro.coords import UnitCoords
+from solderpyro.params import Box
+from solderpyro.pipeline.fe_check import FE_CHECK_RMS, misfits
+from solderpyro.pipeline.fe_exact import fe_exact
+
+BOX = Box(("a", "b"), (0.0, 0.0), (2.0, 2.0))
+S = np.linspace(0.0, 1.0, 200)
+
+
+def _fun(rows: np.ndarray) -> np.ndarray:
+    """A two-parameter line a + b s on 200 points: ``(k, 2) -> (k, 200)``."""
+    return rows[:, :1] + rows[:, 1:2] * S
+
+
+def _run(y: np.ndarray):
+    starts = np.array([[1.0, 1.0], [0.8, 1.2]])
+    return fe_exact(_fun, UnitCoords(BOX), torch.as_tensor(y), Priors(sigma_known=0.05), None,
+                    starts, 32, 1, 0, seed=0, n_draws=200, stop_if_misfit=True)
+
+
+def test_a_model_that_cannot_fit_stops_at_its_best_fit():
+    rng = np.random.default_rng(0)
+    # a curvature the line lacks: 2 s^2 leaves an RMS 2 / sqrt(180) = 0.15 um (3 noise sd)
+    y = 1.0 + 0.5 * S + 2.0 * S**2 + 0.05 * rng.standard_normal(S.size)
+    ex, info = _run(y)
+    assert ex is None and "misses something" in info["stopped"]
+    assert info["best_fit"]["rms_over_sigma"] > FE_CHECK_RMS
+    assert "rounds" not in info and "ess" not in info  # no importance-sampling round ran
+
+
+def test_a_model_that_fits_runs_the_exact_posterior():
+    rng = np.random.default_rng(1)
+    y = 1.0 + 0.7 * S + 0.05 * rng.standard_normal(S.size)
+    ex, info = _run(y)
+    assert ex is not None and "stopped" not in info
+    assert info["best_fit"]["rms_over_sigma"] < 1.2  # noise only: about 1
+    assert info["fe_runs"] >= 32
+
+
+def test_misfit_rule_needs_both_a_large_rms_and_a_large_chi2():
+    n = 2240
+    assert not misfits(1.0 * n, n)  # noise
+    assert misfits(4.0 * n, n)  # 2 noise sd RMS
+    assert misfits(float("inf"), n)
+    assert not misfits(3.0 * 4, 4)  # RMS 1.7 sd on 4 values: inside chi2(4)'s 99.9 %
