@@ -17,8 +17,8 @@ Measured (benchmarks/results_sbc.json, same seeds as here): p = 0.50 / 0.44 (dir
 0.34 / 0.80 / 0.047 (field a, k, sigma); (benchmarks/results_sbc_anand.json) 0.86 / 0.95 /
 0.45 / 0.33 / 0.30 (Anand s0, QR, xi, m, sigma). The check can fail: calibrating on every
 observation twice (likelihood squared, `--mutate double-lik`) gave p = 2e-7 (t, below the
-0.001 line) and 0.0018 (sigma, below the 0.002 line of the five-test family it was run with). A sampler
-with a 10-iteration warm-up and 99 consecutive draws of one chain
+0.001 line) and 0.0018 (sigma, below the 0.002 line of the five-test family it was run
+with). A sampler with a 10-iteration warm-up and 99 consecutive draws of one chain
 (`--mutate short`) was NOT detected (p = 0.17, 0.13): on this 2-parameter posterior NUTS
 reaches the typical set within a few iterations.
 
