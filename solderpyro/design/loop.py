@@ -60,6 +60,10 @@ class LoopSettings:
         mc_points: posterior draws the criteria integrate over.
         candidates: posterior draws offered to the ``"draws"`` optimizer.
         code_tol, fe_tol: the stopping rule's tolerances in units of sqrt(2 n).
+        misfit_check: from this round on, the problem's ``misfit`` test runs (at most once
+            per calibration, when the FE misfits the data at every checked draw); when it says
+            the FE's own best fit misfits, the loop stops (reason ``"misfit"``): refining the
+            surrogate of a model that cannot fit the data does not help it (0: never).
     """
 
     start: int = 30
@@ -72,6 +76,7 @@ class LoopSettings:
     candidates: int = 512
     code_tol: float = 1.0
     fe_tol: float = 1.0
+    misfit_check: int = 2
 
     def validate(self, dim: int) -> None:
         """Raise ``ValueError`` naming the first bad field (``dim``: FE parameters)."""
@@ -95,6 +100,9 @@ class LoopSettings:
         for nm in ("code_tol", "fe_tol"):
             if not getattr(self, nm) > 0:
                 raise ValueError(f"design.{nm} must be > 0, got {getattr(self, nm)}")
+        if self.misfit_check < 0:
+            raise ValueError(f"design.misfit_check must be >= 0 (0: never), got "
+                             f"{self.misfit_check}")
 
 
 @dataclass
@@ -126,6 +134,10 @@ class LoopProblem:
         fit: ``(X (n, d), Y (n, n_y)) -> GPSurrogate``.
         sample: ``(gp, previous Draws or None, final: bool) -> Draws``; ``final`` asks for the
             full-length posterior (the rounds' may be shorter, warm-started).
+        misfit: optional ``(draws, checked indices (k,), their FE chi-squares (k,)) -> dict or
+            None``: whether the model can fit the data at all (e.g. the FE's own best fit
+            from the best checked draws). None: no verdict this round; a dict is recorded as
+            :attr:`LoopResult.best_fit`, and its ``"misfits"`` key stops the loop.
     """
 
     box: Box
@@ -133,6 +145,7 @@ class LoopProblem:
     fe: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
     fit: Callable[[torch.Tensor, torch.Tensor], GPSurrogate]
     sample: Callable[[GPSurrogate, Draws | None, bool], Draws]
+    misfit: Callable[[Draws, np.ndarray, np.ndarray], dict[str, Any] | None] | None = None
 
 
 @dataclass
@@ -177,8 +190,9 @@ class LoopResult:
         gp: the last surrogate; draws: its full-length posterior.
         X, Y, ok: every FE run the loop made ``(n, d)``, ``(n, n_y)``, ``(n,)``; kind: per
             run ``"start"``, ``"acquired"`` or ``"check"``; round: per run.
-        rounds: the per-round records. reason: why it stopped (``"converged"`` or
-            ``"budget"``). message: that, in words.
+        rounds: the per-round records. reason: why it stopped (``"converged"``,
+            ``"budget"`` or ``"misfit"``: the FE's own best fit misfits the data). message:
+            that, in words. best_fit: the problem's ``misfit`` verdict where one was made.
     """
 
     gp: GPSurrogate
@@ -191,6 +205,7 @@ class LoopResult:
     rounds: list[Round]
     reason: str
     message: str
+    best_fit: dict[str, Any] | None = None
 
     @property
     def converged(self) -> bool:
@@ -198,6 +213,7 @@ class LoopResult:
 
     def as_dict(self) -> dict[str, Any]:
         return {"reason": self.reason, "message": self.message, "fe_runs": int(len(self.X)),
+                **({"best_fit": self.best_fit} if self.best_fit else {}),
                 "rounds": [asdict(r) for r in self.rounds]}
 
 
@@ -282,6 +298,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
     kind, rnd_of = ["start"] * len(X), [0] * len(X)
     rounds: list[Round] = []
     draws: Draws | None = None
+    best_fit: dict[str, Any] | None = None
     r = 0
     while True:
         r += 1
@@ -316,8 +333,13 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         rec = Round(r, len(X), code, fe_c2.tolist(), sur_c2.tolist(), tol, code_ok, fe_ok,
                     quantiles={nm: q[:, j].tolist() for j, nm in enumerate(names)})
         stop = code_ok and fe_ok
+        if (not stop and p.misfit is not None and best_fit is None and s.misfit_check
+                and r >= s.misfit_check):
+            best_fit = p.misfit(draws, chk, fe_c2)
+            lap("misfit")
+        misfit = bool(best_fit and best_fit.get("misfits"))
         room = s.budget - len(X) - s.check  # keep room for the next round's check
-        if not stop and room >= 1:
+        if not stop and not misfit and room >= 1:
             qn = min(s.batch, room)
             mi = spread_indices(N, s.mc_points)
             mc = box.to_unit(draws.theta[mi])
@@ -351,15 +373,24 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         rec.timing = lap.seconds
         rounds.append(rec)
         log.info(rec.line())
-        if stop or len(X) + s.check > s.budget:  # the next round's check would exceed it
+        if stop or misfit or len(X) + s.check > s.budget:  # the next check would exceed it
             break
         if on_round is not None:
-            on_round(LoopResult(gp, draws, X, V, ok, kind, rnd_of, rounds, "running", ""))
+            on_round(LoopResult(gp, draws, X, V, ok, kind, rnd_of, rounds, "running", "",
+                                best_fit))
     if stop:
         reason, msg = "converged", (
             f"the design converged after {r} rounds and {len(X)} FE runs: the code chi2 at the "
             f"posterior draws ({rounds[-1].code_chi2:.3g}) and the FE-vs-surrogate chi2 at "
             f"{len(rounds[-1].fe_chi2)} of them are within sqrt(2n) = {tol:.3g}")
+    elif misfit:
+        assert best_fit is not None
+        reason, msg = "misfit", (
+            f"the design stopped after {r} rounds and {len(X)} FE runs: the FE's own best fit "
+            f"misfits the data (chi2 {best_fit['chi2']:.0f} on {n} values, RMS "
+            f"{best_fit['rms_over_sigma']:.2f} noise sd): the model misses something the data "
+            "show, and more FE runs for its surrogate cannot fix that (solderpyro diagnose "
+            "names candidate effects)")
     else:
         why = [] if code_ok else [f"code chi2 {rounds[-1].code_chi2:.3g}"]
         if not fe_ok:
@@ -369,7 +400,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             f"the FE budget ran out ({len(X)} of {s.budget} runs, {r} rounds) before the "
             f"surrogate was confirmed: {'; '.join(why)} > sqrt(2n) = {tol:.3g}")
     final = p.sample(gp, draws, True)
-    res = LoopResult(gp, final, X, V, ok, kind, rnd_of, rounds, reason, msg)
+    res = LoopResult(gp, final, X, V, ok, kind, rnd_of, rounds, reason, msg, best_fit)
     if on_round is not None:
         on_round(res)
     return res

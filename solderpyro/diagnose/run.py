@@ -614,7 +614,13 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     base: dict[str, Any] | None = None
     if refit:
         with cost.stage("best_fit"):
-            base = base_fit(lay, fe, meas, sigma, _starts(setup, dr["theta"], idx, fe_ok))
+            starts = _starts(setup, dr["theta"], idx, fe_ok)
+            bf = ((info.get("design") or {}).get("best_fit") or {}).get("x") or {}
+            names = list(info.get("parameters") or [])
+            if names and all(nm in bf for nm in names) and len(names) == dr["theta"].shape[1]:
+                # the calibration's own FE best fit (its design stopped on it): a start
+                starts["the calibration's FE best fit"] = np.array([bf[nm] for nm in names])
+            base = base_fit(lay, fe, meas, sigma, starts)
             thetas[0] = base["x"][:lay.n_cal]
             log.info("diagnose: FE best fit (start: %s%s), chi2 %s", base["start"],
                      "" if not base["scouts"] else "; scouts " + ", ".join(

@@ -113,13 +113,21 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         "y": sm.y.numpy(), "index": pick_pp.numpy(), "observed": bands.obs_draws.numpy(),
         "log_likelihood": bands.log_likelihood(sm.y).numpy()})
     nk = {"chains": s.sampler.chains, "draws": s.sampler.draws, "warmup": s.sampler.warmup}
+    # a model whose own FE best fit misfits (loop.reason "misfit") gets no FE-exact posterior
     run_exact = s.exact.mode == "on" or (
-        s.exact.mode == "auto" and not loop.converged and not loop.rounds[-1].fe_ok)
-    trust = ("the surrogate posterior: the design converged and the FE confirms the surrogate "
-             "at posterior draws" if loop.converged else
-             "the surrogate posterior, with care: the design's budget ran out before the FE "
-             "confirmed the surrogate" + (" (the FE-exact posterior follows)" if run_exact
-                                          else ""))
+        s.exact.mode == "auto" and loop.reason == "budget" and not loop.rounds[-1].fe_ok)
+    if loop.reason == "misfit":
+        trust = ("neither posterior: the model misses something the data show (the FE's own "
+                 f"best fit is {(loop.best_fit or {}).get('rms_over_sigma', float('nan')):.1f}"
+                 " noise sd off), so the design stopped refining its surrogate; run solderpyro "
+                 "diagnose")
+    elif loop.converged:
+        trust = ("the surrogate posterior: the design converged and the FE confirms the "
+                 "surrogate at posterior draws")
+    else:
+        trust = ("the surrogate posterior, with care: the design's budget ran out before the "
+                 "FE confirmed the surrogate" + (" (the FE-exact posterior follows)"
+                                                 if run_exact else ""))
     rhat = max((float(r["r_hat"]) for r in rows if np.isfinite(float(r["r_hat"]))),
                default=float("nan"))
     if rhat > RHAT_OK:  # the surrogate may be right and its posterior still not sampled

@@ -231,6 +231,35 @@ def test_the_fe_check_adds_observation_side_offsets_as_the_surrogate_does():
     assert max(last.fe_chi2) < 3 * len(y)  # ~ chi2(12), not ~ (2 x 0.3 / sigma)^2 per value
 
 
+@pytest.mark.parametrize("model_fits", [False, True])
+def test_a_model_that_cannot_fit_stops_the_design_at_its_misfit_check(model_fits):
+    """The problem's misfit test runs from round ``misfit_check`` on and at most once after
+    a verdict: a model whose own best fit misfits stops the loop there (reason "misfit", no
+    runs acquired that round, the verdict kept); one that fits lets the loop go on."""
+    base = _toy_problem(bias=0.05)  # never converges: the loop would run to its budget
+    seen: list[int] = []
+
+    def misfit(d, chk, fe_c2):
+        seen.append(len(chk))
+        return {"x": {"t": 0.8}, "chi2": 1e4, "rms_over_sigma": 29.0,
+                "misfits": not model_fits}
+
+    s = LoopSettings(start=4, batch=2, check=3, budget=30, mc_points=100, candidates=200,
+                     misfit_check=2)
+    res = run_loop(LoopProblem(BOX1, base.y, base.fe, base.fit, base.sample, misfit), s,
+                   seed=0)
+    assert seen == [3]  # called once, in round 2, with the checked draws
+    assert res.best_fit is not None and res.as_dict()["best_fit"]["chi2"] == 1e4
+    if model_fits:
+        assert res.reason == "budget"
+    else:
+        assert res.reason == "misfit" and "misses something" in res.message
+        assert len(res.rounds) == 2 and res.rounds[-1].acquired == 0
+        assert len(res.X) == 4 + 2 * 3 + 2  # start, two checks, round 1's acquisitions
+    with pytest.raises(ValueError, match="design.misfit_check"):
+        LoopSettings(misfit_check=-1).validate(1)
+
+
 def test_stop_rule_tolerance_is_the_chi_square_sampling_sd():
     s = LoopSettings()
     code_ok, fe_ok, tol = stop_rule(1.0, np.array([100.0]), np.array([100.0 + 19.9]), 200, s)
