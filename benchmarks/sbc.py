@@ -39,9 +39,9 @@ with the likelihood's log density halved (too wide; through Pyro's potential wit
 slow); ``double-lik`` (direct model only) calibrates on every observation twice, i.e. the
 likelihood squared (too narrow; on the analytic path); ``short`` runs one chain per replication
 with a 10-iteration warm-up and keeps L consecutive draws unthinned (an under-adapted,
-autocorrelated sampler); ``half-jacobian`` (anand model only) samples the flow coordinates
-with half their log-Jacobian (the density and gradient kept consistent: a smooth, wrong
-posterior that leans away from the box's faces).
+autocorrelated sampler); ``half-jacobian`` / ``no-jacobian`` (anand model only) sample the
+flow coordinates with half / none of their log-Jacobian (density and gradient kept
+consistent: a smooth, wrong posterior whose prior is no longer uniform on the box).
 """
 
 from __future__ import annotations
@@ -222,10 +222,10 @@ def _columns(p: Problem, y: torch.Tensor, mutate: str, nuts: dict) -> dict[str, 
         post = calibrate_direct(code, torch.cat([x, x]), torch.cat([y, y]), DIRECT_BOX,
                                 DIRECT_PRIORS, progress=False, **nuts)[0]
         return post.columns()
-    if mutate == "half-jacobian":
+    if mutate in ("half-jacobian", "no-jacobian"):
         if p.name != "anand":
-            raise NotImplementedError("the half-jacobian mutation is for the anand model")
-        with _half_jacobian():
+            raise NotImplementedError(f"the {mutate} mutation is for the anand model")
+        with _scaled_jacobian(0.5 if mutate == "half-jacobian" else 0.0):
             return p.calibrate(y, **nuts).columns()
     if mutate != "half-lik":
         return p.calibrate(y, **nuts).columns()
@@ -238,9 +238,10 @@ def _columns(p: Problem, y: torch.Tensor, mutate: str, nuts: dict) -> dict[str, 
 
 
 @contextmanager
-def _half_jacobian() -> Iterator[None]:
-    """Mutation: SoftFlowCoords with half its log-Jacobian (``vjp`` is linear in its argument
-    plus the log-Jacobian's gradient ``vjp(0)``, so the gradient stays the density's)."""
+def _scaled_jacobian(k: float) -> Iterator[None]:
+    """Mutation: SoftFlowCoords with ``k`` times its log-Jacobian (``vjp`` is linear in its
+    argument plus the log-Jacobian's gradient ``vjp(0)``, so the gradient stays the
+    density's)."""
     from solderpyro.calibration.flowcoords import SoftFlowCoords
 
     orig = SoftFlowCoords.forward
@@ -248,7 +249,7 @@ def _half_jacobian() -> Iterator[None]:
     def forward(self: Any, q: np.ndarray) -> Any:
         t, ld, vjp = orig(self, q)
         g0 = vjp(np.zeros(4))
-        return t, 0.5 * ld, lambda g: vjp(g) - 0.5 * g0
+        return t, k * ld, lambda g: vjp(g) - (1.0 - k) * g0
 
     SoftFlowCoords.forward = forward  # type: ignore[method-assign]
     try:
@@ -384,7 +385,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--family-alpha", type=float, default=0.01)
     ap.add_argument("--mutate", default="none",
-                    choices=["none", "half-lik", "double-lik", "short", "half-jacobian"])
+                    choices=["none", "half-lik", "double-lik", "short", "half-jacobian",
+                             "no-jacobian"])
     ap.add_argument("--out", default="benchmarks/results_sbc.json")
     a = ap.parse_args()
     torch.set_default_dtype(DT)
