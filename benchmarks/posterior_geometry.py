@@ -3,14 +3,17 @@
 Rebuilds a calibration run's final surrogate from its ``design.csv`` runs (read back from the
 run store: no FE solve), then, at posterior draws of the run, the Hessian of the reduced
 log likelihood (central differences of its analytic gradient) whitened by the draws'
-covariance, in three coordinate systems: the logit of the box's unit cube (what NUTS samples
-in), the unit cube itself, and the GP's own inputs (flow stresses). For a Gaussian every
-eigenvalue is 1; large ones are directions far narrower locally than the posterior's spread,
-negative ones are curvature (a bent ridge). Optionally (``--fe-at``) the FE's chi-square at
-given parameter rows, to test a surrogate mode against the FE.
+covariance, in four coordinate systems: the logit of the box's unit cube (Pyro's transform,
+what NUTS sampled in before session 21), the unit cube itself, the GP's own inputs (flow
+stresses), and the soft-walled flow-stress coordinates NUTS samples in since session 21
+(:class:`solderpyro.calibration.flowcoords.SoftFlowCoords`, ``--frac`` its walls' width).
+For a Gaussian every eigenvalue is 1; large ones are directions far narrower locally than
+the posterior's spread, negative ones are curvature (a bent ridge). Optionally
+(``--fe-at``) the FE's chi-square at given parameter rows, to test a surrogate mode against
+the FE.
 
 Usage: python benchmarks/posterior_geometry.py RUN_DIR [--points 8] [--seed 0]
-       [--fe-at s0,QR,xi,m ...]
+       [--frac 0.01] [--fe-at s0,QR,xi,m ...]
 Prints one line per point and coordinate system (the sorted eigenvalues) and a JSON summary.
 """
 
@@ -66,6 +69,8 @@ def main() -> None:
     ap.add_argument("run", type=Path)
     ap.add_argument("--points", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--frac", type=float, default=0.01,
+                    help="the soft walls' width as a share of each interval (flow coordinates)")
     ap.add_argument("--fe-at", nargs="*", default=[], metavar="s0,QR,xi,m")
     a = ap.parse_args()
     sm, gp, r = rebuild(a.run)
@@ -93,7 +98,18 @@ def main() -> None:
         ll, g = ll_u(s)
         return ll + float(np.log(s * (1 - s)).sum()), g * s * (1 - s) + (1 - 2 * s)
 
+    from solderpyro.calibration.flowcoords import SoftFlowCoords
+
+    fc = SoftFlowCoords(sm.space, gp.inputs.fixed, gp.inputs.T_ref_K - 273.15,
+                        gp.inputs.rate_ref, frac=a.frac)
+
+    def ll_f(q: np.ndarray) -> tuple[float, np.ndarray]:  # soft-walled flow coordinates
+        t, ld, vjp = fc.forward(q)
+        ll, g = ll_u(t)
+        return ll + ld, vjp(g)
+
     coords = {"logit": (np.log(u) - np.log1p(-u), ll_q, 1e-5),
+              "flow": (np.array([fc.inverse(ui) for ui in u]), ll_f, 1e-6),
               "unit": (u, ll_u, 1e-6),
               "gp_inputs": (np.array([umap(ui)[0] for ui in u]), ll_v, 1e-6)}
     idx = np.random.default_rng(a.seed).choice(len(u), a.points, replace=False)
