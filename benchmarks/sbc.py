@@ -136,18 +136,23 @@ def field_problem(n_runs: int = 25, seed: int = 0) -> Problem:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         gp = GPSurrogate(FIELD_BOX, output="pca").fit(ts, field_code(ts))
+    return _gp_problem("field", gp, FIELD_BOX, FIELD_PRIORS, {
+        "n_obs": int(FIELD_S.shape[0]), "n_runs": n_runs,
+        "sigma_prior": "LogNormal(log 0.05, 0.1)"})
+
+
+def _gp_problem(name: str, gp: Any, box: Box, priors: Priors, info: dict) -> Problem:
+    """A modular SBC problem on a fitted PCA GP (placeholder data at the box's middle)."""
     emu = GPEmulator(gp)
     with torch.no_grad():
-        y0 = emu(FIELD_BOX.from_unit(torch.full((2,), 0.5, dtype=DT)))[0]
-    inp = prepare_observation(y0, emu, FIELD_BOX)
+        y0 = emu(box.from_unit(torch.full((box.dim,), 0.5, dtype=DT)))[0]
+    inp = prepare_observation(y0, emu, box)
 
     def calibrate(y: torch.Tensor, **nuts: Any) -> Any:
-        return calibrate_emulator(emu, y, FIELD_BOX, FIELD_PRIORS, progress=False, **nuts)[0]
+        return calibrate_emulator(emu, y, box, priors, progress=False, **nuts)[0]
 
-    return Problem("field", inp, FIELD_PRIORS, list(FIELD_BOX.names), calibrate,
-                   {"box": [FIELD_BOX.lower, FIELD_BOX.upper], "n_obs": int(FIELD_S.shape[0]),
-                    "n_runs": n_runs, "n_pc": int(gp.basis.shape[1]),
-                    "sigma_prior": "LogNormal(log 0.05, 0.1)"})
+    return Problem(name, inp, priors, list(box.names), calibrate,
+                   {"box": [box.lower, box.upper], "n_pc": int(gp.basis.shape[1]), **info})
 
 
 ANAND_BOX = Box(("s0", "QR", "xi", "m"), (5.0, 7000.0, 1.0, 0.05), (25.0, 13000.0, 5.0, 0.5))
@@ -174,18 +179,9 @@ def anand_problem(n_runs: int = 30, seed: int = 0) -> Problem:
         warnings.simplefilter("ignore")
         gp = GPSurrogate(ANAND_BOX, output="pca", kernel="matern52", ard=True, n_pc=4,
                          inputs=feats, restarts=1).fit(th, field(th))
-    emu = GPEmulator(gp)
-    with torch.no_grad():
-        y0 = emu(ANAND_BOX.from_unit(torch.full((4,), 0.5, dtype=DT)))[0]
-    inp = prepare_observation(y0, emu, ANAND_BOX)
-
-    def calibrate(y: torch.Tensor, **nuts: Any) -> Any:
-        return calibrate_emulator(emu, y, ANAND_BOX, ANAND_PRIORS, progress=False, **nuts)[0]
-
-    return Problem("anand", inp, ANAND_PRIORS, list(ANAND_BOX.names), calibrate,
-                   {"box": [ANAND_BOX.lower, ANAND_BOX.upper], "n_obs": 60, "n_runs": n_runs,
-                    "n_pc": int(gp.basis.shape[1]), "inputs": "flow_stress",
-                    "sigma_prior": "LogNormal(log 0.3, 0.1)"})
+    return _gp_problem("anand", gp, ANAND_BOX, ANAND_PRIORS, {
+        "n_obs": 60, "n_runs": n_runs, "inputs": "flow_stress",
+        "sigma_prior": "LogNormal(log 0.3, 0.1)"})
 
 
 def simulate(p: Problem, seed: int) -> tuple[dict[str, np.ndarray], torch.Tensor]:
