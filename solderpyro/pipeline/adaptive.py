@@ -146,6 +146,7 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
     for ax in [*grid[0, d:], *grid[1, 2:]]:
         ax.axis("off")
     rounds = [q.round for q in r.rounds]
+    bf = (r.best_fit or {}).get("x") or {}
     X = r.X.numpy()
     rnd = np.asarray(r.round)
     kinds = np.asarray(r.kind)
@@ -157,6 +158,8 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
         for kind, mk, c in (("acquired", "x", "C3"), ("check", "+", "C2")):
             m = kinds == kind
             ax.plot(rnd[m] + 0.15, X[m, j], mk, color=c, ms=4, label=f"{kind} runs")
+        if nm in bf:
+            ax.axhline(bf[nm], color="k", ls=":", lw=1.0, label="the FE's own best fit")
         ax.set_xlabel("round")
         ax.set_title(nm, fontsize=9)
         if j == 0:
@@ -176,6 +179,8 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
         for kind, mk, c in (("start", "o", "0.6"), ("acquired", "x", "C3"), ("check", "+", "C2")):
             m = kinds == kind
             ax.plot(X[m, 0], X[m, 1], mk, color=c, ms=4, label=kind)
+        if names[0] in bf and names[1] in bf:
+            ax.plot(bf[names[0]], bf[names[1]], "k*", ms=10, label="FE best fit")
         ax.set_xlabel(names[0])
         ax.set_ylabel(names[1])
         ax.legend(fontsize=6)
@@ -183,7 +188,7 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
     else:
         ax.axis("off")
     fig.suptitle(f"adaptive design: {len(X)} FE runs, {len(r.rounds)} rounds"
-                 + (f" ({r.reason})" if r.reason in ("converged", "budget") else ""),
+                 + (f" ({r.reason})" if r.reason in ("converged", "budget", "misfit") else ""),
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
