@@ -614,17 +614,20 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     base: dict[str, Any] | None = None
     if refit:
         with cost.stage("best_fit"):
-            starts = _starts(setup, dr["theta"], idx, fe_ok)
-            bf = ((info.get("design") or {}).get("best_fit") or {}).get("x") or {}
+            design = info.get("design") or {}
+            bf = (design.get("best_fit") or {}).get("x") or {}
             names = list(info.get("parameters") or [])
-            if names and all(nm in bf for nm in names) and len(names) == dr["theta"].shape[1]:
-                # the calibration's own FE best fit is a start; where its design stopped
-                # because the model misfits, the posterior draws sit in surrogate islands and
-                # are no starts (on the modulus-temperature field data they scouted at chi2
-                # 1e5-3e5 against 1.7e4 from the best fit and the literature constants)
-                if (info.get("design") or {}).get("reason") == "misfit":
-                    starts = {k: v for k, v in _starts(setup, dr["theta"], idx, False).items()
-                              if k == "literature constants"}
+            has_bf = (bool(names) and all(nm in bf for nm in names)
+                      and len(names) == dr["theta"].shape[1])
+            # where the design stopped because the model misfits, the posterior draws sit in
+            # surrogate islands and are no starts (on the modulus-temperature field data they
+            # scouted at chi2 1e5-3e5 against 1.7e4 from the best fit and the literature
+            # constants): the calibration's own FE best fit and the literature constants
+            islands = has_bf and design.get("reason") == "misfit"
+            starts = _starts(setup, dr["theta"], idx, fe_ok and not islands)
+            if islands:
+                starts = {"literature constants": starts["literature constants"]}
+            if has_bf:
                 starts["the calibration's FE best fit"] = np.array([bf[nm] for nm in names])
             base = base_fit(lay, fe, meas, sigma, starts)
             thetas[0] = base["x"][:lay.n_cal]

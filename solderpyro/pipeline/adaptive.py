@@ -78,8 +78,8 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
     jumps between surrogate islands in box corners, every round), so it ran to its budget and
     then through the FE-exact step: 517 s of a 759 s loop (benchmarks/loop.py, session 21).
     """
-    from solderpyro.fit import lm_fit
     from solderpyro.pipeline.fe_check import misfits
+    from solderpyro.pipeline.fe_exact import fe_best_fit
 
     n = int(sm.y.numel())
     y = sm.y.detach().cpu().numpy()
@@ -98,8 +98,7 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
             n_fe[0] += len(rows)
             return sm.observed(rows)
 
-        best = min(lm_fit(counted, starts, space.lower, space.upper, y, sig, iters=lm_iters),
-                   key=lambda f: f.chi2)
+        best = fe_best_fit(counted, starts, space, y, sig, lm_iters)
         out = {"x": dict(zip(space.names, map(float, best.x), strict=True)),
                "chi2": float(best.chi2), "rms_over_sigma": float(np.sqrt(best.chi2 / n)),
                "misfits": misfits(float(best.chi2), n), "fe_runs": n_fe[0]}

@@ -117,10 +117,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     run_exact = s.exact.mode == "on" or (
         s.exact.mode == "auto" and loop.reason == "budget" and not loop.rounds[-1].fe_ok)
     if loop.reason == "misfit":
-        trust = ("neither posterior: the model misses something the data show (the FE's own "
-                 f"best fit is {(loop.best_fit or {}).get('rms_over_sigma', float('nan')):.1f}"
-                 " noise sd off), so the design stopped refining its surrogate; run solderpyro "
-                 "diagnose")
+        trust = _misfit_trust((loop.best_fit or {}).get("rms_over_sigma", float("nan")),
+                              "so the design stopped refining its surrogate")
     elif loop.converged:
         trust = ("the surrogate posterior: the design converged and the FE confirms the "
                  "surrogate at posterior draws")
@@ -202,6 +200,13 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                                loop.as_dict())
 
 
+def _misfit_trust(rms_sd: float, why: str) -> str:
+    """The report's trust line for a model whose own FE best fit (``rms_sd`` noise sd off)
+    misfits the data; ``why`` says what the calibration did about it."""
+    return (f"neither posterior: the model misses something the data show (the FE's own best "
+            f"fit is {rms_sd:.1f} noise sd off), {why}; run solderpyro diagnose")
+
+
 def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any, post: Any,
                  draws: np.ndarray, pick: np.ndarray, V_chk: np.ndarray, rows: list[dict],
                  bands: Any, problems: list[str], write_all: Any
@@ -226,7 +231,8 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
     try:
         ex, ex_info = fe_exact(sm.observed, coords, y, pr, draws, starts, ex_s.runs,
                                ex_s.rounds, ex_s.profile, s.seed, len(draws),
-                               stop_if_misfit=ex_s.mode == "auto")
+                               stop_if_misfit=ex_s.mode == "auto",
+                               noise_sd=pr.sigma_known or float(post.flat("sigma").median()))
     except RuntimeError as err:  # keep the surrogate's results (and the stored runs)
         log.warning("the FE-exact posterior failed: %s", err)
         problems = [*problems, f"the FE-exact posterior failed: {err}"]
@@ -234,10 +240,8 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
         return rows, bands, problems
     if ex is None:  # stopped at the FE's best fit: this model cannot fit the data
         problems = [*problems, ex_info["stopped"]]
-        trust = ("neither posterior: the model misses something the data show (the FE's own "
-                 f"best fit is {ex_info['best_fit']['rms_over_sigma']:.1f} noise sd off), and "
-                 "the design's budget ran out with the FE disagreeing with the surrogate; "
-                 "run solderpyro diagnose")
+        trust = _misfit_trust(ex_info["best_fit"]["rms_over_sigma"], "and the design's "
+                              "budget ran out with the FE disagreeing with the surrogate")
         write_all(rows, bands, problems, None, ex_info, None, trust)
         return rows, bands, problems
     ex_rows = exact_rows(ex, rows)

@@ -27,7 +27,8 @@ SUMMARY = ("parameter", "q2.5", "median", "mean", "q97.5")
 def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
              draws: np.ndarray | None, starts: np.ndarray, n: int, rounds: int,
              n_profile: int = 9, seed: int = 0, n_draws: int = 1000, lm_iters: int = 4,
-             stop_if_misfit: bool = False) -> tuple[Any, dict[str, Any]]:
+             stop_if_misfit: bool = False, noise_sd: float | None = None
+             ) -> tuple[Any, dict[str, Any]]:
     """The FE-exact posterior of a specimen calibration (:mod:`solderpyro.exact`).
 
     The FE's best fit from ``starts`` (Levenberg-Marquardt, ``lm_iters`` iterations) and its
@@ -47,6 +48,9 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
             and the FE-exact posterior of a model that cannot fit the data is not worth its
             ~200 FE runs (measured: 346 s of a 517 s base calibration on data with a hidden
             effect, with unreliable weights, ESS 4).
+        noise_sd: the noise sd (um) that rule measures the misfit in (default: the known
+            sigma, else the fits' own, which is the RMS residual at the first start and so
+            would never call a misfit: pass the posterior's noise sd then).
     Returns:
         ``(ExactPosterior, info)``; ``info`` for run.json: ESS, k-hat, reliable, the number of
         FE runs, the coordinates, the best fit, the profile and each round's diagnostics.
@@ -54,7 +58,6 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         saying why.
     """
     from solderpyro.exact import exact_posterior, fe_profile, initial_proposal, laplace_cov_w
-    from solderpyro.fit import lm_fit
 
     space = coords.space
     y = y_obs.detach().cpu().numpy()
@@ -66,18 +69,16 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
 
     # the fits' noise sd: the stated one, else the RMS residual at the first start
     sig = priors.sigma_known or float(np.sqrt(np.nanmean((counted(starts[:1]) - y) ** 2)))
-    fits = lm_fit(counted, starts, space.lower, space.upper, y, sig, iters=lm_iters)
-    best = min(fits, key=lambda f: f.chi2)
-    J = best.jacobian_unit(space.lower, space.upper, space.log_scale)
-    cov = (laplace_cov_w(J, coords, best.x, sig) if J is not None
-           else np.eye(space.dim) * 0.25)
+    best = fe_best_fit(counted, starts, space, y, sig, lm_iters)
     log.info("exact: the FE's best fit chi2 %.1f at %s (%d FE runs); sampling in %s "
              "coordinates", best.chi2, ", ".join(f"{nm}={v:.4g}" for nm, v in zip(
                  space.names, best.x, strict=True)), n_fe[0], coords.name)
+    # the misfit rule in units of the noise (sig is the RMS at a start when sigma is unknown)
+    c2_noise = float(best.chi2) * (sig / (noise_sd or sig)) ** 2
     best_info = {"x": best.x.tolist(), "chi2": best.chi2,
-                 "rms_over_sigma": float(np.sqrt(best.chi2 / y.size))}
-    if stop_if_misfit and misfits(best.chi2, y.size):
-        why = (f"the FE's own best fit misfits the data (chi2 {best.chi2:.0f} on {y.size} "
+                 "rms_over_sigma": float(np.sqrt(c2_noise / y.size))}
+    if stop_if_misfit and misfits(c2_noise, y.size):
+        why = (f"the FE's own best fit misfits the data (chi2 {c2_noise:.0f} on {y.size} "
                f"values, RMS {best_info['rms_over_sigma']:.2f} noise sd): the model misses "
                "something the data show, so its FE-exact posterior and profile intervals are "
                "not computed (solderpyro diagnose names candidate effects; --exact on "
@@ -85,6 +86,9 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         log.warning("exact: %s", why)
         return None, {"stopped": why, "fe_runs": n_fe[0], "coordinates": coords.name,
                       "best_fit": best_info}
+    J = best.jacobian_unit(space.lower, space.upper, space.log_scale)
+    cov = (laplace_cov_w(J, coords, best.x, sig) if J is not None
+           else np.eye(space.dim) * 0.25)
     prof = None
     if n_profile >= 2:
         prof = fe_profile(counted, coords, best.x, cov, y, sig, n_grid=n_profile, iters=4)
@@ -109,6 +113,24 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
                             "values": prof.x[:, prof.coord].tolist(),
                             "chi2": prof.chi2.tolist()}} if prof is not None else {})}
     return ex, info
+
+
+def fe_best_fit(fun: Any, starts: np.ndarray, space: Box, y: np.ndarray, sigma: float,
+                iters: int = 4) -> Any:
+    """The FE's best fit: Levenberg-Marquardt (:func:`solderpyro.fit.lm_fit`, ``iters``
+    iterations) from every start at once, the lowest chi-square kept.
+
+    Args:
+        fun: ``rows (b, dim) -> (b, n_obs)`` the FE's observed outputs, um (through the run
+            store); starts: ``(k, dim)`` physical units; space: the calibrated box;
+        y: ``(n_obs,)`` um; sigma: the fits' noise sd, um.
+    Returns:
+        the best :class:`~solderpyro.fit.LMFit` (``x (dim,)``, ``chi2`` in ``sigma`` units).
+    """
+    from solderpyro.fit import lm_fit
+
+    fits = lm_fit(fun, starts, space.lower, space.upper, y, sigma, iters=iters)
+    return min(fits, key=lambda f: f.chi2)
 
 
 def exact_rows(ex: Any, surrogate: list[dict]) -> list[dict]:

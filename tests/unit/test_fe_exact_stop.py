@@ -35,6 +35,17 @@ def test_a_model_that_cannot_fit_stops_at_its_best_fit():
     assert "rounds" not in info and "ess" not in info  # no importance-sampling round ran
 
 
+def test_with_sigma_unknown_the_rule_measures_the_misfit_in_the_noise_sd():
+    """Without a known sigma the fits use the RMS at the first start as their noise sd, in
+    which no best fit can misfit; the rule takes the posterior's noise sd instead."""
+    rng = np.random.default_rng(0)
+    y = 1.0 + 0.5 * S + 2.0 * S**2 + 0.05 * rng.standard_normal(S.size)
+    ex, info = fe_exact(_fun, UnitCoords(BOX), torch.as_tensor(y), Priors(sigma_max=1.0), None,
+                        np.array([[1.0, 1.0], [0.8, 1.2]]), 32, 1, 0, seed=0, n_draws=200,
+                        stop_if_misfit=True, noise_sd=0.05)
+    assert ex is None and info["best_fit"]["rms_over_sigma"] > FE_CHECK_RMS
+
+
 def test_a_model_that_fits_runs_the_exact_posterior():
     rng = np.random.default_rng(1)
     y = 1.0 + 0.7 * S + 0.05 * rng.standard_normal(S.size)
