@@ -106,7 +106,7 @@ def cmd_demo(a, overrides) -> int:
     print(f"\noutputs: {out / 'simulation.csv'}\nplot:    {out / 'cycle.png'}")
     if a.no_calibrate:
         return 0
-    return _demo_calibration(a, setup, out)
+    return _demo_calibration(a, setup, out, overrides)
 
 
 #: The demo's documented truth (seed Table V medians, m moved inside the box's interior).
@@ -114,7 +114,7 @@ DEMO_TRUTH = {"s0": 12.92, "QR": 10586.0, "xi": 2.04, "m": 0.1}
 DEMO_NOISE_UM = 0.05
 
 
-def _demo_calibration(a, setup, out: Path) -> int:
+def _demo_calibration(a, setup, out: Path, overrides=()) -> int:
     """Synthetic measurements at DEMO_TRUTH (+ N(0, 0.05^2) um) -> calibrate -> report."""
     from .io.measurements import from_arrays, write_measurements
     from .pipeline import calibrate_specimen
@@ -135,7 +135,7 @@ def _demo_calibration(a, setup, out: Path) -> int:
 
     a.store = out / "store"
     res = calibrate_specimen(setup, read_measurements(data), out / "calibration",
-                             _settings(a, setup))
+                             _settings(a, setup, overrides))
     inside = {r["parameter"]: float(r["q2.5"]) <= DEMO_TRUTH[str(r["parameter"])]
               <= float(r["q97.5"]) for r in res.summary if r["parameter"] in DEMO_TRUTH}
     print(f"\ntruth {DEMO_TRUTH}; inside the 95 % interval: {inside}")
@@ -173,27 +173,46 @@ def cmd_koh(a, overrides) -> int:
     return 0
 
 
-def _settings(a, setup):
-    """The calibration's settings from the command line (and the config's surrogate group)."""
-    from .settings import (
-        CalibrationSettings,
-        DesignSettings,
-        ExactSettings,
-        SamplerSettings,
-        SurrogateSettings,
-    )
+def _settings(a, setup, overrides=()):
+    """The calibration's settings: the composed config's ``calibration`` group (so that
+    ``calibration.design.code_tol=...`` and the other overrides take effect), its surrogate
+    from the config's surrogate group, then every command-line flag that differs from its
+    default (a flag given at its default leaves the config's value)."""
+    import dataclasses
 
-    dflt = DesignSettings()
-    start = a.start if a.start is not None else dflt.start
-    budget = a.budget if a.budget is not None else max(dflt.budget, start + dflt.check)
-    design = DesignSettings(start=start, batch=a.q, budget=budget,
-                            criterion=a.criterion, optimizer=a.optimizer)
-    return CalibrationSettings(
-        design=design, surrogate=SurrogateSettings(**setup.surrogate),
-        sampler=SamplerSettings(chains=a.chains, warmup=a.warmup, draws=a.draws),
-        exact=ExactSettings(mode=a.exact, runs=a.exact_runs, rounds=a.exact_rounds,
-                            profile=a.exact_profile, profile_ci=not a.no_profile_ci),
-        seed=a.seed, store=str(a.store), batch=a.batch, progress=not a.quiet)
+    from .configure import calibration_settings, compose
+    from .settings import CalibrationSettings, SurrogateSettings
+
+    s = calibration_settings(compose(list(overrides)))
+    s.surrogate = SurrogateSettings(**setup.surrogate)
+    d0 = CalibrationSettings()
+
+    def flag(value, default, part, field):
+        if value is not None and value != default:
+            setattr(part, field, value)
+
+    ds, sp, ex = s.design, s.sampler, s.exact
+    flag(a.start, None, ds, "start")
+    flag(a.q, d0.design.batch, ds, "batch")
+    flag(a.criterion, d0.design.criterion, ds, "criterion")
+    flag(a.optimizer, d0.design.optimizer, ds, "optimizer")
+    if a.budget is not None:
+        ds.budget = a.budget
+    elif a.start is not None:  # a larger start moves the default budget with it
+        ds.budget = max(ds.budget, ds.start + ds.check)
+    flag(a.chains, d0.sampler.chains, sp, "chains")
+    flag(a.warmup, d0.sampler.warmup, sp, "warmup")
+    flag(a.draws, d0.sampler.draws, sp, "draws")
+    flag(a.exact, d0.exact.mode, ex, "mode")
+    flag(a.exact_runs, d0.exact.runs, ex, "runs")
+    flag(a.exact_rounds, d0.exact.rounds, ex, "rounds")
+    flag(a.exact_profile, d0.exact.profile, ex, "profile")
+    if a.no_profile_ci:
+        ex.profile_ci = False
+    top = {"seed": a.seed, "store": str(a.store), "batch": a.batch}
+    s = dataclasses.replace(s, **{k: v for k, v in top.items()
+                                  if v != getattr(d0, k)}, progress=not a.quiet)
+    return s
 
 
 def cmd_calibrate(a, overrides) -> int:
@@ -203,7 +222,7 @@ def cmd_calibrate(a, overrides) -> int:
 
     setup = _setup(overrides)
     meas = read_measurements(a.data, valid_points=output_points(setup.problem))
-    s = _settings(a, setup)
+    s = _settings(a, setup, overrides)
     s.validate(setup.space.dim)
     warm = None
     if a.warm_from:
@@ -359,7 +378,9 @@ def _add_design(p: argparse.ArgumentParser) -> None:
                    help="the FE-exact posterior (adaptive importance sampling with the FE in "
                    "the likelihood) and profile-likelihood intervals: auto (default) runs them "
                    "when the design's budget runs out with the FE disagreeing with the "
-                   "surrogate; on: always; off: never")
+                   "surrogate, and the FE-exact posterior alone (no profiles) when the design "
+                   "converged (calibration.exact.confirm=false: not then); on: always; "
+                   "off: never")
     p.add_argument("--exact-runs", type=int, default=es.runs, metavar="N",
                    help=f"FE runs per importance-sampling round (default {es.runs})")
     p.add_argument("--exact-rounds", type=int, default=es.rounds, metavar="R",

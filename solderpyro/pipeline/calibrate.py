@@ -40,6 +40,9 @@ RHAT_OK = 1.01
 #: posterior draws (the same ones of every chain) in the predictive, draws.npz and the
 #: posterior_predictive / log_likelihood groups of posterior.nc
 PREDICTIVE_DRAWS = 1000
+#: FE runs at draws of the best fit's Laplace spread that make the predictive of a model that
+#: misfits (its summary is the FE's own best fit: :func:`~.fe_exact.best_fit_posterior`)
+BEST_FIT_BAND_RUNS = 48
 
 
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
@@ -114,14 +117,29 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         "log_likelihood": bands.log_likelihood(sm.y).numpy()})
     nk = {"chains": s.sampler.chains, "draws": s.sampler.draws, "warmup": s.sampler.warmup}
     # a model whose own FE best fit misfits (loop.reason "misfit") gets no FE-exact posterior
-    run_exact = s.exact.mode == "on" or (
+    full_exact = s.exact.mode == "on" or (
         s.exact.mode == "auto" and loop.reason == "budget" and not loop.rounds[-1].fe_ok)
+    # a converged design: the FE-exact posterior with the surrogate's as its proposal, light
+    confirm = (not full_exact and s.exact.mode == "auto" and s.exact.confirm
+               and loop.converged)
+    run_exact = full_exact or confirm
+    fit = None
     if loop.reason == "misfit":
         trust = _misfit_trust((loop.best_fit or {}).get("rms_over_sigma", float("nan")),
                               "so the design stopped refining its surrogate")
+        if loop.best_fit and loop.best_fit.get("x"):
+            fit, bands = _best_fit_stage(sm, s, loop.best_fit, sig_fe)
+            write_summary(rows, out / "summary_surrogate.csv", SUMMARY)
+            rows = [{**r, "r_hat": float("nan"), "ess_bulk": float("nan"),
+                     "ess_tail": float("nan")} for r in fit.rows]
+            trust += (f"; summary.csv is the FE's own best fit with its Laplace spread "
+                      f"widened {fit.scale:.1f}x for the misfit (the surrogate's posterior, "
+                      f"in summary_surrogate.csv, sits where only the surrogate fits)")
+            clock("best_fit")
     elif loop.converged:
         trust = ("the surrogate posterior: the design converged and the FE confirms the "
-                 "surrogate at posterior draws")
+                 "surrogate at posterior draws" + (" (the FE-exact posterior follows)"
+                                                   if confirm else ""))
     else:
         trust = ("the surrogate posterior, with care: the design's budget ran out before the "
                  "FE confirmed the surrogate" + (" (the FE-exact posterior follows)"
@@ -140,6 +158,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         from solderpyro import report
 
         saved = (ex.theta, ex.sigma) if ex is not None and ex.reliable else None
+        kind = "fe-exact" if saved is not None else "surrogate"
+        if fit is not None:
+            saved, kind = (fit.theta, fit.sigma), "fe-best-fit"
         write_summary(rows, out / "summary.csv", SUMMARY)
         sg = s.surrogate
         save_run(out, meas, space, sm.effects, post, bands, sm.y, y_liu, pr,
@@ -150,7 +171,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                   "n_runs": int(len(loop.X)), "design": loop.as_dict(),
                   "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
                   "fe_check": chk, "timing_s": clock.seconds, "trust": trust,
-                  "posterior": "fe-exact" if saved is not None else "surrogate",
+                  "posterior": kind,
                   **({"exact": ex_info} if ex_info else {})}, draws=saved)
         last = loop.rounds[-1]
         notes = [f"**trust**: {trust}",
@@ -167,6 +188,11 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                             f"in the likelihood, {ex_info['fe_runs']} FE runs, ESS "
                             f"{ex_info['ess']:.0f}, Pareto k-hat {ex_info['khat']:.2f}); the "
                             f"surrogate's is in summary_surrogate.csv")
+        if fit is not None:
+            notes.insert(1, f"**summary: the FE's own best fit** (chi2 {fit.chi2:.0f} on "
+                            f"{sm.y.numel()} values), intervals from its Laplace covariance "
+                            f"widened by sqrt(chi2 / (n - dim)) = {fit.scale:.2f}; the "
+                            "surrogate's posterior is in summary_surrogate.csv")
         ident = (ex_info or {}).get("identifiability") or {}
         if saved is not None and ident.get("weak"):
             notes.append("weakly identified by these data (95 % interval over >= "
@@ -186,7 +212,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     clock("report")
     if run_exact:
         rows, bands, problems = _exact_stage(sm, s, out, loop, post, draws, pick, V_chk, rows,
-                                             bands, problems, write_all)
+                                             bands, problems, write_all, light=confirm)
         clock("exact")
     print(format_summary(rows))
     info = json.loads((out / "run.json").read_text())
@@ -200,6 +226,34 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                                loop.as_dict())
 
 
+def _best_fit_stage(sm: SpecimenModel, s: CalibrationSettings, best: dict[str, Any],
+                    noise_sd: float) -> tuple[Any, Bands]:
+    """A model whose own FE best fit misfits: that best fit, with its misfit-scaled Laplace
+    spread (:func:`~.fe_exact.best_fit_posterior`), and the FE's predictive at
+    ``BEST_FIT_BAND_RUNS`` of its draws (one batched solve through the store)."""
+    from solderpyro.coords import sampling_coords
+    from solderpyro.pipeline.fe_exact import best_fit_posterior
+
+    sg = s.surrogate
+    coords = sampling_coords(sm.space, sm.setup.space.defaults, "auto", sg.inputs_T_C,
+                             sg.inputs_rate)
+    x = np.array([best["x"][nm] for nm in sm.space.names])
+    y = sm.y.detach().cpu().numpy()
+    fit = best_fit_posterior(sm.observed, coords, x, y, noise_sd, PREDICTIVE_DRAWS, s.seed)
+    log.info("the FE's own best fit (chi2 %.0f, spread widened %.2fx for the misfit) is the "
+             "reported result: %s", fit.chi2, fit.scale, ", ".join(
+                 f"{r['parameter']}={r['median']:.4g} [{r['q2.5']:.4g}, {r['q97.5']:.4g}]"
+                 for r in fit.rows))
+    pick = spread_indices(len(fit.theta), BEST_FIT_BAND_RUNS)
+    V = torch.as_tensor(np.vstack([sm.observed(fit.x[None]), sm.observed(fit.theta[pick])]))
+    ok = torch.isfinite(V).all(1)
+    V = V[ok]
+    st = torch.full((len(V),), float(fit.sigma[0]), dtype=V.dtype)
+    gen = torch.Generator().manual_seed(s.seed)
+    bands = Bands(V, V + st[:, None] * torch.randn(V.shape, generator=gen, dtype=V.dtype), st)
+    return fit, bands
+
+
 def _misfit_trust(rms_sd: float, why: str) -> str:
     """The report's trust line for a model whose own FE best fit (``rms_sd`` noise sd off)
     misfits the data; ``why`` says what the calibration did about it."""
@@ -209,11 +263,17 @@ def _misfit_trust(rms_sd: float, why: str) -> str:
 
 def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any, post: Any,
                  draws: np.ndarray, pick: np.ndarray, V_chk: np.ndarray, rows: list[dict],
-                 bands: Any, problems: list[str], write_all: Any
+                 bands: Any, problems: list[str], write_all: Any, light: bool = False
                  ) -> tuple[list[dict], Any, list[str]]:
     """The FE-exact posterior, identifiability and profile intervals; rewrites the outputs.
+    ``light`` (a converged design's confirmation): no chi-square profile and no profile
+    intervals, the surrogate posterior and the FE's best fit make the proposal.
     Returns the rows, bands and problems to report."""
+    import dataclasses
+
     ex_s = s.exact
+    if light:
+        ex_s = dataclasses.replace(ex_s, profile=0, profile_ci=False)
     pr = sm.priors
     y = sm.y
     space = sm.space
@@ -279,7 +339,10 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
                f"stays the surrogate's; a larger calibration.exact.runs or more rounds")
         log.warning(msg)
         problems = [*problems, msg]
-        trust = ("neither posterior: the design's budget ran out with the FE "
+        trust = ("the surrogate posterior: the design converged and the FE confirms the "
+                 "surrogate at posterior draws; the FE-exact posterior's weights are not "
+                 "reliable enough to replace it (exact_posterior.csv has it)" if light else
+                 "neither posterior: the design's budget ran out with the FE "
                  "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
                  "--budget; the profile intervals (profile_ci.csv) are the FE's own")
     write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)

@@ -302,3 +302,27 @@ def test_bad_settings_name_the_field():
         LoopSettings(criterion="ei").validate(4)
     with pytest.raises(ValueError, match="design.budget"):
         LoopSettings(start=30, budget=10).validate(4)
+
+
+def test_cli_config_overrides_reach_the_settings():
+    """``solderpyro calibrate ... calibration.design.code_tol=X`` used to be accepted by the
+    config and dropped by the command (the settings were built from the flags alone)."""
+    from solderpyro.cli import _settings, _setup, _split_overrides, build_parser
+    from solderpyro.settings import CalibrationSettings
+
+    p = build_parser()
+    argv = ["calibrate", "--data", "d.csv", "--out", "o", "--chains", "2",
+            "calibration.design.code_tol=0.5", "calibration.sampler.draws=77",
+            "calibration.exact.mode=off"]
+    a, rest = p.parse_known_args(argv)
+    ov = _split_overrides(rest)
+    s = _settings(a, _setup(ov), ov)
+    assert (s.design.code_tol, s.sampler.draws, s.exact.mode) == (0.5, 77, "off")
+    assert s.sampler.chains == 2  # a flag still works beside the config
+    a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
+                                  "--draws", "55", "calibration.sampler.draws=77"])
+    ov = _split_overrides(rest)
+    assert _settings(a, _setup(ov), ov).sampler.draws == 55  # the given flag wins
+    a, _ = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o"])
+    s0 = _settings(a, _setup([]), [])
+    assert s0 == CalibrationSettings(surrogate=s0.surrogate, progress=s0.progress)

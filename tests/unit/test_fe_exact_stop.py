@@ -61,3 +61,28 @@ def test_misfit_rule_needs_both_a_large_rms_and_a_large_chi2():
     assert misfits(4.0 * n, n)  # 2 noise sd RMS
     assert misfits(float("inf"), n)
     assert not misfits(3.0 * 4, 4)  # RMS 1.7 sd on 4 values: inside chi2(4)'s 99.9 %
+
+
+def test_a_model_that_cannot_fit_reports_its_best_fit_with_a_widened_spread():
+    """For a model that misfits, the reported result is the FE's own least-squares fit with
+    the Laplace covariance scaled by chi2 / (n - dim): on a line fitted to a parabola that is
+    the ordinary least-squares answer (numpy.polyfit's scaled covariance)."""
+    from solderpyro.pipeline.fe_exact import best_fit_posterior
+
+    rng = np.random.default_rng(2)
+    y = 1.0 + 0.5 * S + 2.0 * S**2 + 0.05 * rng.standard_normal(S.size)
+    box = Box(("a", "b"), (0.0, 0.0), (3.0, 4.0))  # the optimum (0.67, 2.5) inside
+    # from near the optimum (the design's LM fit): one more step finds it (a linear model)
+    fit = best_fit_posterior(_fun, UnitCoords(box), np.array([0.7, 2.4]), y, 0.05,
+                             n_draws=4000, seed=0)
+    (b, a), cov = np.polyfit(S, y, 1, cov=True)  # cov scaled by the residual variance
+    assert np.allclose(fit.x, [a, b], atol=2e-3)  # LM from a near start: the LS optimum
+    chi2 = float(np.sum((y - a - b * S) ** 2)) / 0.05**2
+    assert abs(fit.scale - np.sqrt(chi2 / (S.size - 2))) < 1e-2 * fit.scale
+    sd = np.sqrt(np.diag(cov))[::-1]  # (a, b)
+    half = np.array([(r["q97.5"] - r["q2.5"]) / 2 for r in fit.rows[:2]])
+    # 4000 draws: the 95 % half-width to ~3 %
+    np.testing.assert_allclose(half, 1.96 * sd, rtol=0.08)
+    assert [r["median"] for r in fit.rows[:2]] == list(fit.x)
+    assert fit.rows[-1]["parameter"] == "sigma"
+    assert abs(fit.sigma[0] - 0.05 * fit.scale) < 1e-12
