@@ -378,9 +378,8 @@ def _add_design(p: argparse.ArgumentParser) -> None:
                    help="the FE-exact posterior (adaptive importance sampling with the FE in "
                    "the likelihood) and profile-likelihood intervals: auto (default) runs them "
                    "when the design's budget runs out with the FE disagreeing with the "
-                   "surrogate, and the FE-exact posterior alone (no profiles) when the design "
-                   "converged (calibration.exact.confirm=false: not then); on: always; "
-                   "off: never")
+                   "surrogate (calibration.exact.confirm=true: also, without profiles, when the "
+                   "design converged); on: always; off: never")
     p.add_argument("--exact-runs", type=int, default=es.runs, metavar="N",
                    help=f"FE runs per importance-sampling round (default {es.runs})")
     p.add_argument("--exact-rounds", type=int, default=es.rounds, metavar="R",
