@@ -28,7 +28,7 @@ from solderpyro.configure import Setup
 from solderpyro.design.loop import StageClock, spread_indices
 from solderpyro.io.measurements import Measurements
 from solderpyro.pipeline.adaptive import adaptive_design
-from solderpyro.pipeline.fe_check import FE_CHECK_DRAWS, fe_check
+from solderpyro.pipeline.fe_check import FE_CHECK_DRAWS, discretization_check, fe_check
 from solderpyro.pipeline.fe_exact import SUMMARY, WEAK_SHARE, exact_rows, fe_exact, identifiability
 from solderpyro.pipeline.outputs import SpecimenCalibration, save_run
 from solderpyro.pipeline.problem import SpecimenModel
@@ -144,6 +144,17 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         trust = ("the surrogate posterior, with care: the design's budget ran out before the "
                  "FE confirmed the surrogate" + (" (the FE-exact posterior follows)"
                                                  if run_exact else ""))
+    # the FE's own discretization error against what the data resolve (two FE runs)
+    med = {r["parameter"]: float(r["median"]) for r in rows}
+    try:
+        disc = discretization_check(sm, np.array([med[nm] for nm in space.names]), sig_fe)
+    except Exception as err:  # advisory: never lose the run over it
+        log.warning("the discretization check failed", exc_info=True)
+        disc = {"warn": False, "message": f"discretization check failed: {err!r}"}
+    log.info(disc["message"])
+    if disc["warn"]:
+        problems = [*problems, disc["message"]]
+    clock("discretization")
     rhat = max((float(r["r_hat"]) for r in rows if np.isfinite(float(r["r_hat"]))),
                default=float("nan"))
     if rhat > RHAT_OK:  # the surrogate may be right and its posterior still not sampled
@@ -170,7 +181,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                   "inputs_T_C": sg.inputs_T_C, "inputs_rate": sg.inputs_rate,
                   "n_runs": int(len(loop.X)), "design": loop.as_dict(),
                   "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
-                  "fe_check": chk, "timing_s": clock.seconds, "trust": trust,
+                  "fe_check": chk, "discretization": disc, "timing_s": clock.seconds,
+                  "trust": trust,
                   "posterior": kind,
                   **({"exact": ex_info} if ex_info else {})}, draws=saved)
         last = loop.rounds[-1]
@@ -182,7 +194,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                  f"tolerance {last.tolerance:.3g}",
                  f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), "
                  f"best RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} "
-                 f"noise sd (chi2 {chk['chi2']:.0f} on {chk['n']} values)"]
+                 f"noise sd (chi2 {chk['chi2']:.0f} on {chk['n']} values)",
+                 disc["message"]]
         if saved is not None and ex_info:
             notes.insert(1, f"**posterior: FE-exact** (adaptive importance sampling with the FE "
                             f"in the likelihood, {ex_info['fe_runs']} FE runs, ESS "

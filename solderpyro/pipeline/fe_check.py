@@ -54,3 +54,70 @@ def fe_check(V: np.ndarray, y_obs: torch.Tensor, sigma: float) -> dict[str, Any]
     bad = misfits(float(c2[k]), n)
     return {"chi2": float(c2[k]), "n": n, "rms_um": rms, "rms_over_sigma": rms / sigma,
             "draws": int(r.shape[0]), "ok": not bad}
+
+
+#: the discretization check refines every element count and time-step limit by this factor
+REFINE_FACTOR = 1.5
+#: ... and warns when one refinement moves the model's observed outputs by at least this much
+#: chi-square (noise units): the data then resolve the FE's own discretization error
+DISCRETIZATION_CHI2 = 1.0
+
+
+def refined(problem: Any, factor: float = REFINE_FACTOR) -> Any:
+    """``problem`` (:class:`~solderpyro.fem.problem.Problem`) one refinement finer: every
+    layer's element rows and the elements along x times ``factor`` (rounded, at least one
+    more), the time steps' limits (``dT_max``, ``dt_max``, ``dwell_dt0``) divided by it."""
+    import dataclasses
+
+    def more(n: int) -> int:
+        return max(n + 1, int(round(n * factor)))
+
+    st = problem.stepping
+    return dataclasses.replace(
+        problem,
+        layers=tuple(dataclasses.replace(lay, ny=more(lay.ny)) for lay in problem.layers),
+        mesh=dataclasses.replace(problem.mesh, nx=more(problem.mesh.nx)),
+        stepping=dataclasses.replace(st, dT_max=st.dT_max / factor, dt_max=st.dt_max / factor,
+                                     dwell_dt0=st.dwell_dt0 / factor))
+
+
+def discretization_check(sm: Any, x: np.ndarray, sigma: float,
+                         factor: float = REFINE_FACTOR) -> dict[str, Any]:
+    """How far the FE's own discretization error reaches into what the data resolve.
+
+    The FE at ``x`` on the calibration's mesh and time steps, and once refined
+    (:func:`refined`; one FE run each, through the run store): ``shift_chi2 = |V_fine -
+    V|^2 / sigma^2``, the chi-square by which one refinement moves the observed outputs. A
+    posterior moves by one sd along a direction that changes chi-square by one, so
+    ``shift_chi2 >= 1`` (:data:`DISCRETIZATION_CHI2`) says the intervals can be shifted by the
+    discretization error (measured on the clean hidden-effect field data from a mesh twice as
+    fine: 4.4 at the fit; the calibration's Q/R and m then sat at or beyond their interval
+    ends, BENCHMARKS.md issue 19, session 22). ``fit_change``: chi-square of the refined FE
+    minus that of the calibration's (negative: the finer FE fits the data better).
+
+    Args:
+        sm: the :class:`~.problem.SpecimenModel`; x: ``(dim,)`` a full parameter row,
+            physical (e.g. the reported medians); sigma: noise sd, um.
+    Returns:
+        ``{"factor", "shift_chi2", "fit_change", "warn", "message"}``.
+    """
+    import dataclasses
+
+    from solderpyro.pipeline.problem import SpecimenModel
+
+    fine_setup = dataclasses.replace(sm.setup, problem=refined(sm.setup.problem, factor))
+    fine = SpecimenModel.build(fine_setup, sm.meas, str(sm.store.root), sm.batch, False)
+    row = np.asarray(x, float)[None]
+    V, Vf = sm.observed(row)[0], fine.observed(row)[0]
+    y = sm.y.detach().cpu().numpy()
+    shift = float(np.sum((Vf - V) ** 2) / sigma**2)
+    change = float((np.sum((y - Vf) ** 2) - np.sum((y - V) ** 2)) / sigma**2)
+    warn = bool(np.isfinite(shift) and shift >= DISCRETIZATION_CHI2)
+    msg = (f"discretization: one refinement of the FE (elements and time steps x{factor:g}) "
+           f"moves the model by chi2 {shift:.3g} at the reported medians (its fit changes by "
+           f"{change:+.3g})" + (": the data resolve the FE's own discretization error, so "
+                                 "the intervals can be shifted by up to ~sqrt of that in sd; "
+                                 "calibrate on a finer mesh (mesh=fine) to remove it"
+                                 if warn else ": below what the data resolve"))
+    return {"factor": factor, "shift_chi2": shift, "fit_change": change, "warn": warn,
+            "message": msg}

@@ -1,0 +1,64 @@
+"""The discretization check (pipeline.fe_check): one refinement of the FE, and what it
+tells a user about the FE's own error against the data's resolution."""
+
+import dataclasses
+
+import numpy as np
+
+from solderpyro.cli import simulate_table
+from solderpyro.configure import build, compose
+from solderpyro.io.measurements import from_arrays
+from solderpyro.params import LIU2008
+from solderpyro.pipeline.fe_check import DISCRETIZATION_CHI2, discretization_check, refined
+from solderpyro.pipeline.problem import SpecimenModel
+
+
+def test_refined_multiplies_every_count_and_divides_every_step():
+    p = build(compose([])).problem
+    r = refined(p, 1.5)
+    assert r.mesh.nx == 45 and [lay.ny for lay in r.layers] == [12, 6, 12]
+    assert np.isclose(r.stepping.dT_max, p.stepping.dT_max / 1.5)
+    assert np.isclose(r.stepping.dt_max, p.stepping.dt_max / 1.5)
+    assert np.isclose(r.stepping.dwell_dt0, p.stepping.dwell_dt0 / 1.5)
+    assert r.mesh.x_grading == p.mesh.x_grading and r.cycle == p.cycle
+
+
+def test_the_fe_converges_under_the_refinement_the_check_uses():
+    """Successive refinements by 1.5 change the full field by less and less (a convergent
+    discretization; order p > 0 means the second change is the first times 1.5^-p < 1): the
+    check's one-refinement shift is an upper bound of the remaining error's scale."""
+    setup = build(compose(["mesh=coarse"]))  # coarse: three levels in a few seconds
+    times = (600.0, 4800.0)
+    V = []
+    for k in range(3):
+        prob = setup.problem
+        for _ in range(k):
+            prob = refined(prob)
+        V.append(simulate_table(dataclasses.replace(setup, problem=prob), {}, times, True,
+                                progress=False)[3])
+    d1 = np.sqrt(np.mean((V[1] - V[0]) ** 2))
+    d2 = np.sqrt(np.mean((V[2] - V[1]) ** 2))
+    assert d2 < 0.8 * d1, (d1, d2)
+    assert d1 < 0.05 * np.sqrt(np.mean(V[0] ** 2))  # a refinement, not a different model
+
+
+def test_the_check_measures_the_shift_in_noise_units(tmp_path):
+    """shift_chi2 = |V_fine - V|^2 / sigma^2 exactly: it scales as 1/sigma^2, and warns from
+    DISCRETIZATION_CHI2 on."""
+    setup = build(compose(["mesh=coarse"]))
+    times = (600.0, 4800.0)
+    t, names, pts, V = simulate_table(setup, {}, times, True, progress=False)
+    temps = np.array([setup.problem.cycle(x) for x in t])
+    meas = from_arrays(t, names, pts, V, temperature_C=temps, sigma_um=np.full(V.shape, 0.05))
+    sm = SpecimenModel.build(setup, meas, str(tmp_path / "store"), 64, False)
+    x = np.array([LIU2008[nm] for nm in sm.space.names])
+    a = discretization_check(sm, x, 0.05)
+    fine = SpecimenModel.build(dataclasses.replace(setup, problem=refined(setup.problem)),
+                               meas, str(tmp_path / "store"), 64, False)
+    d = fine.observed(x[None])[0] - sm.observed(x[None])[0]
+    assert np.isclose(a["shift_chi2"], np.sum(d**2) / 0.05**2, rtol=1e-10)
+    sig_edge = np.sqrt(np.sum(d**2) / DISCRETIZATION_CHI2)  # the sigma where it starts to warn
+    assert discretization_check(sm, x, 0.9 * sig_edge)["warn"]
+    assert not discretization_check(sm, x, 1.1 * sig_edge)["warn"]
+    # the data are the calibration FE's own output: refining can only fit them worse
+    assert a["fit_change"] > 0
