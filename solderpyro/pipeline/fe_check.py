@@ -85,7 +85,8 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
                          factor: float = REFINE_FACTOR) -> dict[str, Any]:
     """How far the FE's own discretization error reaches into what the data resolve.
 
-    The FE at ``x`` on the calibration's mesh and time steps, and once refined
+    The FE at ``x`` (a point that fits: ``fit_change`` at a poor one measures the point) on
+    the calibration's mesh and time steps, and once refined
     (:func:`refined`; one FE run each, through the run store): ``shift_chi2 = |V_fine -
     V|^2 / sigma^2``, the chi-square by which one refinement moves the observed outputs. A
     posterior moves by one sd along a direction that changes chi-square by one, so
@@ -97,7 +98,8 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
 
     Args:
         sm: the :class:`~.problem.SpecimenModel`; x: ``(dim,)`` a full parameter row,
-            physical (e.g. the reported medians); sigma: noise sd, um.
+            physical (the FE's best fit, or the best checked posterior draw); sigma: noise
+            sd, um.
     Returns:
         ``{"factor", "shift_chi2", "fit_change", "warn", "message"}``.
     """
@@ -114,7 +116,7 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
     change = float((np.sum((y - Vf) ** 2) - np.sum((y - V) ** 2)) / sigma**2)
     warn = bool(np.isfinite(shift) and shift >= DISCRETIZATION_CHI2)
     msg = (f"discretization: one refinement of the FE (elements and time steps x{factor:g}) "
-           f"moves the model by chi2 {shift:.3g} at the reported medians (its fit changes by "
+           f"moves the model by chi2 {shift:.3g} at the best fit (its fit changes by "
            f"{change:+.3g})" + (": the data resolve the FE's own discretization error, so "
                                  "the intervals can be shifted by up to ~sqrt of that in sd; "
                                  "calibrate on a finer mesh (mesh=fine) to remove it"
