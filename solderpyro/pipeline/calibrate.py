@@ -27,7 +27,7 @@ from solderpyro.calibration.predictive import Bands
 from solderpyro.configure import Setup
 from solderpyro.design.loop import StageClock, spread_indices
 from solderpyro.io.measurements import Measurements
-from solderpyro.pipeline.adaptive import adaptive_design
+from solderpyro.pipeline.adaptive import adaptive_design, save_design
 from solderpyro.pipeline.fe_check import FE_CHECK_DRAWS, discretization_check, fe_check
 from solderpyro.pipeline.fe_exact import SUMMARY, WEAK_SHARE, exact_rows, fe_exact, identifiability
 from solderpyro.pipeline.outputs import SpecimenCalibration, save_run
@@ -129,6 +129,13 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                               "so the design stopped refining its surrogate")
         if loop.best_fit and loop.best_fit.get("x"):
             fit, bands = _best_fit_stage(sm, s, loop.best_fit, sig_fe)
+            # the design's record and figure show the fit that is reported (and diagnose
+            # starts there)
+            n_y = int(sm.y.numel())
+            loop.best_fit.update({
+                "x": dict(zip(space.names, map(float, fit.x), strict=True)),
+                "chi2": fit.chi2, "rms_over_sigma": float(np.sqrt(fit.chi2 / n_y))})
+            save_design(loop, sm.gp_box.names, out)
             write_summary(rows, out / "summary_surrogate.csv", SUMMARY)
             rows = [{**r, "r_hat": float("nan"), "ess_bulk": float("nan"),
                      "ess_tail": float("nan")} for r in fit.rows]
