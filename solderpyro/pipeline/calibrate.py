@@ -157,11 +157,13 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     # data 165 chi-square worse, a change of the point, not of the mesh)
     c2_chk = np.nansum((V_chk - sm.y.numpy()) ** 2, 1)
     c2_chk[~np.isfinite(V_chk).all(1)] = np.inf
-    x_disc = fit.x if fit is not None else draws[pick][int(np.argmin(c2_chk))]
+    best_chk = int(np.argmin(c2_chk))
+    x_disc = fit.x if fit is not None else draws[pick][best_chk]
     try:
         # a model that misfits: measured against its misfit-widened noise sd (the check's
         # shift is then noise beside the missing effect)
-        disc = discretization_check(sm, x_disc, sig_fe if fit is None else float(fit.sigma[0]))
+        disc = discretization_check(sm, x_disc, sig_fe if fit is None else float(fit.sigma[0]),
+                                    V=None if fit is not None else V_chk[best_chk])
     except Exception as err:  # advisory: never lose the run over it
         log.warning("the discretization check failed", exc_info=True)
         disc = {"warn": False, "message": f"discretization check failed: {err!r}"}

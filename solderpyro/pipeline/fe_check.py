@@ -82,7 +82,8 @@ def refined(problem: Any, factor: float = REFINE_FACTOR) -> Any:
 
 
 def discretization_check(sm: Any, x: np.ndarray, sigma: float,
-                         factor: float = REFINE_FACTOR) -> dict[str, Any]:
+                         factor: float = REFINE_FACTOR, V: np.ndarray | None = None
+                         ) -> dict[str, Any]:
     """How far the FE's own discretization error reaches into what the data resolve.
 
     The FE at ``x`` (a point that fits: ``fit_change`` at a poor one measures the point) on
@@ -99,7 +100,10 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
     Args:
         sm: the :class:`~.problem.SpecimenModel`; x: ``(dim,)`` a full parameter row,
             physical (the FE's best fit, or the best checked posterior draw); sigma: noise
-            sd, um.
+            sd, um; V: ``(n_obs,)`` the calibration FE's outputs at ``x`` where they are at
+            hand (else one more call of ``sm.observed``). The refined run counts in
+            ``sm.tally`` (an FE run of the calibration; the store keeps it under the refined
+            problem's hash).
     Returns:
         ``{"factor", "shift_chi2", "fit_change", "warn", "message"}``.
     """
@@ -110,7 +114,10 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
     fine_setup = dataclasses.replace(sm.setup, problem=refined(sm.setup.problem, factor))
     fine = SpecimenModel.build(fine_setup, sm.meas, str(sm.store.root), sm.batch, False)
     row = np.asarray(x, float)[None]
-    V, Vf = sm.observed(row)[0], fine.observed(row)[0]
+    V = sm.observed(row)[0] if V is None else np.asarray(V, float)
+    Vf = fine.observed(row)[0]
+    for k in ("n_ok", "n_failed", "n_reused", "n_computed"):
+        setattr(sm.tally, k, getattr(sm.tally, k) + getattr(fine.tally, k))
     y = sm.y.detach().cpu().numpy()
     shift = float(np.sum((Vf - V) ** 2) / sigma**2)
     change = float((np.sum((y - Vf) ** 2) - np.sum((y - V) ** 2)) / sigma**2)

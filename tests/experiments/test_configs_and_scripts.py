@@ -122,7 +122,8 @@ DEMO_TINY = ["--start", "10", "--budget", "22", "--q", "4", *NUTS_TINY]
 def _stored(store: Path) -> dict[str, np.ndarray]:
     """Every stored FE run's solver row (the nine Anand constants, then any effect
     parameters), by file name."""
-    return {p.name: np.array(list(json.loads(p.read_text())["params"].values()), float)
+    return {f"{p.parent.parent.name}/{p.name}":
+            np.array(list(json.loads(p.read_text())["params"].values()), float)
             for p in store.glob("*/runs/*.json")}
 
 
@@ -179,17 +180,20 @@ def test_demo_command_runs_tiny(tmp_path):
     lo_t, hi_t = (torch.tensor(b, dtype=torch.float64) for b in (box.lower, box.upper))
     assert bool(((X >= lo_t * (1 - 1e-7)) & (X <= hi_t * (1 + 1e-7))).all())  # in the box
     # nothing lost: every design run is in the store (design.csv keeps 8 significant digits),
-    # and the store holds exactly what was computed: the Liu 2008 run, the design and the FE
-    # check's 8 posterior draws (fewer only where a draw repeats)
+    # and the store holds exactly what was computed: the Liu 2008 run, the design, the FE
+    # check's 8 posterior draws (fewer only where a draw repeats) and the discretization
+    # check's one run of the refined FE (under its own problem hash)
     store = _stored(tmp_path / "store")
     S = np.stack(list(store.values()))
     for x in fe_params(setup, X).numpy():
         assert np.isclose(S, x, rtol=1e-7, atol=0.0).all(1).any(), x
     chk = info["fe_check"]
-    assert chk["draws"] == 8 and len(rows) + 1 < len(store) <= len(rows) + 1 + chk["draws"]
+    assert chk["draws"] == 8 and len(rows) + 2 < len(store) <= len(rows) + 2 + chk["draws"]
+    assert len({k.split("/")[0] for k in store}) == 2  # the calibration's FE and the refined
     n = len(store)
     assert all(int(r["converged"]) for r in rows)
-    # the report counts every FE run of the calibration (Liu, design, FE check): all computed
+    # the report counts every FE run of the calibration (Liu, design, FE check, the
+    # discretization check's): all computed
     assert (f"FE runs: {n} converged, 0 failed (0 reused from the run store, {n} computed)"
             in (cal / "report.md").read_text())
     out = tmp_path / "again"
@@ -215,7 +219,7 @@ def test_demo_command_runs_tiny(tmp_path):
     names = {p.name for p in (tmp_path / "store").glob("*/runs/*.json")}
     assert {f"{param_hash(r)}.json" for r in solver_rows} <= names
     # ... and the best fit's forward differences (2 starts x 4 parameters in its first step)
-    assert len(names) >= n + 8 + int(inside.sum())
+    assert len(_stored(tmp_path / "store")) >= n + 8 + int(inside.sum())
     ex = (out / "exact_posterior.csv").read_text().splitlines()
     assert ex[0] == ("parameter,q2.5,median,mean,q97.5,surrogate_q2.5,surrogate_median,"
                      "surrogate_q97.5,ess,khat") and len(ex) == 6
