@@ -121,7 +121,9 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
         lines += ["![adaptive design: marginals per round, stopping rule, where the runs went]"
                   "(design.png)", ""]
     lines += [f"![literature constants vs data]({f8})", "",
-              f"![posterior traces and marginals]({f9})", "",
+              f"![the surrogate posterior's NUTS traces and marginals]({f9})", "",
+              "The traces are the NUTS chains of the surrogate posterior, whichever result "
+              "summary.csv reports (the trust line says which).", "",
               f"![posterior predictive]({f10})", "",
               f"![surrogate validation]({fl})", "",
               f"Surrogate leave-one-out: 95 % coverage {loo.coverage95:.0%}, RMSE "
