@@ -469,7 +469,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
     _add_cluster(c)
     _add_design(c)
-    _add_nuts(c)
+    from .settings import SamplerSettings
+
+    _add_nuts(c, draws=SamplerSettings().draws)
     w = sub.add_parser("sweep", help="calibrate many datasets, one job each, in parallel on a "
                        "Dask cluster (--cluster local:N) or one after another; each dataset's "
                        "run directory is OUT/<file stem>, results recorded in OUT/sweep.json "

@@ -49,11 +49,17 @@ class SamplerSettings:
     the previous round's mass matrix is too wide for the new posterior until the warm-up's
     window re-estimates it, and full-depth trees then cost 1,023 gradients per iteration
     (208 s for one round on the full-field case). ``workers``: processes for the chains (0:
-    one per core)."""
+    one per core).
+
+    ``draws`` 1500 (1000 until session 22): with 1000 the hidden-effect recalibrations met
+    issue 18's bars (R-hat <= 1.01, bulk ESS >= 400 for every parameter) in only some runs
+    (R-hat up to 1.016, min ESS 377); on the modulus field recalibration, paired on an idle
+    machine, 1500 took min ESS 422 -> 782 and R-hat 1.007 -> 1.004 for 137 s instead of
+    120 s (BENCHMARKS.md issue 18, session 22)."""
 
     chains: int = 4
     warmup: int = 500
-    draws: int = 1000
+    draws: int = 1500
     round_warmup: int = 150
     round_draws: int = 200
     round_max_depth: int = 6
