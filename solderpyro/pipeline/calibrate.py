@@ -28,7 +28,12 @@ from solderpyro.configure import Setup
 from solderpyro.design.loop import StageClock, spread_indices
 from solderpyro.io.measurements import Measurements
 from solderpyro.pipeline.adaptive import adaptive_design, save_design
-from solderpyro.pipeline.fe_check import FE_CHECK_DRAWS, discretization_check, fe_check
+from solderpyro.pipeline.fe_check import (
+    FE_CHECK_DRAWS,
+    discretization_check,
+    fe_check,
+    ranked,
+)
 from solderpyro.pipeline.fe_exact import SUMMARY, WEAK_SHARE, exact_rows, fe_exact, identifiability
 from solderpyro.pipeline.outputs import SpecimenCalibration, save_run
 from solderpyro.pipeline.problem import SpecimenModel
@@ -155,9 +160,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     # at the FE's best fit where there is one, else at the best checked posterior draw (the
     # marginal medians can lie off a curved ridge: there the refined FE fitted the modulus
     # data 165 chi-square worse, a change of the point, not of the mesh)
-    c2_chk = np.nansum((V_chk - sm.y.numpy()) ** 2, 1)
-    c2_chk[~np.isfinite(V_chk).all(1)] = np.inf
-    best_chk = int(np.argmin(c2_chk))
+    best_chk = chk["best"]
     x_disc = fit.x if fit is not None else draws[pick][best_chk]
     try:
         # a model that misfits: measured against its misfit-widened noise sd (the check's
@@ -274,7 +277,7 @@ def _best_fit_stage(sm: SpecimenModel, s: CalibrationSettings, best: dict[str, A
                  f"{r['parameter']}={r['median']:.4g} [{r['q2.5']:.4g}, {r['q97.5']:.4g}]"
                  for r in fit.rows))
     pick = spread_indices(len(fit.theta), BEST_FIT_BAND_RUNS)
-    V = torch.as_tensor(np.vstack([sm.observed(fit.x[None]), sm.observed(fit.theta[pick])]))
+    V = torch.as_tensor(sm.observed(np.vstack([fit.x[None], fit.theta[pick]])))  # one solve
     ok = torch.isfinite(V).all(1)
     V = V[ok]
     st = torch.full((len(V),), float(fit.sigma[0]), dtype=V.dtype)
@@ -309,9 +312,7 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
     log.info("exact: the FE-exact posterior, %d rounds of %d FE runs after a best fit%s",
              ex_s.rounds, ex_s.runs, f" and a {ex_s.profile}-point profile"
              if ex_s.profile >= 2 else "")
-    c2 = np.nansum((V_chk - y.numpy()) ** 2, 1)
-    c2[~np.isfinite(V_chk).all(1)] = np.inf
-    starts = draws[pick][np.argsort(c2)[:2]]
+    starts = draws[pick][ranked(V_chk, y.numpy())[:2]]
     from solderpyro.coords import sampling_coords
 
     sg = s.surrogate

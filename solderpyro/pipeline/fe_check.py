@@ -28,6 +28,14 @@ def misfits(chi2: float, n: int) -> bool:
     return bool(np.sqrt(chi2 / n) > FE_CHECK_RMS and chi2 > chi2_dist.ppf(FE_CHECK_QUANTILE, n))
 
 
+def ranked(V: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``(b,)`` indices of the FE outputs ``V (b, n_obs)`` from the best fit of ``y
+    (n_obs,)`` (lowest sum of squared residuals) to the worst, rows with a NaN (not converged)
+    last."""
+    r = np.atleast_2d(np.asarray(V, float)) - np.asarray(y, float)
+    return np.argsort(np.where(np.isfinite(r).all(1), (r**2).sum(1), np.inf), kind="stable")
+
+
 def fe_check(V: np.ndarray, y_obs: torch.Tensor, sigma: float) -> dict[str, Any]:
     """Does the FE itself fit where the surrogate posterior lies?
 
@@ -41,19 +49,21 @@ def fe_check(V: np.ndarray, y_obs: torch.Tensor, sigma: float) -> dict[str, Any]
         V: ``(b, n_obs)`` FE outputs at ``b`` posterior draws, um (NaN rows: not converged);
         y_obs: ``(n_obs,)`` um; sigma: noise sd, um.
     Returns:
-        ``{"chi2", "n", "rms_um", "rms_over_sigma", "draws", "ok"}`` of the best-fitting draw;
+        ``{"chi2", "n", "rms_um", "rms_over_sigma", "draws", "ok", "best"}`` of the
+        best-fitting draw (``best``: its row of ``V``, :func:`ranked`'s first);
         ``ok`` is False when its RMS residual exceeds :data:`FE_CHECK_RMS` noise sd and its
         chi-square the :data:`FE_CHECK_QUANTILE` quantile of chi2(n) (or no draw converged).
     """
     y = y_obs.detach().cpu().numpy()
-    r = np.atleast_2d(np.asarray(V, float)) - y
-    c2 = np.where(np.isfinite(r).all(1), ((r / sigma) ** 2).sum(1), np.inf)
-    k = int(np.argmin(c2))
+    V = np.atleast_2d(np.asarray(V, float))
+    k = int(ranked(V, y)[0])
+    r = V[k] - y
+    c2 = float(((r / sigma) ** 2).sum()) if np.isfinite(r).all() else float("inf")
     n = int(y.size)
-    rms = float(np.sqrt(c2[k] / n)) * sigma if np.isfinite(c2[k]) else float("nan")
-    bad = misfits(float(c2[k]), n)
-    return {"chi2": float(c2[k]), "n": n, "rms_um": rms, "rms_over_sigma": rms / sigma,
-            "draws": int(r.shape[0]), "ok": not bad}
+    rms = float(np.sqrt(c2 / n)) * sigma if np.isfinite(c2) else float("nan")
+    bad = misfits(c2, n)
+    return {"chi2": c2, "n": n, "rms_um": rms, "rms_over_sigma": rms / sigma,
+            "draws": int(V.shape[0]), "ok": not bad, "best": k}
 
 
 #: the discretization check refines every element count and time-step limit by this factor
@@ -116,8 +126,7 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
     row = np.asarray(x, float)[None]
     V = sm.observed(row)[0] if V is None else np.asarray(V, float)
     Vf = fine.observed(row)[0]
-    for k in ("n_ok", "n_failed", "n_reused", "n_computed"):
-        setattr(sm.tally, k, getattr(sm.tally, k) + getattr(fine.tally, k))
+    sm.tally.add(fine.tally)
     y = sm.y.detach().cpu().numpy()
     shift = float(np.sum((Vf - V) ** 2) / sigma**2)
     change = float((np.sum((y - Vf) ** 2) - np.sum((y - V) ** 2)) / sigma**2)

@@ -45,6 +45,14 @@ class FeTally:
     n_reused: int = 0
     n_computed: int = 0
 
+    def add(self, other: FeTally) -> None:
+        """Count ``other``'s runs here too (e.g. a refined problem's, made for this
+        calibration)."""
+        self.n_ok += other.n_ok
+        self.n_failed += other.n_failed
+        self.n_reused += other.n_reused
+        self.n_computed += other.n_computed
+
 
 @dataclass
 class SpecimenModel:
