@@ -103,9 +103,10 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
     posterior moves by one sd along a direction that changes chi-square by one, so
     ``shift_chi2 >= 1`` (:data:`DISCRETIZATION_CHI2`) says the intervals can be shifted by the
     discretization error (measured on the clean hidden-effect field data from a mesh twice as
-    fine: 4.4 at the fit; the calibration's Q/R and m then sat at or beyond their interval
-    ends, BENCHMARKS.md issue 19, session 22). ``fit_change``: chi-square of the refined FE
-    minus that of the calibration's (negative: the finer FE fits the data better).
+    fine: 4.27 at the base run's medians; the calibration's Q/R and m then sat at or beyond
+    their interval ends, BENCHMARKS.md issue 19, session 22). ``fit_change``: chi-square of
+    the refined FE minus that of the calibration's (negative: the finer FE fits the data
+    better).
 
     Args:
         sm: the :class:`~.problem.SpecimenModel`; x: ``(dim,)`` a full parameter row,
