@@ -18,7 +18,7 @@ from .fem.loading import EXTENDED_TIMES, SEED_TIMES, ThermalCycle, TimeStepping
 from .fem.mesh import Layer, MeshSpec
 from .fem.problem import LAWS, Problem
 from .params import ANAND_NAMES, Box, ParameterSpace, check_anand_values
-from .settings import register_configs
+from .settings import SurrogateSettings, register_configs
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 register_configs()  # the calibration group's schema, also for @hydra.main scripts
@@ -229,7 +229,8 @@ def _surrogate(cfg) -> dict:
                     ("output", ("pca", "batched")), ("inputs", ("raw", "flow_stress"))):
         if out[key] not in ok:
             raise ValueError(f"config surrogate.{key} must be one of {ok}, got {out[key]!r}")
-    for key, default in (("inputs_T_C", 125.0), ("inputs_rate", 1e-5)):
+    for key, default in (("inputs_T_C", 125.0), ("inputs_rate", 1e-5),
+                         ("truncation", SurrogateSettings.truncation)):
         try:
             out[key] = float(sc.get(key, default))
         except (TypeError, ValueError):
@@ -238,6 +239,9 @@ def _surrogate(cfg) -> dict:
     if not out["inputs_rate"] > 0:
         raise ValueError(f"config surrogate.inputs_rate must be > 0 (1/s), got "
                          f"{out['inputs_rate']}")
+    if not out["truncation"] > 0:
+        raise ValueError(f"config surrogate.truncation must be > 0 (a share of sqrt(2 n)), "
+                         f"got {out['truncation']}")
     if not out["inputs_T_C"] > -273.15:
         raise ValueError(f"config surrogate.inputs_T_C must be above -273.15 degC, got "
                          f"{out['inputs_T_C']}")

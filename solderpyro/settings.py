@@ -38,7 +38,7 @@ class SurrogateSettings:
     inputs: str = "flow_stress"
     inputs_T_C: float = 125.0
     inputs_rate: float = 1e-5
-    truncation: float = 0.1
+    truncation: float = 0.01
 
 
 @dataclass

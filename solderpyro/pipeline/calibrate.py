@@ -209,8 +209,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                  f"adaptive design: {len(loop.X)} FE runs in {len(loop.rounds)} rounds "
                  f"({loop.reason}): {loop.message} (design.png, design.csv)",
                  f"last round: code chi2 {last.code_chi2:.3g}, max |FE - surrogate| chi2 "
-                 f"{last.fe_gap:.3g}, "
-                 f"tolerance {last.tolerance:.3g}",
+                 f"{last.fe_gap:.3g} (varying by {last.fe_spread:.2g} across the checked "
+                 f"draws, tolerance {s.design.fe_spread:g}), tolerance {last.tolerance:.3g}",
                  f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), "
                  f"best RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} "
                  f"noise sd (chi2 {chk['chi2']:.0f} on {chk['n']} values)",

@@ -268,6 +268,38 @@ def test_stop_rule_tolerance_is_the_chi_square_sampling_sd():
     assert not stop_rule(1.0, np.array([np.inf]), np.array([1.0]), 200, s)[1]
 
 
+def test_stop_rule_rejects_a_gap_that_tilts_the_posterior():
+    """A gap common to every checked draw only rescales the likelihood (the posterior is
+    unchanged); one that varies by more than ``fe_spread`` across them moves the posterior:
+    the weight of one draw against another is off by exp(spread / 2)."""
+    s = LoopSettings()
+    sur = np.array([2000.0, 2004.0, 2010.0, 2002.0])
+    assert stop_rule(1.0, sur + 3.0, sur, 2232, s)[1]  # level only: the same posterior
+    assert stop_rule(1.0, sur + np.array([-0.9, 0.0, 0.9, 0.5]), sur, 2232, s)[1]
+    assert not stop_rule(1.0, sur + np.array([-2.5, -2.5, 3.7, -2.0]), sur, 2232, s)[1]
+    with pytest.raises(ValueError, match="design.fe_spread"):
+        LoopSettings(fe_spread=0.0).validate(2)
+    with pytest.raises(ValueError, match="design.check_ends"):
+        LoopSettings(check=4, check_ends=3).validate(2)
+
+
+def test_check_draws_include_the_ends_of_a_ridge():
+    """On an elongated cloud (a ridge along (1, 1) in the unit box) the two end checks are
+    the draws at the 1 % and 99 % points along it; the rest spread through the chains; all
+    distinct."""
+    from solderpyro.design.loop import check_indices
+
+    rng = np.random.default_rng(3)
+    t = rng.standard_normal(8000)
+    unit = 0.5 + np.column_stack([0.1 * t, 0.1 * t]) + 0.002 * rng.standard_normal((8000, 2))
+    idx = check_indices(unit, 4, 2)
+    assert len(idx) == 4 and len(set(idx.tolist())) == 4
+    along = t[idx[:2]]
+    assert sorted(along) == pytest.approx(np.quantile(t, [0.01, 0.99]), abs=0.05)
+    assert not np.isin(idx[2:], idx[:2]).any()
+    assert check_indices(unit, 4, 0).tolist() == [0, 2666, 5333, 7999]
+
+
 def test_a_crash_between_rounds_loses_no_fe_run_and_the_rerun_continues_from_the_store():
     """The FE runs are kept as they finish (here: a cache standing in for the run store); a
     run that dies after round 1 and is started again proposes the same runs (every step is
@@ -318,6 +350,10 @@ def test_cli_config_overrides_reach_the_settings():
     ov = _split_overrides(rest)
     s = _settings(a, _setup(ov), ov)
     assert (s.design.code_tol, s.sampler.draws, s.exact.mode) == (0.5, 77, "off")
+    a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
+                                  "surrogate.truncation=0.05"])  # was dropped too
+    ov = _split_overrides(rest)
+    assert _settings(a, _setup(ov), ov).surrogate.truncation == 0.05
     assert s.sampler.chains == 2  # a flag still works beside the config
     a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
                                   "--draws", "55", "calibration.sampler.draws=77"])
