@@ -184,6 +184,7 @@ class Round:
     quantiles: dict[str, list[float]] = field(default_factory=dict)
     seconds: float = 0.0
     timing: dict[str, float] = field(default_factory=dict)  # s per step: fit, posterior, ...
+    spread_tolerance: float = float("nan")  # the rule's fe_spread (chi-square)
 
     @property
     def fe_gap(self) -> float:
@@ -387,7 +388,8 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         q = torch.quantile(draws.theta, torch.tensor([0.025, 0.5, 0.975], dtype=torch.float64),
                            0)
         rec = Round(r, len(X), code, fe_c2.tolist(), sur_c2.tolist(), tol, code_ok, fe_ok,
-                    quantiles={nm: q[:, j].tolist() for j, nm in enumerate(names)})
+                    quantiles={nm: q[:, j].tolist() for j, nm in enumerate(names)},
+                    spread_tolerance=s.fe_spread)
         stop = code_ok and fe_ok
         if (not stop and p.misfit is not None and best_fit is None and s.misfit_check
                 and r >= s.misfit_check):

@@ -170,6 +170,11 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
     ax.semilogy(rounds, code, "C0o-", label="code chi2 at posterior draws")
     ax.semilogy(rounds, np.maximum(dfe, 1e-3), "C3s-", label="max |FE - surrogate| chi2")
     ax.axhline(tol, color="k", ls="--", lw=0.8, label="tolerance sqrt(2n)")
+    spread = [rec.fe_spread for rec in r.rounds]
+    ax.semilogy(rounds, np.maximum(spread, 1e-3), "C1^-",
+                label="spread of FE - surrogate over the checked draws")
+    ax.axhline(r.rounds[-1].spread_tolerance, color="C1", ls=":", lw=0.8,
+               label="spread tolerance")
     ax.set_xlabel("round")
     ax.legend(fontsize=6)
     ax.set_title("stopping rule", fontsize=9)
