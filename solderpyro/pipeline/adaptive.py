@@ -172,11 +172,12 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
     ax.axhline(tol, color="k", ls="--", lw=0.8, label="tolerance sqrt(2n)")
     spread = [rec.fe_spread for rec in r.rounds]
     ax.semilogy(rounds, np.maximum(spread, 1e-3), "C1^-",
-                label="spread of FE - surrogate over the checked draws")
+                label="spread of that gap over the checks")
     ax.axhline(r.rounds[-1].spread_tolerance, color="C1", ls=":", lw=0.8,
                label="spread tolerance")
     ax.set_xlabel("round")
-    ax.legend(fontsize=6)
+    # the curves fall from the upper left: the legend goes where they are not
+    ax.legend(fontsize=5.5, loc="upper right", framealpha=0.85)
     ax.set_title("stopping rule", fontsize=9)
     ax = axes[d + 1]
     if d >= 2:
