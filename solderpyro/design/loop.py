@@ -309,9 +309,9 @@ def check_indices(unit: np.ndarray, m: int, ends: int) -> np.ndarray:
             for q in (0.01, 0.99):
                 order = np.argsort(np.abs(z - np.quantile(z, q)))
                 out.append(int(next(i for i in order if i not in out)))
-    rest = [int(i) for i in spread_indices(N, N) if i not in out]
-    pick = np.asarray(rest)[spread_indices(len(rest), m - len(out))] if m > len(out) else []
-    return np.asarray(out + [int(i) for i in pick], dtype=int)
+    rest = np.asarray([i for i in range(N) if i not in out], dtype=int)
+    return np.concatenate([np.asarray(out, dtype=int),
+                           rest[spread_indices(len(rest), m - len(out))]])
 
 
 def spread_indices(n: int, m: int) -> np.ndarray:

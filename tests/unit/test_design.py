@@ -350,15 +350,15 @@ def test_cli_config_overrides_reach_the_settings():
     ov = _split_overrides(rest)
     s = _settings(a, _setup(ov), ov)
     assert (s.design.code_tol, s.sampler.draws, s.exact.mode) == (0.5, 77, "off")
-    a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
-                                  "surrogate.truncation=0.05"])  # was dropped too
-    ov = _split_overrides(rest)
-    assert _settings(a, _setup(ov), ov).surrogate.truncation == 0.05
     assert s.sampler.chains == 2  # a flag still works beside the config
     a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
                                   "--draws", "55", "calibration.sampler.draws=77"])
     ov = _split_overrides(rest)
     assert _settings(a, _setup(ov), ov).sampler.draws == 55  # the given flag wins
+    a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
+                                  "surrogate.truncation=0.05"])  # was dropped too
+    ov = _split_overrides(rest)
+    assert _settings(a, _setup(ov), ov).surrogate.truncation == 0.05
     a, _ = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o"])
     s0 = _settings(a, _setup([]), [])
     assert s0 == CalibrationSettings(surrogate=s0.surrogate, progress=s0.progress)
