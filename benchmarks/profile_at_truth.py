@@ -1,0 +1,70 @@
+"""Does the data's own model put the truth outside? Profile chi-square at each true constant.
+
+For field data with a known truth: the Levenberg-Marquardt best fit of a chosen FE (``--fine``:
+the FE that made the data, ``mesh=fine`` with 2 K / 150 s steps, as benchmarks/design_hidden.py
+makes it; default: the calibration's FE), and for each parameter the fit with that parameter
+held at its true value. ``Delta = chi2_profile - chi2_best``; above 3.84 the truth lies outside
+the 95 % profile-likelihood interval. If every Delta is below it, a calibration whose interval
+misses the truth is wrong, not unlucky (issue 19, BENCHMARKS.md session 23).
+
+Usage: python benchmarks/profile_at_truth.py DATA.csv --start x1,x2,... [--effect NAME]
+       [--truth-extra V ...] [--params 0,1,...] [--fine] [--store DIR]
+(session 23: runs/i21/none.csv --start 13.44,11160,2.41,0.104 with and without --fine;
+runs/i21/moire_rigid_motion.csv --effect moire_rigid_motion --fine --params 1,2,5 with the
+truth's and the posterior medians' Moire values appended)
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from solderpyro.configure import build, compose
+from solderpyro.diagnose.hidden import TRUTH
+from solderpyro.fit import lm_fit
+from solderpyro.io.measurements import read_measurements
+from solderpyro.pipeline.problem import SpecimenModel
+
+FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("data")
+    ap.add_argument("--start", required=True, help="comma-separated start row (physical)")
+    ap.add_argument("--effect", default=None)
+    ap.add_argument("--truth-extra", type=float, nargs="*", default=[])
+    ap.add_argument("--params", default=None, help="indices to profile (default: all)")
+    ap.add_argument("--fine", action="store_true", help="the data-making FE, not the default")
+    ap.add_argument("--store", default="runs/store")
+    a = ap.parse_args()
+    meas = read_measurements(a.data)
+    ov = (FINE if a.fine else []) + ([f"effects=[{a.effect}]"] if a.effect else [])
+    sm = SpecimenModel.build(build(compose(ov)), meas, a.store, 64, False)
+    truth = np.array([TRUTH[k] for k in ("s0", "QR", "xi", "m")] + list(a.truth_extra))
+    start = np.array([float(v) for v in a.start.split(",")])
+    d = sm.space.dim
+    if truth.size != d or start.size != d:
+        raise SystemExit(f"--start and the truth (with --truth-extra) need {d} values "
+                         f"({', '.join(sm.space.names)}), got {start.size} and {truth.size}")
+    ks = [int(k) for k in a.params.split(",")] if a.params else list(range(d))
+    starts = [start] + [np.where(np.arange(d) == k, truth, start) for k in ks]
+    free = [np.arange(d)] + [np.delete(np.arange(d), k) for k in ks]
+    y, sig = np.array(meas.value_um), float(np.median(meas.sigma_um))
+    t0 = time.perf_counter()
+    fits = lm_fit(sm.observed, np.array(starts), sm.space.lower, sm.space.upper, y, sig,
+                  free=free, iters=12, tol=0.05)
+    best = min(f.chi2 for f in fits)
+    c2t = float((((y - sm.observed(truth[None])[0]) / sig) ** 2).sum())
+    print(f"{time.perf_counter() - t0:.0f} s; best fit chi2 {fits[0].chi2:.2f} at "
+          f"{np.round(fits[0].x, 4)}; truth {c2t:.2f} (joint Delta {c2t - best:.2f})")
+    for j, k in enumerate(ks):
+        dl = fits[j + 1].chi2 - best
+        print(f"profile {sm.space.names[k]} at its truth: Delta {dl:.2f} "
+              f"({'outside' if dl > 3.84 else 'inside'} the 95 % profile interval)")
+
+
+if __name__ == "__main__":
+    main()
