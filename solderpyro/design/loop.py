@@ -78,6 +78,15 @@ class LoopSettings:
             per calibration, when the FE misfits the data at every checked draw); when it says
             the FE's own best fit misfits, the loop stops (reason ``"misfit"``): refining the
             surrogate of a model that cannot fit the data does not help it (0: never).
+        localize: when that test finds instead that the model *can* fit (its best fit is
+            within noise), the most of its FE runs, best first and at least
+            :data:`LOCAL_SPACING` apart in the unit box, that join the training runs (kind
+            ``"fe_fit"``, counted in the budget) in place of that round's acquisition, and
+            the next posterior's chains start at the best fit (0: neither). Why: a cold start
+            with a temperature effect (stress-free temperature, 5 parameters) spent its 110
+            runs on a surrogate of the whole box whose posterior never came near the data
+            (code chi2 1e4-4e5 every round), while the test's 88 runs had found the FE's
+            best fit at 1.00 noise sd in round 2 and were thrown away.
     """
 
     start: int = 30
@@ -93,6 +102,7 @@ class LoopSettings:
     fe_spread: float = 2.0
     check_ends: int = 2
     misfit_check: int = 2
+    localize: int = 16
 
     def validate(self, dim: int) -> None:
         """Raise ``ValueError`` naming the first bad field (``dim``: FE parameters)."""
@@ -122,6 +132,8 @@ class LoopSettings:
         if self.misfit_check < 0:
             raise ValueError(f"design.misfit_check must be >= 0 (0: never), got "
                              f"{self.misfit_check}")
+        if self.localize < 0:
+            raise ValueError(f"design.localize must be >= 0 (0: never), got {self.localize}")
 
 
 @dataclass
@@ -133,12 +145,16 @@ class Draws:
         sigma: ``(N,)`` noise sd per draw, output units (um).
         offset: ``(N, n_y)`` what observation-side parameters add at each draw (or None).
         posterior: the sampler's own result (passed back as ``warm`` to the next round).
+        start: where the next posterior's chains start (``name -> value``, physical units:
+            the FE's best fit, set by the loop when it localizes), or None: where this one's
+            ended.
     """
 
     theta: torch.Tensor
     sigma: torch.Tensor
     offset: torch.Tensor | None = None
     posterior: Any = None
+    start: dict[str, float] | None = None
 
 
 @dataclass
@@ -156,7 +172,10 @@ class LoopProblem:
         misfit: optional ``(draws, checked indices (k,), their FE chi-squares (k,)) -> dict or
             None``: whether the model can fit the data at all (e.g. the FE's own best fit
             from the best checked draws). None: no verdict this round; a dict is recorded as
-            :attr:`LoopResult.best_fit`, and its ``"misfits"`` key stops the loop.
+            :attr:`LoopResult.best_fit`, and its ``"misfits"`` key stops the loop. Its ``"x"``
+            (``name -> value``) and ``"runs"`` (``(m, d)`` the FE parameter sets the test ran,
+            best chi-square first) localize the design when the model can fit
+            (:attr:`LoopSettings.localize`).
     """
 
     box: Box
@@ -314,6 +333,37 @@ def check_indices(unit: np.ndarray, m: int, ends: int) -> np.ndarray:
                            rest[spread_indices(len(rest), m - len(out))]])
 
 
+#: the least distance (unit box) between two of the FE best fit's runs that join the design,
+#: and between them and the runs already in it: the fit's difference steps (0.1 % of the box)
+#: would be near-duplicates of its iterates, which add no information and ill-condition the GP
+LOCAL_SPACING = 0.02
+
+
+def spaced_rows(cand: np.ndarray, have: np.ndarray, m: int, spacing: float = LOCAL_SPACING
+                ) -> np.ndarray:
+    """At most ``m`` of ``cand``, taken in order, each at least ``spacing`` (Euclidean) from
+    the ones taken before and from every row of ``have``.
+
+    Args:
+        cand: ``(k, d)`` candidate rows in the unit box, in order of preference; rows with a
+            non-finite entry are skipped. have: ``(n, d)`` rows already taken (unit box).
+    Returns:
+        ``(<= m,)`` indices into ``cand``.
+    """
+    kept: list[int] = []
+    ref = [np.asarray(h, float) for h in have]
+    for i, c in enumerate(np.asarray(cand, float)):
+        if len(kept) >= m:
+            break
+        if not np.all(np.isfinite(c)):
+            continue
+        if ref and np.min(np.linalg.norm(np.asarray(ref) - c, axis=1)) < spacing:
+            continue
+        kept.append(i)
+        ref.append(c)
+    return np.asarray(kept, dtype=int)
+
+
 def spread_indices(n: int, m: int) -> np.ndarray:
     """``min(m, n)`` distinct indices spread evenly over ``0 .. n - 1`` (first and last
     included): draws taken evenly through the chains."""
@@ -391,13 +441,33 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
                     quantiles={nm: q[:, j].tolist() for j, nm in enumerate(names)},
                     spread_tolerance=s.fe_spread)
         stop = code_ok and fe_ok
+        runs = None  # the misfit test's FE runs (kept in the run store, not in the record)
         if (not stop and p.misfit is not None and best_fit is None and s.misfit_check
                 and r >= s.misfit_check):
             best_fit = p.misfit(draws, chk, fe_c2)
+            runs = best_fit.pop("runs", None) if best_fit else None
             lap("misfit")
         misfit = bool(best_fit and best_fit.get("misfits"))
         room = s.budget - len(X) - s.check  # keep room for the next round's check
-        if not stop and not misfit and room >= 1:
+        localized = False
+        if best_fit and not misfit and not stop and s.localize and runs is not None:
+            # the model can fit: the FE's own best fit is where the posterior is
+            cand = torch.as_tensor(np.asarray(runs, float), dtype=torch.float64)
+            keep = spaced_rows(box.to_unit(cand).numpy(), box.to_unit(X).numpy(),
+                               max(0, min(s.localize, room)))
+            if len(keep):
+                th_new = cand[torch.as_tensor(keep)]
+                Vn, okn = p.fe(th_new)
+                X, V, ok = torch.cat([X, th_new]), torch.cat([V, Vn]), torch.cat([ok, okn])
+                kind += ["fe_fit"] * len(keep)
+                rnd_of += [r] * len(keep)
+                rec.acquired = len(keep)
+            draws.start = dict(best_fit["x"])
+            localized = True
+            log.info("design: the FE's own best fit fits the data: %d of its runs join the "
+                     "design and the next posterior starts there", len(keep))
+            lap("localize")
+        if not stop and not misfit and not localized and room >= 1:
             qn = min(s.batch, room)
             mi = spread_indices(N, s.mc_points)
             mc = box.to_unit(draws.theta[mi])

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +52,9 @@ def adaptive_design(sm: SpecimenModel, s: CalibrationSettings, out: Path,
 
     def sample(gp: GPSurrogate, prev: Draws | None, final: bool) -> Draws:
         w = prev.posterior[0].warm if prev is not None else warm
+        if prev is not None and prev.start and w is not None:  # the loop localized
+            w = replace(w, point=prev.start).placed(sm.space, sm.priors.sigma_known is not None,
+                                                    seed=s.seed)
         post, inp = sample_posterior(sm, gp, s.sampler, s.seed, w, final, s.progress)
         d = as_draws(sm, post, inp)
         last[0] = float(d.sigma.median())
@@ -72,7 +76,10 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
     data at all: Levenberg-Marquardt (``lm_iters`` iterations, through the run store) from the
     two best checked draws, over every calibrated parameter (observation-side ones included).
     Returns None while the checked draws fit (no verdict), else ``{"x": {name: value},
-    "chi2", "rms_over_sigma", "misfits", "fe_runs"}``.
+    "chi2", "rms_over_sigma", "misfits", "fe_runs", "runs"}``; ``"runs"`` ``(fe_runs, n_fe)``
+    are the FE parameter sets the fit ran, lowest chi-square first (the loop adds some of them
+    to the design when the model can fit: :attr:`~solderpyro.design.loop.LoopSettings.
+    localize`).
 
     Why: on data with a hidden effect the base model's design never converges (its posterior
     jumps between surrogate islands in box corners, every round), so it ran to its budget and
@@ -92,16 +99,21 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
         full = post.flat("t").detach().cpu().numpy()
         starts = full[chk[np.argsort(fe_c2)[:2]]]
         sig = float(sm.priors.sigma_known or d.sigma.median())
-        n_fe = [0]
+        seen: list[tuple[np.ndarray, np.ndarray]] = []  # (rows, their chi-squares)
 
         def counted(rows: np.ndarray) -> np.ndarray:
-            n_fe[0] += len(rows)
-            return sm.observed(rows)
+            V = sm.observed(rows)
+            seen.append((rows, (((y - V) / sig) ** 2).sum(1)))
+            return V
 
         best = fe_best_fit(counted, starts, space, y, sig, lm_iters)
+        rows = np.concatenate([r for r, _ in seen])
+        c2 = np.concatenate([c for _, c in seen])
+        c2 = np.where(np.isfinite(c2), c2, np.inf)
         out = {"x": dict(zip(space.names, map(float, best.x), strict=True)),
                "chi2": float(best.chi2), "rms_over_sigma": float(np.sqrt(best.chi2 / n)),
-               "misfits": misfits(float(best.chi2), n), "fe_runs": n_fe[0]}
+               "misfits": misfits(float(best.chi2), n), "fe_runs": len(rows),
+               "runs": rows[np.argsort(c2, kind="stable"), :sm.n_fe]}
         log.info("design: the FE misfits at every checked draw; its own best fit: chi2 %.0f "
                  "(%.2f noise sd, %d FE runs)%s", out["chi2"], out["rms_over_sigma"],
                  out["fe_runs"], ": the model misses something" if out["misfits"] else
@@ -154,9 +166,12 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
         q = np.array([rec.quantiles[nm] for rec in r.rounds])  # (R, 3)
         ax.fill_between(rounds, q[:, 0], q[:, 2], color="C0", alpha=0.25, label="95 % interval")
         ax.plot(rounds, q[:, 1], "C0o-", ms=3, label="median")
-        for kind, mk, c in (("acquired", "x", "C3"), ("check", "+", "C2")):
+        for kind, mk, c in (("acquired", "x", "C3"), ("check", "+", "C2"),
+                            ("fe_fit", "d", "C4")):
             m = kinds == kind
-            ax.plot(rnd[m] + 0.15, X[m, j], mk, color=c, ms=4, label=f"{kind} runs")
+            if m.any():
+                ax.plot(rnd[m] + 0.15, X[m, j], mk, color=c, ms=4,
+                        label="the FE best fit's runs" if kind == "fe_fit" else f"{kind} runs")
         if nm in bf:
             ax.axhline(bf[nm], color="k", ls=":", lw=1.0, label="the FE's own best fit")
         ax.set_xlabel("round")
@@ -181,9 +196,12 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
     ax.set_title("stopping rule", fontsize=9)
     ax = axes[d + 1]
     if d >= 2:
-        for kind, mk, c in (("start", "o", "0.6"), ("acquired", "x", "C3"), ("check", "+", "C2")):
+        for kind, mk, c in (("start", "o", "0.6"), ("acquired", "x", "C3"), ("check", "+", "C2"),
+                            ("fe_fit", "d", "C4")):
             m = kinds == kind
-            ax.plot(X[m, 0], X[m, 1], mk, color=c, ms=4, label=kind)
+            if m.any():
+                ax.plot(X[m, 0], X[m, 1], mk, color=c, ms=4,
+                        label="FE best fit's" if kind == "fe_fit" else kind)
         if names[0] in bf and names[1] in bf:
             ax.plot(bf[names[0]], bf[names[1]], "k*", ms=10, label="FE best fit")
         ax.set_xlabel(names[0])

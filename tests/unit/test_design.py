@@ -260,6 +260,51 @@ def test_a_model_that_cannot_fit_stops_the_design_at_its_misfit_check(model_fits
         LoopSettings(misfit_check=-1).validate(1)
 
 
+def test_a_model_that_can_fit_localizes_the_design_at_its_fe_best_fit():
+    """When the misfit test finds that the FE's own best fit fits, its runs (best first)
+    join the design in place of that round's acquisition: at most ``localize``, none closer
+    than LOCAL_SPACING to another or to an earlier run (the fit's difference steps are
+    near-duplicates); the next posterior is asked to start at the best fit; and the record
+    keeps the verdict without the runs."""
+    from solderpyro.design.loop import LOCAL_SPACING, spaced_rows
+
+    base = _toy_problem(bias=0.05)
+    runs = np.array([[0.8], [0.8008], [0.8012], [0.77], [0.2], [0.21], [0.55], [0.9]])
+    starts: list = []
+
+    def sample(gp, prev, final):
+        starts.append(None if prev is None else prev.start)
+        return base.sample(gp, prev, final)
+
+    def misfit(d, chk, fe_c2):
+        return {"x": {"t": 0.8}, "chi2": 11.0, "rms_over_sigma": 0.96, "misfits": False,
+                "runs": runs}
+
+    s = LoopSettings(start=4, batch=2, check=3, budget=30, mc_points=100, candidates=200,
+                     misfit_check=2, localize=4)
+    res = run_loop(LoopProblem(BOX1, base.y, base.fe, base.fit, sample, misfit), s, seed=0)
+    kinds, rnd = np.asarray(res.kind), np.asarray(res.round)
+    X = res.X.numpy()[:, 0]
+    fit = np.flatnonzero(kinds == "fe_fit")
+    before = X[:fit[0]]
+    assert 1 <= len(fit) <= 4 and set(rnd[fit]) == {2}
+    assert not np.any((kinds == "acquired") & (rnd == 2))  # localized instead of acquiring
+    assert res.rounds[1].acquired == len(fit)
+    for i in fit:  # each kept run is LOCAL_SPACING from every earlier run
+        assert np.min(np.abs(X[:i] - X[i])) >= LOCAL_SPACING
+    # exactly the rows the greedy rule keeps, in the fit's order
+    keep = spaced_rows(runs, before[:, None], 4)
+    np.testing.assert_array_equal(X[fit], runs[keep, 0])
+    assert starts[2] == {"t": 0.8}  # round 3's posterior starts at the best fit
+    assert "runs" not in res.as_dict()["best_fit"]
+    # the rule itself: near-duplicates, rows near what is there and non-finite rows dropped
+    got = spaced_rows(np.array([[0.5, 0.5], [0.505, 0.5], [np.nan, 0.1], [0.1, 0.1],
+                                [0.9, 0.9]]), np.array([[0.1, 0.11]]), 5)
+    np.testing.assert_array_equal(got, [0, 4])
+    with pytest.raises(ValueError, match="design.localize"):
+        LoopSettings(localize=-1).validate(1)
+
+
 def test_stop_rule_tolerance_is_the_chi_square_sampling_sd():
     s = LoopSettings()
     code_ok, fe_ok, tol = stop_rule(1.0, np.array([100.0]), np.array([100.0 + 19.9]), 200, s)
