@@ -78,6 +78,12 @@ class LoopSettings:
             per calibration, when the FE misfits the data at every checked draw); when it says
             the FE's own best fit misfits, the loop stops (reason ``"misfit"``): refining the
             surrogate of a model that cannot fit the data does not help it (0: never).
+        far_tol: a round whose code chi-square or FE-vs-surrogate gap exceeds ``far_tol``
+            x sqrt(2 n) is far from converged: the misfit test then computes the FE's best
+            fit even when some checked draw fits (and so localizes the design, below). Why:
+            a cold start with the CTE's temperature slope (6 parameters) ran to its budget
+            with code chi-square 1e3-6e4 every round, its checked draws fitting, so the test
+            never ran.
         localize: when that test finds instead that the model *can* fit (its best fit is
             within noise), the most of its FE runs, best first and at least
             :data:`LOCAL_SPACING` apart in the unit box, that join the training runs (kind
@@ -102,6 +108,7 @@ class LoopSettings:
     fe_spread: float = 2.0
     check_ends: int = 2
     misfit_check: int = 2
+    far_tol: float = 10.0
     localize: int = 16
 
     def validate(self, dim: int) -> None:
@@ -123,7 +130,7 @@ class LoopSettings:
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"design.optimizer must be one of {OPTIMIZERS}, got "
                              f"{self.optimizer!r}")
-        for nm in ("code_tol", "fe_tol", "fe_spread"):
+        for nm in ("code_tol", "fe_tol", "fe_spread", "far_tol"):
             if not getattr(self, nm) > 0:
                 raise ValueError(f"design.{nm} must be > 0, got {getattr(self, nm)}")
         if not 0 <= self.check_ends <= self.check or self.check_ends % 2:
@@ -169,9 +176,11 @@ class LoopProblem:
         fit: ``(X (n, d), Y (n, n_y)) -> GPSurrogate``.
         sample: ``(gp, previous Draws or None, final: bool) -> Draws``; ``final`` asks for the
             full-length posterior (the rounds' may be shorter, warm-started).
-        misfit: optional ``(draws, checked indices (k,), their FE chi-squares (k,)) -> dict or
-            None``: whether the model can fit the data at all (e.g. the FE's own best fit
-            from the best checked draws). None: no verdict this round; a dict is recorded as
+        misfit: optional ``(draws, checked indices (k,), their FE chi-squares (k,), far) ->
+            dict or None``: whether the model can fit the data at all (e.g. the FE's own best
+            fit from the best checked draws); ``far``: the round is far from converged
+            (:attr:`LoopSettings.far_tol`), so a verdict is wanted even where some checked
+            draw fits. None: no verdict this round; a dict is recorded as
             :attr:`LoopResult.best_fit`, and its ``"misfits"`` key stops the loop. Its ``"x"``
             (``name -> value``) and ``"runs"`` (``(m, d)`` the FE parameter sets the test ran,
             best chi-square first) localize the design when the model can fit
@@ -183,7 +192,7 @@ class LoopProblem:
     fe: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
     fit: Callable[[torch.Tensor, torch.Tensor], GPSurrogate]
     sample: Callable[[GPSurrogate, Draws | None, bool], Draws]
-    misfit: Callable[[Draws, np.ndarray, np.ndarray], dict[str, Any] | None] | None = None
+    misfit: Callable[[Draws, np.ndarray, np.ndarray, bool], dict[str, Any] | None] | None = None
 
 
 @dataclass
@@ -444,7 +453,8 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         runs = None  # the misfit test's FE runs (kept in the run store, not in the record)
         if (not stop and p.misfit is not None and best_fit is None and s.misfit_check
                 and r >= s.misfit_check):
-            best_fit = p.misfit(draws, chk, fe_c2)
+            far = max(code, rec.fe_gap) > s.far_tol * tol  # nan (no check) counts as not far
+            best_fit = p.misfit(draws, chk, fe_c2, far)
             runs = best_fit.pop("runs", None) if best_fit else None
             lap("misfit")
         misfit = bool(best_fit and best_fit.get("misfits"))

@@ -72,10 +72,11 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
     """The design loop's ``misfit`` test for the specimen (:class:`LoopProblem`).
 
     When the FE misfits the data at every checked posterior draw (the FE check's rule,
-    :func:`~.fe_check.misfits`), the FE's own best fit decides whether the model can fit the
-    data at all: Levenberg-Marquardt (``lm_iters`` iterations, through the run store) from the
-    two best checked draws, over every calibrated parameter (observation-side ones included).
-    Returns None while the checked draws fit (no verdict), else ``{"x": {name: value},
+    :func:`~.fe_check.misfits`), or the loop says the round is ``far`` from converged, the
+    FE's own best fit decides whether the model can fit the data at all: Levenberg-Marquardt
+    (``lm_iters`` iterations, through the run store) from the two best checked draws, over
+    every calibrated parameter (observation-side ones included). Returns None while the
+    checked draws fit and the round is not far (no verdict), else ``{"x": {name: value},
     "chi2", "rms_over_sigma", "misfits", "fe_runs", "runs"}``; ``"runs"`` ``(fe_runs, n_fe)``
     are the FE parameter sets the fit ran, lowest chi-square first (the loop adds some of them
     to the design when the model can fit: :attr:`~solderpyro.design.loop.LoopSettings.
@@ -92,8 +93,8 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
     y = sm.y.detach().cpu().numpy()
     space = sm.space
 
-    def test(d: Draws, chk: np.ndarray, fe_c2: np.ndarray) -> dict[str, Any] | None:
-        if not misfits(float(np.min(fe_c2)), n):
+    def test(d: Draws, chk: np.ndarray, fe_c2: np.ndarray, far: bool) -> dict[str, Any] | None:
+        if not far and not misfits(float(np.min(fe_c2)), n):
             return None
         post = d.posterior[0]
         full = post.flat("t").detach().cpu().numpy()

@@ -238,9 +238,11 @@ def test_a_model_that_cannot_fit_stops_the_design_at_its_misfit_check(model_fits
     runs acquired that round, the verdict kept); one that fits lets the loop go on."""
     base = _toy_problem(bias=0.05)  # never converges: the loop would run to its budget
     seen: list[int] = []
+    fars: list[bool] = []
 
-    def misfit(d, chk, fe_c2):
+    def misfit(d, chk, fe_c2, far):
         seen.append(len(chk))
+        fars.append(far)
         return {"x": {"t": 0.8}, "chi2": 1e4, "rms_over_sigma": 29.0,
                 "misfits": not model_fits}
 
@@ -249,6 +251,8 @@ def test_a_model_that_cannot_fit_stops_the_design_at_its_misfit_check(model_fits
     res = run_loop(LoopProblem(BOX1, base.y, base.fe, base.fit, base.sample, misfit), s,
                    seed=0)
     assert seen == [3]  # called once, in round 2, with the checked draws
+    r2 = res.rounds[1]  # told whether that round is far from converged
+    assert fars == [max(r2.code_chi2, r2.fe_gap) > s.far_tol * r2.tolerance]
     assert res.best_fit is not None and res.as_dict()["best_fit"]["chi2"] == 1e4
     if model_fits:
         assert res.reason == "budget"
@@ -258,6 +262,8 @@ def test_a_model_that_cannot_fit_stops_the_design_at_its_misfit_check(model_fits
         assert len(res.X) == 4 + 2 * 3 + 2  # start, two checks, round 1's acquisitions
     with pytest.raises(ValueError, match="design.misfit_check"):
         LoopSettings(misfit_check=-1).validate(1)
+    with pytest.raises(ValueError, match="design.far_tol"):
+        LoopSettings(far_tol=0).validate(1)
 
 
 def test_a_model_that_can_fit_localizes_the_design_at_its_fe_best_fit():
@@ -276,7 +282,7 @@ def test_a_model_that_can_fit_localizes_the_design_at_its_fe_best_fit():
         starts.append(None if prev is None else prev.start)
         return base.sample(gp, prev, final)
 
-    def misfit(d, chk, fe_c2):
+    def misfit(d, chk, fe_c2, far):
         return {"x": {"t": 0.8}, "chi2": 11.0, "rms_over_sigma": 0.96, "misfits": False,
                 "runs": runs}
 
