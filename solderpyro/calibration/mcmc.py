@@ -210,6 +210,8 @@ class WarmStart:
         point: where the related run's FE refit of the new model ended (``name -> value``,
             physical units, e.g. from ``solderpyro diagnose``), or None; :meth:`placed` starts
             the chains there.
+        draws: ``(N, d)`` draws of the run (unconstrained, columns :attr:`coords`, thinned),
+            or None: a run of the same model fits its :class:`~.ridgemap.RidgeMap` to them.
     """
 
     coords: list[str]
@@ -219,6 +221,7 @@ class WarmStart:
     point: dict[str, float] | None = None
     unit: np.ndarray | None = None
     unit_names: list[str] | None = None
+    draws: np.ndarray | None = None
 
     def unit_for(self, names: Sequence[str], chains: int) -> np.ndarray:
         """``(chains, p)`` the chains' positions on the unit cube of a box with these names:
@@ -303,6 +306,8 @@ class WarmStart:
                                   "inv_metric": self.inv_metric, "step_size": self.step_size}
         if self.unit is not None and self.unit_names:
             arrays |= {"unit": self.unit, "unit_names": np.array(self.unit_names)}
+        if self.draws is not None:
+            arrays["draws"] = self.draws
         np.savez(p, **arrays)
         return p
 
@@ -321,7 +326,8 @@ class WarmStart:
             unit = z["unit"] if "unit" in z.files else None
             names = [str(c) for c in z["unit_names"]] if "unit_names" in z.files else None
             return cls([str(c) for c in z["coords"]], z["q"], z["inv_metric"],
-                       float(z["step_size"]), None, unit, names)
+                       float(z["step_size"]), None, unit, names,
+                       z["draws"] if "draws" in z.files else None)
 
 
 @dataclass
@@ -382,7 +388,10 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             most one per chain); chain ``c`` is seeded ``seed + c`` whatever ``workers`` is,
             so the draws equal the serial run's.
         warm: a related run's :class:`WarmStart`: chains start at its last positions and
-            mass matrix (by coordinate name; ``init`` is then ignored).
+            mass matrix (by coordinate name; ``init`` is then ignored). Where it holds draws
+            of the same coordinates (a previous round of the same model), the chains run in
+            the :class:`~.ridgemap.RidgeMap` coordinates fitted to them: the same posterior,
+            its curved ridge straightened (4-5x fewer gradients per iteration, measured).
         progress: log one line per chain (else at DEBUG level).
 
     Returns:
@@ -428,20 +437,53 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
                     "gradients, %d divergent)", c + 1, chains, warmup, draws, st["seconds"],
                     st["step_size"], st["n_leapfrog"], st["divergences"])
 
-        res = sample_nuts(fm.logp_and_grad, fm.dim, chains, warmup, draws, seed, q0,
+        f, rmap = fm.logp_and_grad, ridge_map(warm, names)
+        if rmap is not None:
+            assert warm is not None and warm.draws is not None and q0 is not None
+            f = rmap.wrap(f)
+            q0 = rmap.inverse(q0)
+            W = rmap.inverse(warm.draws)
+            inv0 = np.cov(W.T) if full_mass else W.var(0)
+            step0 = None  # the step search starts afresh in the new coordinates
+            log.log(lvl, "NUTS: in ridge coordinates fitted to %d draws of the previous "
+                    "posterior", len(warm.draws))
+        res = sample_nuts(f, fm.dim, chains, warmup, draws, seed, q0,
                           target_accept, max_tree_depth, dense_mass=full_mass,
                           inv_metric=inv0, step_size=step0,
                           workers=workers or default_workers(chains), on_chain=on_chain)
-    inv = np.mean(np.stack(res.inv_metric), 0)
-    samples = fm.to_samples(res.draws)
+    Q = res.draws if rmap is None else rmap.forward(res.draws)[0]
+    flat = Q.reshape(-1, Q.shape[-1])
+    # the mass matrix for a next run in these (unmapped) coordinates: the draws' own
+    # covariance where the chains ran in mapped ones
+    inv = (np.mean(np.stack(res.inv_metric), 0) if rmap is None else
+           (np.cov(flat.T) if full_mass else flat.var(0)))
+    samples = fm.to_samples(Q)
     box = _theta_box(args)
     unit = (samples[SITE_T][:, -1].reshape(chains, -1).cpu().numpy().astype(float)
             if box is not None and SITE_T in samples else None)
-    ws = WarmStart(names, res.draws[:, -1].copy(), inv, float(np.median(res.step_size)),
-                   None, unit, list(box.names) if unit is not None and box else None)
+    keep = np.linspace(0, len(flat) - 1, min(len(flat), WARM_DRAWS)).round().astype(int)
+    ws = WarmStart(names, Q[:, -1].copy(), inv, float(np.median(res.step_size)),
+                   None, unit, list(box.names) if unit is not None and box else None,
+                   flat[keep].copy())
     stats = [{"step_size": float(a), "accept_prob": float(b), "n_grad": float(c)}
              for a, b, c in zip(res.step_size, res.accept_prob, res.n_leapfrog, strict=True)]
     return NutsRun(samples, res.divergences, time.perf_counter() - t0, ws, stats)
+
+
+#: draws a :class:`WarmStart` keeps (thinned evenly through the chains) for a next run's map
+WARM_DRAWS = 1000
+
+
+def ridge_map(warm: WarmStart | None, names: Sequence[str]) -> Any:
+    """The :class:`~.ridgemap.RidgeMap` of ``warm``'s draws when they are of exactly the
+    coordinates ``names`` (a previous round of the same model) and enough, else None."""
+    from solderpyro.calibration.ridgemap import MIN_DRAWS, RidgeMap
+
+    if (warm is None or warm.draws is None or list(warm.coords) != list(names)
+            or len(names) < 2 or len(warm.draws) < MIN_DRAWS
+            or not np.all(np.isfinite(warm.draws))):
+        return None
+    return RidgeMap(warm.draws)
 
 
 def _theta_box(args: tuple) -> Any:

@@ -1,0 +1,135 @@
+"""A volume-preserving map that straightens a curved posterior ridge for NUTS.
+
+The specimen's posterior is a thin *curved* ridge (the Anand constants trade off along a
+curve): on the modulus-temperature recalibration, regressing one coordinate on the others
+leaves 0.8 % of its variance linearly but 0.01 % quadratically. A mass matrix, dense or not,
+is linear: NUTS then needs a step as small as the ridge is thin and ~50 leapfrog steps per
+iteration to follow it (step 0.08, 54 gradients per iteration with a dense metric).
+
+:class:`RidgeMap` is a lower-triangular map with unit diagonal, learned from draws of a
+previous posterior of the same model (the design's last round; the final posterior samples
+the same surrogate):
+
+    z = (q - mean) / sd,   z_0 = w_0,   z_k = w_k + f_k(z_0 .. z_{k-1})   (k = 1 .. d - 1)
+
+with ``f_k`` quadratic in the earlier coordinates, each passed through ``h``: the identity
+within the range ``|z| <= a`` the draws span, beyond it ``sign(z) (a + tanh(|z| - a))`` (at
+most one sd more: the fitted quadratic is not extrapolated far outside the draws, where it
+would bend the tails; ``h`` is continuous with its first derivative).
+Each ``f_k`` is the least-squares regression of ``z_k`` on those features over the draws, so
+``w`` is what is left of each coordinate once the ridge's curve is taken out. Because the map
+only shifts each coordinate by a function of the earlier ones, its Jacobian ``dz/dw`` is unit
+lower-triangular: ``log|det| = 0`` (plus the constant ``sum log sd``), so the density of
+``w`` is the density of ``q`` at ``T(w)``, and NUTS on ``w`` samples exactly the same
+posterior, whatever the fit's quality. A poor fit costs only speed.
+
+Measured on the CTE-slope cold-start field calibration (6 coordinates, the final surrogate
+refitted from its 69 runs; 2 chains x (500 + 1000), warm positions): 54 -> 10-12 gradients
+per iteration, step 0.09 -> 0.3-0.45, the same 2.5/50/97.5 % quantiles to Monte Carlo error
+(BENCHMARKS.md issue 18, session 24). Written here rather than taken from a library: the
+normalizing-flow packages (e.g. Pyro's ``AffineAutoregressive``, ``flowMC``) train neural
+flows by stochastic optimization, seconds to minutes per fit; this is a closed-form
+least-squares fit in milliseconds, refitted every design round.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from itertools import combinations_with_replacement
+
+import numpy as np
+
+#: ridge regularization of the least squares (times the number of draws), standardized units
+RIDGE = 1e-6
+#: fewest draws a map is fitted to (per feature of the last coordinate: ~10)
+MIN_DRAWS = 200
+
+LogpGrad = Callable[[np.ndarray], tuple[float, np.ndarray]]
+
+
+class RidgeMap:
+    """``q = T(w)`` (module docstring), fitted to draws ``Q (N, d)`` of ``q``.
+
+    Attributes:
+        mean, sd: ``(d,)`` the draws' standardization; span: ``(d,)`` their largest
+        ``|z|``. coef: per coordinate ``k >= 1`` the
+        regression coefficients on ``[1, h(z_<k), h(z_i) h(z_j) (i <= j < k)]``.
+    """
+
+    def __init__(self, Q: np.ndarray) -> None:
+        Q = np.asarray(Q, dtype=float)
+        if Q.ndim != 2 or Q.shape[1] < 2 or len(Q) < MIN_DRAWS:
+            raise ValueError(f"RidgeMap needs draws (N >= {MIN_DRAWS}, d >= 2), got shape "
+                             f"{Q.shape}")
+        if not np.all(np.isfinite(Q)):
+            raise ValueError("RidgeMap: the draws have non-finite values")
+        self.d = Q.shape[1]
+        self.mean = Q.mean(0)
+        self.sd = np.maximum(Q.std(0), 1e-12)
+        Z = (Q - self.mean) / self.sd
+        self.span = np.abs(Z).max(0)  # a: h is the identity within the draws
+        H = self._h(Z)
+        self._pairs = [list(combinations_with_replacement(range(k), 2)) for k in range(self.d)]
+        self.coef: list[np.ndarray] = [np.zeros(0)]
+        for k in range(1, self.d):
+            F = self._features(H[:, :k], k)
+            A = F.T @ F + RIDGE * len(Z) * np.eye(F.shape[1])
+            self.coef.append(np.linalg.solve(A, F.T @ Z[:, k]))
+
+    def _h(self, z: np.ndarray) -> np.ndarray:
+        a = self.span[:z.shape[-1]]
+        over = np.maximum(np.abs(z) - a, 0.0)
+        return np.where(over > 0.0, np.sign(z) * (a + np.tanh(over)), z)
+
+    def _dh(self, z: np.ndarray) -> np.ndarray:
+        over = np.maximum(np.abs(z) - self.span[:z.shape[-1]], 0.0)
+        return 1.0 - np.tanh(over) ** 2
+
+    def _features(self, h: np.ndarray, k: int) -> np.ndarray:
+        """``(..., 1 + k + k (k + 1) / 2)`` regressors of coordinate ``k`` from ``h (..., k)``."""
+        quad = [h[..., i] * h[..., j] for i, j in self._pairs[k]]
+        return np.concatenate([np.ones((*h.shape[:-1], 1)), h, *(
+            [np.stack(quad, -1)] if quad else [])], -1)
+
+    def forward(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``w (..., d) -> (q (..., d), z (..., d))`` (``z`` standardized, for :meth:`vjp`)."""
+        w = np.asarray(w, dtype=float)
+        z = np.empty_like(w)
+        z[..., 0] = w[..., 0]
+        for k in range(1, self.d):
+            z[..., k] = w[..., k] + self._features(self._h(z[..., :k]), k) @ self.coef[k]
+        return self.mean + self.sd * z, z
+
+    def inverse(self, q: np.ndarray) -> np.ndarray:
+        """``q (..., d) -> w (..., d)``, exactly inverting :meth:`forward`."""
+        z = (np.asarray(q, dtype=float) - self.mean) / self.sd
+        w = z.copy()
+        for k in range(1, self.d):
+            w[..., k] = z[..., k] - self._features(self._h(z[..., :k]), k) @ self.coef[k]
+        return w
+
+    def vjp(self, z: np.ndarray, g_q: np.ndarray) -> np.ndarray:
+        """``(dq/dw)^T g_q`` at the point whose standardized coordinates are ``z (d,)``:
+        the gradient in ``w`` of a function whose gradient in ``q`` is ``g_q (d,)``."""
+        a = np.asarray(g_q, dtype=float) * self.sd  # d/dz
+        h = self._h(z)
+        dh = self._dh(z)
+        for k in range(self.d - 1, 0, -1):  # reverse sweep: z_k = w_k + f_k(z_<k)
+            c = self.coef[k]
+            dfdh = c[1:1 + k].copy()
+            for (i, j), b in zip(self._pairs[k], c[1 + k:], strict=True):
+                dfdh[i] += b * h[j]
+                dfdh[j] += b * h[i]
+            a[:k] += a[k] * dfdh * dh[:k]
+        return a
+
+    def wrap(self, logp_and_grad: LogpGrad) -> LogpGrad:
+        """The log density and gradient in ``w`` of one in ``q`` (the same density: the
+        Jacobian's determinant is the constant ``prod sd``)."""
+
+        def f(w: np.ndarray) -> tuple[float, np.ndarray]:
+            q, z = self.forward(w)
+            lp, g = logp_and_grad(q)
+            return lp, self.vjp(z, g)
+
+        return f
