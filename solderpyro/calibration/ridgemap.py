@@ -34,6 +34,7 @@ least-squares fit in milliseconds, refitted every design round.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from itertools import combinations_with_replacement
 
@@ -75,6 +76,7 @@ class RidgeMap:
             F = self._features(H[:, :k], k)
             A = F.T @ F + RIDGE * len(Z) * np.eye(F.shape[1])
             self.coef.append(np.linalg.solve(A, F.T @ Z[:, k]))
+        self._quadratic_forms()
 
     def _h(self, z: np.ndarray) -> np.ndarray:
         a = self.span[:z.shape[-1]]
@@ -91,10 +93,39 @@ class RidgeMap:
         return np.concatenate([np.ones((*h.shape[:-1], 1)), h, *(
             [np.stack(quad, -1)] if quad else [])], -1)
 
+    def _quadratic_forms(self) -> None:
+        """``f_k(h) = c0_k + b_k . h + h . A_k h`` and ``S_k = A_k + A_k^T``, from ``coef``:
+        per-point work in a few small dot products (the map runs at every gradient)."""
+        self._c0, self._b, self._A, self._S = [0.0], [np.zeros(0)], [np.zeros((0, 0))], [
+            np.zeros((0, 0))]
+        for k in range(1, self.d):
+            c = self.coef[k]
+            A = np.zeros((k, k))
+            for (i, j), v in zip(self._pairs[k], c[1 + k:], strict=True):
+                A[i, j] += v
+            self._c0.append(float(c[0]))
+            self._b.append(c[1:1 + k].copy())
+            self._A.append(A)
+            self._S.append(A + A.T)
+
+    def _h1(self, k: int, z: float) -> float:
+        a = float(self.span[k])
+        over = abs(z) - a
+        return z if over <= 0.0 else math.copysign(a + math.tanh(over), z)
+
     def forward(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``w (..., d) -> (q (..., d), z (..., d))`` (``z`` standardized, for :meth:`vjp`)."""
         w = np.asarray(w, dtype=float)
         z = np.empty_like(w)
+        if w.ndim == 1:  # one point: the sampler's path, a few small dot products per k
+            h = np.empty(self.d)
+            z[0] = w[0]
+            h[0] = self._h1(0, float(z[0]))
+            for k in range(1, self.d):
+                hk = h[:k]
+                z[k] = w[k] + self._c0[k] + self._b[k] @ hk + hk @ (self._A[k] @ hk)
+                h[k] = self._h1(k, float(z[k]))
+            return self.mean + self.sd * z, z
         z[..., 0] = w[..., 0]
         for k in range(1, self.d):
             z[..., k] = w[..., k] + self._features(self._h(z[..., :k]), k) @ self.coef[k]
@@ -114,13 +145,9 @@ class RidgeMap:
         a = np.asarray(g_q, dtype=float) * self.sd  # d/dz
         h = self._h(z)
         dh = self._dh(z)
-        for k in range(self.d - 1, 0, -1):  # reverse sweep: z_k = w_k + f_k(z_<k)
-            c = self.coef[k]
-            dfdh = c[1:1 + k].copy()
-            for (i, j), b in zip(self._pairs[k], c[1 + k:], strict=True):
-                dfdh[i] += b * h[j]
-                dfdh[j] += b * h[i]
-            a[:k] += a[k] * dfdh * dh[:k]
+        for k in range(self.d - 1, 0, -1):  # reverse sweep: z_k = w_k + f_k(h(z_<k))
+            hk = h[:k]
+            a[:k] += a[k] * (self._b[k] + self._S[k] @ hk) * dh[:k]
         return a
 
     def wrap(self, logp_and_grad: LogpGrad) -> LogpGrad:
