@@ -118,7 +118,7 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
                "runs": rows[np.argsort(c2, kind="stable"), :sm.n_fe]}
         log.info("design: %s; the FE's own best fit: chi2 %.0f (%.2f noise sd, %d FE runs)%s",
                  "the FE misfits at every checked draw" if all_misfit else
-                 "the surrogate is far from the FE (a checked draw fits)", out["chi2"],
+                 "the round is far from converged", out["chi2"],
                  out["rms_over_sigma"], out["fe_runs"],
                  ": the model misses something" if out["misfits"] else ": the model can fit")
         return out
