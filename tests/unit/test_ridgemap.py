@@ -9,7 +9,7 @@ import arviz as az
 import numpy as np
 import pytest
 
-from solderpyro.calibration.mcmc import WarmStart, ridge_map
+from solderpyro.calibration.mcmc import WarmStart, chains_agree, ridge_map
 from solderpyro.calibration.nuts import sample_nuts
 from solderpyro.calibration.ridgemap import MIN_DRAWS, RidgeMap
 
@@ -84,3 +84,14 @@ def test_a_warm_state_keeps_its_draws_and_maps_only_the_same_coordinates(tmp_pat
                      ["x", "y", "z"]) is None  # too few draws
     with pytest.raises(ValueError, match="RidgeMap needs draws"):
         RidgeMap(D[:10])
+
+
+def test_draws_of_chains_in_separate_modes_are_not_kept_for_a_map():
+    """A map is fitted only to chains that describe one posterior: four chains of the same
+    normal agree; one of them three sd away (an island) does not (R-hat > 1.1)."""
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal((4, 200, 3))
+    assert chains_agree(d)
+    d[1] += 3.0
+    assert not chains_agree(d)
+    assert not chains_agree(d[:1])  # one chain: R-hat undefined, no map
