@@ -501,14 +501,17 @@ def chains_agree(draws: np.ndarray) -> bool:
 
 def ridge_map(warm: WarmStart | None, names: Sequence[str]) -> Any:
     """The :class:`~.ridgemap.RidgeMap` of ``warm``'s draws when they are of exactly the
-    coordinates ``names`` (a previous round of the same model) and enough, else None."""
+    coordinates ``names`` (a previous round of the same model), enough, and curved (some
+    coordinate keeps its quadratic terms: else a dense mass matrix does what the map would),
+    else None."""
     from solderpyro.calibration.ridgemap import MIN_DRAWS, RidgeMap
 
     if (warm is None or warm.draws is None or list(warm.coords) != list(names)
             or len(names) < 2 or len(warm.draws) < MIN_DRAWS
             or not np.all(np.isfinite(warm.draws))):
         return None
-    return RidgeMap(warm.draws)
+    m = RidgeMap(warm.draws)
+    return m if any(m.curved) else None
 
 
 def _theta_box(args: tuple) -> Any:

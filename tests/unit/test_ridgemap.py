@@ -80,6 +80,14 @@ def test_a_warm_state_keeps_its_draws_and_maps_only_the_same_coordinates(tmp_pat
     np.testing.assert_array_equal(back.draws, D)
     assert isinstance(ridge_map(back, ["x", "y", "z"]), RidgeMap)
     assert ridge_map(back, ["x", "y", "k_E"]) is None  # another model: no map
+    # a straight (Gaussian, correlated) posterior: no bend, the dense metric's job, no map
+    rng = np.random.default_rng(6)
+    G = rng.standard_normal((1000, 3)) @ np.array([[1.0, 0.9, 0.0], [0.0, 0.3, 0.5],
+                                                   [0.0, 0.0, 1.0]])
+    assert not any(RidgeMap(G).curved)
+    assert ridge_map(WarmStart(["x", "y", "z"], G[:4], np.eye(3), 0.4, draws=G),
+                     ["x", "y", "z"]) is None
+    assert RidgeMap(_exact_draws(1000, 7)).curved[1]  # the banana's y is bent
     assert ridge_map(WarmStart(["x", "y", "z"], D[:4], np.eye(3), 0.4, draws=D[:50]),
                      ["x", "y", "z"]) is None  # too few draws
     with pytest.raises(ValueError, match="RidgeMap needs draws"):
