@@ -1,0 +1,128 @@
+"""NUTS in ridge coordinates against the sampler's own coordinates, on a finished run's
+posterior (issue 18; solderpyro.calibration.ridgemap).
+
+    python benchmarks/ridge_coords.py RUN_DIR [--store STORE] [--json OUT.json]
+
+Rebuilds the run's final surrogate from its design runs (design.csv, through the run store:
+no FE solve when the store holds them), takes 800 draws of its posterior (posterior.nc) as
+the "previous round" a warm start would carry, and samples the same posterior twice, paired in
+one process with the same starts and seeds (4 chains x (500 + 1500), dense metric, the
+draws' covariance as the first metric, 2 worker processes):
+
+- ``plain``: the sampler's own coordinates (flow-stress / logit), target acceptance 0.8;
+- ``ridge@A``: the :class:`RidgeMap` fitted to the 800 draws, target acceptance A (``--accept``,
+  default 0.9 = :data:`~solderpyro.calibration.mcmc.MAPPED_ACCEPT`, as :func:`run_nuts` does).
+
+One torch/BLAS thread per chain process, as :func:`run_nuts` runs them.
+
+Printed and written: wall s, gradients per iteration, divergences, min bulk ESS, min ESS/s and
+its ratio (ridge / plain), the 2.5 / 50 / 97.5 % quantiles of each parameter from both, and
+which coordinates the map bends (``curved``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    import arviz as az
+
+    from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
+    from solderpyro.calibration.fastkoh import flat_model
+    from solderpyro.calibration.koh import (
+        SITE_SIGMA,
+        SITE_T,
+        observation_model,
+        prepare_observation,
+    )
+    from solderpyro.calibration.mcmc import MAPPED_ACCEPT
+    from solderpyro.calibration.nuts import sample_nuts
+    from solderpyro.calibration.ridgemap import RidgeMap
+    from solderpyro.configure import build, compose
+    from solderpyro.io.measurements import read_measurements
+    from solderpyro.pipeline.problem import SpecimenModel
+    from solderpyro.pipeline.surrogate import fit_surrogate
+    from solderpyro.settings import CalibrationSettings
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
+    ap.add_argument("--store", default=None, help="its run store (default: run.json's)")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--accept", default=str(MAPPED_ACCEPT),
+                    help="target acceptances of the ridge runs, comma-separated")
+    a = ap.parse_args()
+    torch.set_num_threads(1)  # as run_nuts does: one BLAS/torch thread per chain process
+    from threadpoolctl import threadpool_limits
+    threadpool_limits(1)
+    run = Path(a.run)
+    info = json.loads((run / "run.json").read_text())
+    setup = build(compose(info.get("overrides") or []))
+    sm = SpecimenModel.build(setup, read_measurements(info["data"]),
+                             a.store or info["store"], 64, False)
+    with (run / "design.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["converged"] == "1"]
+    names = list(sm.gp_box.names)
+    X = torch.tensor([[float(r[n]) for n in names] for r in rows], dtype=torch.float64)
+    V, ok = sm.fe(X)
+    post = az.from_netcdf(str(run / "posterior.nc")).posterior
+    sig = np.asarray(post["sigma"].values).reshape(-1)
+    gp = fit_surrogate(sm, CalibrationSettings().surrogate, X[ok], V[ok], float(np.median(sig)))
+    em = GPEmulator(gp)
+    off = sm.offset()
+    inp = prepare_observation(sm.y, em if off is None else ObservedEmulator(em, sm.n_fe, off),
+                              sm.space)
+    fm = flat_model(observation_model, (inp, sm.priors))
+    T = np.stack([np.asarray(post[n].values).reshape(-1) for n in sm.space.names], 1)
+    u = sm.space.to_unit(torch.as_tensor(T)).numpy()
+    sel = np.linspace(0, len(T) - 1, 800).round().astype(int)
+    Q = np.stack([fm.to_unconstrained({SITE_T: torch.as_tensor(u[i]),
+                                       SITE_SIGMA: torch.as_tensor(sig[i])}) for i in sel])
+    m = RidgeMap(Q)
+    starts = [0, 200, 400, 600]
+    out: dict = {"run": str(run), "dim": fm.dim, "curved": m.curved, "modes": {}}
+    for mode in ["plain", *(f"ridge@{x}" for x in a.accept.split(","))]:
+        if mode == "plain":
+            f, W, ta = fm.logp_and_grad, Q, 0.8
+        else:
+            f, W, ta = m.wrap(fm.logp_and_grad), m.inverse(Q), float(mode.split("@")[1])
+        t0 = time.perf_counter()
+        res = sample_nuts(f, fm.dim, 4, 500, 1500, 0, W[starts], ta, 10, dense_mass=True,
+                          inv_metric=np.cov(W.T), workers=2)
+        wall = time.perf_counter() - t0
+        D = res.draws if mode == "plain" else m.forward(res.draws)[0]
+        ess = float(np.min(az.ess(az.convert_to_dataset({"q": D}), method="bulk")["q"].values))
+        flat = D.reshape(-1, fm.dim)
+        samp = fm.to_samples(D)
+        th = samp[SITE_T].reshape(-1, sm.space.dim).numpy()
+        phys = sm.space.from_unit(torch.as_tensor(th)).numpy()
+        out["modes"][mode] = {
+            "wall_s": round(wall, 1),
+            "gradients_per_iteration": [round(n / 2000, 1) for n in res.n_leapfrog],
+            "divergences": res.divergences, "step_size": [round(x, 3) for x in res.step_size],
+            "min_bulk_ess": round(ess), "min_ess_per_s": round(ess / wall, 1),
+            "quantiles": {nm: np.quantile(phys[:, j], [0.025, 0.5, 0.975]).tolist()
+                          for j, nm in enumerate(sm.space.names)},
+            "draws": int(len(flat))}
+        print(mode, json.dumps({k: v for k, v in out["modes"][mode].items()
+                                if k != "quantiles"}), flush=True)
+    p = out["modes"]["plain"]
+    out["ess_per_s_ratio"] = {k: round(r["min_ess_per_s"] / max(p["min_ess_per_s"], 1e-9), 2)
+                              for k, r in out["modes"].items() if k != "plain"}
+    for nm in sm.space.names:
+        print(f"{nm:>10}: " + "  ".join(f"{k} {np.round(r['quantiles'][nm], 5)}"
+                                        for k, r in out["modes"].items()))
+    print(f"curved coordinates {m.curved}; min ESS/s ridge / plain = {out['ess_per_s_ratio']}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
