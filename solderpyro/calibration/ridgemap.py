@@ -23,10 +23,11 @@ lower-triangular: ``log|det| = 0`` (plus the constant ``sum log sd``), so the de
 ``w`` is the density of ``q`` at ``T(w)``, and NUTS on ``w`` samples exactly the same
 posterior, whatever the fit's quality. A poor fit costs only speed.
 
-Measured on the CTE-slope cold-start field calibration (6 coordinates, the final surrogate
-refitted from its 69 runs; 2 chains x (500 + 1000), warm positions): 54 -> 10-12 gradients
-per iteration, step 0.09 -> 0.3-0.45, the same 2.5/50/97.5 % quantiles to Monte Carlo error
-(BENCHMARKS.md issue 18, session 24). Written here rather than taken from a library: the
+Measured paired on two field posteriors (``benchmarks/ridge_coords.py``, BENCHMARKS.md issue
+18, session 24): gradients per iteration 35-49 -> 9-21, min bulk ESS per second 1.07-2.0x,
+the same quantiles to Monte Carlo error, and 2-16 divergent transitions in 6,000 where the
+sampler's own coordinates had none (the quadratic does not straighten the tails).
+Written here rather than taken from a library: the
 normalizing-flow packages (e.g. Pyro's ``AffineAutoregressive``, ``flowMC``) train neural
 flows by stochastic optimization, seconds to minutes per fit; this is a closed-form
 least-squares fit in milliseconds, refitted every design round.
