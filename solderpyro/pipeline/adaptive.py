@@ -194,8 +194,9 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
     ax.axhline(r.rounds[-1].spread_tolerance, color="C1", ls=":", lw=0.8,
                label="spread tolerance")
     ax.set_xlabel("round")
-    # the curves fall from the upper left: the legend goes where they are not
-    ax.legend(fontsize=5.5, loc="upper right", framealpha=0.85)
+    # where the curves are not: they fall from the upper left over many rounds, and stay at
+    # the top when a misfit stops the design after two
+    ax.legend(fontsize=5.5, loc="best", framealpha=0.85)
     ax.set_title("stopping rule", fontsize=9)
     ax = axes[d + 1]
     if d >= 2:
@@ -213,6 +214,10 @@ def plot_design(r: LoopResult, names: list[str], path: Path) -> Path:
         ax.set_title("where the runs went", fontsize=9)
     else:
         ax.axis("off")
+    from matplotlib.ticker import MaxNLocator
+
+    for a in axes[:d + 1]:  # rounds are whole numbers
+        a.xaxis.set_major_locator(MaxNLocator(integer=True))
     fig.suptitle(f"adaptive design: {len(X)} FE runs, {len(r.rounds)} rounds"
                  + (f" ({r.reason})" if r.reason in ("converged", "budget", "misfit") else ""),
                  fontsize=10)
