@@ -27,10 +27,11 @@ Measured paired on two field posteriors (``benchmarks/ridge_coords.py``, BENCHMA
 18, session 24): gradients per iteration 35-49 -> 9-21, min bulk ESS per second 1.07-2.0x,
 the same quantiles to Monte Carlo error, and 2-16 divergent transitions in 6,000 where the
 sampler's own coordinates had none (the quadratic does not straighten the tails).
-Written here rather than taken from a library: the
-normalizing-flow packages (e.g. Pyro's ``AffineAutoregressive``, ``flowMC``) train neural
-flows by stochastic optimization, seconds to minutes per fit; this is a closed-form
-least-squares fit in milliseconds, refitted every design round.
+
+Written here rather than taken from a library: the normalizing-flow packages (e.g. Pyro's
+``AffineAutoregressive``, ``flowMC``) train neural flows by stochastic optimization, seconds
+to minutes per fit; this is a closed-form least-squares fit in milliseconds, refitted every
+design round.
 """
 
 from __future__ import annotations
