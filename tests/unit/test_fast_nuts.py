@@ -342,6 +342,8 @@ def test_bad_input_raises_naming_the_argument():
     x, y = make_data(0)
     with pytest.raises(ValueError, match="workers"):
         calibrate_direct(code, x, y, T_BOX, workers=0, chains=1, warmup=1, draws=1)
+    with pytest.raises(ValueError, match="ridge"):
+        calibrate_direct(code, x, y, T_BOX, ridge="sometimes", chains=1, warmup=1, draws=1)
     with pytest.raises(ValueError, match="inv_metric"):
         sample_nuts(f, 2, inv_metric=np.ones(3))
     with pytest.raises(ValueError, match="step_size"):

@@ -8,8 +8,10 @@ draws, doubled up to twice while the bulk ESS is below 99) and the rank of the p
 99 thinned draws is taken. Ranks of a correct sampler are uniform on {0, ..., 99}: a chi-square
 test on 10 equal bins (20 expected per bin) per parameter. A third model, the four Anand
 constants through a flow-stress PCA GP, is the one NUTS samples in the soft-walled flow-stress
-coordinates (calibration/flowcoords.py). Ten tests in all (two parameters direct, three field,
-five Anand); Bonferroni at a family-wise 1 %: each fails below p = 0.001, so a correct
+coordinates (calibration/flowcoords.py); a fourth runs the same Anand model in the ridge
+coordinates of calibration/ridgemap.py, warm-started from a pilot as a design round is.
+Fifteen tests in all (two parameters direct, three field, five Anand, five Anand in ridge
+coordinates); Bonferroni at a family-wise 1 %: each fails below p = 0.00067, so a correct
 sampler fails the slow suite with probability <= 1 % (Bonferroni is conservative for the
 dependent ranks of one replication).
 
@@ -41,6 +43,7 @@ from sbc import (  # noqa: E402
     DIRECT_BOX,
     L_DRAWS,
     anand_problem,
+    anand_ridge_problem,
     bonferroni_alpha,
     direct_problem,
     field_problem,
@@ -53,8 +56,8 @@ from solderpyro.examples.seed_math import code  # noqa: E402
 
 REPS = 200  # the issue's minimum
 BINS = 10
-N_TESTS = 10  # direct: t, sigma; field: a, k, sigma; anand: s0, QR, xi, m, sigma
-ALPHA = bonferroni_alpha(0.01, N_TESTS)  # 0.001 per chi-square test
+N_TESTS = 15  # direct: t, sigma; field: a, k, sigma; anand, anand_ridge: s0, QR, xi, m, sigma
+ALPHA = bonferroni_alpha(0.01, N_TESTS)  # 0.00067 per chi-square test
 
 
 def test_rank_stats_pass_uniform_and_fail_wrong_shapes():
@@ -110,3 +113,13 @@ def test_sbc_field_pca_modular():
 @pytest.mark.slow
 def test_sbc_anand_flow_coordinates():
     _check(run_sbc(anand_problem(), REPS, chains=1, warmup=300, draws=300, bins=BINS))
+
+
+@pytest.mark.slow
+def test_sbc_anand_ridge_coordinates():
+    """The mapped sampler (calibration/ridgemap.py) as a design round runs it: a pilot, then
+    the run warm-started in the ridge coordinates fitted to the pilot's draws."""
+    p = anand_ridge_problem()
+    res = run_sbc(p, REPS, chains=1, warmup=300, draws=300, bins=BINS)
+    assert p.info["mapped_reps"] >= 0.8 * REPS  # the map did run (pilots' chains agree)
+    _check(res)
