@@ -191,8 +191,8 @@ def anand_ridge_problem(n_runs: int = 30, seed: int = 0) -> Problem:
     (150 + 150)), then the replication's run warm-started from it in the ridge coordinates
     fitted to the pilot's draws (calibration/ridgemap.py), always (``ridge="always"``: these
     posteriors rarely bend enough for the default gate, and the check is of the mapped
-    sampler's correctness). ``info["mapped_reps"]`` counts the replications that ran mapped
-    (the chains of the pilot agreed)."""
+    sampler's correctness). ``info["mapped_reps"]`` counts the runs that ran mapped (the
+    chains of the pilot agreed; reruns with more draws count too)."""
     from solderpyro.calibration.mcmc import ridge_map
 
     p = anand_problem(n_runs, seed)
