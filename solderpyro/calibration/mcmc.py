@@ -409,6 +409,8 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         raise ValueError(f"run_nuts init must be 'sir' or 'uniform', got {init!r}")
     if workers is not None and (not isinstance(workers, int) or workers < 1):
         raise ValueError(f"run_nuts workers must be a positive integer, got {workers!r}")
+    if ridge not in ("auto", "always", "never"):
+        raise ValueError(f"run_nuts ridge must be 'auto', 'always' or 'never', got {ridge!r}")
     from solderpyro.calibration.fastkoh import flat_model
     from solderpyro.calibration.koh import SITE_T
     from solderpyro.calibration.nuts import sample_nuts
@@ -441,9 +443,6 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
                     "gradients, %d divergent)", c + 1, chains, warmup, draws, st["seconds"],
                     st["step_size"], st["n_leapfrog"], st["divergences"])
 
-        if ridge not in ("auto", "always", "never"):
-            raise ValueError(f"run_nuts ridge must be 'auto', 'always' or 'never', got "
-                             f"{ridge!r}")
         f = fm.logp_and_grad
         rmap = None if ridge == "never" else ridge_map(warm, names, bent=ridge == "auto")
         if rmap is not None:
@@ -487,8 +486,6 @@ WARM_DRAWS = 1000
 #: 8 gradients per iteration); at 0.9: 1 divergent, 10-13 gradients per iteration (38 in the
 #: original coordinates), the same quantiles
 MAPPED_ACCEPT = 0.9
-
-
 #: the largest R-hat of chains whose draws a next run's ridge map is fitted to
 MAP_RHAT = 1.1
 
