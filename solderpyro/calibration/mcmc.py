@@ -481,10 +481,11 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
 #: draws a :class:`WarmStart` keeps (thinned evenly through the chains) for a next run's map
 WARM_DRAWS = 1000
 #: NUTS's target acceptance in ridge coordinates. Why: the map takes the step from ~0.1 to
-#: ~0.5, and at the default 0.8 the tails the quadratic does not straighten cost 0.5 % of
-#: transitions as divergences (CTE-slope field posterior, 4 x 1500 draws: 29-39 divergent,
-#: 8 gradients per iteration); at 0.9: 1 divergent, 10-13 gradients per iteration (38 in the
-#: original coordinates), the same quantiles
+#: ~0.5; with a first form of the map (quadratic terms in every coordinate) the default 0.8
+#: cost 0.5 % of transitions as divergences on the CTE-slope posterior (29-39 of 6,000, a
+#: scratch run), 0.9 one. With the bend test, `benchmarks/ridge_coords.py` on that posterior:
+#: 0.8 -> 7 divergent, min ESS/s 2.78x the plain coordinates; 0.9 -> 4, 1.46x (session 24);
+#: not re-chosen since
 MAPPED_ACCEPT = 0.9
 #: the largest R-hat of chains whose draws a next run's ridge map is fitted to
 MAP_RHAT = 1.1
