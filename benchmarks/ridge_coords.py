@@ -55,6 +55,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
     ap.add_argument("--store", default=None, help="its run store (default: run.json's)")
+    ap.add_argument("--data", default=None,
+                    help="its measurement CSV (default: run.json's; the demo's run names none)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--accept", default=str(MAPPED_ACCEPT),
                     help="target acceptances of the ridge runs, comma-separated")
@@ -65,7 +67,7 @@ def main() -> None:
     run = Path(a.run)
     info = json.loads((run / "run.json").read_text())
     setup = build(compose(info.get("overrides") or []))
-    sm = SpecimenModel.build(setup, read_measurements(info["data"]),
+    sm = SpecimenModel.build(setup, read_measurements(a.data or info["data"]),
                              a.store or info["store"], 64, False)
     with (run / "design.csv").open() as f:
         rows = [r for r in csv.DictReader(f) if r["converged"] == "1"]
