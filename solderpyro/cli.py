@@ -404,6 +404,8 @@ def _add_cluster(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .settings import SamplerSettings
+
     p = argparse.ArgumentParser(
         prog="solderpyro",
         description="Bayesian identification of Anand solder constants from Moire data. "
@@ -430,9 +432,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-calibrate", action="store_true",
                    help="only simulate (skip the synthetic-data calibration)")
     _add_design(d)
-    # 4 x 400 draws after 500 warm-up (300 warm-up left a chain badly adapted: R-hat 1.38):
-    # bulk ESS ~150+ per parameter, inside 10 min on the 2-core CPU
-    _add_nuts(d, draws=400, warmup=500)
+    # the calibration's own sampler defaults (4 x 1500 draws after 500 warm-up): with the 400
+    # draws the demo used while it took 7 min, its report said R-hat 1.02 > 1.01, "not reliable
+    # until a longer run" (session 25); the design's rounds now leave it ~90 s in all
+    _add_nuts(d, draws=SamplerSettings().draws, warmup=SamplerSettings().warmup)
     e = sub.add_parser("example", help="worked examples; 'seed-math' reproduces the seed "
                        "paper's mathematical example (Tables I, II, Figures 1-4)")
     e.add_argument("name", choices=["seed-math"])
@@ -469,8 +472,6 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
     _add_cluster(c)
     _add_design(c)
-    from .settings import SamplerSettings
-
     _add_nuts(c, draws=SamplerSettings().draws)
     w = sub.add_parser("sweep", help="calibrate many datasets, one job each, in parallel on a "
                        "Dask cluster (--cluster local:N) or one after another; each dataset's "

@@ -381,7 +381,8 @@ def spread_indices(n: int, m: int) -> np.ndarray:
 
 def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | None = None,
              names: list[str] | None = None,
-             on_round: Callable[[LoopResult], None] | None = None) -> LoopResult:
+             on_round: Callable[[LoopResult], None] | None = None,
+             kinds: list[str] | None = None) -> LoopResult:
     """Run the adaptive design (module docstring) on ``p`` with settings ``s``.
 
     Args:
@@ -390,6 +391,8 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         X0: ``(n0, d)`` the start design (physical); default a Latin hypercube of ``s.start``.
         names: parameter names for the per-round quantiles (default ``p.box.names``).
         on_round: called after every round with the result so far (saving, plotting).
+        kinds: ``(n0,)`` what each row of ``X0`` is (``"start"``, ``"fe_fit"``: runs placed
+            at a known FE best fit before the first round); default all ``"start"``.
 
     Returns:
         :class:`LoopResult`.
@@ -410,8 +413,10 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
     n = int(y.numel())
     names = names or list(box.names)
     X = lhs(box, s.start, seed) if X0 is None else X0.to(torch.float64)
+    if kinds is not None and len(kinds) != len(X):
+        raise ValueError(f"run_loop: kinds has {len(kinds)} entries for {len(X)} start rows")
     V, ok = p.fe(X)
-    kind, rnd_of = ["start"] * len(X), [0] * len(X)
+    kind, rnd_of = list(kinds) if kinds is not None else ["start"] * len(X), [0] * len(X)
     rounds: list[Round] = []
     draws: Draws | None = None
     best_fit: dict[str, Any] | None = None

@@ -78,10 +78,11 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     sm = SpecimenModel.build(setup, meas, s.store, s.batch, s.progress)
     s.validate(sm.n_fe)
     y_liu = sm.literature()
+    refit = warm.point if warm is not None else None  # the diagnosis's FE refit, if any
     if warm is not None:  # chains at the diagnosis's FE refit of this model, where there is one
         warm = warm.placed(sm.space, sm.priors.sigma_known is not None, seed=s.seed)
     clock("problem")
-    loop = adaptive_design(sm, s, out, warm)
+    loop = adaptive_design(sm, s, out, warm, refit)
     clock("design")
     post, inp = loop.draws.posterior
     gp = loop.gp

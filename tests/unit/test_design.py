@@ -311,6 +311,52 @@ def test_a_model_that_can_fit_localizes_the_design_at_its_fe_best_fit():
         LoopSettings(localize=-1).validate(1)
 
 
+def test_a_recalibration_places_start_runs_along_the_known_refits_laplace_ridge():
+    """``refit_design``: with a known FE best fit of the model (the diagnosis's refit), the
+    start design gets runs around it: the point first, then draws of its Laplace
+    approximation widened REFIT_WIDEN times. On a linear toy whose posterior is a thin ridge
+    (correlation -0.995) the runs spread along the ridge and stay within the widened
+    Laplace's 99.99 % ellipse across it, LOCAL_SPACING apart; no point, or one that misses a
+    parameter, places nothing."""
+    from types import SimpleNamespace
+
+    from solderpyro.design.loop import LOCAL_SPACING
+    from solderpyro.pipeline.adaptive import REFIT_WIDEN, refit_design
+
+    box = Box(("a", "b"), (0.0, 10.0), (1.0, 30.0))
+    A = np.array([[1.0, 1.0], [1.0, 1.02], [0.5, 0.5], [2.0, 2.01]]) * 4.0  # d y / d u
+    sig = 0.01
+    u_true = np.array([0.4, 0.55])
+
+    def observed(rows):
+        u = box.to_unit(torch.as_tensor(rows, dtype=torch.float64)).numpy()
+        return u @ A.T
+
+    y = torch.as_tensor(u_true @ A.T)
+    sm = SimpleNamespace(space=box, gp_box=box, n_fe=2, y=y, observed=observed,
+                         priors=SimpleNamespace(sigma_known=sig))
+    x_true = box.from_unit(torch.as_tensor(u_true[None])).numpy()[0]
+    point = {"a": float(x_true[0]), "b": float(x_true[1]), "sigma": sig}
+    have = lhs(box, 6, 0)
+    rows = refit_design(sm, point, have, 12, seed=1)
+    assert rows is not None and 6 <= len(rows) <= 12
+    u = box.to_unit(rows).numpy()
+    np.testing.assert_allclose(u[0], u_true, atol=1e-6)  # the refit itself first
+    H = A.T @ A / sig**2  # the exact Laplace precision of the linear toy
+    d = u - u_true
+    m2 = np.einsum("ij,jk,ik->i", d, H, d) / REFIT_WIDEN**2
+    assert m2.max() < 18.4  # chi2(2) 99.99 %: inside the widened ellipse
+    ridge = np.linalg.eigh(H)[1][:, 0]  # the weakest direction: along the ridge
+    along, across = np.abs(d @ ridge), np.abs(d @ np.array([-ridge[1], ridge[0]]))
+    assert along.max() > 20 * across.max()
+    allu = np.vstack([box.to_unit(have).numpy(), u])
+    dist = np.linalg.norm(allu[:, None] - allu[None], axis=-1) + np.eye(len(allu))
+    assert dist.min() >= LOCAL_SPACING
+    assert refit_design(sm, None, have, 12) is None
+    assert refit_design(sm, {"a": point["a"]}, have, 12) is None
+    assert refit_design(sm, point, have, 0) is None
+
+
 def test_stop_rule_tolerance_is_the_chi_square_sampling_sd():
     s = LoopSettings()
     code_ok, fe_ok, tol = stop_rule(1.0, np.array([100.0]), np.array([100.0 + 19.9]), 200, s)
