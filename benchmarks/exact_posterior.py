@@ -1,0 +1,105 @@
+"""The FE-exact posterior of one dataset: the reference a surrogate posterior is judged by.
+
+    python benchmarks/exact_posterior.py DATA --effects modulus_temperature \
+        --start 11.21,11070,2.003,0.1088,0.01758 --store STORE [--json OUT.json]
+        [--compare RUN_DIR ...]
+
+Full-field data at the seed times; the calibration's FE (default mesh and time step) with the
+named effects switched on; :func:`solderpyro.pipeline.fe_exact.fe_exact` from ``--start``
+(the calibrated parameters in the box's order, physical units): a few Levenberg-Marquardt
+iterations, the chi-square profile along the ridge, ``--rounds`` AMIS rounds of ``--n`` FE
+runs with the FE itself in the likelihood (noise sd known, 0.05 um). Prints and writes the
+2.5 / 50 / 97.5 % quantiles, the weights' ESS and Pareto k-hat, and, for each ``--compare``
+run directory, the largest quantile error per parameter divided by the FE-exact interval's
+width (issue 19's accuracy measure).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from solderpyro.calibration import Priors
+from solderpyro.configure import build, compose
+from solderpyro.coords import sampling_coords
+from solderpyro.fem.loading import SEED_TIMES
+from solderpyro.fem.problem import reference_grid
+from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.io.measurements import read_measurements
+from solderpyro.pipeline.fe_exact import fe_exact
+from solderpyro.specimen import (
+    calibration_box,
+    fe_observed,
+    observation_index,
+    output_points,
+    split_effects,
+)
+from solderpyro.store import RunStore
+
+QS = ("q2.5", "median", "q97.5")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("data")
+    ap.add_argument("--effects", default="", help="comma-separated registry names")
+    ap.add_argument("--start", required=True, help="comma-separated start, box order")
+    ap.add_argument("--store", required=True)
+    ap.add_argument("--n", type=int, default=128, help="FE runs per AMIS round")
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--compare", nargs="*", default=[], help="run directories to judge")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    times = tuple(SEED_TIMES)
+    effects = [e for e in a.effects.split(",") if e]
+    setup = build(compose([f"effects=[{','.join(effects)}]"] if effects else []))
+    fx, fx_fe, _ = split_effects(setup, times)
+    space = calibration_box(setup, fx)
+    start = np.array([[float(v) for v in a.start.split(",")]])
+    if start.shape[1] != space.dim:
+        raise SystemExit(f"--start has {start.shape[1]} values; the box {space.names} needs "
+                         f"{space.dim}")
+    coords = sampling_coords(space, setup.space.defaults)
+    solver = SpecimenSolver(setup.problem, reference_grid(), effects=fx_fe or ())
+    rs = RunStore(a.store)
+    h = rs.register(setup.problem, times, True, setup.dtype, effects=fx_fe or ())
+    meas = read_measurements(a.data, valid_points=output_points(setup.problem))
+    ti, oi = observation_index(meas, times, tuple(solver.names))
+    y = torch.tensor(np.array(meas.value_um), dtype=torch.float64)
+
+    def fun(rows: np.ndarray) -> np.ndarray:
+        return fe_observed(solver, setup, times, ti, oi, rows, space.dim, None, rs, h)
+
+    ex, info = fe_exact(fun, coords, y, Priors(sigma_known=0.05), None, start, a.n, a.rounds,
+                        9, a.seed, lm_iters=6)
+    ref = {r["parameter"]: [float(r[q]) for q in QS] for r in ex.rows}
+    out = {"command": "python benchmarks/exact_posterior.py " + " ".join(sys.argv[1:]),
+           "quantiles": ref, "ess": info["ess"], "khat": info["khat"],
+           "reliable": info["reliable"], "fe_runs": info["fe_runs"], "compare": {}}
+    for k, v in ref.items():
+        print(f"{k:8s} " + "  ".join(f"{x:.6g}" for x in v))
+    print(f"ESS {info['ess']:.0f}, k-hat {info['khat']:.2f}, reliable {info['reliable']}, "
+          f"{info['fe_runs']} FE runs")
+    for run in a.compare:
+        with (Path(run) / "summary.csv").open() as f:
+            got = {r["parameter"]: [float(r[q]) for q in QS] for r in csv.DictReader(f)}
+        err = {k: max(abs(g - e) for g, e in zip(got[k], v, strict=True)) / (v[2] - v[0])
+               for k, v in ref.items() if k in got and k != "sigma"}
+        out["compare"][run] = err
+        print(f"{run}: largest quantile error / FE-exact width "
+              + ", ".join(f"{k} {e:.3f}" for k, e in err.items())
+              + f"; max {max(err.values()):.3f}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1, default=float) + "\n")
+
+
+if __name__ == "__main__":
+    main()
