@@ -222,6 +222,8 @@ def main() -> None:
     ap.add_argument("--datasets", type=int, default=10)
     ap.add_argument("--lhs", default="100,200", help="fixed designs' sizes, comma-separated")
     ap.add_argument("--only", default="", help="job kinds to run now, e.g. exact,adaptive")
+    ap.add_argument("--subset", default="", help="datasets to run now, e.g. 2-5 (default all; "
+                    "the summary covers every dataset recorded)")
     ap.add_argument("--work", default="runs/design_vs_lhs")
     ap.add_argument("--out", default="benchmarks/results_design_vs_lhs.json")
     ap.add_argument("--cluster", default=None, metavar="local:N",
@@ -238,7 +240,11 @@ def main() -> None:
     for i, t in enumerate(tr, start=1):
         dataset(work, i, t)
         truth_of[f"d{i:02d}"] = t
-    names = [f"{ds}/{k}" for ds in truth_of for k in run_kinds]
+    sub = set(truth_of)
+    if a.subset:
+        lo, _, hi = a.subset.partition("-")
+        sub = {f"d{i:02d}" for i in range(int(lo), int(hi or lo) + 1)}
+    names = [f"{ds}/{k}" for ds in truth_of for k in run_kinds if ds in sub]
     with executor_from_options(a.cluster, a.scheduler) as ex:
         res = sweep(names, functools.partial(job, work=str(work), lhs=lhs),
                     work / "sweep.json", ex)
