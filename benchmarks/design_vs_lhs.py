@@ -248,7 +248,7 @@ def main() -> None:
     with executor_from_options(a.cluster, a.scheduler) as ex:
         res = sweep(names, functools.partial(job, work=str(work), lhs=lhs),
                     work / "sweep.json", ex)
-    all_res = json.loads((work / "sweep.json").read_text())
+    all_res = json.loads((work / "sweep.json").read_text()).get("jobs", {})  # every run so far
     all_res.update(res)
     summ = summarize(all_res, truth_of, kinds[1:])
     out = {"command": "python benchmarks/design_vs_lhs.py " + " ".join(sys.argv[1:]),
