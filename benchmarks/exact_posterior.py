@@ -21,6 +21,7 @@ import csv
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -45,6 +46,42 @@ from solderpyro.store import RunStore
 QS = ("q2.5", "median", "q97.5")
 
 
+def exact_reference(data: str | Path, effects: list[str], start: np.ndarray, store: str | Path,
+                    n: int = 128, rounds: int = 5, seed: int = 1, lm_iters: int = 6,
+                    noise: float = 0.05) -> tuple[dict[str, list[float]], dict[str, Any]]:
+    """The FE-exact posterior of full-field data at the seed times under the calibration's FE.
+
+    Args:
+        data: the measurement CSV. effects: registry names switched on. start: ``(1, dim)``
+            physical start of the fit, in the calibration box's order. store: run store.
+        n, rounds: AMIS runs per round and rounds; seed: its seed; lm_iters: the fit's
+            Levenberg-Marquardt iterations; noise: the known noise sd, um.
+    Returns:
+        ``({parameter: [q2.5, median, q97.5]}, fe_exact's info)``.
+    """
+    times = tuple(SEED_TIMES)
+    setup = build(compose([f"effects=[{','.join(effects)}]"] if effects else []))
+    fx, fx_fe, _ = split_effects(setup, times)
+    space = calibration_box(setup, fx)
+    if start.shape[1] != space.dim:
+        raise ValueError(f"start has {start.shape[1]} values; the box {space.names} needs "
+                         f"{space.dim}")
+    coords = sampling_coords(space, setup.space.defaults)
+    solver = SpecimenSolver(setup.problem, reference_grid(), effects=fx_fe or ())
+    rs = RunStore(store)
+    h = rs.register(setup.problem, times, True, setup.dtype, effects=fx_fe or ())
+    meas = read_measurements(data, valid_points=output_points(setup.problem))
+    ti, oi = observation_index(meas, times, tuple(solver.names))
+    y = torch.tensor(np.array(meas.value_um), dtype=torch.float64)
+
+    def fun(rows: np.ndarray) -> np.ndarray:
+        return fe_observed(solver, setup, times, ti, oi, rows, space.dim, None, rs, h)
+
+    ex, info = fe_exact(fun, coords, y, Priors(sigma_known=noise), None, start, n, rounds, 9,
+                        seed, lm_iters=lm_iters)
+    return {r["parameter"]: [float(r[q]) for q in QS] for r in ex.rows}, info
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("data")
@@ -58,29 +95,12 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     torch.set_num_threads(1)
-    times = tuple(SEED_TIMES)
-    effects = [e for e in a.effects.split(",") if e]
-    setup = build(compose([f"effects=[{','.join(effects)}]"] if effects else []))
-    fx, fx_fe, _ = split_effects(setup, times)
-    space = calibration_box(setup, fx)
     start = np.array([[float(v) for v in a.start.split(",")]])
-    if start.shape[1] != space.dim:
-        raise SystemExit(f"--start has {start.shape[1]} values; the box {space.names} needs "
-                         f"{space.dim}")
-    coords = sampling_coords(space, setup.space.defaults)
-    solver = SpecimenSolver(setup.problem, reference_grid(), effects=fx_fe or ())
-    rs = RunStore(a.store)
-    h = rs.register(setup.problem, times, True, setup.dtype, effects=fx_fe or ())
-    meas = read_measurements(a.data, valid_points=output_points(setup.problem))
-    ti, oi = observation_index(meas, times, tuple(solver.names))
-    y = torch.tensor(np.array(meas.value_um), dtype=torch.float64)
-
-    def fun(rows: np.ndarray) -> np.ndarray:
-        return fe_observed(solver, setup, times, ti, oi, rows, space.dim, None, rs, h)
-
-    ex, info = fe_exact(fun, coords, y, Priors(sigma_known=0.05), None, start, a.n, a.rounds,
-                        9, a.seed, lm_iters=6)
-    ref = {r["parameter"]: [float(r[q]) for q in QS] for r in ex.rows}
+    try:
+        ref, info = exact_reference(a.data, [e for e in a.effects.split(",") if e], start,
+                                    a.store, a.n, a.rounds, a.seed)
+    except ValueError as e:
+        raise SystemExit(f"--start: {e}") from None
     out = {"command": "python benchmarks/exact_posterior.py " + " ".join(sys.argv[1:]),
            "quantiles": ref, "ess": info["ess"], "khat": info["khat"],
            "reliable": info["reliable"], "fe_runs": info["fe_runs"], "compare": {}}
