@@ -98,8 +98,8 @@ def refit_design(sm: SpecimenModel, point: dict[str, float] | None, have: torch.
     2.65e3 in the first). Here: one Levenberg-Marquardt iteration from the point (its
     Jacobian, through the run store), then ``m`` runs drawn from its Laplace approximation
     widened :data:`REFIT_WIDEN` times (unit box; draws outside it dropped), at least
-    :data:`~solderpyro.design.loop.LOCAL_SPACING` apart and from ``have``; the point itself
-    first.
+    :data:`~solderpyro.design.loop.LOCAL_SPACING` apart and from ``have``; the end of that
+    iteration (the point, or a step better) first.
 
     Args:
         sm: the problem. point: ``name -> value`` (physical units) covering every calibrated
