@@ -50,7 +50,7 @@ def _post(run: NutsRun, box: Box) -> Posterior:
     out = {"t": box.from_unit(samples[SITE_T])}
     out.update({k: v for k, v in samples.items() if k != SITE_T})
     return Posterior(out, {"t": list(box.names)}, run.divergences, run.seconds, dict(samples),
-                     warm=run.warm, stats=run.stats)
+                     warm=run.warm, stats=run.stats, diverging=run.diverging)
 
 
 def calibrate_direct(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],

@@ -65,6 +65,8 @@ class Posterior:
         raw: the sampler's own sites ``(chain, draw, ...)`` (unit cube, for predictions).
         warm: the sampler's adapted state (:class:`WarmStart`), to start a related run.
         stats: per chain: step size, mean acceptance, gradient evaluations.
+        diverging: ``(chain, draw)`` bool, which draws came from a divergent transition
+            (None: only the counts are known).
     """
 
     samples: dict[str, torch.Tensor]
@@ -74,6 +76,7 @@ class Posterior:
     raw: dict[str, torch.Tensor] = field(default_factory=dict)
     warm: WarmStart | None = None
     stats: list[dict[str, float]] = field(default_factory=list)
+    diverging: np.ndarray | None = None
 
     @property
     def n_chains(self) -> int:
@@ -103,9 +106,12 @@ class Posterior:
         az = _arviz()
         cols = self.columns()
         n_draw = next(iter(cols.values())).shape[1]
-        div = np.zeros((self.n_chains, n_draw), dtype=bool)
-        for c, k in enumerate(self.divergences):
-            div[c, :k] = True  # counts only; positions are not kept
+        if self.diverging is not None and self.diverging.shape == (self.n_chains, n_draw):
+            div = np.asarray(self.diverging, dtype=bool)
+        else:  # counts only (a posterior made without the flags): the first k of each chain
+            div = np.zeros((self.n_chains, n_draw), dtype=bool)
+            for c, k in enumerate(self.divergences):
+                div[c, :k] = True
         idata = az.from_dict(posterior=cols, sample_stats={"diverging": div})
         if predictive is not None:
             idata.add_groups(**_predictive_groups(predictive, self.n_chains, n_draw))
@@ -340,6 +346,7 @@ class NutsRun:
         seconds: wall time (warm-up and sampling, all chains).
         warm: the adapted state, to warm-start a related run.
         stats: per chain: step size, mean acceptance, gradient evaluations.
+        diverging: ``(chain, draw)`` bool, which kept draws came from a divergent transition.
     """
 
     samples: dict[str, torch.Tensor]
@@ -347,6 +354,7 @@ class NutsRun:
     seconds: float
     warm: WarmStart
     stats: list[dict[str, float]]
+    diverging: np.ndarray | None = None
 
 
 def default_workers(chains: int) -> int:
@@ -475,7 +483,8 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
                    flat[keep].copy() if chains_agree(Q) else None)
     stats = [{"step_size": float(a), "accept_prob": float(b), "n_grad": float(c)}
              for a, b, c in zip(res.step_size, res.accept_prob, res.n_leapfrog, strict=True)]
-    return NutsRun(samples, res.divergences, time.perf_counter() - t0, ws, stats)
+    return NutsRun(samples, res.divergences, time.perf_counter() - t0, ws, stats,
+                   res.diverging)
 
 
 #: draws a :class:`WarmStart` keeps (thinned evenly through the chains) for a next run's map

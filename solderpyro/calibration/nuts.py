@@ -46,6 +46,8 @@ class NutsResult:
         accept_prob: mean acceptance statistic of the kept draws, per chain.
         n_leapfrog: gradient evaluations per chain (warm-up included).
         tree_depth: ``(chains, draws)`` tree depth of each kept draw.
+        diverging: ``(chains, draws)`` bool, whether the transition that made each kept draw
+            diverged (where they sit shows what the sampler could not follow).
     """
 
     draws: np.ndarray
@@ -56,6 +58,7 @@ class NutsResult:
     accept_prob: list[float] = field(default_factory=list)
     n_leapfrog: list[int] = field(default_factory=list)
     tree_depth: np.ndarray | None = None
+    diverging: np.ndarray | None = None
 
 
 class _Metric:
@@ -346,7 +349,8 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
                     metric0, step_size or 1.0)
     outs = _map_chains(job, chains, workers, on_chain)
     res = NutsResult(np.stack([o["draws"] for o in outs]),
-                     tree_depth=np.stack([o["depth"] for o in outs]))
+                     tree_depth=np.stack([o["depth"] for o in outs]),
+                     diverging=np.stack([o["diverging"] for o in outs]))
     for o in outs:
         res.divergences.append(o["divergences"])
         res.step_size.append(o["step_size"])
@@ -492,15 +496,17 @@ def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
         win.counter += 1
     if warmup > 0:
         ch.step = da.final()
-    n_div, acc_sum = 0, 0.0
+    acc_sum = 0.0
     out = np.empty((job.draws, d))
     depth_out = np.empty(job.draws, dtype=np.int64)
+    div_out = np.zeros(job.draws, dtype=bool)
     for i in range(job.draws):
         acc, depth, div, _ = ch.transition()
         out[i] = ch.q
         depth_out[i] = depth
-        n_div += int(div)
+        div_out[i] = bool(div)
         acc_sum += acc
-    return {"draws": out, "depth": depth_out, "divergences": n_div, "step_size": ch.step,
+    return {"draws": out, "depth": depth_out, "diverging": div_out,
+            "divergences": int(div_out.sum()), "step_size": ch.step,
             "inv_metric": ch.metric.inv, "accept_prob": acc_sum / job.draws,
             "n_leapfrog": ch.n_grad}
