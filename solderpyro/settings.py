@@ -59,7 +59,20 @@ class SamplerSettings:
     issue 18's bars (R-hat <= 1.01, bulk ESS >= 400 for every parameter) in only some runs
     (R-hat up to 1.016, min ESS 377); on the modulus field recalibration, paired on an idle
     machine, 1500 took min ESS 422 -> 782 and R-hat 1.007 -> 1.004 for 137 s instead of
-    120 s (BENCHMARKS.md issue 18, session 22)."""
+    120 s (BENCHMARKS.md issue 18, session 22).
+
+    ``final_ridge`` (default off): the final posterior in the ridge map's coordinates, as the
+    design rounds are (:func:`~solderpyro.calibration.mcmc.ridge_map`). Off, measured
+    (``benchmarks/ridge_coords.py``, three seeds each, session 26): on the loop's full-field
+    recalibration the map halves the time (40 s against 83 s) but diverges 52-160 times in
+    6,000 where the posterior's tail meets the Q/R face (the sampler's own coordinates: 1),
+    and its min bulk ESS is 409-732 against 775-1022; on the demo's 8-value posterior both
+    diverge (map 7-41, plain 13-68).
+
+    ``min_ess`` (0: off): when the final posterior's smallest bulk ESS falls short of it, the
+    chains run on from their last draws (no new warm-up) for the draws the shortfall asks for
+    (at most twice ``draws``), once: the demo's posterior gave min ESS 249-552 over three
+    seeds with 4 x 1500 draws."""
 
     chains: int = 4
     warmup: int = 500
@@ -68,6 +81,8 @@ class SamplerSettings:
     round_draws: int = 200
     round_max_depth: int = 6
     workers: int = 0
+    final_ridge: bool = False
+    min_ess: int = 400
 
 
 @dataclass
@@ -135,6 +150,11 @@ class CalibrationSettings:
                    "round_max_depth"):
             if getattr(sp, nm) < 1:
                 raise ValueError(f"sampler.{nm} must be >= 1, got {getattr(sp, nm)}")
+        if sp.min_ess < 0:
+            raise ValueError(f"sampler.min_ess must be >= 0 (0: off), got {sp.min_ess}")
+        if not isinstance(sp.final_ridge, bool):
+            raise ValueError(f"sampler.final_ridge must be true or false, got "
+                             f"{sp.final_ridge!r}")
         if sp.workers < 0:
             raise ValueError(f"sampler.workers must be >= 0 (0: one per core), got "
                              f"{sp.workers}")

@@ -132,6 +132,30 @@ class Posterior:
                          "ess_bulk": float(ess_b[nm]), "ess_tail": float(ess_t[nm])})
         return rows
 
+    def extend(self, more: Posterior) -> Posterior:
+        """These chains continued by ``more``'s (the same chains run on from their last
+        draws, e.g. :func:`run_nuts` with ``warm=self.warm``): every site's draws
+        concatenated along the draw axis, divergences added, the time summed, ``more``'s warm
+        state kept.
+
+        Raises:
+            ValueError: ``more`` has other sites or another number of chains.
+        """
+        if set(more.samples) != set(self.samples) or more.n_chains != self.n_chains:
+            raise ValueError(f"Posterior.extend: the continuation has sites "
+                             f"{sorted(more.samples)} x {more.n_chains} chains, this posterior "
+                             f"{sorted(self.samples)} x {self.n_chains}")
+        samples = {k: torch.cat([v, more.samples[k]], 1) for k, v in self.samples.items()}
+        raw = {k: torch.cat([v, more.raw[k]], 1) for k, v in self.raw.items() if k in more.raw}
+        div = (np.concatenate([self.diverging, more.diverging], 1)
+               if self.diverging is not None and more.diverging is not None else None)
+        stats = ([{**a, "n_grad": a["n_grad"] + b["n_grad"]}
+                  for a, b in zip(self.stats, more.stats, strict=True)]
+                 if len(self.stats) == len(more.stats) else list(more.stats))
+        return Posterior(samples, dict(self.labels),
+                         [a + b for a, b in zip(self.divergences, more.divergences, strict=True)],
+                         self.seconds + more.seconds, raw, more.warm, stats, div)
+
     def min_ess(self) -> float:
         """Smallest bulk ESS over the scalar parameters."""
         return min(float(r["ess_bulk"]) for r in self.summary())

@@ -313,7 +313,8 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
         max_energy_error: an energy error above this is a divergence.
         inv_metric: a warm start's inverse mass matrix ``(dim,)`` or ``(dim, dim)`` (e.g. the
             previous posterior's), used from the first iteration; the windows still adapt it.
-        step_size: a warm start's step size (the step-size search starts there).
+        step_size: a warm start's step size (the step-size search starts there; with
+            ``warmup=0`` it is used as it is: the continuation of adapted chains).
         workers: processes running chains at once (fork; 1: in this process). Each chain's
             random stream is its own, so results are identical for any ``workers``.
         on_chain: called as ``on_chain(c, stats)`` when chain ``c`` ends (seconds,
@@ -346,7 +347,7 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
     t0 = time.perf_counter()
     job = _ChainJob(logp_and_grad, dim, inits, seed, warmup, draws, target_accept,
                     max_tree_depth, dense_mass, max_energy_error, init_radius, init_tries,
-                    metric0, step_size or 1.0)
+                    metric0, step_size or 1.0, warmup == 0 and step_size is not None)
     outs = _map_chains(job, chains, workers, on_chain)
     res = NutsResult(np.stack([o["draws"] for o in outs]),
                      tree_depth=np.stack([o["depth"] for o in outs]),
@@ -396,6 +397,7 @@ class _ChainJob:
     init_tries: int
     metric0: np.ndarray
     step0: float
+    keep_step: bool = False
 
     def __call__(self, c: int) -> dict:
         # a trajectory that leaves the typical set overflows the density (exp, log of 0): the
@@ -471,7 +473,8 @@ def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
     dense, warmup = job.dense, job.warmup
     metric = _Metric(job.metric0)
     ch = _Chain(job.f, q, lp, g, rng, metric, job.step0, job.max_depth, job.max_de)
-    ch.init_step()
+    if not job.keep_step:
+        ch.init_step()
     da = _DualAveraging(ch.step, job.target_accept)
     win = _Windows(warmup)
     window: list[np.ndarray] = []

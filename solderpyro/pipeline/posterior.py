@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import math
 from typing import Any
 
 from solderpyro.calibration import calibrate_emulator
@@ -11,6 +13,8 @@ from solderpyro.design.loop import Draws
 from solderpyro.pipeline.problem import SpecimenModel
 from solderpyro.settings import SamplerSettings
 from solderpyro.surrogate import GPSurrogate
+
+log = logging.getLogger("solderpyro")
 
 
 def nuts_options(s: SamplerSettings, seed: int, progress: bool, final: bool = True
@@ -26,6 +30,8 @@ def nuts_options(s: SamplerSettings, seed: int, progress: bool, final: bool = Tr
               progress=True, init="sir", workers=s.workers or None)
     if not final:
         nk["max_tree_depth"] = s.round_max_depth
+    elif not s.final_ridge:
+        nk["ridge"] = "never"
     return nk
 
 
@@ -45,7 +51,36 @@ def sample_posterior(sm: SpecimenModel, gp: GPSurrogate, s: SamplerSettings, see
     nk = nuts_options(s, seed, progress, final)
     if warm is not None:
         nk["warm"] = warm
-    return calibrate_emulator(em, sm.y, sm.space, priors=sm.priors, **nk)
+    post, inp = calibrate_emulator(em, sm.y, sm.space, priors=sm.priors, **nk)
+    if final and s.min_ess > 0:
+        post = reach_min_ess(post, s, lambda **kw: calibrate_emulator(
+            em, sm.y, sm.space, priors=sm.priors, **{**nk, **kw})[0], seed)
+    return post, inp
+
+
+def reach_min_ess(post: Posterior, s: SamplerSettings, run: Any, seed: int) -> Posterior:
+    """``post``, or its chains run on once when its smallest bulk ESS is under
+    ``s.min_ess`` (see :class:`~solderpyro.settings.SamplerSettings`).
+
+    Args:
+        run: ``run(warm=, draws=, warmup=, ridge=, seed=) -> Posterior``, the same sampler
+            call as the one that made ``post``.
+    """
+    ess = post.min_ess()
+    if not ess < s.min_ess:
+        return post
+    more = int(min(2 * s.draws, max(s.draws // 4,
+                                    math.ceil(s.draws * (1.1 * s.min_ess / max(ess, 1.0) - 1)))))
+    log.info("posterior: smallest bulk ESS %.0f < %d: the chains run on for %d more draws "
+             "each", ess, s.min_ess, more)
+    # in the sampler's own coordinates the adapted step and metric carry over as they are;
+    # after a run in ridge coordinates the step must be found again
+    cont = run(warm=post.warm, draws=more, ridge="never", seed=seed + 7919,
+               warmup=min(s.round_warmup, s.warmup) if s.final_ridge else 0)
+    out = post.extend(cont)
+    log.info("posterior: smallest bulk ESS %.0f after %d draws per chain", out.min_ess(),
+             s.draws + more)
+    return out
 
 
 def as_draws(sm: SpecimenModel, post: Posterior, inp: Any) -> Draws:

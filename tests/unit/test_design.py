@@ -459,3 +459,27 @@ def test_cli_config_overrides_reach_the_settings():
     a, _ = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o"])
     s0 = _settings(a, _setup([]), [])
     assert s0 == CalibrationSettings(surrogate=s0.surrogate, progress=s0.progress)
+
+
+def test_the_final_posterior_runs_in_the_samplers_own_coordinates_and_asks_for_its_ess():
+    """The final posterior's NUTS options: no ridge map unless ``sampler.final_ridge`` (the
+    design rounds keep it where it applies); the ESS bar reaches the settings from the
+    config; bad values are named."""
+    from solderpyro.cli import _settings, _setup, _split_overrides, build_parser
+    from solderpyro.pipeline.posterior import nuts_options
+    from solderpyro.settings import CalibrationSettings, SamplerSettings
+
+    assert nuts_options(SamplerSettings(), 0, False, final=True)["ridge"] == "never"
+    assert "ridge" not in nuts_options(SamplerSettings(final_ridge=True), 0, False, True)
+    assert "ridge" not in nuts_options(SamplerSettings(), 0, False, final=False)
+    p = build_parser()
+    a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
+                                  "calibration.sampler.min_ess=0",
+                                  "calibration.sampler.final_ridge=true"])
+    ov = _split_overrides(rest)
+    s = _settings(a, _setup(ov), ov)
+    assert (s.sampler.min_ess, s.sampler.final_ridge) == (0, True)
+    with pytest.raises(ValueError, match="sampler.min_ess"):
+        CalibrationSettings(sampler=SamplerSettings(min_ess=-1)).validate()
+    with pytest.raises(ValueError, match="sampler.final_ridge"):
+        CalibrationSettings(sampler=SamplerSettings(final_ridge="yes")).validate()  # type: ignore

@@ -411,9 +411,9 @@ def test_parallel_chains_equal_serial_chains():
 def test_divergences_are_kept_where_they_happen_in_a_funnels_neck():
     """Neal's funnel (v ~ N(0, 3^2), x | v ~ N(0, e^v)): a step adapted to the mouth diverges
     in the neck, so the draws flagged divergent sit at lower v than the rest (2.4-4.5 lower
-    over seeds 0-4, 113-247 divergent of 3,000; the test asks for 1, v's sd being 3). The flags add up to the
-    per-chain counts, and the posterior file carries them where they are (not as the first k
-    draws of each chain)."""
+    over seeds 0-4, 113-247 divergent of 3,000; the test asks for 1, v's sd being 3). The
+    flags add up to the per-chain counts, and the posterior file carries them where they are
+    (not as the first k draws of each chain)."""
     def f(q):
         v, x = q
         lp = -v * v / 18.0 - 0.5 * x * x * math.exp(-v) - 0.5 * v
@@ -463,3 +463,42 @@ def test_warm_start_with_short_warmup_matches_grid_posterior():
         for p, ref in zip(stats.PROBS, grid[name], strict=True):
             est = float(np.quantile(cols[name].reshape(-1), p))
             assert abs(est - ref) < 4 * stats._mcse(post, name, p) + 1e-3, (name, p, est, ref)
+
+
+def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
+    """reach_min_ess (the final posterior's ESS guard): a run of 2 x 150 draws whose smallest
+    bulk ESS is under the 2,000 asked for runs on, without a new warm-up, for at most twice
+    its draws; the continued chains hold every draw of the first run, their divergence flags
+    add up, and the joined draws reach the grid posterior's quantiles within 4 MCSEs. A run
+    already above the bar comes back unchanged."""
+    from solderpyro.pipeline.posterior import reach_min_ess
+    from solderpyro.settings import SamplerSettings
+
+    stats = _stats_module()
+    x, y = make_data(0)
+    pr = Priors(sigma_max=stats.SIGMA_MAX)
+    kw = dict(chains=2, seed=1, progress=False)
+    first, _ = calibrate_direct(code, x, y, stats.T_BOX, pr, warmup=300, draws=150, **kw)
+    calls: list[dict] = []
+
+    def run(**more):
+        calls.append(more)
+        return calibrate_direct(code, x, y, stats.T_BOX, pr, **{**kw, **more})[0]
+
+    s = SamplerSettings(chains=2, draws=150, min_ess=2000)
+    assert first.min_ess() < 2000
+    post = reach_min_ess(first, s, run, seed=1)
+    assert calls and calls[0]["warmup"] == 0 and calls[0]["draws"] == 300
+    assert post.samples["t"].shape[:2] == (2, 450)
+    torch.testing.assert_close(post.samples["t"][:, :150], first.samples["t"])
+    assert post.diverging is not None and post.diverging.sum(1).tolist() == post.divergences
+    assert post.min_ess() > first.min_ess()
+    grid = stats._grid_quantiles(x, y)
+    cols = post.columns()
+    for name in ("t", "sigma"):
+        for p, ref in zip(stats.PROBS, grid[name], strict=True):
+            est = float(np.quantile(cols[name].reshape(-1), p))
+            assert abs(est - ref) < 4 * stats._mcse(post, name, p) + 1e-3, (name, p, est, ref)
+    calls.clear()
+    assert reach_min_ess(first, SamplerSettings(min_ess=10), run, seed=1) is first
+    assert not calls
