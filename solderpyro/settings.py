@@ -61,18 +61,24 @@ class SamplerSettings:
     machine, 1500 took min ESS 422 -> 782 and R-hat 1.007 -> 1.004 for 137 s instead of
     120 s (BENCHMARKS.md issue 18, session 22).
 
-    ``final_ridge`` (default off): the final posterior in the ridge map's coordinates, as the
-    design rounds are (:func:`~solderpyro.calibration.mcmc.ridge_map`). Off, measured
-    (``benchmarks/ridge_coords.py``, three seeds each, session 26): on the loop's full-field
-    recalibration the map halves the time (40 s against 83 s) but diverges 52-160 times in
-    6,000 where the posterior's tail meets the Q/R face (the sampler's own coordinates: 1),
-    and its min bulk ESS is 409-732 against 775-1022; on the demo's 8-value posterior both
-    diverge (map 7-41, plain 13-68).
+    ``final_ridge`` (default on): the final posterior in the ridge map's coordinates, as the
+    design rounds are (:func:`~solderpyro.calibration.mcmc.ridge_map`; off: the sampler's own
+    coordinates). Measured (``benchmarks/ridge_coords.py``, three seeds each, session 26), it
+    depends on the posterior: on the loop's full-field recalibration the map takes 40 s
+    against 83 s but diverges 52-160 times in 6,000 where the posterior's tail meets the Q/R
+    face (own coordinates: 1) with min bulk ESS 409-732 against 775-1022; on the demo's
+    8-value posterior the own coordinates diverge 13-68 times (map 7-41) and their min ESS
+    fell to 249 (map 175-480), and the demo run with them ended at s0's ESS 54 and R-hat
+    1.019 after 4 x 1500 draws (239 and 1.019 after running on to 4,500). An unreliable
+    report is worse than a warned divergence count, so the map stays the default.
 
     ``min_ess`` (0: off): when the final posterior's smallest bulk ESS falls short of it, the
-    chains run on from their last draws (no new warm-up) for the draws the shortfall asks for
-    (at most twice ``draws``), once: the demo's posterior gave min ESS 249-552 over three
-    seeds with 4 x 1500 draws."""
+    chains run on from their last draws for the draws the shortfall asks for (at most twice
+    ``draws``), once, after a ``round_warmup`` warm-up in new ridge coordinates (none in the
+    sampler's own, where the adapted step and metric carry over): the ridge map's min ESS was
+    175-732 over the two posteriors and six seeds above, with 4 x 1500 draws; the loop's
+    recalibration in session 25 reported 358 against issue 18's bar of 400 for every
+    parameter."""
 
     chains: int = 4
     warmup: int = 500
@@ -81,7 +87,7 @@ class SamplerSettings:
     round_draws: int = 200
     round_max_depth: int = 6
     workers: int = 0
-    final_ridge: bool = False
+    final_ridge: bool = True
     min_ess: int = 400
 
 

@@ -74,9 +74,9 @@ def reach_min_ess(post: Posterior, s: SamplerSettings, run: Any, seed: int) -> P
     log.info("posterior: smallest bulk ESS %.0f < %d: the chains run on for %d more draws "
              "each", ess, s.min_ess, more)
     # in the sampler's own coordinates the adapted step and metric carry over as they are;
-    # after a run in ridge coordinates the step must be found again
-    cont = run(warm=post.warm, draws=more, ridge="never", seed=seed + 7919,
-               warmup=min(s.round_warmup, s.warmup) if s.final_ridge else 0)
+    # in ridge coordinates the map is refitted to these draws and its step found again
+    cont = run(warm=post.warm, draws=more, ridge="auto" if s.final_ridge else "never",
+               seed=seed + 7919, warmup=min(s.round_warmup, s.warmup) if s.final_ridge else 0)
     out = post.extend(cont)
     log.info("posterior: smallest bulk ESS %.0f after %d draws per chain", out.min_ess(),
              s.draws + more)

@@ -461,24 +461,24 @@ def test_cli_config_overrides_reach_the_settings():
     assert s0 == CalibrationSettings(surrogate=s0.surrogate, progress=s0.progress)
 
 
-def test_the_final_posterior_runs_in_the_samplers_own_coordinates_and_asks_for_its_ess():
-    """The final posterior's NUTS options: no ridge map unless ``sampler.final_ridge`` (the
-    design rounds keep it where it applies); the ESS bar reaches the settings from the
-    config; bad values are named."""
+def test_the_final_posteriors_coordinates_and_ess_bar_are_settings():
+    """The final posterior's NUTS options: the ridge map where it applies (as the design
+    rounds) unless ``sampler.final_ridge`` is off; both settings reach the calibration from
+    the config; bad values are named."""
     from solderpyro.cli import _settings, _setup, _split_overrides, build_parser
     from solderpyro.pipeline.posterior import nuts_options
     from solderpyro.settings import CalibrationSettings, SamplerSettings
 
-    assert nuts_options(SamplerSettings(), 0, False, final=True)["ridge"] == "never"
-    assert "ridge" not in nuts_options(SamplerSettings(final_ridge=True), 0, False, True)
+    assert nuts_options(SamplerSettings(final_ridge=False), 0, False, True)["ridge"] == "never"
+    assert "ridge" not in nuts_options(SamplerSettings(), 0, False, final=True)
     assert "ridge" not in nuts_options(SamplerSettings(), 0, False, final=False)
     p = build_parser()
     a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
                                   "calibration.sampler.min_ess=0",
-                                  "calibration.sampler.final_ridge=true"])
+                                  "calibration.sampler.final_ridge=false"])
     ov = _split_overrides(rest)
     s = _settings(a, _setup(ov), ov)
-    assert (s.sampler.min_ess, s.sampler.final_ridge) == (0, True)
+    assert (s.sampler.min_ess, s.sampler.final_ridge) == (0, False)
     with pytest.raises(ValueError, match="sampler.min_ess"):
         CalibrationSettings(sampler=SamplerSettings(min_ess=-1)).validate()
     with pytest.raises(ValueError, match="sampler.final_ridge"):

@@ -467,7 +467,8 @@ def test_warm_start_with_short_warmup_matches_grid_posterior():
 
 def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
     """reach_min_ess (the final posterior's ESS guard): a run of 2 x 150 draws whose smallest
-    bulk ESS is under the 2,000 asked for runs on, without a new warm-up, for at most twice
+    bulk ESS is under the 2,000 asked for runs on (in the sampler's own coordinates: without
+    a new warm-up) for at most twice
     its draws; the continued chains hold every draw of the first run, their divergence flags
     add up, and the joined draws reach the grid posterior's quantiles within 4 MCSEs. A run
     already above the bar comes back unchanged."""
@@ -485,10 +486,10 @@ def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
         calls.append(more)
         return calibrate_direct(code, x, y, stats.T_BOX, pr, **{**kw, **more})[0]
 
-    s = SamplerSettings(chains=2, draws=150, min_ess=2000)
+    s = SamplerSettings(chains=2, draws=150, min_ess=2000, final_ridge=False)
     assert first.min_ess() < 2000
     post = reach_min_ess(first, s, run, seed=1)
-    assert calls and calls[0]["warmup"] == 0 and calls[0]["draws"] == 300
+    assert calls == [dict(warm=first.warm, draws=300, ridge="never", seed=7920, warmup=0)]
     assert post.samples["t"].shape[:2] == (2, 450)
     torch.testing.assert_close(post.samples["t"][:, :150], first.samples["t"])
     assert post.diverging is not None and post.diverging.sum(1).tolist() == post.divergences
@@ -502,3 +503,6 @@ def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
     calls.clear()
     assert reach_min_ess(first, SamplerSettings(min_ess=10), run, seed=1) is first
     assert not calls
+    # after a run in ridge coordinates: the map refitted, a short warm-up for its step
+    reach_min_ess(first, SamplerSettings(chains=2, draws=150, min_ess=2000), run, seed=1)
+    assert (calls[0]["ridge"], calls[0]["warmup"]) == ("auto", 150)
