@@ -8,6 +8,7 @@ them, so a correct sampler fails one comparison with probability ~7e-6 (< 1e-3 o
 them) while a bias of a few standard errors is caught. Every check runs on fixed seeds.
 """
 
+import dataclasses
 import importlib.util
 import math
 import warnings
@@ -468,10 +469,10 @@ def test_warm_start_with_short_warmup_matches_grid_posterior():
 def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
     """reach_min_ess (the final posterior's ESS guard): a run of 2 x 150 draws whose smallest
     bulk ESS is under the 2,000 asked for runs on (in the sampler's own coordinates: without
-    a new warm-up) for at most twice
-    its draws; the continued chains hold every draw of the first run, their divergence flags
-    add up, and the joined draws reach the grid posterior's quantiles within 4 MCSEs. A run
-    already above the bar comes back unchanged."""
+    a new warm-up) for at most twice its draws; the continued chains hold every draw of the
+    first run, their divergence flags add up, and the joined draws reach the grid posterior's
+    quantiles within 4 MCSEs. A run already above the bar, or whose chains disagree, comes
+    back unchanged."""
     from solderpyro.pipeline.posterior import reach_min_ess
     from solderpyro.settings import SamplerSettings
 
@@ -503,6 +504,10 @@ def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
     calls.clear()
     assert reach_min_ess(first, SamplerSettings(min_ess=10), run, seed=1) is first
     assert not calls
+    # chains in different places (R-hat > 1.1): more draws would not join them
+    apart = dataclasses.replace(first, samples={**first.samples, "t": first.samples["t"] + (
+        torch.arange(2, dtype=DT)[:, None, None] * 0.5)})
+    assert reach_min_ess(apart, s, run, seed=1) is apart and not calls
     # after a run in ridge coordinates: the map refitted, a short warm-up for its step
     reach_min_ess(first, SamplerSettings(chains=2, draws=150, min_ess=2000), run, seed=1)
     assert (calls[0]["ridge"], calls[0]["warmup"]) == ("auto", 150)
