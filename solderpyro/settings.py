@@ -72,6 +72,13 @@ class SamplerSettings:
     1.019 after 4 x 1500 draws (239 and 1.019 after running on to 4,500). An unreliable
     report is worse than a warned divergence count, so the map stays the default.
 
+    ``final_accept`` 0.95: NUTS's target acceptance for the final posterior in ridge
+    coordinates (the rounds keep :data:`~solderpyro.calibration.mcmc.MAPPED_ACCEPT`, 0.9).
+    Same benchmark: on the loop's recalibration 30, 38 and 54 divergent with min ESS 742, 828
+    and 507 in 55-63 s, against 52, 62 and 160, ESS 588, 732 and 409 in 40 s at 0.9; on the
+    demo's 4, 4 and 1, ESS 733, 427 and 644 in 40-50 s, against 8, 41 and 7, ESS 431, 175 and
+    480 in 30-40 s (seeds 0-2).
+
     ``min_ess`` (0: off): when the final posterior's smallest bulk ESS falls short of it, the
     chains run on from their last draws for the draws the shortfall asks for (at most twice
     ``draws``), once, after a ``round_warmup`` warm-up in new ridge coordinates (none in the
@@ -88,6 +95,7 @@ class SamplerSettings:
     round_max_depth: int = 6
     workers: int = 0
     final_ridge: bool = True
+    final_accept: float = 0.95
     min_ess: int = 400
 
 
@@ -156,6 +164,8 @@ class CalibrationSettings:
                    "round_max_depth"):
             if getattr(sp, nm) < 1:
                 raise ValueError(f"sampler.{nm} must be >= 1, got {getattr(sp, nm)}")
+        if not 0.0 < sp.final_accept < 1.0:
+            raise ValueError(f"sampler.final_accept must be in (0, 1), got {sp.final_accept}")
         if sp.min_ess < 0:
             raise ValueError(f"sampler.min_ess must be >= 0 (0: off), got {sp.min_ess}")
         if not isinstance(sp.final_ridge, bool):

@@ -397,7 +397,7 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
              max_tree_depth: int = 10, progress: bool = True, threads: int | None = 1,
              full_mass: bool = False, init: str = "uniform", init_draws: int = 256,
              workers: int | None = None, warm: WarmStart | None = None,
-             ridge: str = "auto") -> NutsRun:
+             ridge: str = "auto", mapped_accept: float = 0.0) -> NutsRun:
     """NUTS on a Pyro model's posterior: the one sampler of solderpyro.
 
     The model's log density is taken on a flat unconstrained vector (Pyro's transforms and
@@ -428,6 +428,8 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         ridge: ``"auto"`` (the map where the draws bend, :func:`ridge_map`), ``"always"``
             (wherever the warm start holds draws of these coordinates, bent or not: what the
             simulation-based calibration of the mapped sampler uses) or ``"never"``.
+        mapped_accept: the target acceptance in ridge coordinates (at least ``target_accept``;
+            0: :data:`MAPPED_ACCEPT`).
         progress: log one line per chain (else at DEBUG level).
 
     Returns:
@@ -443,6 +445,8 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         raise ValueError(f"run_nuts workers must be a positive integer, got {workers!r}")
     if ridge not in ("auto", "always", "never"):
         raise ValueError(f"run_nuts ridge must be 'auto', 'always' or 'never', got {ridge!r}")
+    if not 0.0 <= mapped_accept < 1.0:
+        raise ValueError(f"run_nuts mapped_accept must be in [0, 1), got {mapped_accept}")
     from solderpyro.calibration.fastkoh import flat_model
     from solderpyro.calibration.koh import SITE_T
     from solderpyro.calibration.nuts import sample_nuts
@@ -487,7 +491,8 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             log.log(lvl, "NUTS: in ridge coordinates fitted to %d draws of the previous "
                     "posterior", len(warm.draws))
         res = sample_nuts(f, fm.dim, chains, warmup, draws, seed, q0,
-                          target_accept if rmap is None else max(target_accept, MAPPED_ACCEPT),
+                          target_accept if rmap is None else
+                          max(target_accept, mapped_accept or MAPPED_ACCEPT),
                           max_tree_depth, dense_mass=full_mass,
                           inv_metric=inv0, step_size=step0,
                           workers=workers or default_workers(chains), on_chain=on_chain)

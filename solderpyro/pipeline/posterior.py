@@ -32,6 +32,8 @@ def nuts_options(s: SamplerSettings, seed: int, progress: bool, final: bool = Tr
         nk["max_tree_depth"] = s.round_max_depth
     elif not s.final_ridge:
         nk["ridge"] = "never"
+    else:
+        nk["mapped_accept"] = s.final_accept
     return nk
 
 

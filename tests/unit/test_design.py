@@ -470,7 +470,9 @@ def test_the_final_posteriors_coordinates_and_ess_bar_are_settings():
     from solderpyro.settings import CalibrationSettings, SamplerSettings
 
     assert nuts_options(SamplerSettings(final_ridge=False), 0, False, True)["ridge"] == "never"
-    assert "ridge" not in nuts_options(SamplerSettings(), 0, False, final=True)
+    final = nuts_options(SamplerSettings(), 0, False, final=True)
+    assert "ridge" not in final and final["mapped_accept"] == 0.95
+    assert "mapped_accept" not in nuts_options(SamplerSettings(), 0, False, final=False)
     assert "ridge" not in nuts_options(SamplerSettings(), 0, False, final=False)
     p = build_parser()
     a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
@@ -481,5 +483,7 @@ def test_the_final_posteriors_coordinates_and_ess_bar_are_settings():
     assert (s.sampler.min_ess, s.sampler.final_ridge) == (0, False)
     with pytest.raises(ValueError, match="sampler.min_ess"):
         CalibrationSettings(sampler=SamplerSettings(min_ess=-1)).validate()
+    with pytest.raises(ValueError, match="sampler.final_accept"):
+        CalibrationSettings(sampler=SamplerSettings(final_accept=1.0)).validate()
     with pytest.raises(ValueError, match="sampler.final_ridge"):
         CalibrationSettings(sampler=SamplerSettings(final_ridge="yes")).validate()  # type: ignore
