@@ -546,7 +546,16 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             f"the FE budget ran out ({len(X)} of {s.budget} runs, {r} rounds) before the "
             f"surrogate was confirmed: {'; '.join(why)}" + (
                 "" if code_ok else f" (code chi2 tolerance sqrt(2n) = {tol:.3g})"))
-    final = p.sample(gp, draws, True)
+    if reason == "misfit":
+        # the reported result is the FE's own best fit; the surrogate posterior only seeds the
+        # FE check and the diagnosis, and the last round's draws are of this same surrogate
+        # (no run joined it since): not drawn again at full length (~20 s of the loop's base
+        # run, a posterior in islands with R-hat 2.8 whatever its length)
+        log.info("design: the surrogate posterior is the last round's (%d draws), not drawn "
+                 "again: the model misfits, the FE's best fit is the result", len(draws.theta))
+        final = draws
+    else:
+        final = p.sample(gp, draws, True)
     res = LoopResult(gp, final, X, V, ok, kind, rnd_of, rounds, reason, msg, best_fit)
     if on_round is not None:
         on_round(res)

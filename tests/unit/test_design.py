@@ -235,7 +235,8 @@ def test_the_fe_check_adds_observation_side_offsets_as_the_surrogate_does():
 def test_a_model_that_cannot_fit_stops_the_design_at_its_misfit_check(model_fits):
     """The problem's misfit test runs from round ``misfit_check`` on and at most once after
     a verdict: a model whose own best fit misfits stops the loop there (reason "misfit", no
-    runs acquired that round, the verdict kept); one that fits lets the loop go on."""
+    runs acquired that round, the verdict kept, no full-length posterior drawn after it); one
+    that fits lets the loop go on."""
     base = _toy_problem(bias=0.05)  # never converges: the loop would run to its budget
     seen: list[int] = []
     fars: list[bool] = []
@@ -246,19 +247,27 @@ def test_a_model_that_cannot_fit_stops_the_design_at_its_misfit_check(model_fits
         return {"x": {"t": 0.8}, "chi2": 1e4, "rms_over_sigma": 29.0,
                 "misfits": not model_fits}
 
+    finals: list[bool] = []
+
+    def sample(gp, prev, final):
+        finals.append(final)
+        return base.sample(gp, prev, final)
+
     s = LoopSettings(start=4, batch=2, check=3, budget=30, mc_points=100, candidates=200,
                      misfit_check=2)
-    res = run_loop(LoopProblem(BOX1, base.y, base.fe, base.fit, base.sample, misfit), s,
+    res = run_loop(LoopProblem(BOX1, base.y, base.fe, base.fit, sample, misfit), s,
                    seed=0)
     assert seen == [3]  # called once, in round 2, with the checked draws
     r2 = res.rounds[1]  # told whether that round is far from converged
     assert fars == [max(r2.code_chi2, r2.fe_gap) > s.far_tol * r2.tolerance]
     assert res.best_fit is not None and res.as_dict()["best_fit"]["chi2"] == 1e4
     if model_fits:
-        assert res.reason == "budget"
+        assert res.reason == "budget" and finals[-1] is True
     else:
         assert res.reason == "misfit" and "misses something" in res.message
         assert len(res.rounds) == 2 and res.rounds[-1].acquired == 0
+        # the FE's best fit is the result: the last round's draws stand for the posterior
+        assert True not in finals and len(finals) == 2
         assert len(res.X) == 4 + 2 * 3 + 2  # start, two checks, round 1's acquisitions
     with pytest.raises(ValueError, match="design.misfit_check"):
         LoopSettings(misfit_check=-1).validate(1)

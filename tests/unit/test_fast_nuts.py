@@ -150,6 +150,18 @@ def test_sampler_is_reproducible_and_chains_differ():
 
 
 # ------------------------------------------------------------------- the direct posterior
+def _assert_on_grid_posterior(stats, post: Posterior, x, y) -> None:
+    """The 2.5 / 50 / 97.5 % quantiles of t and sigma within 4 quantile MCSEs (+ the grid's
+    1e-3 resolution) of the brute-force grid posterior of the seed's direct example."""
+    grid = stats._grid_quantiles(x, y)
+    cols = post.columns()
+    for name in ("t", "sigma"):
+        for p, ref in zip(stats.PROBS, grid[name], strict=True):
+            est = float(np.quantile(cols[name].reshape(-1), p))
+            se = stats._mcse(post, name, p)
+            assert abs(est - ref) < 4 * se + 1e-3, (name, p, est, ref, se)
+
+
 def test_direct_fast_matches_grid_posterior():
     """The seed's direct example (t, sigma; flat priors): the 2.5 / 50 / 97.5 % quantiles of
     the fast sampler agree with a brute-force grid posterior within 4 quantile MCSEs (the
@@ -158,13 +170,7 @@ def test_direct_fast_matches_grid_posterior():
     x, y = make_data(0)
     post, _ = calibrate_direct(code, x, y, stats.T_BOX, Priors(sigma_max=stats.SIGMA_MAX),
                                chains=2, warmup=400, draws=2000, seed=1, progress=False)
-    grid = stats._grid_quantiles(x, y)
-    cols = post.columns()
-    for name in ("t", "sigma"):
-        for p, ref in zip(stats.PROBS, grid[name], strict=True):
-            est = float(np.quantile(cols[name].reshape(-1), p))
-            se = stats._mcse(post, name, p)
-            assert abs(est - ref) < 4 * se + 1e-3, (name, p, est, ref, se)
+    _assert_on_grid_posterior(stats, post, x, y)
     assert sum(post.divergences) == 0
 
 
@@ -458,12 +464,7 @@ def test_warm_start_with_short_warmup_matches_grid_posterior():
     assert first.warm is not None and first.warm.coords == ["t", "sigma"]
     post, _ = calibrate_direct(code, x, y, stats.T_BOX, pr, chains=2, warmup=100, draws=2000,
                                seed=2, progress=False, warm=first.warm)
-    grid = stats._grid_quantiles(x, y)
-    cols = post.columns()
-    for name in ("t", "sigma"):
-        for p, ref in zip(stats.PROBS, grid[name], strict=True):
-            est = float(np.quantile(cols[name].reshape(-1), p))
-            assert abs(est - ref) < 4 * stats._mcse(post, name, p) + 1e-3, (name, p, est, ref)
+    _assert_on_grid_posterior(stats, post, x, y)
 
 
 def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
@@ -495,12 +496,7 @@ def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
     torch.testing.assert_close(post.samples["t"][:, :150], first.samples["t"])
     assert post.diverging is not None and post.diverging.sum(1).tolist() == post.divergences
     assert post.min_ess() > first.min_ess()
-    grid = stats._grid_quantiles(x, y)
-    cols = post.columns()
-    for name in ("t", "sigma"):
-        for p, ref in zip(stats.PROBS, grid[name], strict=True):
-            est = float(np.quantile(cols[name].reshape(-1), p))
-            assert abs(est - ref) < 4 * stats._mcse(post, name, p) + 1e-3, (name, p, est, ref)
+    _assert_on_grid_posterior(stats, post, x, y)
     calls.clear()
     assert reach_min_ess(first, SamplerSettings(min_ess=10), run, seed=1) is first
     assert not calls
