@@ -106,7 +106,7 @@ class Posterior:
         az = _arviz()
         cols = self.columns()
         n_draw = next(iter(cols.values())).shape[1]
-        if self.diverging is not None and self.diverging.shape == (self.n_chains, n_draw):
+        if self.diverging is not None:
             div = np.asarray(self.diverging, dtype=bool)
         else:  # counts only (a posterior made without the flags): the first k of each chain
             div = np.zeros((self.n_chains, n_draw), dtype=bool)
@@ -149,9 +149,8 @@ class Posterior:
         raw = {k: torch.cat([v, more.raw[k]], 1) for k, v in self.raw.items() if k in more.raw}
         div = (np.concatenate([self.diverging, more.diverging], 1)
                if self.diverging is not None and more.diverging is not None else None)
-        stats = ([{**a, "n_grad": a["n_grad"] + b["n_grad"]}
-                  for a, b in zip(self.stats, more.stats, strict=True)]
-                 if len(self.stats) == len(more.stats) else list(more.stats))
+        stats = [{**a, "n_grad": a["n_grad"] + b["n_grad"]}
+                 for a, b in zip(self.stats, more.stats, strict=True)]
         return Posterior(samples, dict(self.labels),
                          [a + b for a, b in zip(self.divergences, more.divergences, strict=True)],
                          self.seconds + more.seconds, raw, more.warm, stats, div)
@@ -397,7 +396,7 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
              max_tree_depth: int = 10, progress: bool = True, threads: int | None = 1,
              full_mass: bool = False, init: str = "uniform", init_draws: int = 256,
              workers: int | None = None, warm: WarmStart | None = None,
-             ridge: str = "auto", mapped_accept: float = 0.0) -> NutsRun:
+             ridge: str = "auto", mapped_accept: float | None = None) -> NutsRun:
     """NUTS on a Pyro model's posterior: the one sampler of solderpyro.
 
     The model's log density is taken on a flat unconstrained vector (Pyro's transforms and
@@ -429,7 +428,7 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             (wherever the warm start holds draws of these coordinates, bent or not: what the
             simulation-based calibration of the mapped sampler uses) or ``"never"``.
         mapped_accept: the target acceptance in ridge coordinates (at least ``target_accept``;
-            0: :data:`MAPPED_ACCEPT`).
+            None: :data:`MAPPED_ACCEPT`).
         progress: log one line per chain (else at DEBUG level).
 
     Returns:
@@ -445,8 +444,8 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         raise ValueError(f"run_nuts workers must be a positive integer, got {workers!r}")
     if ridge not in ("auto", "always", "never"):
         raise ValueError(f"run_nuts ridge must be 'auto', 'always' or 'never', got {ridge!r}")
-    if not 0.0 <= mapped_accept < 1.0:
-        raise ValueError(f"run_nuts mapped_accept must be in [0, 1), got {mapped_accept}")
+    if mapped_accept is not None and not 0.0 < mapped_accept < 1.0:
+        raise ValueError(f"run_nuts mapped_accept must be in (0, 1), got {mapped_accept}")
     from solderpyro.calibration.fastkoh import flat_model
     from solderpyro.calibration.koh import SITE_T
     from solderpyro.calibration.nuts import sample_nuts
@@ -492,7 +491,8 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
                     "posterior", len(warm.draws))
         res = sample_nuts(f, fm.dim, chains, warmup, draws, seed, q0,
                           target_accept if rmap is None else
-                          max(target_accept, mapped_accept or MAPPED_ACCEPT),
+                          max(target_accept, MAPPED_ACCEPT if mapped_accept is None
+                              else mapped_accept),
                           max_tree_depth, dense_mass=full_mass,
                           inv_metric=inv0, step_size=step0,
                           workers=workers or default_workers(chains), on_chain=on_chain)
