@@ -2,7 +2,7 @@
 posterior (issue 18; solderpyro.calibration.ridgemap).
 
     python benchmarks/ridge_coords.py RUN_DIR [--store STORE] [--json OUT.json]
-        [--modes plain@0.8,ridge@0.9]
+        [--modes plain@0.8,ridge@0.9,ridge@0.95:150] [--seed S]
 
 Rebuilds the run's final surrogate from its design runs (design.csv, through the run store:
 no FE solve when the store holds them), takes 800 draws of its posterior (posterior.nc) as
@@ -15,7 +15,9 @@ draws' covariance as the first metric, 2 worker processes):
 - ``ridge@A``: the :class:`RidgeMap` fitted to the 800 draws, target acceptance A (default
   0.9 = :data:`~solderpyro.calibration.mcmc.MAPPED_ACCEPT`, as :func:`run_nuts` does).
 
-``--modes`` lists them (comma-separated; the first is the baseline of the ESS/s ratios).
+``--modes`` lists them (comma-separated; the first is the baseline of the ESS/s ratios);
+``:W`` after the acceptance sets the warm-up iterations (default 500). ``--seed``: the
+sampler's.
 
 One torch/BLAS thread per chain process, as :func:`run_nuts` runs them.
 
@@ -64,18 +66,21 @@ def main() -> None:
                     help="its measurement CSV (default: run.json's; the demo's run names none)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--modes", default=f"plain@0.8,ridge@{MAPPED_ACCEPT}",
-                    help="coordinates@target acceptance, comma-separated; the first is the "
-                         "baseline of the ratios")
+                    help="coordinates@target acceptance[:warm-up], comma-separated; the "
+                         "first is the baseline of the ratios")
+    ap.add_argument("--seed", type=int, default=0, help="the sampler's seed")
     a = ap.parse_args()
     modes = [x.strip() for x in a.modes.split(",") if x.strip()]
     for md in modes:
-        kind, _, acc = md.partition("@")
+        kind, _, rest = md.partition("@")
+        acc, _, wu = rest.partition(":")
         try:
-            ok = kind in ("plain", "ridge") and 0.0 < float(acc) < 1.0
+            ok = (kind in ("plain", "ridge") and 0.0 < float(acc) < 1.0
+                  and (not wu or int(wu) >= 1))
         except ValueError:
             ok = False
         if not ok:
-            ap.error(f"--modes: {md!r} is not plain@A or ridge@A with 0 < A < 1")
+            ap.error(f"--modes: {md!r} is not plain@A or ridge@A[:W] with 0 < A < 1, W >= 1")
     torch.set_num_threads(1)  # as run_nuts does: one BLAS/torch thread per chain process
     from threadpoolctl import threadpool_limits
     threadpool_limits(1)
@@ -106,13 +111,15 @@ def main() -> None:
     starts = [0, 200, 400, 600]
     out: dict = {"run": str(run), "dim": fm.dim, "curved": m.curved, "modes": {}}
     for mode in modes:
-        ta = float(mode.split("@")[1])
+        acc, _, wu = mode.split("@")[1].partition(":")
+        ta, warmup = float(acc), int(wu or 500)
         if mode.startswith("plain"):
             f, W = fm.logp_and_grad, Q
         else:
             f, W = m.wrap(fm.logp_and_grad), m.inverse(Q)
         t0 = time.perf_counter()
-        res = sample_nuts(f, fm.dim, 4, 500, 1500, 0, W[starts], ta, 10, dense_mass=True,
+        res = sample_nuts(f, fm.dim, 4, warmup, 1500, a.seed, W[starts], ta, 10,
+                          dense_mass=True,
                           inv_metric=np.cov(W.T), workers=2)
         wall = time.perf_counter() - t0
         D = res.draws if mode.startswith("plain") else m.forward(res.draws)[0]
@@ -127,7 +134,9 @@ def main() -> None:
         pct = (np.argsort(np.argsort(phys, 0), 0) + 0.5) / len(phys)
         out["modes"][mode] = {
             "wall_s": round(wall, 1),
-            "gradients_per_iteration": [round(n / 2000, 1) for n in res.n_leapfrog],
+            "warmup": warmup,
+            "gradients_per_iteration": [round(n / (warmup + 1500), 1)
+                                        for n in res.n_leapfrog],
             "divergences": res.divergences, "step_size": [round(x, 3) for x in res.step_size],
             "min_bulk_ess": round(ess), "min_ess_per_s": round(ess / wall, 1),
             "quantiles": {nm: np.quantile(phys[:, j], [0.025, 0.5, 0.975]).tolist()

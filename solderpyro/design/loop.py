@@ -155,6 +155,9 @@ class Draws:
         start: where the next posterior's chains start (``name -> value``, physical units:
             the FE's best fit, set by the loop when it localizes), or None: where this one's
             ended.
+        checked: set by the loop after its FE check: ``(theta (k, d), V (k, n_y), chi2
+            (k,))``, the checked draws, the FE's outputs there and their chi-squares (inf
+            where the FE failed).
     """
 
     theta: torch.Tensor
@@ -162,6 +165,7 @@ class Draws:
     offset: torch.Tensor | None = None
     posterior: Any = None
     start: dict[str, float] | None = None
+    checked: tuple[torch.Tensor, torch.Tensor, np.ndarray] | None = None
 
 
 @dataclass
@@ -444,6 +448,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         fe_c2 = (((y - Vc - off) / draws.sigma[chk, None]) ** 2).sum(1).numpy()
         fe_c2[~okc.numpy()] = np.inf
         sur_c2, code = chi2_terms(gp, draws, y, chk)
+        draws.checked = (th_chk, Vc, fe_c2)
         code_ok, fe_ok, tol = stop_rule(code, fe_c2, sur_c2, n, s)
         X, V = torch.cat([X, th_chk]), torch.cat([V, Vc])
         ok = torch.cat([ok, okc])

@@ -60,6 +60,8 @@ def adaptive_design(sm: SpecimenModel, s: CalibrationSettings, out: Path,
         if prev is not None and prev.start and w is not None:  # the loop localized
             w = replace(w, point=prev.start).placed(sm.space, sm.priors.sigma_known is not None,
                                                     seed=s.seed)
+        if final and s.discretization == "correct" and prev is not None:
+            correct_discretization(sm, prev)
         post, inp = sample_posterior(sm, gp, s.sampler, s.seed, w, final, s.progress)
         d = as_draws(sm, post, inp)
         last[0] = float(d.sigma.median())
@@ -79,6 +81,36 @@ def adaptive_design(sm: SpecimenModel, s: CalibrationSettings, out: Path,
         kinds += ["fe_fit"] * len(near)
     return run_loop(p, s.design, s.seed, X0, names=list(sm.gp_box.names),
                     on_round=lambda r: save_design(r, sm.gp_box.names, out), kinds=kinds)
+
+
+def correct_discretization(sm: SpecimenModel, d: Draws) -> None:
+    """Take the FE's discretization error off ``sm``'s data (:meth:`SpecimenModel.correct`),
+    estimated by one refinement (:func:`~.fe_check.discretization_error`, one FE run more) at
+    the best of ``d``'s checked draws (the FE ran there: read back from the store). Nothing
+    happens when no checked draw converged or the refined run fails (logged): the
+    calibration goes on uncorrected, and its discretization check says so."""
+    from solderpyro.pipeline.fe_check import discretization_error
+
+    if d.checked is None:
+        return
+    th, V, c2 = d.checked
+    c2 = np.asarray(c2, float)
+    if not np.isfinite(c2).any():
+        log.warning("discretization: no checked draw converged; the data are not corrected")
+        return
+    j = int(np.nanargmin(np.where(np.isfinite(c2), c2, np.nan)))
+    x = th[j].numpy()
+    delta = discretization_error(sm, x, V=V[j].numpy())
+    if not np.all(np.isfinite(delta)):
+        log.warning("discretization: the refined FE run failed; the data are not corrected")
+        return
+    sig = float(sm.priors.sigma_known or d.sigma.median())
+    chi = float(np.sum(delta ** 2) / sig ** 2)
+    sm.correct(delta, at=dict(zip(sm.gp_box.names, map(float, x), strict=True)), chi2=chi,
+               sigma=sig)
+    log.info("discretization: the FE's error by one refinement at the best checked draw (chi2 "
+             "%.3g, RMS %.3g um) is taken off the data for the final posterior", chi,
+             float(np.sqrt(np.mean(delta ** 2))))
 
 
 #: the Laplace approximation at a known FE best fit is widened by this factor (in sd) for the

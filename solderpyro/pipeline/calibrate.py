@@ -166,8 +166,15 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     try:
         # a model that misfits: measured against its misfit-widened noise sd (the check's
         # shift is then noise beside the missing effect)
+        corr = sm.correction
         disc = discretization_check(sm, x_disc, sig_fe if fit is None else float(fit.sigma[0]),
-                                    V=None if fit is not None else V_chk[best_chk])
+                                    V=None if fit is not None else V_chk[best_chk],
+                                    delta=None if corr is None else corr["delta"])
+        if corr is not None:  # the correction the final posterior used, kept with the run
+            disc["correction"] = {k: v for k, v in corr.items()
+                                  if k not in ("delta", "y_measured")}
+            np.savez(out / "discretization_correction.npz", delta=corr["delta"],
+                     y_measured=corr["y_measured"].numpy())
     except Exception as err:  # advisory: never lose the run over it
         log.warning("the discretization check failed", exc_info=True)
         disc = {"warn": False, "message": f"discretization check failed: {err!r}"}

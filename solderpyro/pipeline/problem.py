@@ -67,6 +67,8 @@ class SpecimenModel:
         y: ``(n_obs,)`` measured values, um. priors: the noise prior (stated sigma if the file
             gives one for every row).
         solver, store, cfg_hash, batch, progress: how FE runs are made and kept.
+        correction: after :meth:`correct`, ``{"delta": (n_obs,) um, "at": (n_fe,), ...}``:
+            the FE's estimated discretization error taken off ``y`` (None before).
     """
 
     setup: Setup
@@ -89,6 +91,7 @@ class SpecimenModel:
     _index: tuple[np.ndarray, np.ndarray] | None = None
     _names: tuple[str, ...] | None = None
     _offset: Any = None
+    correction: dict[str, Any] | None = None
 
     @classmethod
     def build(cls, setup: Setup, meas: Measurements, store_root: str, batch: int = 64,
@@ -186,6 +189,27 @@ class SpecimenModel:
             return None
         with torch.no_grad():
             return off(rows.to(torch.float64)[:, self.n_fe:])
+
+    def correct(self, delta: np.ndarray, **info: Any) -> None:
+        """Take the FE's estimated discretization error off the observations:
+        ``y <- y_measured - delta``, which is the likelihood of the corrected model
+        ``FE(theta) + delta`` with the FE's own outputs (the store, the surrogate) untouched.
+
+        Args:
+            delta: ``(n_obs,)`` um, e.g. :func:`~.fe_check.discretization_error` at a point of
+                the posterior (measured: on the reference case's field data it is nearly the
+                same all along the posterior's ridge, docs/calibration.md).
+            info: recorded with it (``at``: where it was taken, ...).
+        Raises:
+            ValueError: a wrong length or a non-finite value (a failed FE run).
+        """
+        d = np.asarray(delta, float).reshape(-1)
+        if d.shape != (int(self.y.numel()),) or not np.all(np.isfinite(d)):
+            raise ValueError(f"correct: delta must be {int(self.y.numel())} finite values, got "
+                             f"shape {d.shape}")
+        raw = self.y if self.correction is None else self.correction["y_measured"]
+        self.y = raw - torch.as_tensor(d, dtype=raw.dtype)
+        self.correction = {"delta": d, "y_measured": raw, **info}
 
     def observed(self, rows: np.ndarray) -> np.ndarray:
         """``(b, n_obs)`` um: the FE plus observation-side effects at full parameter rows

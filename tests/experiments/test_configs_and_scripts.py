@@ -181,14 +181,27 @@ def test_demo_command_runs_tiny(tmp_path):
     assert bool(((X >= lo_t * (1 - 1e-7)) & (X <= hi_t * (1 + 1e-7))).all())  # in the box
     # nothing lost: every design run is in the store (design.csv keeps 8 significant digits),
     # and the store holds exactly what was computed: the Liu 2008 run, the design, the FE
-    # check's 8 posterior draws (fewer only where a draw repeats) and the discretization
-    # check's one run of the refined FE (under its own problem hash)
+    # check's 8 posterior draws (fewer only where a draw repeats) and two runs of the refined
+    # FE (under its own problem hash): the discretization correction's at the last round's
+    # best checked draw and the discretization check's at the best FE-checked posterior draw
     store = _stored(tmp_path / "store")
     S = np.stack(list(store.values()))
     for x in fe_params(setup, X).numpy():
         assert np.isclose(S, x, rtol=1e-7, atol=0.0).all(1).any(), x
     chk = info["fe_check"]
-    assert chk["draws"] == 8 and len(rows) + 2 < len(store) <= len(rows) + 2 + chk["draws"]
+    assert chk["draws"] == 8 and len(rows) + 3 < len(store) <= len(rows) + 3 + chk["draws"]
+    # the correction (default on): taken at a checked draw of the last round, kept with the
+    # run, and the final posterior's data are the measured ones minus it
+    disc = info["discretization"]
+    at = disc["correction"]["at"]
+    assert any(all(np.isclose(float(r[k]), v, rtol=1e-7) for k, v in at.items())
+               for r in rows if r["kind"] == "check")
+    z = np.load(cal / "discretization_correction.npz")
+    y_meas = np.array(read_measurements(tmp_path / "data.csv").value_um)
+    np.testing.assert_allclose(z["y_measured"], y_meas, rtol=0, atol=1e-12)
+    y_post = np.asarray(az.from_netcdf(str(cal / "posterior.nc")).observed_data["y"])
+    np.testing.assert_allclose(y_post.reshape(-1), y_meas - z["delta"], rtol=0, atol=1e-12)
+    assert np.abs(z["delta"]).max() > 0 and disc["uncorrected_chi2"] > disc["shift_chi2"]
     assert len({k.split("/")[0] for k in store}) == 2  # the calibration's FE and the refined
     n = len(store)
     assert all(int(r["converged"]) for r in rows)

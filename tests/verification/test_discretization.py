@@ -62,3 +62,46 @@ def test_the_check_measures_the_shift_in_noise_units(tmp_path):
     assert not discretization_check(sm, x, 1.1 * sig_edge)["warn"]
     # the data are the calibration FE's own output: refining can only fit them worse
     assert a["fit_change"] > 0
+
+
+def test_a_correction_taken_at_one_point_of_the_ridge_holds_all_along_it(tmp_path):
+    """The FE's discretization error at the observed values (one refinement, x1.5) is nearly
+    the same all along the full-field posterior's ridge: taken at one point, it takes the
+    calibration FE to within a small fraction of its error from the refined FE at the others
+    (measured: the error's chi2 at 0.05 um is 4.27-4.33; what is left, 0.001-0.004; the test
+    asks for 1 % of it). Not so across the whole box: at the Liu 2008 constants the error
+    has another size (chi2 3.1), so the calibration takes it at a checked posterior draw. The
+    points: the clean hidden-effect data's truth and two points of its posterior's ridge
+    (BENCHMARKS.md issue 19); the data's layout: the 31 x 18 grid at the seed times."""
+    from solderpyro.fem.loading import SEED_TIMES
+    from solderpyro.pipeline.fe_check import discretization_error
+
+    setup = build(compose([]))
+    t, names, pts, V = simulate_table(setup, {}, SEED_TIMES, True, progress=False)
+    temps = np.array([setup.problem.cycle(x) for x in t])
+    meas = from_arrays(t, names, pts, V, temperature_C=temps, sigma_um=np.full(V.shape, 0.05))
+    sm = SpecimenModel.build(setup, meas, str(tmp_path / "store"), 64, False)
+    ridge = np.array([[12.92, 10586.0, 2.04, 0.1], [13.6, 12025.0, 3.02, 0.1127],
+                      [16.4, 11820.0, 3.4, 0.108]])
+    full = ridge  # the FE parameters are the four Anand constants calibrated
+    d = np.stack([discretization_error(sm, x) for x in full])  # (3, n_obs)
+    sig = 0.05
+    raw = (d**2).sum(1) / sig**2
+    assert np.all(raw > 1.0), raw  # the data resolve the error: what the correction is for
+    for i in range(3):
+        for j in range(3):
+            left = ((d[j] - d[i]) ** 2).sum() / sig**2
+            assert left < 0.01 * raw[j], (i, j, left, raw[j])
+    # the check after a correction measures what is left, exactly
+    sm.correct(d[0], at=0)
+    y0 = sm.correction["y_measured"].numpy()
+    np.testing.assert_allclose(sm.y.numpy(), y0 - d[0], rtol=0, atol=1e-15)
+    chk = discretization_check(sm, full[1], sig, delta=d[0])
+    assert np.isclose(chk["shift_chi2"], ((d[1] - d[0]) ** 2).sum() / sig**2, rtol=1e-8)
+    assert np.isclose(chk["uncorrected_chi2"], raw[1], rtol=1e-8) and not chk["warn"]
+    sm.correct(d[1])  # a second correction replaces the first, from the measured data
+    np.testing.assert_allclose(sm.y.numpy(), y0 - d[1], rtol=0, atol=1e-15)
+    import pytest
+
+    with pytest.raises(ValueError, match="delta must be"):
+        sm.correct(np.full(len(y0), np.nan))
