@@ -63,6 +63,21 @@ def psis_loo(idata: Any) -> tuple[Any, list[str]]:
     return loo, msgs
 
 
+def measured(run_dir: str | Path) -> np.ndarray:
+    """``(n_obs,)`` um: the measured values a run was calibrated on. A run whose data had the
+    FE's discretization error taken off (``discretization_correction.npz``, see
+    :meth:`~solderpyro.pipeline.problem.SpecimenModel.correct`) keeps the corrected ones in
+    ``draws.npz``; its residuals and log densities are those of the measured data under the
+    corrected model, so two runs with different corrections compare as they are."""
+    d = Path(run_dir)
+    y = np.load(d / "draws.npz")["y_obs"]
+    corr = d / "discretization_correction.npz"
+    if corr.is_file():
+        with np.load(corr) as z:
+            y = y + z["delta"]
+    return y
+
+
 def run_metrics(run_dir: str | Path) -> dict[str, Any]:
     """Fit metrics of one calibration run (see the module docstring).
 
@@ -115,8 +130,7 @@ def compare(before: str | Path, after: str | Path, out: str | Path | None = None
         ValueError when the two runs were calibrated on different data.
     """
     a, b = run_metrics(before), run_metrics(after)
-    ya = np.load(Path(before) / "draws.npz")["y_obs"]
-    yb = np.load(Path(after) / "draws.npz")["y_obs"]
+    ya, yb = measured(before), measured(after)
     if ya.shape != yb.shape or not np.allclose(ya, yb):
         raise ValueError(f"{before} and {after} were calibrated on different data")
     shifts = []
