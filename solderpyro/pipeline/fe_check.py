@@ -169,8 +169,9 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
         msg = (f"discretization: {refine} moves the model by chi2 {shift:.3g} at the best fit "
                f"(its fit changes by {change:+.3g})" + (
                    ": the data resolve the FE's own discretization error, so the intervals "
-                   "can be shifted by up to ~sqrt of that in sd; calibrate with "
-                   "calibration.discretization=correct or on a finer mesh (mesh=fine)"
+                   "can be shifted by up to ~sqrt of that in sd (calibration.discretization="
+                   "correct, the default, takes it off the data of a model that fits; or "
+                   "calibrate on a finer mesh, mesh=fine)"
                    if warn else ": below what the data resolve"))
         return {"factor": factor, "shift_chi2": shift, "fit_change": change, "warn": warn,
                 "message": msg}
