@@ -496,3 +496,11 @@ def test_the_final_posteriors_coordinates_and_ess_bar_are_settings():
         CalibrationSettings(sampler=SamplerSettings(final_accept=1.0)).validate()
     with pytest.raises(ValueError, match="sampler.final_ridge"):
         CalibrationSettings(sampler=SamplerSettings(final_ridge="yes")).validate()  # type: ignore
+    # the discretization correction: on by default, "check" from the command line
+    assert CalibrationSettings().discretization == "correct"
+    a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
+                                  "calibration.discretization=check"])
+    ov = _split_overrides(rest)
+    assert _settings(a, _setup(ov), ov).discretization == "check"
+    with pytest.raises(ValueError, match="discretization must be one of"):
+        CalibrationSettings(discretization="fix").validate()
