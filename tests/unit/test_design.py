@@ -473,7 +473,7 @@ def test_cli_config_overrides_reach_the_settings():
 def test_the_final_posteriors_coordinates_and_ess_bar_are_settings():
     """The final posterior's NUTS options: the ridge map where it applies (as the design
     rounds) unless ``sampler.final_ridge`` is off; both settings reach the calibration from
-    the config; bad values are named."""
+    the config; so does the discretization correction's mode; bad values are named."""
     from solderpyro.cli import _settings, _setup, _split_overrides, build_parser
     from solderpyro.pipeline.posterior import nuts_options
     from solderpyro.settings import CalibrationSettings, SamplerSettings
