@@ -213,7 +213,10 @@ def test_demo_command_runs_tiny(tmp_path):
     assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(out),
                  "--store", str(tmp_path / "store"), *DEMO_TINY, "--exact", "on",
                  "--exact-runs", "6", "--exact-rounds", "2", "--exact-profile", "3",
-                 *TINY]) == 0
+                 "calibration.discretization=check", *TINY]) == 0
+    # the discretization only measured: the data not corrected, nothing recorded as such
+    assert not (out / "discretization_correction.npz").exists()
+    assert "correction" not in json.loads((out / "run.json").read_text())["discretization"]
     # the same settings and data: the same design, every run (and the FE check) from the store;
     # what was computed is the FE-exact step's runs, all of them stored
     m = re.search(r"\((\d+) reused from the run store, (\d+) computed\)",
