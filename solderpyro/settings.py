@@ -145,9 +145,11 @@ class CalibrationSettings:
             measured and reported after the posterior. Why: on field data from a finer FE
             the calibration FE's error (chi2 5.8 against the data-making FE at the truth)
             pushed the truths to and past the intervals' ends (Q/R, xi, s0 low); taken at
-            one point of the posterior's ridge, the correction leaves chi2 0.6-1.0 all along
-            it, and the truth's chi2 above the FE's best fit fell 7.4 -> 4.9 (5.1 under the
-            data-making FE itself) on the clean data (docs/calibration.md).
+            one point of the posterior's ridge, the correction leaves chi2 0.001-0.004
+            against the refined FE all along it (0.9-1.1 against the data-making FE: the
+            x1.5 refinement's own error), and the truth's chi2 above the FE's best fit fell
+            7.4 -> 4.9 (5.1 under the data-making FE itself) on the clean data
+            (docs/calibration.md).
     """
 
     design: LoopSettings = field(default_factory=LoopSettings)

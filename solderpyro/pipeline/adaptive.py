@@ -86,7 +86,7 @@ def adaptive_design(sm: SpecimenModel, s: CalibrationSettings, out: Path,
 def correct_discretization(sm: SpecimenModel, d: Draws) -> None:
     """Take the FE's discretization error off ``sm``'s data (:meth:`SpecimenModel.correct`),
     estimated by one refinement (:func:`~.fe_check.discretization_error`, one FE run more) at
-    the best of ``d``'s checked draws (the FE ran there: read back from the store). Nothing
+    the best of ``d``'s checked draws (the FE's outputs there come with them). Nothing
     happens when no checked draw converged or the refined run fails (logged): the
     calibration goes on uncorrected, and its discretization check says so."""
     from solderpyro.pipeline.fe_check import discretization_error

@@ -163,21 +163,22 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     # data 165 chi-square worse, a change of the point, not of the mesh)
     best_chk = chk["best"]
     x_disc = fit.x if fit is not None else draws[pick][best_chk]
+    corr = sm.correction
+    if corr is not None:  # the correction the final posterior used, kept with the run whatever
+        # the check below does (compare needs it to see the measured data)
+        np.savez(out / "discretization_correction.npz", delta=corr["delta"],
+                 y_measured=corr["y_measured"].numpy())
     try:
         # a model that misfits: measured against its misfit-widened noise sd (the check's
         # shift is then noise beside the missing effect)
-        corr = sm.correction
         disc = discretization_check(sm, x_disc, sig_fe if fit is None else float(fit.sigma[0]),
                                     V=None if fit is not None else V_chk[best_chk],
                                     delta=None if corr is None else corr["delta"])
-        if corr is not None:  # the correction the final posterior used, kept with the run
-            disc["correction"] = {k: v for k, v in corr.items()
-                                  if k not in ("delta", "y_measured")}
-            np.savez(out / "discretization_correction.npz", delta=corr["delta"],
-                     y_measured=corr["y_measured"].numpy())
     except Exception as err:  # advisory: never lose the run over it
         log.warning("the discretization check failed", exc_info=True)
         disc = {"warn": False, "message": f"discretization check failed: {err!r}"}
+    if corr is not None:
+        disc["correction"] = {k: v for k, v in corr.items() if k not in ("delta", "y_measured")}
     log.info(disc["message"])
     if disc["warn"]:
         problems = [*problems, disc["message"]]

@@ -67,8 +67,9 @@ class SpecimenModel:
         y: ``(n_obs,)`` measured values, um. priors: the noise prior (stated sigma if the file
             gives one for every row).
         solver, store, cfg_hash, batch, progress: how FE runs are made and kept.
-        correction: after :meth:`correct`, ``{"delta": (n_obs,) um, "at": (n_fe,), ...}``:
-            the FE's estimated discretization error taken off ``y`` (None before).
+        correction: after :meth:`correct`, ``{"delta": (n_obs,) um, "y_measured": (n_obs,),
+            ...}`` and what the caller recorded (``"at"``: ``name -> value`` where it was
+            taken): the FE's estimated discretization error taken off ``y`` (None before).
     """
 
     setup: Setup
