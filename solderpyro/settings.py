@@ -148,7 +148,7 @@ class CalibrationSettings:
             one point of the posterior's ridge, the correction leaves chi2 0.001-0.004
             against the refined FE all along it (0.9-1.1 against the data-making FE: the
             x1.5 refinement's own error), and the truth's chi2 above the FE's best fit fell
-            7.4 -> 4.9 (5.1 under the data-making FE itself) on the clean data
+            7.4 -> 4.9 (5.3 under the data-making FE itself) on the clean data
             (docs/calibration.md).
     """
 
