@@ -32,6 +32,7 @@ import sys
 import time
 from pathlib import Path
 
+from solderpyro.calibration.intervals import reported_interval
 from solderpyro.configure import build, compose
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.executor import executor_from_options
@@ -58,7 +59,7 @@ def record(case: str, data: Path, run: Path, command: str, wall: float) -> dict:
             truth.update(ast.literal_eval(line.split(":", 1)[1].strip()))
     with (run / "summary.csv").open() as f:
         rows = {row["parameter"]: row for row in csv.DictReader(f)}
-    cover = {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
+    cover = {k: reported_interval(rows[k])[0] <= v <= reported_interval(rows[k])[1]
              for k, v in truth.items() if k in rows}
     chk = info["fe_check"]
     return {"case": case, "command": command, "wall_s": round(wall, 1),
@@ -66,7 +67,7 @@ def record(case: str, data: Path, run: Path, command: str, wall: float) -> dict:
             "rounds": len(info["design"]["rounds"]),
             "fe_check_rms_sd": chk["rms_over_sigma"], "fe_check_ok": chk["ok"],
             "covered": cover, "n_covered": sum(cover.values()), "n_truth": len(cover),
-            "intervals": {k: [float(rows[k]["q2.5"]), float(rows[k]["q97.5"])] for k in cover},
+            "intervals": {k: list(reported_interval(rows[k])) for k in cover},
             "r_hat_max": _rhat_max(run / "posterior.nc"),
             "posterior": info.get("posterior"), "trust": info.get("trust"),
             "timing_s": info.get("timing_s")}

@@ -33,6 +33,7 @@ import sys
 import time
 from pathlib import Path
 
+from solderpyro.calibration.intervals import reported_interval
 from solderpyro.diagnose.hidden import TRUTH
 from solderpyro.executor import executor_from_options
 from solderpyro.io.measurements import read_measurements
@@ -59,11 +60,18 @@ def _truth(data: Path) -> tuple[str, dict[str, float]]:
     return meta.get("hidden_effect", "none"), truth
 
 
-def _covered(run: Path, truth: dict[str, float]) -> dict[str, bool]:
+def _covered(run: Path, truth: dict[str, float], central: bool = False) -> dict[str, bool]:
+    """Which truths the run's reported 95 % intervals hold (``central``: the equal-tailed
+    ones, as recorded before the face-anchored intervals)."""
     with (run / "summary.csv").open() as f:
         rows = {r["parameter"]: r for r in csv.DictReader(f)}
-    return {k: float(rows[k]["q2.5"]) <= v <= float(rows[k]["q97.5"])
-            for k, v in truth.items() if k in rows}
+    out = {}
+    for k, v in truth.items():
+        if k in rows:
+            lo, hi = ((float(rows[k]["q2.5"]), float(rows[k]["q97.5"])) if central
+                      else reported_interval(rows[k]))
+            out[k] = lo <= v <= hi
+    return out
 
 
 def _recalibrate(csv_p: Path, base: Path, wd: Path, effects: list[str], store: str,
@@ -83,7 +91,16 @@ def _recalibrate(csv_p: Path, base: Path, wd: Path, effects: list[str], store: s
             "rms_after_sd": cmp["after"]["rms_um"] / sig,
             "fe_check_after": {k: (info.get("fe_check") or {}).get(k)
                                for k in ("rms_over_sigma", "ok")},
-            "covered_after": _covered(wd, truth)}
+            "covered_after": _covered(wd, truth),
+            "covered_after_central": _covered(wd, truth, central=True),
+            "intervals_after": _intervals(wd)}
+
+
+def _intervals(run: Path) -> dict[str, list]:
+    """Each parameter's reported 95 % interval and its kind (central or from a box face)."""
+    with (run / "summary.csv").open() as f:
+        return {r["parameter"]: [*reported_interval(r), r.get("interval", "central")]
+                for r in csv.DictReader(f)}
 
 
 def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, store: str,

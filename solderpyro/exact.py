@@ -45,6 +45,7 @@ from solderpyro.calibration.amis import (
     log_marginal_sigma,
     weighted_em,
 )
+from solderpyro.calibration.intervals import with_intervals
 from solderpyro.coords import UnitCoords
 from solderpyro.params import Box
 
@@ -390,6 +391,7 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture, n
     qs = np.quantile(sig, [0.025, 0.5, 0.975])
     rows.append({"parameter": "sigma", "q2.5": float(qs[0]), "median": float(qs[1]),
                  "mean": float(sig.mean()), "q97.5": float(qs[2])})
+    rows = with_intervals(rows, X, coords.space, weights=w)
     return ExactPosterior(tuple(coords.space.names) + ("sigma",), res, X, X[idx], sig,
                           res.extra["V"][idx], rows, profile)
 

@@ -133,7 +133,8 @@ def _summary_rows(d: Path) -> list[list[str]]:
     if not p.is_file():
         return []
     with p.open(newline="") as fh:
-        return [[r["parameter"], _num(r["q2.5"]), _num(r["median"]), _num(r["q97.5"]),
+        return [[r["parameter"], _num(r.get("lo95") or r["q2.5"]), _num(r["median"]),
+                 _num(r.get("hi95") or r["q97.5"]),
                  _num(r.get("r_hat", "nan"), ".3f"), _num(r.get("ess_bulk", "nan"), ".0f")]
                 for r in csv.DictReader(fh)]
 
@@ -173,7 +174,7 @@ def write_index(run_dir: str | Path) -> Path:
     rows = _summary_rows(d)
     if rows:
         body.append("<h2>Posterior</h2>")
-        body.append(_table(["parameter", "2.5 %", "median", "97.5 %", "R-hat", "ESS"], rows))
+        body.append(_table(["parameter", "95 % from", "median", "95 % to", "R-hat", "ESS"], rows))
     warn = _warnings(d, diag, cmp)
     body.append("<h2>Warnings</h2>")
     body.append("<ul>" + "".join(f"<li>{_e(w)}</li>" for w in warn) + "</ul>" if warn

@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
+from solderpyro.calibration.intervals import CENTRAL, LOWER_FACE, UPPER_FACE
 from solderpyro.io.measurements import Measurements
 from solderpyro.plots import plot_traces, plot_validation
 
@@ -62,6 +63,15 @@ def plot_model_vs_data(meas: Measurements, curves: dict[str, tuple[Any, Any, Any
     return fig
 
 
+def _interval_cell(r: dict) -> str:
+    """A summary row's reported 95 % interval, marked where it starts at a box face."""
+    if "lo95" not in r:
+        return "–"
+    mark = {LOWER_FACE: " (from the lower face)", UPPER_FACE: " (to the upper face)"}
+    return (f"[{float(r['lo95']):.4g}, {float(r['hi95']):.4g}]"
+            f"{mark.get(str(r.get('interval')), '')}")
+
+
 def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: list[str],
           bands, y_liu: torch.Tensor, doe, ti, oi, nuts: dict[str, Any],
           exact_rows: list[dict] | None = None, notes: list[str] | None = None,
@@ -102,12 +112,21 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
              f"median {rmse_post:.3g} um; {inside:.0%} of the measurements inside the 95 % "
              "predictive band", *[f"- {n}" for n in notes or []], "",
              "## Posterior (seed Table V layout)", "",
-             "| parameter | 2.5 % | median | mean | 97.5 % | R-hat | ESS |",
-             "|---|---|---|---|---|---|---|"]
+             "| parameter | 2.5 % | median | mean | 97.5 % | 95 % interval | R-hat | ESS |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['parameter']} | {float(r['q2.5']):.4g} | {float(r['median']):.4g} "
                      f"| {float(r['mean']):.4g} | {float(r['q97.5']):.4g} | "
+                     f"{_interval_cell(r)} | "
                      f"{_num(r['r_hat'], '.3f')} | {float(r['ess_bulk']):.0f} |")
+    faces = [r for r in rows if r.get("interval", CENTRAL) != CENTRAL]
+    if faces:
+        lines += ["", "The 95 % interval is the central one (2.5 % to 97.5 %) unless one that "
+                  "starts at a face of the prior box is shorter: there the posterior piles "
+                  "against the face, and the face itself is as credible as anything inside ("
+                  + "; ".join(f"{r['parameter']}: {r['interval']}" for r in faces)
+                  + "). A face that is a physical limit is a result; one that is only the "
+                  "box's edge says the box may be too narrow."]
     warn = list(problems)
     warn += [f"R-hat of {r['parameter']} is {float(r['r_hat']):.3f} (> 1.01): chains disagree"
              for r in rows if float(r["r_hat"]) > 1.01]

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import predict_observation_model
+from solderpyro.calibration.intervals import with_intervals
 from solderpyro.calibration.mcmc import WarmStart, format_summary, thin_index, write_summary
 from solderpyro.calibration.predictive import Bands
 from solderpyro.configure import Setup
@@ -109,8 +110,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                f"the data show (solderpyro diagnose names candidate effects)")
         log.warning(msg)
         problems = [*problems, msg]
-    rows = list(post.summary())
     space = sm.space
+    # the reported 95 % interval: central, or from a box face the posterior piles against
+    rows = with_intervals(post.summary(), draws, space)
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
     n_draw = next(iter(post.samples.values())).shape[1]

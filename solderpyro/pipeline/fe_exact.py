@@ -16,13 +16,16 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors
+from solderpyro.calibration.intervals import INTERVAL_COLUMNS, with_intervals
 from solderpyro.configure import Setup
 from solderpyro.io.measurements import Measurements
 from solderpyro.params import Box
 from solderpyro.pipeline.fe_check import misfits
 
 log = logging.getLogger("solderpyro")
-SUMMARY = ("parameter", "q2.5", "median", "mean", "q97.5")
+#: summary.csv's columns: the central quantiles, then the reported 95 % interval
+#: (:mod:`solderpyro.calibration.intervals`: central, or from a box face)
+SUMMARY = ("parameter", "q2.5", "median", "mean", "q97.5", *INTERVAL_COLUMNS)
 
 
 def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
@@ -345,4 +348,7 @@ def best_fit_posterior(fun: Any, coords: Any, x_best: np.ndarray, y: np.ndarray,
             for k, nm in enumerate(space.names)]
     rows.append({"parameter": "sigma", "q2.5": sig[0], "median": sig[0], "mean": sig[0],
                  "q97.5": sig[0]})
+    # the reported interval, widened like the quantiles to hold the best fit itself
+    rows = [{**r, "lo95": min(r["lo95"], r["median"]), "hi95": max(r["hi95"], r["median"])}
+            for r in with_intervals(rows, theta, space)]
     return BestFitPosterior(best.x, float(best.chi2), scale, theta, sig, rows)

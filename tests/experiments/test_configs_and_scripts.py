@@ -237,8 +237,8 @@ def test_demo_command_runs_tiny(tmp_path):
     # ... and the best fit's forward differences (2 starts x 4 parameters in its first step)
     assert len(_stored(tmp_path / "store")) >= n + 8 + int(inside.sum())
     ex = (out / "exact_posterior.csv").read_text().splitlines()
-    assert ex[0] == ("parameter,q2.5,median,mean,q97.5,surrogate_q2.5,surrogate_median,"
-                     "surrogate_q97.5,ess,khat") and len(ex) == 6
+    assert ex[0] == ("parameter,q2.5,median,mean,q97.5,lo95,hi95,interval,surrogate_q2.5,"
+                     "surrogate_median,surrogate_q97.5,ess,khat") and len(ex) == 6
     assert 1.0 <= float(ex[1].split(",")[-2]) <= 12.0  # Kish ESS of 12 weights
     assert "## FE-exact posterior" in (out / "report.md").read_text()
     assert (out / "exact_posterior.png").stat().st_size > 1000
@@ -274,8 +274,14 @@ def test_demo_command_runs_tiny(tmp_path):
                                                <= chi2.ppf(0.999, chk["n"]))
     assert ("the FE itself misfits" in (out / "report.md").read_text()) == (not chk["ok"])
     rows = (out / "summary.csv").read_text().splitlines()
-    assert rows[0] == "parameter,q2.5,median,mean,q97.5"
+    assert rows[0] == "parameter,q2.5,median,mean,q97.5,lo95,hi95,interval"
     assert [r.split(",")[0] for r in rows[1:]] == ["s0", "QR", "xi", "m", "sigma"]
+    for r in rows[1:]:  # the reported 95 % interval: central, or from a box face
+        _, q_lo, med, _, q_hi, lo, hi, kind = r.split(",")
+        assert kind in ("central", "lower face", "upper face")
+        assert float(lo) <= float(med) <= float(hi)
+        if kind == "central":
+            assert (lo, hi) == (q_lo, q_hi)
 
 
 def test_calibrate_rejects_points_not_in_the_model(tmp_path, capsys):

@@ -1,0 +1,119 @@
+"""The reported 95 % interval: central, or from a box face the posterior piles against."""
+
+import arviz as az
+import numpy as np
+import pytest
+from scipy import stats
+
+from solderpyro.calibration.intervals import (
+    CENTRAL,
+    LOWER_FACE,
+    UPPER_FACE,
+    credible_interval,
+    reported_interval,
+    with_intervals,
+)
+from solderpyro.params import Box
+
+
+def test_a_posterior_away_from_the_faces_keeps_its_central_interval() -> None:
+    x = np.random.default_rng(0).normal(5.0, 0.5, 20_000)
+    iv = credible_interval(x, 0.0, 10.0)
+    assert iv.kind == CENTRAL
+    assert (iv.lo, iv.hi) == pytest.approx(tuple(np.quantile(x, [0.025, 0.975])), rel=1e-12)
+
+
+@pytest.mark.parametrize("face", ["lower", "upper"])
+def test_a_posterior_piled_against_a_face_starts_there_and_is_arvizs_hdi(face: str) -> None:
+    # an exponential marginal falling from the face: its shortest 95 % interval (the HDI)
+    # runs from the face to the 95 % point; ArviZ's HDI of the draws is the same interval but
+    # for the face itself, which no draw reaches
+    e = np.random.default_rng(1).exponential(0.3, 40_000)
+    e = e[e < 3.0]
+    x = 2.0 + e if face == "lower" else 5.0 - e
+    iv = credible_interval(x, 2.0, 5.0)
+    hdi = az.hdi(x, hdi_prob=0.95)
+    if face == "lower":
+        assert iv.kind == LOWER_FACE and iv.lo == 2.0
+        assert iv.hi == pytest.approx(np.quantile(x, 0.95), rel=1e-12)
+    else:
+        assert iv.kind == UPPER_FACE and iv.hi == 5.0
+        assert iv.lo == pytest.approx(np.quantile(x, 0.05), rel=1e-12)
+    # the same interval as the HDI, within the draws' spacing at its far end (~0.3 / 40,000
+    # * 20 * a few) and the gap between the face and the nearest draw (~1e-5)
+    assert iv.lo == pytest.approx(hdi[0], abs=0.01) and iv.hi == pytest.approx(hdi[1], abs=0.01)
+    # the central interval would exclude the face, where the density is highest
+    assert not (np.quantile(x, 0.025) <= (2.0 if face == "lower" else 5.0)
+                <= np.quantile(x, 0.975))
+
+
+def test_widths_compare_on_the_boxs_log_scale() -> None:
+    # log-uniform between 15 and 400 is flat on the box's scale: the central interval stays
+    # (tie); in plain units the lower-face one would look 17x shorter than the upper-face one
+    x = np.exp(np.random.default_rng(2).uniform(np.log(15.0), np.log(400.0), 50_000))
+    assert credible_interval(x, 15.0, 400.0, log_scale=True).kind == CENTRAL
+    # and a marginal falling from 15 MPa on the log scale starts at 15
+    y = 15.0 * np.exp(np.random.default_rng(3).exponential(0.01, 20_000))
+    iv = credible_interval(y, 15.0, 400.0, log_scale=True)
+    assert iv.kind == LOWER_FACE and iv.holds(15.0)
+
+
+def test_weighted_draws_give_the_resampled_interval() -> None:
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0.0, 1.0, 200_000)
+    w = np.exp(-x / 0.1)  # importance weights of an exponential target on the uniform draws
+    w /= w.sum()
+    iv = credible_interval(x, 0.0, 1.0, weights=w)
+    exact_q95 = -0.1 * np.log(1.0 - 0.95 * (1.0 - np.exp(-10.0)))  # truncated exponential
+    assert iv.kind == LOWER_FACE and iv.lo == 0.0
+    assert iv.hi == pytest.approx(exact_q95, rel=0.02)
+
+
+def test_the_reported_intervals_cover_truths_drawn_from_the_prior_at_95_percent() -> None:
+    """Each candidate holds 95 % of the posterior, so choosing among them by the draws keeps
+    the coverage of prior-drawn truths at 95 %: a uniform prior on [0, 1], y ~ N(mu, 0.3),
+    exact truncated-normal posteriors (about half of them piled against a face)."""
+    rng = np.random.default_rng(5)
+    reps, s = 2000, 0.3
+    hits, faces, hits_at_face = 0, 0, 0
+    for _ in range(reps):
+        mu = rng.uniform()
+        y = rng.normal(mu, s)
+        a, b = (0.0 - y) / s, (1.0 - y) / s
+        x = stats.truncnorm.rvs(a, b, loc=y, scale=s, size=4000, random_state=rng)
+        iv = credible_interval(x, 0.0, 1.0)
+        hits += iv.holds(mu)
+        faces += iv.kind != CENTRAL
+        # a truth at the face the data point toward (the copper case's geometry)
+        hits_at_face += iv.holds(0.0 if y < 0.5 else 1.0) if iv.kind != CENTRAL else 0
+    # binomial sd of the coverage over 2,000 replications: 0.0049; 3 sd
+    assert abs(hits / reps - 0.95) < 0.015
+    assert faces > 0.2 * reps  # the face-anchored intervals are really exercised
+    assert hits_at_face == faces  # every face-anchored interval holds its face
+
+
+def test_with_intervals_adds_the_columns_and_leaves_the_noise_sd_central() -> None:
+    box = Box(("a", "b"), (0.0, 1.0), (1.0, 100.0), log_scale=(False, True))
+    rng = np.random.default_rng(6)
+    th = np.column_stack([rng.exponential(0.01, 5000) % 1.0,
+                          np.exp(rng.uniform(np.log(20.0), np.log(30.0), 5000))])
+    rows = [{"parameter": "a", "q2.5": 0.0003, "q97.5": 0.037},
+            {"parameter": "sigma", "q2.5": 0.04, "q97.5": 0.06},
+            {"parameter": "b", "q2.5": 20.2, "q97.5": 29.8}]
+    out = with_intervals(rows, th, box)
+    assert [r["interval"] for r in out] == [LOWER_FACE, CENTRAL, CENTRAL]
+    assert out[0]["lo95"] == 0.0 and reported_interval(out[1]) == (0.04, 0.06)
+    assert "lo95" not in rows[0]  # the input rows are not changed
+    assert reported_interval({"q2.5": "1", "q97.5": "2"}) == (1.0, 2.0)  # older runs
+
+
+@pytest.mark.parametrize("kw, msg", [
+    ({"x": np.array([])}, "no draws"),
+    ({"level": 1.0}, "level"),
+    ({"lower": 0.6}, "outside the box"),
+    ({"lower": -1.0, "log_scale": True}, "lower > 0"),
+])
+def test_bad_input_is_named(kw: dict, msg: str) -> None:
+    args = {"x": np.linspace(0.5, 0.9, 10), "lower": 0.0, "upper": 1.0, **kw}
+    with pytest.raises(ValueError, match=msg):
+        credible_interval(**args)
