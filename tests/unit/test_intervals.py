@@ -47,9 +47,22 @@ def test_a_posterior_piled_against_a_face_starts_there_and_is_arvizs_hdi(face: s
                 <= np.quantile(x, 0.975))
 
 
-def test_widths_compare_on_the_boxs_log_scale() -> None:
-    # log-uniform between 15 and 400 is flat on the box's scale: the central interval stays
-    # (tie); in plain units the lower-face one would look 17x shorter than the upper-face one
+def test_a_ridge_that_only_runs_toward_a_face_keeps_its_central_interval() -> None:
+    # mode inside (0.7), the upper tail cut by the face at 1: the shortest 95 % interval
+    # (ArviZ's HDI) runs to the face and gives up the lower tail, though the face is not where
+    # the posterior is densest; the reported interval stays central (the Q/R ridge of the
+    # copper recalibration, docs/calibration.md)
+    x = stats.truncnorm.rvs(-3.5, 1.5, loc=0.7, scale=0.2, size=40_000,
+                            random_state=np.random.default_rng(7))
+    iv = credible_interval(x, 0.0, 1.0)
+    assert iv.kind == CENTRAL
+    hdi = az.hdi(x, hdi_prob=0.95)
+    assert hdi[1] > 0.995 and hdi[0] > iv.lo + 0.05  # 0.365 against 0.304
+
+
+def test_the_densest_half_is_sought_on_the_boxs_log_scale() -> None:
+    # log-uniform between 15 and 400 is flat on the box's scale: the central interval stays;
+    # in plain units the densest half would be the one at 15 MPa
     x = np.exp(np.random.default_rng(2).uniform(np.log(15.0), np.log(400.0), 50_000))
     assert credible_interval(x, 15.0, 400.0, log_scale=True).kind == CENTRAL
     # and a marginal falling from 15 MPa on the log scale starts at 15
