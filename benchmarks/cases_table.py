@@ -27,10 +27,11 @@ def _run(d: Path) -> dict:
     rh, ess = [], []
     for line in rep:  # the report's posterior table: | p | ... | R-hat | ESS |
         cells = [c.strip() for c in line.strip("|").split("|")]
-        if len(cells) == 7 and cells[0] in {r["parameter"] for r in rows}:
+        # 7 cells before the reported-interval column, 8 since
+        if len(cells) in (7, 8) and cells[0] in {r["parameter"] for r in rows}:
             try:
-                rh.append(float(cells[5]))
-                ess.append(float(cells[6]))
+                rh.append(float(cells[-2]))
+                ess.append(float(cells[-1]))
             except ValueError:
                 pass
     des = info["design"]

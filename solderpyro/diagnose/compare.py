@@ -93,7 +93,8 @@ def run_metrics(run_dir: str | Path) -> dict[str, Any]:
     info = json.loads((d / "run.json").read_text())
     pc = predictive_check(y, mu, sig)
     with open(d / "summary.csv", newline="") as fh:
-        summ = {r["parameter"]: {k: float(v) for k, v in r.items() if k != "parameter"}
+        summ = {r["parameter"]: {k: v if k == "interval" else float(v)  # the kind is a word
+                                 for k, v in r.items() if k != "parameter"}
                 for r in csv.DictReader(fh)}
     out: dict[str, Any] = {
         "rms_um": float(np.sqrt(np.mean((np.median(mu, 0) - y) ** 2))),
