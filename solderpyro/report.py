@@ -121,10 +121,11 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
                      f"{_num(r['r_hat'], '.3f')} | {float(r['ess_bulk']):.0f} |")
     faces = [r for r in rows if r.get("interval", CENTRAL) != CENTRAL]
     if faces:
-        lines += ["", "The 95 % interval is the central one (2.5 % to 97.5 %) unless one that "
-                  "starts at a face of the prior box is shorter: there the posterior piles "
-                  "against the face, and the face itself is as credible as anything inside ("
-                  + "; ".join(f"{r['parameter']}: {r['interval']}" for r in faces)
+        lines += ["", "The 95 % interval is the central one (2.5 % to 97.5 %) unless the "
+                  "posterior piles against a face of the prior box (its densest half reaches "
+                  "the face): then it starts at the face, where the density is highest, and "
+                  "holds 95 % as well ("
+                  + "; ".join(f"{r['parameter']} from its {r['interval']}" for r in faces)
                   + "). A face that is a physical limit is a result; one that is only the "
                   "box's edge says the box may be too narrow."]
     warn = list(problems)
