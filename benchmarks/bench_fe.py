@@ -1,7 +1,12 @@
 """FE throughput on the reference case: batched solves vs sequential single runs.
 
 Usage: python benchmarks/bench_fe.py [--sizes 1,8,64,256] [--sequential 64] [--lhs 50]
-       [--device cpu|cuda] [--threads N] [--no-native] [--out benchmarks/results_fe.json]
+       [--device cpu|cuda] [--threads N] [--no-native] [--check-cpu N]
+       [--out benchmarks/results_fe.json]
+
+On a GPU (``--device cuda``) one small solve runs first, untimed (CUDA context and kernel
+loading), and ``--check-cpu N`` solves N of the parameter sets on the CPU too and records the
+largest |V_cuda - V_cpu| (um): the CUDA path must give the CPU's answer.
 
 Every batch is a Latin hypercube over the seed box (s0, QR, xi, m) with Liu's other constants,
 through the full cycle at the default mesh and steps, outputs at the seed times. The ratio
@@ -58,6 +63,9 @@ def main() -> None:
                          "on a machine shared with other jobs")
     ap.add_argument("--no-native", action="store_true",
                     help="the torch path only (no compiled kernels)")
+    ap.add_argument("--check-cpu", type=int, default=0, metavar="N",
+                    help="with a GPU device: solve N parameter sets on the CPU too and record "
+                         "the largest difference of V")
     ap.add_argument("--out", default="benchmarks/results_fe.json")
     a = ap.parse_args()
     if a.no_native:
@@ -72,6 +80,17 @@ def main() -> None:
            "simd_width": _native.simd_width(), "loadavg_before": os.getloadavg(), "rows": []}
     if a.device.startswith("cuda"):
         res["gpu"] = torch.cuda.get_device_name()
+        timed(solver, lhs(2, seed=1).to(device=a.device, dtype=dtype))  # warm-up, not counted
+        if a.check_cpu:
+            p = lhs(a.check_cpu, seed=7).to(dtype=dtype)
+            r_gpu = solver.solve(p.to(a.device), SEED_TIMES)
+            r_cpu = SpecimenSolver(Problem(), dtype=dtype).solve(p, SEED_TIMES)
+            dv = float((r_gpu.V.cpu() - r_cpu.V).abs().max())
+            res["check_cpu"] = {"n": a.check_cpu, "max_abs_dV_um": dv,
+                                "max_abs_V_um": float(r_cpu.V.abs().max()),
+                                "all_ok": bool(r_gpu.ok.all()) and bool(r_cpu.ok.all())}
+            print(f"CUDA vs CPU on {a.check_cpu} parameter sets: max |dV| {dv:.3g} um "
+                  f"(max |V| {res['check_cpu']['max_abs_V_um']:.3g} um)", flush=True)
     for B in [int(b) for b in a.sizes.split(",") if b]:
         p = lhs(B, seed=B).to(device=a.device, dtype=dtype)
         w, ok = timed(solver, p)
