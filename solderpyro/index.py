@@ -133,7 +133,9 @@ def _summary_rows(d: Path) -> list[list[str]]:
     if not p.is_file():
         return []
     with p.open(newline="") as fh:
-        return [[r["parameter"], _num(r.get("lo95") or r["q2.5"]), _num(r["median"]),
+        return [[r["parameter"] + (f" (95 % from its {r['interval']})"
+                                   if r.get("interval") not in (None, "", "central") else ""),
+                 _num(r.get("lo95") or r["q2.5"]), _num(r["median"]),
                  _num(r.get("hi95") or r["q97.5"]),
                  _num(r.get("r_hat", "nan"), ".3f"), _num(r.get("ess_bulk", "nan"), ".0f")]
                 for r in csv.DictReader(fh)]
