@@ -54,21 +54,26 @@ def test_the_map_is_an_exact_volume_preserving_bijection_with_the_right_gradient
     assert W[:, 1].std() < 0.1  # the ridge's 0.05 of y's sd ~0.71, in sd units of y
 
 
-def test_nuts_in_ridge_coordinates_samples_the_same_banana_with_fewer_gradients():
+def test_nuts_in_ridge_coordinates_samples_the_banana_where_plain_nuts_diverges():
     """On a thin curved ridge, NUTS in the map's coordinates (fitted to 1,000 independent
-    draws) gets E and Var of y and z within 4.5 MCSEs of the exact values, as NUTS on the
-    original coordinates does, with at most half the gradients per iteration."""
+    draws) gets E and Var of y and z within 4.5 MCSEs of the exact values, with fewer divergent
+    transitions and at most half the gradients per iteration of NUTS in the original
+    coordinates. (That one under-explores the ridge's arms where it diverges: measured on this
+    project's machine in session 28, mean y 0.30-0.35 against 0.5 over seeds 5-7, 8-14 MCSEs
+    off, with 29-38 divergent transitions in 4 x 1500 iterations; on an earlier machine it
+    happened to pass. Its bias is the reason for the map, so it is not asserted either way.)"""
     m = RidgeMap(_exact_draws(1000, 3))
     W = m.inverse(_exact_draws(1000, 4))
     plain = sample_nuts(_banana, 3, chains=4, warmup=500, draws=1000, seed=5, dense_mass=True)
     mapped = sample_nuts(m.wrap(_banana), 3, chains=4, warmup=500, draws=1000, seed=5,
                          dense_mass=True, init=W[:4], inv_metric=np.cov(W.T))
     Q = m.forward(mapped.draws)[0]
-    for res_q in (plain.draws, Q):
-        y, z = res_q[..., 1], res_q[..., 2]
-        for a, ref in ((y, 0.5), ((y - 0.5) ** 2, 0.5025), (z, 0.0), (z * z, 2.0)):
-            se = float(a.std() / math.sqrt(float(az.ess(a, method="bulk"))))
-            assert abs(a.mean() - ref) < TOL * se, (a.mean(), ref, se)
+    y, z = Q[..., 1], Q[..., 2]
+    for a, ref in ((y, 0.5), ((y - 0.5) ** 2, 0.5025), (z, 0.0), (z * z, 2.0)):
+        se = float(a.std() / math.sqrt(float(az.ess(a, method="bulk"))))
+        assert abs(a.mean() - ref) < TOL * se, (a.mean(), ref, se)
+    assert sum(mapped.divergences) < sum(plain.divergences), (mapped.divergences,
+                                                               plain.divergences)
     per_it = [sum(r.n_leapfrog) / (4 * 1500) for r in (plain, mapped)]
     assert per_it[1] < 0.5 * per_it[0], per_it
 
