@@ -126,6 +126,30 @@ def test_calibrate_with_the_effect_and_compare(runs):
     assert "comparison.png" in (out / "index.html").read_text()
 
 
+def test_compare_takes_a_best_fit_runs_elpd_from_its_reported_predictive(runs, tmp_path):
+    """A run whose summary is the FE's own best fit (a model that misfits) keeps the
+    surrogate's island posterior in posterior.nc; compare scores the reported predictive
+    (draws.npz) instead: the Gaussian log density of each value under the predictive's mean and
+    sd, summed (it was nan from the island's PSIS-LOO on the copper field case)."""
+    from scipy import stats
+
+    from solderpyro.diagnose.compare import compare
+
+    base = tmp_path / "lag_best_fit"
+    shutil.copytree(runs / "lag", base)
+    info = json.loads((base / "run.json").read_text())
+    info["posterior"] = "fe-best-fit"
+    (base / "run.json").write_text(json.dumps(info))
+    cmp = compare(base, runs / "lag", tmp_path / "cmp")
+    assert cmp["before"]["elpd_method"] == "gaussian"
+    assert cmp["after"]["elpd_method"] == "psis-loo"
+    with np.load(base / "draws.npz") as z:
+        y, obs = z["y_obs"], z["observed"]
+    want = stats.norm.logpdf(y, obs.mean(0), obs.std(0, ddof=1)).sum()
+    assert cmp["before"]["elpd"] == pytest.approx(want, rel=1e-9) and np.isfinite(want)
+    assert any("fe-best-fit" in w for w in cmp["warnings"])
+
+
 def test_diagnose_rejects_a_directory_without_a_run(tmp_path, capsys):
     assert main(["diagnose", str(tmp_path)]) == 2
     assert "run.json" in capsys.readouterr().err
