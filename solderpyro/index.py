@@ -129,16 +129,20 @@ def _warnings(d: Path, diag: dict | None, cmp: dict | None) -> list[str]:
 
 
 def _summary_rows(d: Path) -> list[list[str]]:
+    from solderpyro.calibration.intervals import CENTRAL, reported_interval
+
     p = d / "summary.csv"
     if not p.is_file():
         return []
+    out = []
     with p.open(newline="") as fh:
-        return [[r["parameter"] + (f" (95 % from its {r['interval']})"
-                                   if r.get("interval") not in (None, "", "central") else ""),
-                 _num(r.get("lo95") or r["q2.5"]), _num(r["median"]),
-                 _num(r.get("hi95") or r["q97.5"]),
-                 _num(r.get("r_hat", "nan"), ".3f"), _num(r.get("ess_bulk", "nan"), ".0f")]
-                for r in csv.DictReader(fh)]
+        for r in csv.DictReader(fh):
+            lo, hi = reported_interval(r)  # the central quantiles in runs made before it
+            face = r.get("interval") not in (None, "", CENTRAL)
+            out.append([r["parameter"] + (f" (95 % from its {r['interval']})" if face else ""),
+                        _num(lo), _num(r["median"]), _num(hi),
+                        _num(r.get("r_hat", "nan"), ".3f"), _num(r.get("ess_bulk", "nan"), ".0f")])
+    return out
 
 
 def write_index(run_dir: str | Path) -> Path:

@@ -119,9 +119,11 @@ def credible_interval(x: np.ndarray, lower: float | None = None, upper: float | 
     a = (1.0 - level) / 2.0
     f = np.log if log_scale else (lambda v: v)
     p = np.linspace(0.0, 1.0 - DENSE, _GRID)
-    q = f(_quantiles(x, (*p, *(p + DENSE)), weights))
-    width = q[_GRID:2 * _GRID] - q[:_GRID]  # (grid,) widths of the windows holding DENSE
-    q_lo, q_hi, q_a, q_b = _quantiles(x, (a, 1.0 - a, level, 1.0 - level), weights)
+    # one pass over the sorted draws: the windows' ends, then the candidate intervals' ends
+    qs = _quantiles(x, (*p, *(p + DENSE), a, 1.0 - a, level, 1.0 - level), weights)
+    q = f(qs[:2 * _GRID])
+    width = q[_GRID:] - q[:_GRID]  # (grid,) widths of the windows holding DENSE
+    q_lo, q_hi, q_a, q_b = qs[2 * _GRID:]
     i = int(np.argmin(width))
     dense = width[i] < (1.0 - MARGIN) * width[_GRID // 2]  # denser than the central window
     if dense and i == 0 and lower is not None:
