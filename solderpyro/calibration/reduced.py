@@ -185,6 +185,7 @@ class PCAReduction:
         outer = (self.B[:, :, None] * self.B[:, None, :])[:, self._iu[0], self._iu[1]]
         self._Qt = np.ascontiguousarray(np.concatenate(
             [outer, self.B * y0[:, None], (y0 * y0)[:, None]], 1).T)  # (m + K + 1, n)
+        self._moments = _WeightMoments(self.d, self._Qt)
 
     def _sym(self, flat: np.ndarray) -> np.ndarray:
         out = np.empty((self.K, self.K))
@@ -225,9 +226,14 @@ class PCAReduction:
                           ) -> tuple[float, np.ndarray, np.ndarray, float, None]:
         """:meth:`loglik` without offsets, from the projections: O(n K^2) in one product."""
         K, m = self.K, len(self._iu[0])
-        w = 1.0 / (self.d + sigma * sigma)
-        S1, S2 = self._Qt @ w, self._Qt @ (w * w)  # two matrix-vector products (one GEMM
-        A, A2 = self._sym(S1[:m]), self._sym(S2[:m])  # with two columns is 2.5x slower)
+        sums = self._moments(sigma * sigma)
+        if sums is None:  # sigma^2 too small against the spread of d: the sums over n
+            w = 1.0 / (self.d + sigma * sigma)
+            S1, S2 = self._Qt @ w, self._Qt @ (w * w)  # (one GEMM with two columns is 2.5x
+            sum_w, sum_log_w = float(w.sum()), float(np.log(w).sum())  # slower)
+        else:
+            S1, S2, sum_w, sum_log_w = sums
+        A, A2 = self._sym(S1[:m]), self._sym(S2[:m])
         bw, bw2 = S1[m:m + K], S2[m:m + K]  # B^T D^-1 y0, B^T D^-2 y0
         yw, yw2 = S1[-1], S2[-1]  # y0^T D^-1 y0, y0^T D^-2 y0
         Ac = A @ c
@@ -235,11 +241,77 @@ class PCAReduction:
         logdet_m, P, Pe, g, gv = _k_terms(A, e, v)
         rwr = yw - 2.0 * float(c @ bw) + float(c @ Ac)
         quad = rwr - float(e @ Pe)
-        ll = -0.5 * (self.n * _LOG_2PI - float(np.log(w).sum()) + logdet_m + quad)
+        ll = -0.5 * (self.n * _LOG_2PI - sum_log_w + logdet_m + quad)
         h = c + Pe  # C^-1 r = D^-1 (y0 - B h)
         zz = yw2 - 2.0 * float(h @ bw2) + float(h @ A2 @ h)
-        tr = float(w.sum()) - float(np.vdot(P, A2))
+        tr = sum_w - float(np.vdot(P, A2))
         return ll, g, gv, sigma * (zz - tr), None
+
+
+class _WeightMoments:
+    """The sums ``Q^T w``, ``Q^T w^2``, ``sum w`` and ``sum log w`` over the n outputs, with
+    ``w_i = 1 / (d_i + s)``, from moments of ``d`` computed once.
+
+    With ``a = (min d + max d) / 2 + s``, ``h = (max d - min d) / 2``, ``t_i = (d_i - (min d +
+    max d) / 2) / h`` in [-1, 1] and ``r = h / a < 1``,
+
+        w_i = sum_k (-r t_i)^k / a,    w_i^2 = sum_k (k + 1) (-r t_i)^k / a^2,
+        log w_i = -log a - sum_{k>=1} (-1)^(k+1) (r t_i)^k / k,
+
+    so every sum is a short series in the moments ``Q^T t^k`` (a ``(rows, L + 1)`` matrix, one
+    GEMM at construction). The series is cut where its tail bound ``(L + 2) r^(L+1) / (1 -
+    r)^2`` falls below :data:`TOL` (relative to the terms' sizes); where that needs more than
+    :data:`MAX_ORDER` terms (``s`` small against the spread of ``d``), :meth:`__call__` returns
+    None and the caller sums over the n outputs.
+
+    Why: the two ``(rows, n)`` products were a third of a gradient of the loop's final
+    posterior (118 of 300 us; n 2,240, K 20, 231 rows); ``d`` (the truncated components'
+    variance) spans ~2e-5 um^2 against sigma^2 ~2.4e-3, so r ~ 0.005 and six terms reach 1e-14.
+    """
+
+    TOL = 1e-15
+    MAX_ORDER = 40
+
+    def __init__(self, d: np.ndarray, Qt: np.ndarray) -> None:
+        lo, hi = float(d.min()), float(d.max())
+        self.mid, self.half, self.n = 0.5 * (lo + hi), 0.5 * (hi - lo), len(d)
+        t = (d - self.mid) / self.half if self.half > 0 else np.zeros_like(d)
+        P = t[:, None] ** np.arange(self.MAX_ORDER + 1)[None, :]  # (n, L + 1); t^0 = 1
+        self.Mq = Qt @ P  # (rows, L + 1)
+        self.mt = P.sum(0)  # (L + 1,)
+        k = np.arange(self.MAX_ORDER + 1)
+        self._sign = (-1.0) ** k
+        self._k1 = k + 1.0
+        self._inv_k = np.concatenate([[0.0], 1.0 / k[1:]])
+
+    def order(self, r: float) -> int | None:
+        """The number of terms after the first, L, for the ratio ``r``; None beyond the cap."""
+        if r <= 0.0:
+            return 0
+        if r >= 0.5:
+            return None
+        for L in range(self.MAX_ORDER + 1):
+            if (L + 2) * r ** (L + 1) / (1.0 - r) ** 2 <= self.TOL:
+                return L
+        return None
+
+    def __call__(self, s: float) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+        """``(Q^T w (rows,), Q^T w^2 (rows,), sum w, sum log w)`` at ``s = sigma^2``, or None
+        (see the class docstring)."""
+        a = self.mid + s
+        if not a > 0.0:
+            return None
+        r = self.half / a
+        L = self.order(r)
+        if L is None:
+            return None
+        pw = self._sign[:L + 1] * r ** np.arange(L + 1)  # (-r)^k
+        c1 = pw / a
+        c2 = self._k1[:L + 1] * pw / (a * a)
+        M = self.Mq[:, :L + 1]
+        mt = self.mt[:L + 1]
+        log_sum = -self.n * math.log(a) + float(((pw * self._inv_k[:L + 1]) @ mt))
+        return M @ c1, M @ c2, float(c1 @ mt), log_sum
 
 
 def _k_terms(A: np.ndarray, e: np.ndarray, v: np.ndarray

@@ -626,7 +626,12 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
             islands = has_bf and design.get("reason") == "misfit"
             starts = _starts(setup, dr["theta"], idx, fe_ok and not islands)
             if islands:
-                starts = {"literature constants": starts["literature constants"]}
+                # the calibration's best fit already started from the literature constants
+                # too (its misfit test, since session 29): no second scout from them
+                scouted = "literature constants" in (design.get("best_fit") or {}).get(
+                    "starts", [])
+                starts = {} if scouted else {
+                    "literature constants": starts["literature constants"]}
             if has_bf:
                 starts["the calibration's FE best fit"] = np.array([bf[nm] for nm in names])
             base = base_fit(lay, fe, meas, sigma, starts)

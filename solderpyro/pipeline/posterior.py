@@ -54,7 +54,7 @@ def sample_posterior(sm: SpecimenModel, gp: GPSurrogate, s: SamplerSettings, see
     if warm is not None:
         nk["warm"] = warm
     post, inp = calibrate_emulator(em, sm.y, sm.space, priors=sm.priors, **nk)
-    if final and s.min_ess > 0:
+    if final and (s.min_ess > 0 or s.max_rhat > 0):
         post = reach_min_ess(post, s, lambda **kw: calibrate_emulator(
             em, sm.y, sm.space, priors=sm.priors, **{**nk, **kw})[0], seed)
     return post, inp
@@ -62,8 +62,8 @@ def sample_posterior(sm: SpecimenModel, gp: GPSurrogate, s: SamplerSettings, see
 
 def reach_min_ess(post: Posterior, s: SamplerSettings, run: Any, seed: int) -> Posterior:
     """``post``, or its chains run on once when its smallest bulk ESS is under
-    ``s.min_ess`` and they agree (largest R-hat at most
-    :data:`~solderpyro.calibration.mcmc.MAP_RHAT`; see
+    ``s.min_ess`` or its largest R-hat over ``s.max_rhat``, and they agree (largest R-hat at
+    most :data:`~solderpyro.calibration.mcmc.MAP_RHAT`; see
     :class:`~solderpyro.settings.SamplerSettings`).
 
     Args:
@@ -78,18 +78,27 @@ def reach_min_ess(post: Posterior, s: SamplerSettings, run: Any, seed: int) -> P
     # chains that disagree (R-hat above MAP_RHAT: surrogate islands of a model that misfits)
     # are not helped by running on: on the loop's base run 3,000 more draws per chain left
     # its min ESS at 5 and cost 28 s
-    if not ess < s.min_ess or not rhat <= MAP_RHAT:
+    short = s.min_ess > 0 and ess < s.min_ess
+    split = s.max_rhat > 0 and rhat > s.max_rhat
+    if not (short or split) or not rhat <= MAP_RHAT:
         return post
-    more = int(min(2 * s.draws, max(s.draws // 4,
-                                    math.ceil(s.draws * (1.1 * s.min_ess / max(ess, 1.0) - 1)))))
-    log.info("posterior: smallest bulk ESS %.0f < %d: the chains run on for %d more draws "
-             "each", ess, s.min_ess, more)
+    more = s.draws // 2 if split else 0
+    if short:
+        more = max(more, s.draws // 4,
+                   math.ceil(s.draws * (1.1 * s.min_ess / max(ess, 1.0) - 1)))
+    more = int(min(2 * s.draws, more))
+    log.info("posterior: %s: the chains run on for %d more draws each",
+             "; ".join(([f"smallest bulk ESS {ess:.0f} < {s.min_ess}"] if short else [])
+                       + ([f"largest R-hat {rhat:.3f} > {s.max_rhat:g}"] if split else [])),
+             more)
     # in the sampler's own coordinates the adapted step and metric carry over as they are;
     # in ridge coordinates the map is refitted to these draws and its step found again
     cont = run(warm=post.warm, draws=more, ridge="auto" if s.final_ridge else "never",
                seed=seed + 7919, warmup=min(s.round_warmup, s.warmup) if s.final_ridge else 0)
     out = post.extend(cont)
-    log.info("posterior: smallest bulk ESS %.0f after %d draws per chain", out.min_ess(),
+    rows = out.summary()
+    log.info("posterior: smallest bulk ESS %.0f, largest R-hat %.3f after %d draws per chain",
+             min(float(r["ess_bulk"]) for r in rows), max(float(r["r_hat"]) for r in rows),
              s.draws + more)
     return out
 

@@ -498,8 +498,17 @@ def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
     assert post.min_ess() > first.min_ess()
     _assert_on_grid_posterior(stats, post, x, y)
     calls.clear()
-    assert reach_min_ess(first, SamplerSettings(min_ess=10), run, seed=1) is first
+    assert reach_min_ess(first, SamplerSettings(min_ess=10, max_rhat=0), run, seed=1) is first
     assert not calls
+    # an R-hat over max_rhat (and at most 1.1) runs the chains on for half their draws
+    rhat = max(float(r["r_hat"]) for r in first.summary())
+    assert 1.0 < rhat <= 1.1
+    assert reach_min_ess(first, SamplerSettings(min_ess=0, max_rhat=rhat + 1e-6), run,
+                         seed=1) is first
+    reach_min_ess(first, SamplerSettings(chains=2, draws=150, min_ess=0, max_rhat=1.0 + (
+        rhat - 1.0) / 2, final_ridge=False), run, seed=1)
+    assert calls == [dict(warm=first.warm, draws=75, ridge="never", seed=7920, warmup=0)]
+    calls.clear()
     # chains in different places (R-hat > 1.1): more draws would not join them
     apart = dataclasses.replace(first, samples={**first.samples, "t": first.samples["t"] + (
         torch.arange(2, dtype=DT)[:, None, None] * 0.5)})

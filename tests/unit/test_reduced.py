@@ -80,6 +80,39 @@ def test_projected_path_equals_the_direct_one(gps):
         np.testing.assert_allclose(a[i], b[i], rtol=1e-8, atol=1e-8)
 
 
+def test_weight_moment_series_equals_the_sums_over_outputs():
+    """The sigma-dependent sums from the moments of d (_WeightMoments) equal the sums over the
+    n outputs to 1e-13 of their terms' sizes wherever the series is used, and give way to the
+    direct sums (None) where sigma^2 is small against the spread of d."""
+    from solderpyro.calibration.reduced import _WeightMoments
+
+    rng = np.random.default_rng(3)
+    n = 500
+    d = rng.uniform(0.0, 2e-3, n) * rng.uniform(0, 1, n) ** 3  # skewed, min ~0
+    Qt = rng.normal(0, 1, (7, n))
+    wm = _WeightMoments(d, Qt)
+    used = 0
+    for s in (1e-5, 1e-4, 1e-3, 3e-3, 1e-2, 0.1, 10.0):
+        w = 1.0 / (d + s)
+        got = wm(s)
+        r = wm.half / (wm.mid + s)
+        if got is None:
+            assert r > 0.3, (s, r)  # given way only where the series is long
+            continue
+        used += 1
+        S1, S2, sw, slw = got
+        scale1, scale2 = np.abs(Qt) @ w, np.abs(Qt) @ (w * w)
+        assert np.all(np.abs(S1 - Qt @ w) <= 1e-13 * scale1), s
+        assert np.all(np.abs(S2 - Qt @ (w * w)) <= 1e-13 * scale2), s
+        assert abs(sw - w.sum()) <= 1e-13 * w.sum(), s
+        assert abs(slw - np.log(w).sum()) <= 1e-13 * np.abs(np.log(w)).sum(), s
+    assert used >= 4
+    # constant d: the series is exact at its first term
+    wc = _WeightMoments(np.full(n, 1e-3), Qt)
+    S1, _, sw, _ = wc(0.01)
+    np.testing.assert_allclose(S1, Qt.sum(1) / 0.011, rtol=1e-14, atol=1e-12)
+
+
 def _offset_emulator(gp: GPSurrogate):
     """A rigid offset and tilt of the field: q = (c um, w um per unit x) -> (n,)."""
     x = torch.linspace(-1, 1, 60, dtype=DT)
