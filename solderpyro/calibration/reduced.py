@@ -310,7 +310,7 @@ class _WeightMoments:
         c2 = self._k1[:L + 1] * pw / (a * a)
         M = self.Mq[:, :L + 1]
         mt = self.mt[:L + 1]
-        log_sum = -self.n * math.log(a) + float(((pw * self._inv_k[:L + 1]) @ mt))
+        log_sum = -self.n * math.log(a) + float((pw * self._inv_k[:L + 1]) @ mt)
         return M @ c1, M @ c2, float(c1 @ mt), log_sum
 
 
