@@ -1,8 +1,13 @@
 """FE throughput on the reference case: batched solves vs sequential single runs.
 
 Usage: python benchmarks/bench_fe.py [--sizes 1,8,64,256] [--sequential 64] [--lhs 50]
-       [--device cpu|cuda] [--threads N] [--no-native] [--check-cpu N]
+       [--device cpu|cuda] [--threads N] [--no-native] [--check-cpu N] [--split B1,B2,...]
        [--out benchmarks/results_fe.json]
+
+``--split``: for each batch size, the same parameter sets solved in one process on torch's
+threads and split over every core's one-thread process (:func:`solderpyro.executor.
+solve_split`, the in-process default since session 29), paired, with the largest |dV|
+between the two.
 
 On a GPU (``--device cuda``) one small solve runs first, untimed (CUDA context and kernel
 loading), and ``--check-cpu N`` solves N of the parameter sets on the CPU too and records the
@@ -66,6 +71,9 @@ def main() -> None:
     ap.add_argument("--check-cpu", type=int, default=0, metavar="N",
                     help="with a GPU device: solve N parameter sets on the CPU too and record "
                          "the largest difference of V")
+    ap.add_argument("--split", default="", metavar="B1,B2",
+                    help="batch sizes to time whole on torch's threads against split over "
+                         "the cores (CPU only)")
     ap.add_argument("--out", default="benchmarks/results_fe.json")
     a = ap.parse_args()
     if a.no_native:
@@ -104,6 +112,28 @@ def main() -> None:
         res["sequential"] = {"B": S, "batched_s": wb, "sequential_s": ws, "speedup": ws / wb}
         print(f"B={S}: batched {wb:.1f} s, {S} sequential single runs {ws:.1f} s, "
               f"speedup {ws / wb:.2f}x", flush=True)
+    if a.split:
+        from solderpyro.executor import local_cores, solve_batch, solve_split
+        from solderpyro.params import ANAND_NAMES
+
+        res["split"] = []
+        procs = local_cores()
+        for B in [int(b) for b in a.split.split(",") if b]:
+            p = lhs(B, seed=B + 1)
+            t = time.perf_counter()
+            whole = solve_batch(solver, p, SEED_TIMES, ANAND_NAMES)
+            tw = time.perf_counter() - t
+            t = time.perf_counter()
+            split = solve_split(solver, p, SEED_TIMES, ANAND_NAMES, procs)
+            ts = time.perf_counter() - t
+            dv = max(float(abs(x.V - y.V).max()) for x, y in zip(whole, split, strict=True))
+            row = {"B": B, "processes": procs, "whole_s": tw, "split_s": ts,
+                   "speedup": tw / ts, "max_abs_dV_um": dv,
+                   "all_ok": all(r.ok for r in whole + split)}
+            res["split"].append(row)
+            print(f"B={B:4d}: whole {tw:.2f} s ({torch.get_num_threads()} threads), split over "
+                  f"{procs} processes {ts:.2f} s: {tw / ts:.2f}x, max |dV| {dv:.2g} um",
+                  flush=True)
     if a.lhs:
         p = lhs(a.lhs, seed=2024).to(device=a.device, dtype=dtype)
         w, ok = timed(solver, p)

@@ -128,13 +128,109 @@ def _task(key: str, blob: bytes, P: torch.Tensor, times: list[float], names: lis
     return recs, stored, dt
 
 
-class InProcess:
-    """Run FE batches one after another in this process (the default executor).
+#: the fewest members a forked part of a batch gets (:func:`solve_split`): at fewer the FE's
+#: per-run cost rises steeply (one thread: 2.5 runs/s at b = 1, 7.2 at 8, 9.1 at 64)
+MIN_PART = 8
 
-    ``n_workers`` is 1; batches are the rows in order, ``batch_size`` at a time.
+
+def local_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return os.cpu_count() or 1
+
+
+def _can_fork() -> bool:
+    import multiprocessing as mp
+
+    return sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods()
+
+
+def _child_solve(conn: Any, solver: Any, P: torch.Tensor, times: Sequence[float],
+                 names: Sequence[str]) -> None:
+    """A forked part of :func:`solve_split`: solve ``P`` on one thread, send the records (or
+    ``("error", message)``) back."""
+    torch.set_num_threads(1)
+    try:
+        msg: Any = solve_batch(solver, P, times, names)
+    except BaseException as e:  # noqa: BLE001 - reported to the parent, which solves it
+        msg = ("error", f"{type(e).__name__}: {e}")
+    try:
+        conn.send(msg)
+    finally:
+        conn.close()
+
+
+def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Sequence[str],
+                processes: int) -> list[RunRecord]:
+    """Solve one batch ``P (b, 9 + n_eff)`` split over ``processes`` processes of one thread
+    each: this one and forked copies of it (Linux), at least :data:`MIN_PART` members apiece;
+    records in row order, as :func:`solve_batch` gives them.
+
+    Why: the FE's batched solve gains little from a second thread (10.4 against 9.1 runs/s at
+    b = 64 on this 2-core machine, BENCHMARKS.md), so the in-process default left a core
+    idle; two one-thread halves of a 32-run batch run 1.7x faster (``benchmarks/
+    bench_fe.py --split``). A member's result does not depend on its batch (~1e-15 um).
+    Nothing is lost when a forked part fails (it died, or raised): this process solves that
+    part itself, and says so.
+    """
+    parts = min(int(processes), len(P) // MIN_PART)
+    if parts < 2 or not _can_fork():
+        return solve_batch(solver, P, times, names)
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    idx = [c for c in torch.arange(len(P)).tensor_split(parts)]
+    kids = []
+    for rows in idx[1:]:
+        r, w = ctx.Pipe(duplex=False)
+        proc = ctx.Process(target=_child_solve, args=(w, solver, P[rows], times, names),
+                           daemon=True)
+        proc.start()
+        w.close()
+        kids.append((proc, r, rows))
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        out = list(solve_batch(solver, P[idx[0]], times, names))
+    finally:
+        torch.set_num_threads(prev)
+    for proc, r, rows in kids:
+        try:
+            msg: Any = r.recv()
+        except (EOFError, OSError) as e:
+            msg = ("error", f"no result ({type(e).__name__}; exit code {proc.exitcode})")
+        finally:
+            r.close()
+        proc.join()
+        if isinstance(msg, tuple):
+            log.warning("a forked part of an FE batch (%d runs) failed (%s); solved here",
+                        len(rows), msg[1])
+            msg = solve_batch(solver, P[rows], times, names)
+        out += msg
+    return out
+
+
+class InProcess:
+    """Run FE batches one after another on this machine (the default executor).
+
+    ``n_workers`` is 1 (one batch at a time); batches are the rows in order, ``batch_size``
+    at a time; each batch is split over ``processes`` one-thread processes
+    (:func:`solve_split`; default: every core this process may use).
+
+    Args:
+        processes: processes per batch (1: the whole batch in this process, on torch's
+            threads, as before session 29); None: :func:`local_cores`.
     """
 
     n_workers = 1
+
+    def __init__(self, processes: int | None = None) -> None:
+        if processes is not None and (not isinstance(processes, int) or processes < 1):
+            raise ValueError(f"InProcess processes must be a positive integer, got "
+                             f"{processes!r}")
+        self.processes = processes
 
     def partition(self, n: int, batch_size: int) -> list[list[int]]:
         """Split ``n`` rows into batches of ``batch_size`` (the last one shorter)."""
@@ -144,9 +240,10 @@ class InProcess:
             names: Sequence[str], store: RunStore, cfg_hash: str) -> Iterator[BatchOutcome]:
         """Solve each batch ``(b_i, 9 + n_eff)`` in turn and yield its outcome (not yet
         stored: :func:`~solderpyro.store.run_doe` stores it)."""
+        procs = self.processes or local_cores()
         for P in batches:
             t0 = time.perf_counter()
-            recs = solve_batch(solver, P, times, names)
+            recs = solve_split(solver, P, times, names, procs)
             yield BatchOutcome(recs, False, time.perf_counter() - t0)
 
     def describe(self) -> str:

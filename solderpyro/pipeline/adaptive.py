@@ -183,9 +183,10 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
     :func:`~.fe_check.misfits`), or the loop says the round is ``far`` from converged, the
     FE's own best fit decides whether the model can fit the data at all: Levenberg-Marquardt
     (``lm_iters`` iterations, through the run store) from the two best checked draws and the
-    literature constants, over every calibrated parameter (observation-side ones included). Returns None while the
-    checked draws fit and the round is not far (no verdict), else ``{"x": {name: value},
-    "chi2", "rms_over_sigma", "misfits", "fe_runs", "runs"}``; ``"runs"`` ``(fe_runs, n_fe)``
+    literature constants, over every calibrated parameter (observation-side ones included).
+    Returns None while the checked draws fit and the round is not far (no verdict), else
+    ``{"x": {name: value}, "chi2", "rms_over_sigma", "misfits", "fe_runs", "starts",
+    "runs"}``; ``"runs"`` ``(fe_runs, n_fe)``
     are the FE parameter sets the fit ran, lowest chi-square first (the loop adds some of them
     to the design when the model can fit: :attr:`~solderpyro.design.loop.LoopSettings.
     localize`).

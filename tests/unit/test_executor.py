@@ -28,7 +28,7 @@ from solderpyro.executor import (
 )
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.params import ParameterSpace
+from solderpyro.params import ANAND_NAMES, ParameterSpace
 from solderpyro.store import RunStore, param_hash, run_doe
 
 # the stand-in solvers below travel to the workers by value (the workers cannot import tests)
@@ -289,3 +289,35 @@ def test_client_killed_mid_campaign_then_rerun_reuses_every_stored_run(tmp_path)
     assert bool(res.ok.all())
     assert {p.name for p in runs.glob("*.json")} == {f"{param_hash(r)}.json"
                                                      for r in _params(8)}
+
+
+def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeypatch, caplog):
+    """solve_split (the in-process default): 16 runs split over two one-thread processes come
+    back in row order with the runs of the whole batch solved at once (1e-11 um: a member
+    does not depend on its batch), and a forked part that dies is solved in this process,
+    with a warning, nothing lost."""
+    import solderpyro.executor as exe
+
+    if not exe._can_fork():
+        pytest.skip("no fork on this platform")
+    solver = SpecimenSolver(cheap_problem())
+    P = _params(16)
+    names = list(ANAND_NAMES)
+    whole = exe.solve_batch(solver, P, SEED_TIMES, names)
+    split = exe.solve_split(solver, P, SEED_TIMES, names, 2)
+    assert [r.params for r in split] == [r.params for r in whole]
+    for a, b in zip(whole, split, strict=True):
+        assert a.ok and b.ok
+        np.testing.assert_allclose(b.V, a.V, rtol=0, atol=1e-11)
+    # fewer than two parts of MIN_PART members: not split (the child would not pay)
+    assert exe.solve_split(solver, P[:exe.MIN_PART + 3], SEED_TIMES, names, 2)[0].ok
+
+    def dies(conn, *args):
+        os._exit(3)
+
+    monkeypatch.setattr(exe, "_child_solve", dies)
+    with caplog.at_level("WARNING", logger="solderpyro.executor"):
+        again = exe.solve_split(solver, P, SEED_TIMES, names, 2)
+    assert "failed" in caplog.text and "solved here" in caplog.text
+    for a, b in zip(whole, again, strict=True):
+        np.testing.assert_allclose(b.V, a.V, rtol=0, atol=1e-11)

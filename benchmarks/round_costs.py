@@ -1,0 +1,184 @@
+"""Per-call costs inside a design round, paired in one process (issue 18, session 29).
+
+    python benchmarks/round_costs.py RUN_DIR [--store STORE] [--json OUT.json]
+
+Rebuilds a finished run's final surrogate from its design runs (design.csv, through the run
+store) and times, one thread, median of 5 repeats each, side by side:
+
+- the posterior's log density and gradient (``FlatModel.logp_and_grad``, the reduced PCA
+  likelihood) at 600 of the run's posterior draws: the sigma-dependent sums from the moments
+  of the truncation variance (``reduced._WeightMoments``, the default) against the sums over
+  every output (the series switched off);
+- the design's acquisition (``greedy_draws``, 256 draws, 512 candidates, q = 8, 4 pending,
+  the loglik criterion): the kept low-rank form against the full covariance matrix with
+  rank-1 updates it replaced (:func:`_greedy_full`, kept here as the reference), with the
+  chosen runs compared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def _greedy_full(gp, mc_theta, cand_theta, q, sigma, y, pending):
+    """The previous ``greedy_draws`` (loglik criterion): the full (k, M, M) posterior
+    covariance of the coefficients over draws, candidates and pending runs, rank-1 updated."""
+    from solderpyro.design.acquisition import loglik_terms
+
+    N, C = len(mc_theta), len(cand_theta)
+    S = torch.cat([mc_theta, cand_theta, pending]).to(torch.float64)
+    with torch.no_grad():
+        _, cov = gp._coef(S, full_cov=True)
+        tau = gp._noise
+
+        def condition(cov, i):
+            den = (cov[:, i, i] + tau)[:, None, None]
+            return cov - cov[:, :, i:i + 1] * cov[:, i:i + 1, :] / den
+
+        for i in range(N + C, len(S)):
+            cov = condition(cov, i)
+        g, M = loglik_terms(gp, mc_theta, y, sigma, None)
+        g2, M2 = g.square().T, M.square()
+        chosen: list[int] = []
+        for _ in range(q):
+            d = cov.diagonal(dim1=-2, dim2=-1)
+            cm = cov[:, :N, N:N + C]
+            vn = (d[:, :N, None] - cm.square() / (d[:, None, N:N + C] + tau[:, None, None])
+                  ).clamp_min(0.0)
+            val = -((g2[:, :, None] * vn).sum(0)
+                    + 0.5 * torch.einsum("knc,kl,lnc->nc", vn, M2, vn)).mean(0)
+            if chosen:
+                val[chosen] = -float("inf")
+            b = int(val.argmax())
+            chosen.append(b)
+            cov = condition(cov, N + b)
+    return torch.tensor(chosen), float(val[chosen[-1]])
+
+
+def _median_time(f, repeats: int = 5) -> float:
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        f()
+        out.append(time.perf_counter() - t0)
+    return statistics.median(out)
+
+
+def main() -> None:
+    import arviz as az
+
+    from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
+    from solderpyro.calibration.fastkoh import flat_model
+    from solderpyro.calibration.koh import (
+        SITE_SIGMA,
+        SITE_T,
+        observation_model,
+        prepare_observation,
+    )
+    from solderpyro.calibration.reduced import PCAReduction
+    from solderpyro.configure import build, compose
+    from solderpyro.design.acquisition import greedy_draws
+    from solderpyro.io.measurements import read_measurements
+    from solderpyro.pipeline.problem import SpecimenModel
+    from solderpyro.pipeline.surrogate import fit_surrogate
+    from solderpyro.settings import CalibrationSettings
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
+    ap.add_argument("--store", default=None, help="its run store (default: run.json's)")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    from threadpoolctl import threadpool_limits
+    threadpool_limits(1)
+    run = Path(a.run)
+    info = json.loads((run / "run.json").read_text())
+    setup = build(compose(info.get("overrides") or []))
+    sm = SpecimenModel.build(setup, read_measurements(info["data"]), a.store or info["store"],
+                             64, False)
+    with (run / "design.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["converged"] == "1"]
+    names = list(sm.gp_box.names)
+    X = torch.tensor([[float(r[n]) for n in names] for r in rows], dtype=torch.float64)
+    V, ok = sm.fe(X)
+    post = az.from_netcdf(str(run / "posterior.nc")).posterior
+    sig = np.asarray(post["sigma"].values).reshape(-1)
+    gp = fit_surrogate(sm, CalibrationSettings().surrogate, X[ok], V[ok], float(np.median(sig)))
+    em = GPEmulator(gp)
+    off = sm.offset()
+    inp = prepare_observation(sm.y, em if off is None else ObservedEmulator(em, sm.n_fe, off),
+                              sm.space)
+    fm = flat_model(observation_model, (inp, sm.priors))
+    T = np.stack([np.asarray(post[n].values).reshape(-1) for n in sm.space.names], 1)
+    u = sm.space.to_unit(torch.as_tensor(T)).numpy()
+    sel = np.linspace(0, len(T) - 1, 600).round().astype(int)
+    Q = np.stack([fm.to_unconstrained({SITE_T: torch.as_tensor(u[i]),
+                                       SITE_SIGMA: torch.as_tensor(sig[i])}) for i in sel])
+    out: dict = {"run": str(run), "n_obs": int(sm.y.numel()), "components": int(gp.basis.shape[1]),
+                 "fe_runs": int(ok.sum())}
+
+    def grads() -> None:
+        for q in Q:
+            fm.logp_and_grad(q)
+
+    grads()
+    t_series = _median_time(grads) / len(Q)
+    lp_series = np.array([fm.logp_and_grad(q)[0] for q in Q[:50]])
+    saved = PCAReduction.__init__
+
+    def no_series(self, *args, **kw):
+        saved(self, *args, **kw)
+        self._moments = lambda s: None
+
+    PCAReduction.__init__ = no_series  # type: ignore[method-assign]
+    try:
+        fm_direct = flat_model(observation_model, (inp, sm.priors))
+    finally:
+        PCAReduction.__init__ = saved  # type: ignore[method-assign]
+
+    def grads_direct() -> None:
+        for q in Q:
+            fm_direct.logp_and_grad(q)
+
+    grads_direct()
+    t_direct = _median_time(grads_direct) / len(Q)
+    lp_direct = np.array([fm_direct.logp_and_grad(q)[0] for q in Q[:50]])
+    out["gradient_us"] = {"series": round(t_series * 1e6, 1), "direct": round(t_direct * 1e6, 1),
+                          "ratio": round(t_direct / t_series, 2),
+                          "max_abs_logp_difference": float(np.abs(lp_series - lp_direct).max())}
+    print("gradient:", out["gradient_us"], flush=True)
+
+    th = torch.as_tensor(T, dtype=torch.float64)
+    mc = th[np.linspace(0, len(th) - 1, 256).round().astype(int)]
+    cand = th[np.linspace(0, len(th) - 1, 512).round().astype(int)]
+    pend = th[np.linspace(3, len(th) - 4, 4).round().astype(int)]
+    s_med = float(np.median(sig))
+    res = {}
+
+    def new() -> None:
+        res["new"] = greedy_draws(gp, "loglik", mc, cand, 8, s_med, sm.y, None, pend)
+
+    def full() -> None:
+        res["full"] = _greedy_full(gp, mc, cand, 8, s_med, sm.y, pend)
+
+    t_new, t_full = _median_time(new, 3), _median_time(full, 3)
+    out["greedy_s"] = {"low_rank": round(t_new, 3), "full_matrix": round(t_full, 3),
+                       "ratio": round(t_full / t_new, 2),
+                       "same_choices": res["new"][0].tolist() == res["full"][0].tolist(),
+                       "value_rel_difference": abs(res["new"][1] - res["full"][1])
+                       / abs(res["full"][1])}
+    print("greedy:", out["greedy_s"], flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
