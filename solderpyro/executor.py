@@ -128,9 +128,10 @@ def _task(key: str, blob: bytes, P: torch.Tensor, times: list[float], names: lis
     return recs, stored, dt
 
 
-#: the fewest members a forked part of a batch gets (:func:`solve_split`): at fewer the FE's
-#: per-run cost rises steeply (one thread: 2.5 runs/s at b = 1, 7.2 at 8, 9.1 at 64)
-MIN_PART = 8
+#: the fewest members a forked part of a batch gets (:func:`solve_split`): even a 2-run batch
+#: split in two ran 1.25-1.37x faster than whole on two threads, a 4-run one 1.4x, 16-32 runs
+#: 1.6-1.8x (``benchmarks/bench_fe.py --split``, this 2-core machine, session 29)
+MIN_PART = 1
 
 
 def local_cores() -> int:
@@ -170,8 +171,8 @@ def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Seq
 
     Why: the FE's batched solve gains little from a second thread (10.4 against 9.1 runs/s at
     b = 64 on this 2-core machine, BENCHMARKS.md), so the in-process default left a core
-    idle; two one-thread halves of a 32-run batch run 1.7x faster (``benchmarks/
-    bench_fe.py --split``). A member's result does not depend on its batch (~1e-15 um).
+    idle; split in two, batches of 2-64 runs ran 1.25-1.8x faster (``benchmarks/bench_fe.py
+    --split``). A member's result does not depend on its batch (~1e-15 um).
     Nothing is lost when a forked part fails (it died, or raised): this process solves that
     part itself, and says so.
     """

@@ -309,8 +309,9 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
     for a, b in zip(whole, split, strict=True):
         assert a.ok and b.ok
         np.testing.assert_allclose(b.V, a.V, rtol=0, atol=1e-11)
-    # fewer than two parts of MIN_PART members: not split (the child would not pay)
-    assert exe.solve_split(solver, P[:exe.MIN_PART + 3], SEED_TIMES, names, 2)[0].ok
+    # one run, or one process: solved here, whole
+    assert exe.solve_split(solver, P[:1], SEED_TIMES, names, 2)[0].ok
+    assert len(exe.solve_split(solver, P[:3], SEED_TIMES, names, 1)) == 3
 
     def dies(conn, *args):
         os._exit(3)
