@@ -177,7 +177,10 @@ def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Seq
     part itself, and says so.
     """
     parts = min(int(processes), len(P) // MIN_PART)
-    if parts < 2 or not _can_fork():
+    tkw = getattr(solver, "tkw", None)
+    on_cpu = not isinstance(tkw, dict) or torch.device(tkw.get("device", "cpu")).type == "cpu"
+    # a CUDA solve is never forked (CUDA does not survive fork) and fills its device anyway
+    if parts < 2 or not on_cpu or not _can_fork():
         return solve_batch(solver, P, times, names)
     import multiprocessing as mp
 
