@@ -179,10 +179,13 @@ def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Seq
     parts = min(int(processes), len(P) // MIN_PART)
     tkw = getattr(solver, "tkw", None)
     on_cpu = not isinstance(tkw, dict) or torch.device(tkw.get("device", "cpu")).type == "cpu"
-    # a CUDA solve is never forked (CUDA does not survive fork) and fills its device anyway
-    if parts < 2 or not on_cpu or not _can_fork():
-        return solve_batch(solver, P, times, names)
     import multiprocessing as mp
+
+    # a CUDA solve is never forked (CUDA does not survive fork) and fills its device anyway; a
+    # daemonic process (a Dask worker, a pool's) may not have children, and shares the cores
+    # with its siblings already
+    if parts < 2 or not on_cpu or not _can_fork() or mp.current_process().daemon:
+        return solve_batch(solver, P, times, names)
 
     ctx = mp.get_context("fork")
     idx = [c for c in torch.arange(len(P)).tensor_split(parts)]

@@ -313,6 +313,23 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
     assert exe.solve_split(solver, P[:1], SEED_TIMES, names, 2)[0].ok
     assert len(exe.solve_split(solver, P[:3], SEED_TIMES, names, 1)) == 3
 
+    # in a daemonic process (a Dask worker's kind), which may not fork: whole, in place
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    r, w = ctx.Pipe(duplex=False)
+
+    def in_daemon() -> None:
+        torch.set_num_threads(1)  # a forked child must not enter the parent's OpenMP pool
+        w.send([float(abs(a.V - b.V).max()) for a, b in zip(
+            whole, exe.solve_split(solver, P[:4], SEED_TIMES, names, 2), strict=False)])
+
+    proc = ctx.Process(target=in_daemon, daemon=True)
+    proc.start()
+    got = r.recv()
+    proc.join()
+    assert proc.exitcode == 0 and len(got) == 4 and max(got) <= 1e-11
+
     def dies(conn, *args):
         os._exit(3)
 
