@@ -30,7 +30,6 @@ percentile in each parameter's marginal: near 0 or 1, a tail).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import time
 from pathlib import Path
@@ -41,23 +40,12 @@ import torch
 
 def main() -> None:
     import arviz as az
+    from _runs import rebuild  # benchmarks/ is on sys.path when this script runs
 
-    from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
-    from solderpyro.calibration.fastkoh import flat_model
-    from solderpyro.calibration.koh import (
-        SITE_SIGMA,
-        SITE_T,
-        observation_model,
-        prepare_observation,
-    )
+    from solderpyro.calibration.koh import SITE_SIGMA, SITE_T
     from solderpyro.calibration.mcmc import MAPPED_ACCEPT
     from solderpyro.calibration.nuts import sample_nuts
     from solderpyro.calibration.ridgemap import RidgeMap
-    from solderpyro.configure import build, compose
-    from solderpyro.io.measurements import read_measurements
-    from solderpyro.pipeline.problem import SpecimenModel
-    from solderpyro.pipeline.surrogate import fit_surrogate
-    from solderpyro.settings import CalibrationSettings
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
@@ -84,32 +72,15 @@ def main() -> None:
     torch.set_num_threads(1)  # as run_nuts does: one BLAS/torch thread per chain process
     from threadpoolctl import threadpool_limits
     threadpool_limits(1)
-    run = Path(a.run)
-    info = json.loads((run / "run.json").read_text())
-    setup = build(compose(info.get("overrides") or []))
-    sm = SpecimenModel.build(setup, read_measurements(a.data or info["data"]),
-                             a.store or info["store"], 64, False)
-    with (run / "design.csv").open() as f:
-        rows = [r for r in csv.DictReader(f) if r["converged"] == "1"]
-    names = list(sm.gp_box.names)
-    X = torch.tensor([[float(r[n]) for n in names] for r in rows], dtype=torch.float64)
-    V, ok = sm.fe(X)
-    post = az.from_netcdf(str(run / "posterior.nc")).posterior
-    sig = np.asarray(post["sigma"].values).reshape(-1)
-    gp = fit_surrogate(sm, CalibrationSettings().surrogate, X[ok], V[ok], float(np.median(sig)))
-    em = GPEmulator(gp)
-    off = sm.offset()
-    inp = prepare_observation(sm.y, em if off is None else ObservedEmulator(em, sm.n_fe, off),
-                              sm.space)
-    fm = flat_model(observation_model, (inp, sm.priors))
-    T = np.stack([np.asarray(post[n].values).reshape(-1) for n in sm.space.names], 1)
+    rb = rebuild(Path(a.run), a.store, a.data)
+    sm, fm, T, sig = rb.sm, rb.fm, rb.T, rb.sig
     u = sm.space.to_unit(torch.as_tensor(T)).numpy()
     sel = np.linspace(0, len(T) - 1, 800).round().astype(int)
     Q = np.stack([fm.to_unconstrained({SITE_T: torch.as_tensor(u[i]),
                                        SITE_SIGMA: torch.as_tensor(sig[i])}) for i in sel])
     m = RidgeMap(Q)
     starts = [0, 200, 400, 600]
-    out: dict = {"run": str(run), "dim": fm.dim, "curved": m.curved, "modes": {}}
+    out: dict = {"run": str(a.run), "dim": fm.dim, "curved": m.curved, "modes": {}}
     for mode in modes:
         acc, _, wu = mode.split("@")[1].partition(":")
         ta, warmup = float(acc), int(wu or 500)

@@ -18,7 +18,6 @@ store) and times, one thread, median of 5 repeats each, side by side:
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import statistics
 import time
@@ -73,23 +72,12 @@ def _median_time(f, repeats: int = 5) -> float:
 
 
 def main() -> None:
-    import arviz as az
+    from _runs import rebuild  # benchmarks/ is on sys.path when this script runs
 
-    from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
     from solderpyro.calibration.fastkoh import flat_model
-    from solderpyro.calibration.koh import (
-        SITE_SIGMA,
-        SITE_T,
-        observation_model,
-        prepare_observation,
-    )
+    from solderpyro.calibration.koh import SITE_SIGMA, SITE_T, observation_model
     from solderpyro.calibration.reduced import PCAReduction
-    from solderpyro.configure import build, compose
     from solderpyro.design.acquisition import greedy_draws
-    from solderpyro.io.measurements import read_measurements
-    from solderpyro.pipeline.problem import SpecimenModel
-    from solderpyro.pipeline.surrogate import fit_surrogate
-    from solderpyro.settings import CalibrationSettings
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
@@ -99,31 +87,14 @@ def main() -> None:
     torch.set_num_threads(1)
     from threadpoolctl import threadpool_limits
     threadpool_limits(1)
-    run = Path(a.run)
-    info = json.loads((run / "run.json").read_text())
-    setup = build(compose(info.get("overrides") or []))
-    sm = SpecimenModel.build(setup, read_measurements(info["data"]), a.store or info["store"],
-                             64, False)
-    with (run / "design.csv").open() as f:
-        rows = [r for r in csv.DictReader(f) if r["converged"] == "1"]
-    names = list(sm.gp_box.names)
-    X = torch.tensor([[float(r[n]) for n in names] for r in rows], dtype=torch.float64)
-    V, ok = sm.fe(X)
-    post = az.from_netcdf(str(run / "posterior.nc")).posterior
-    sig = np.asarray(post["sigma"].values).reshape(-1)
-    gp = fit_surrogate(sm, CalibrationSettings().surrogate, X[ok], V[ok], float(np.median(sig)))
-    em = GPEmulator(gp)
-    off = sm.offset()
-    inp = prepare_observation(sm.y, em if off is None else ObservedEmulator(em, sm.n_fe, off),
-                              sm.space)
-    fm = flat_model(observation_model, (inp, sm.priors))
-    T = np.stack([np.asarray(post[n].values).reshape(-1) for n in sm.space.names], 1)
+    rb = rebuild(Path(a.run), a.store)
+    sm, gp, inp, fm, T, sig = rb.sm, rb.gp, rb.inp, rb.fm, rb.T, rb.sig
     u = sm.space.to_unit(torch.as_tensor(T)).numpy()
     sel = np.linspace(0, len(T) - 1, 600).round().astype(int)
     Q = np.stack([fm.to_unconstrained({SITE_T: torch.as_tensor(u[i]),
                                        SITE_SIGMA: torch.as_tensor(sig[i])}) for i in sel])
-    out: dict = {"run": str(run), "n_obs": int(sm.y.numel()), "components": int(gp.basis.shape[1]),
-                 "fe_runs": int(ok.sum())}
+    out: dict = {"run": str(a.run), "n_obs": int(sm.y.numel()),
+                 "components": int(gp.basis.shape[1]), "fe_runs": int(gp._u.shape[1])}
 
     def grads() -> None:
         for q in Q:
