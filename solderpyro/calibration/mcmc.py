@@ -241,6 +241,10 @@ class WarmStart:
             the chains there.
         draws: ``(N, d)`` draws of the run (unconstrained, columns :attr:`coords`, thinned),
             or None: a run of the same model fits its :class:`~.ridgemap.RidgeMap` to them.
+        mapped: where the run sampled in ridge coordinates, ``(RidgeMap, inverse metric,
+            step size)`` in those coordinates (chains averaged; the step the chains' median):
+            :func:`run_nuts` with ``ridge="same"`` continues the chains in them with no new
+            warm-up. Kept in memory only (:meth:`save` does not write it).
     """
 
     coords: list[str]
@@ -251,6 +255,7 @@ class WarmStart:
     unit: np.ndarray | None = None
     unit_names: list[str] | None = None
     draws: np.ndarray | None = None
+    mapped: Any = None
 
     def unit_for(self, names: Sequence[str], chains: int) -> np.ndarray:
         """``(chains, p)`` the chains' positions on the unit cube of a box with these names:
@@ -426,7 +431,10 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             its curved ridge straightened (measured: 1.07-2.0x min ESS/s).
         ridge: ``"auto"`` (the map where the draws bend, :func:`ridge_map`), ``"always"``
             (wherever the warm start holds draws of these coordinates, bent or not: what the
-            simulation-based calibration of the mapped sampler uses) or ``"never"``.
+            simulation-based calibration of the mapped sampler uses), ``"never"``, or
+            ``"same"``: the map ``warm`` sampled in, with its adapted metric and step
+            (:attr:`WarmStart.mapped`; a continuation of those chains, ``warmup`` 0; where
+            ``warm`` has none, as ``"never"``).
         mapped_accept: the target acceptance in ridge coordinates (at least ``target_accept``;
             None: :data:`MAPPED_ACCEPT`).
         progress: log one line per chain (else at DEBUG level).
@@ -442,8 +450,9 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         raise ValueError(f"run_nuts init must be 'sir' or 'uniform', got {init!r}")
     if workers is not None and (not isinstance(workers, int) or workers < 1):
         raise ValueError(f"run_nuts workers must be a positive integer, got {workers!r}")
-    if ridge not in ("auto", "always", "never"):
-        raise ValueError(f"run_nuts ridge must be 'auto', 'always' or 'never', got {ridge!r}")
+    if ridge not in ("auto", "always", "never", "same"):
+        raise ValueError(f"run_nuts ridge must be 'auto', 'always', 'never' or 'same', got "
+                         f"{ridge!r}")
     if mapped_accept is not None and not 0.0 < mapped_accept < 1.0:
         raise ValueError(f"run_nuts mapped_accept must be in (0, 1), got {mapped_accept}")
     from solderpyro.calibration.fastkoh import flat_model
@@ -479,8 +488,17 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
                     st["step_size"], st["n_leapfrog"], st["divergences"])
 
         f = fm.logp_and_grad
-        rmap = None if ridge == "never" else ridge_map(warm, names, bent=ridge == "auto")
-        if rmap is not None:
+        same = (ridge == "same" and warm is not None and warm.mapped is not None
+                and list(warm.coords) == list(names))
+        rmap = (warm.mapped[0] if same else None if ridge in ("never", "same")  # type: ignore[union-attr]
+                else ridge_map(warm, names, bent=ridge == "auto"))
+        if same:
+            assert warm is not None and q0 is not None
+            f = rmap.wrap(f)
+            q0 = rmap.inverse(q0)
+            inv0, step0 = warm.mapped[1], warm.mapped[2]
+            log.log(lvl, "NUTS: the chains run on in the ridge coordinates they sampled in")
+        elif rmap is not None:
             assert warm is not None and warm.draws is not None and q0 is not None
             f = rmap.wrap(f)
             q0 = rmap.inverse(q0)
@@ -509,7 +527,9 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
     keep = np.linspace(0, len(flat) - 1, min(len(flat), WARM_DRAWS)).round().astype(int)
     ws = WarmStart(names, Q[:, -1].copy(), inv, float(np.median(res.step_size)),
                    None, unit, list(box.names) if unit is not None and box else None,
-                   flat[keep].copy() if chains_agree(Q) else None)
+                   flat[keep].copy() if chains_agree(Q) else None,
+                   None if rmap is None else (rmap, np.mean(np.stack(res.inv_metric), 0),
+                                              float(np.median(res.step_size))))
     stats = [{"step_size": float(a), "accept_prob": float(b), "n_grad": float(c)}
              for a, b, c in zip(res.step_size, res.accept_prob, res.n_leapfrog, strict=True)]
     return NutsRun(samples, res.divergences, time.perf_counter() - t0, ws, stats,

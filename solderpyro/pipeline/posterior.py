@@ -91,10 +91,15 @@ def reach_min_ess(post: Posterior, s: SamplerSettings, run: Any, seed: int) -> P
              "; ".join(([f"smallest bulk ESS {ess:.0f} < {s.min_ess}"] if short else [])
                        + ([f"largest R-hat {rhat:.3f} > {s.max_rhat:g}"] if split else [])),
              more)
-    # in the sampler's own coordinates the adapted step and metric carry over as they are;
-    # in ridge coordinates the map is refitted to these draws and its step found again
-    cont = run(warm=post.warm, draws=more, ridge="auto" if s.final_ridge else "never",
-               seed=seed + 7919, warmup=min(s.round_warmup, s.warmup) if s.final_ridge else 0)
+    # the adapted step and metric carry over as they are: in the sampler's own coordinates,
+    # or in the ridge coordinates the chains sampled in (a plain continuation; since session
+    # 29: refitting the map to these draws and a 150-iteration warm-up to find its step took
+    # 18 s of the loop's recalibration, for 750 draws per chain); where the run kept no map,
+    # a map fitted to these draws and a short warm-up
+    same = s.final_ridge and post.warm is not None and post.warm.mapped is not None
+    ridge = "same" if same else "auto" if s.final_ridge else "never"
+    cont = run(warm=post.warm, draws=more, ridge=ridge, seed=seed + 7919,
+               warmup=min(s.round_warmup, s.warmup) if ridge == "auto" else 0)
     out = post.extend(cont)
     rows = out.summary()
     log.info("posterior: smallest bulk ESS %.0f, largest R-hat %.3f after %d draws per chain",

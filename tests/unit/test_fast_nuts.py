@@ -467,7 +467,7 @@ def test_warm_start_with_short_warmup_matches_grid_posterior():
     _assert_on_grid_posterior(stats, post, x, y)
 
 
-def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
+def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior(caplog):
     """reach_min_ess (the final posterior's ESS guard): a run of 2 x 150 draws whose smallest
     bulk ESS is under the 2,000 asked for runs on (in the sampler's own coordinates: without
     a new warm-up) for at most twice its draws; the continued chains hold every draw of the
@@ -513,6 +513,21 @@ def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior():
     apart = dataclasses.replace(first, samples={**first.samples, "t": first.samples["t"] + (
         torch.arange(2, dtype=DT)[:, None, None] * 0.5)})
     assert reach_min_ess(apart, s, run, seed=1) is apart and not calls
-    # after a run in ridge coordinates: the map refitted, a short warm-up for its step
+    # a run that kept no ridge map, and the final posterior in ridge coordinates: a map
+    # fitted to its draws, a short warm-up for its step
     reach_min_ess(first, SamplerSettings(chains=2, draws=150, min_ess=2000), run, seed=1)
     assert (calls[0]["ridge"], calls[0]["warmup"]) == ("auto", 150)
+    calls.clear()
+    # a run in ridge coordinates runs on in the same map, its step and metric as adapted, no
+    # warm-up: a plain continuation of its chains, still on the grid posterior
+    mapped, _ = calibrate_direct(code, x, y, stats.T_BOX, pr, warmup=300, draws=150,
+                                 warm=first.warm, ridge="always", **kw)
+    assert mapped.warm is not None and mapped.warm.mapped is not None
+    with caplog.at_level("DEBUG", logger="solderpyro"):
+        on = reach_min_ess(mapped, SamplerSettings(chains=2, draws=150, min_ess=2000), run,
+                           seed=1)
+    assert "run on in the ridge coordinates they sampled in" in caplog.text
+    assert calls == [dict(warm=mapped.warm, draws=300, ridge="same", seed=7920, warmup=0)]
+    torch.testing.assert_close(on.samples["t"][:, :150], mapped.samples["t"])
+    assert on.samples["t"].shape[:2] == (2, 450)
+    _assert_on_grid_posterior(stats, on, x, y)
