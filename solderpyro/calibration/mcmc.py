@@ -490,8 +490,12 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         f = fm.logp_and_grad
         same = (ridge == "same" and warm is not None and warm.mapped is not None
                 and list(warm.coords) == list(names))
-        rmap = (warm.mapped[0] if same else None if ridge in ("never", "same")  # type: ignore[union-attr]
-                else ridge_map(warm, names, bent=ridge == "auto"))
+        rmap: Any = None
+        if same:
+            assert warm is not None and q0 is not None
+            rmap = warm.mapped[0]
+        elif ridge not in ("never", "same"):
+            rmap = ridge_map(warm, names, bent=ridge == "auto")
         if same:
             assert warm is not None and q0 is not None
             f = rmap.wrap(f)

@@ -189,8 +189,9 @@ def greedy_draws(gp: GPSurrogate, criterion: str, mc_theta: torch.Tensor,
     N, C = len(mc_theta), len(cand_theta)
     if not 1 <= q <= C:
         raise ValueError(f"greedy_draws: need 1 <= q <= {C} candidates, got q={q}")
-    P = 0 if pending is None else len(pending)
-    S = torch.cat([mc_theta, cand_theta] + ([pending] if P else [])).to(torch.float64)
+    parts = [mc_theta, cand_theta] + ([pending] if pending is not None and len(pending) else [])
+    P = len(parts[2]) if len(parts) > 2 else 0
+    S = torch.cat(parts).to(torch.float64)
     with torch.no_grad():
         cols = _PosteriorColumns(gp, S)
         tau = gp._noise  # (k,)
