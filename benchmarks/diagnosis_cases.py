@@ -143,8 +143,8 @@ def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", nargs="+", required=True, metavar="NAME=CSV")
-    ap.add_argument("--base", nargs="*", default=[], metavar="NAME=DIR",
+    ap.add_argument("--data", nargs="+", action="extend", required=True, metavar="NAME=CSV")
+    ap.add_argument("--base", nargs="*", action="extend", default=[], metavar="NAME=DIR",
                     help="existing base run directories (default WORK/NAME/base, calibrated "
                          "here when missing)")
     ap.add_argument("--work", default="runs/i20")
