@@ -5,8 +5,9 @@ FE check, the FE-exact step and the profiles, ``diagnose``'s Jacobians and refit
 sensitivity DOE) reaches the solver through :func:`solderpyro.store.run_doe`, and ``run_doe``
 hands its batches to the *current executor*:
 
-* :class:`InProcess` (default): one batch after another in this process, as before; Dask is
-  never imported on this path.
+* :class:`InProcess` (default): one batch after another on this machine, each split over
+  one-thread forked copies of this process, one per core (:func:`solve_split`; Linux); Dask
+  is never imported on this path.
 * :class:`DaskExecutor`: one Dask task per FE batch on a ``dask.distributed`` cluster
   (``--cluster local:N`` starts a ``LocalCluster`` of N single-threaded workers;
   ``--scheduler tcp://HOST:PORT`` joins a running one, e.g. a ``dask_jobqueue.SLURMCluster``).
