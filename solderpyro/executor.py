@@ -202,6 +202,12 @@ def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Seq
     torch.set_num_threads(1)
     try:
         out = list(solve_batch(solver, P[idx[0]], times, names))
+    except BaseException:
+        for proc, r, _ in kids:  # none is waited for: stop them (a full pipe would block one)
+            proc.kill()
+            proc.join()
+            r.close()
+        raise
     finally:
         torch.set_num_threads(prev)
     for proc, r, rows in kids:

@@ -10,6 +10,7 @@ import torch
 
 from solderpyro.configure import build, compose
 from solderpyro.effects import EFFECTS, Effect, EffectSet, effect_box, effect_set, get_effect
+from solderpyro.executor import InProcess
 from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import Problem
@@ -297,9 +298,11 @@ def test_store_hash_separates_effects_and_records_round_trip(tmp_path):
     h = store.register(pr, SEED_TIMES, False, torch.float64, ("thermal_lag",))
     assert store.meta(h)["inputs"]["effects"][0]["__dict__"]  # readable settings in meta.json
     P = with_anand([[0.0], [30.0], [30.0]])
-    r = run_doe(fake, store, h, P, SEED_TIMES, progress=False, param_names=names)
+    r = run_doe(fake, store, h, P, SEED_TIMES, progress=False, param_names=names,
+                executor=InProcess(processes=1))
     assert r.n_computed == 2 and r.V[1, 0, 0] == 30.0 and calls == [2]
-    r = run_doe(fake, store, h, P, SEED_TIMES, progress=False, param_names=names)
+    r = run_doe(fake, store, h, P, SEED_TIMES, progress=False, param_names=names,
+                executor=InProcess(processes=1))
     assert r.n_reused == 3 and calls == [2]
     rec = store.get(h, P[1])
     assert isinstance(rec, RunRecord) and rec.params["tau"] == 30.0 and rec.values == P[1].tolist()

@@ -339,3 +339,31 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
     assert "failed" in caplog.text and "solved here" in caplog.text
     for a, b in zip(whole, again, strict=True):
         np.testing.assert_allclose(b.V, a.V, rtol=0, atol=1e-11)
+
+
+class _ParentFails:
+    """Solves slowly in a forked part, raises in the process that made it."""
+
+    def __init__(self) -> None:
+        self.pid = os.getpid()
+
+    def __call__(self, p, times):
+        if os.getpid() == self.pid:
+            raise RuntimeError("simulated crash in the parent's part")
+        time.sleep(30)
+        raise RuntimeError("never reached: the part is stopped")
+
+
+def test_a_split_batch_whose_own_part_raises_stops_its_forked_parts():
+    """solve_split: an error in this process's part propagates at once and leaves no forked
+    part running (a part blocked on a full pipe would otherwise outlive the error)."""
+    import multiprocessing as mp
+
+    import solderpyro.executor as exe
+
+    if not exe._can_fork():
+        pytest.skip("no fork on this platform")
+    t0 = time.perf_counter()
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        exe.solve_split(_ParentFails(), _params(4), SEED_TIMES, list(ANAND_NAMES), 2)
+    assert time.perf_counter() - t0 < 20 and not mp.active_children()

@@ -19,6 +19,7 @@ import pytest
 import torch
 
 from solderpyro.design import lhs
+from solderpyro.executor import InProcess
 from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import MeshSpec
 from solderpyro.fem.problem import AnandSolder, Problem
@@ -228,7 +229,8 @@ def test_doe_stores_failed_members_and_never_recomputes_them(tmp_path, caplog):
     assert 0 < n_fail < len(params)
     store, solver = RunStore(tmp_path), FakeSolver()
     with caplog.at_level(logging.DEBUG, logger="solderpyro"):  # the summary line is DEBUG
-        res = run_doe(solver, store, "cfg", params, SEED_TIMES, batch_size=4, progress=False)
+        res = run_doe(solver, store, "cfg", params, SEED_TIMES, batch_size=4, progress=False,
+                      executor=InProcess(processes=1))  # one process: its calls are all
     assert solver.calls == [4, 4, 2] and (res.n_reused, res.n_computed) == (0, 10)
     assert res.V.shape == (12, 4, 2) and res.n_failed == n_fail
     assert torch.isnan(res.V[~res.ok]).all() and torch.isfinite(res.V[res.ok]).all()
@@ -250,10 +252,11 @@ def test_doe_crash_keeps_finished_batches(tmp_path):
     store = RunStore(tmp_path)
     with pytest.raises(RuntimeError, match="simulated crash"):
         run_doe(FakeSolver(fail_at=2), store, "cfg", params, SEED_TIMES, batch_size=2,
-                progress=False)
+                progress=False, executor=InProcess(processes=1))
     assert len(store.records("cfg")) == 4
     solver = FakeSolver()
-    res = run_doe(solver, store, "cfg", params, SEED_TIMES, batch_size=2, progress=False)
+    res = run_doe(solver, store, "cfg", params, SEED_TIMES, batch_size=2, progress=False,
+                  executor=InProcess(processes=1))
     assert (res.n_reused, res.n_computed, solver.calls) == (4, 2, [2])
 
 
