@@ -486,12 +486,16 @@ def test_the_final_posteriors_coordinates_and_ess_bar_are_settings():
     p = build_parser()
     a, rest = p.parse_known_args(["calibrate", "--data", "d.csv", "--out", "o",
                                   "calibration.sampler.min_ess=0",
+                                  "calibration.sampler.max_rhat=1.02",
                                   "calibration.sampler.final_ridge=false"])
     ov = _split_overrides(rest)
     s = _settings(a, _setup(ov), ov)
-    assert (s.sampler.min_ess, s.sampler.final_ridge) == (0, False)
+    assert (s.sampler.min_ess, s.sampler.max_rhat, s.sampler.final_ridge) == (0, 1.02, False)
+    assert SamplerSettings().max_rhat == 1.01  # issue 18's bar, the default
     with pytest.raises(ValueError, match="sampler.min_ess"):
         CalibrationSettings(sampler=SamplerSettings(min_ess=-1)).validate()
+    with pytest.raises(ValueError, match="sampler.max_rhat"):
+        CalibrationSettings(sampler=SamplerSettings(max_rhat=0.99)).validate()
     with pytest.raises(ValueError, match="sampler.final_accept"):
         CalibrationSettings(sampler=SamplerSettings(final_accept=1.0)).validate()
     with pytest.raises(ValueError, match="sampler.final_ridge"):
