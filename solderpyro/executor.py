@@ -189,7 +189,7 @@ def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Seq
         return solve_batch(solver, P, times, names)
 
     ctx = mp.get_context("fork")
-    idx = [c for c in torch.arange(len(P)).tensor_split(parts)]
+    idx = list(torch.arange(len(P)).tensor_split(parts))
     kids = []
     for rows in idx[1:]:
         r, w = ctx.Pipe(duplex=False)

@@ -494,23 +494,21 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
         if same:
             assert warm is not None and q0 is not None
             rmap = warm.mapped[0]
-        elif ridge not in ("never", "same"):
-            rmap = ridge_map(warm, names, bent=ridge == "auto")
-        if same:
-            assert warm is not None and q0 is not None
             f = rmap.wrap(f)
             q0 = rmap.inverse(q0)
             inv0, step0 = warm.mapped[1], warm.mapped[2]
             log.log(lvl, "NUTS: the chains run on in the ridge coordinates they sampled in")
-        elif rmap is not None:
-            assert warm is not None and warm.draws is not None and q0 is not None
-            f = rmap.wrap(f)
-            q0 = rmap.inverse(q0)
-            W = rmap.inverse(warm.draws)
-            inv0 = np.cov(W.T) if full_mass else W.var(0)
-            step0 = None  # the step search starts afresh in the new coordinates
-            log.log(lvl, "NUTS: in ridge coordinates fitted to %d draws of the previous "
-                    "posterior", len(warm.draws))
+        elif ridge not in ("never", "same"):
+            rmap = ridge_map(warm, names, bent=ridge == "auto")
+            if rmap is not None:
+                assert warm is not None and warm.draws is not None and q0 is not None
+                f = rmap.wrap(f)
+                q0 = rmap.inverse(q0)
+                W = rmap.inverse(warm.draws)
+                inv0 = np.cov(W.T) if full_mass else W.var(0)
+                step0 = None  # the step search starts afresh in the new coordinates
+                log.log(lvl, "NUTS: in ridge coordinates fitted to %d draws of the previous "
+                        "posterior", len(warm.draws))
         res = sample_nuts(f, fm.dim, chains, warmup, draws, seed, q0,
                           target_accept if rmap is None else
                           max(target_accept, MAPPED_ACCEPT if mapped_accept is None

@@ -136,11 +136,7 @@ class _PosteriorColumns:
 
     def __init__(self, gp: GPSurrogate, S: torch.Tensor) -> None:
         self.gp = gp
-        u = gp._unit(S)
-        self.u = u.expand(gp._u.shape[0], *u.shape)  # (k, M, d')
-        ks = gp._os[:, None, None] * gp._corr(self.u, gp._u)  # (k, M, n)
-        self.v = torch.linalg.solve_triangular(gp._chol, ks.transpose(-1, -2),
-                                               upper=False)  # (k, n, M)
+        self.u, _, self.v = gp._cross(S)  # (k, M, d'), (k, n, M)
 
     def diag(self) -> torch.Tensor:
         """``(k, M)`` the variances."""
@@ -198,8 +194,9 @@ def greedy_draws(gp: GPSurrogate, criterion: str, mc_theta: torch.Tensor,
         # the coefficients' posterior covariance is kept as the prior one minus the rank-1
         # terms of the runs conditioned on so far, and only its diagonal and draws x
         # candidates block are formed: the full (k, N + C + P, N + C + P) matrix and its
-        # rank-1 updates were 3.0 of 3.5 s per design round (20 components, 256 draws, 512
-        # candidates, q 8 + 4 pending; now 0.4 s, the same choices: tests/unit/test_design.py)
+        # rank-1 updates took 2.9 s per design round on one thread (20 components, 256 draws,
+        # 512 candidates, q 8 + 4 pending; 6.8 s on a busy machine), this 0.5 s, the same choices
+        # (benchmarks/round_costs.py; tests/unit/test_design.py)
         d_all = cols.diag()  # (k, N + C + P)
         X = cols.block(slice(0, N), slice(N, N + C))  # (k, N, C)
         W: list[torch.Tensor] = []  # the rank-1 terms w (k, N + C + P), cov = cov0 - sum w w^T

@@ -287,12 +287,18 @@ class GPSurrogate:
         return 0.5 / self._ls.square()
 
     # --------------------------------------------------------------- prediction
-    def _coef(self, x: torch.Tensor, full_cov: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    def _cross(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """For physical inputs ``x (n*, d)``: the GP inputs ``u (k, n*, d')``, the
+        covariances with the runs ``ks (k, n*, n)`` and ``v = L^-1 ks^T (k, n, n*)``."""
         u = self._unit(x)
         u = u.expand(self._u.shape[0], *u.shape)  # (k, n*, d')
         ks = self._os[:, None, None] * self._corr(u, self._u)  # (k, n*, n)
-        mean = self._prior_mean(u) + (ks * self._alpha[:, None, :]).sum(-1)  # (k, n*)
         v = torch.linalg.solve_triangular(self._chol, ks.transpose(-1, -2), upper=False)
+        return u, ks, v
+
+    def _coef(self, x: torch.Tensor, full_cov: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        u, ks, v = self._cross(x)
+        mean = self._prior_mean(u) + (ks * self._alpha[:, None, :]).sum(-1)  # (k, n*)
         if full_cov:
             kss = self._os[:, None, None] * self._corr(u, u)
             return mean, kss - v.transpose(-1, -2) @ v  # (k, n*, n*)
