@@ -29,10 +29,10 @@ from pathlib import Path
 import torch
 
 _DIR = Path(__file__).resolve().parent
-SOURCES = ("anand.c", "linalg.c", "pool.c")
+SOURCES = ("anand.c", "linalg.c", "pool.c", "reduced.c")
 HEADERS = ("anand_simd.h", "pool.h")
 CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fno-math-errno",
-          "-pthread")
+          "-pthread", "-fopenmp-simd")
 #: Tried in order: glibc's vector math library (the 4-lane Anand update on AVX2), then without.
 VARIANTS = ((("-DSP_MVEC",), ("-lmvec", "-lm")), ((), ("-lm",)))
 
@@ -141,7 +141,9 @@ def _declare(lib: ctypes.CDLL) -> None:
             ("sp_solder_eval", I, [dims, *([P] * 17), P, P, I, *([P] * 12), I, I]),
             ("sp_dezz", None, [dims, *([P] * 8), P]),
             ("sp_bb_factor", None, [dims, *([P] * 7), L, P, P, P, P, P, P, L, P, I, P, L, P, I]),
-            ("sp_bb_solve", None, [dims, P, P, P, L, P, P, P, P, I])):
+            ("sp_bb_solve", None, [dims, P, P, P, L, P, P, P, P, I]),
+            ("sp_reduced_work_size", L, [P]),
+            ("sp_reduced_loglik", I, [P, P, P, P, ctypes.c_double, P, P])):
         f = getattr(lib, name)
         f.restype = res
         f.argtypes = args
@@ -396,3 +398,71 @@ def dezz(du, szz, edof, B, tangent):
     lib.sp_dezz(dims, _ptr(duc), _ptr(szc), _ptr(edof), _ptr(B),
                 *(_ptr(t) for t in tg), _ptr(out))
     return out
+
+
+class ReducedLoglik:
+    """The reduced PCA log density and its gradient in one native call
+    (``reduced.c``: :class:`~solderpyro.calibration.reduced.ComponentGPs`, its vector-Jacobian
+    product and ``PCAReduction._loglik_projected``, fused).
+
+    Args (NumPy float64 arrays, kept referenced here):
+        U: ``(n_sim, d')`` GP training inputs; os: ``(K,)`` outputscales; inv_ls2: ``(K, d')``
+        inverse squared lengthscales; c0: ``(K,)`` constant means; w: ``(K, d')`` linear
+        means or None; alpha: ``(K, n_sim)``; linv: ``(K, n_sim, n_sim)`` inverse Cholesky
+        factors (lower); matern: Matern 5/2 (else Gaussian) kernel; Mq ``(rows, L + 1)``, mt
+        ``(L + 1,)``, mid, half, tol: the truncation variance's moment series
+        (``_WeightMoments``); d: ``(n,)`` truncation variance, um^2; Qt: ``(rows, n)`` the
+        sums' rows.
+    Raises:
+        RuntimeError: no native library (check :func:`library` first).
+    """
+
+    def __init__(self, U, os, inv_ls2, c0, w, alpha, linv, matern: bool, Mq, mt, mid: float,
+                 half: float, tol: float, d, Qt) -> None:
+        import numpy as np
+
+        lib = library()
+        if lib is None:
+            raise RuntimeError("the native kernels are not available")
+        c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+        self._keep = [c(a) for a in (U, os, inv_ls2, c0, alpha, linv, Mq, mt, d, Qt)]
+        Uc, osc, ils, c0c, al, li, Mqc, mtc, dc, Qtc = self._keep
+        wc = None if w is None else c(w)
+        if wc is not None:
+            self._keep.append(wc)
+        K, ns = al.shape
+        dp = Uc.shape[1]
+        rows, L1 = Mqc.shape
+        if L1 > 128:
+            raise ValueError(f"ReducedLoglik: at most 127 series terms, got {L1 - 1}")
+        self.K, self.dp = K, dp
+        self._dims = (ctypes.c_long * 8)(K, ns, dp, rows, dc.shape[0], int(matern),
+                                         int(wc is not None), L1 - 1)
+        addr = lambda a: None if a is None else a.ctypes.data  # noqa: E731
+        low = np.tril_indices(ns)
+        self._keep[5] = li = c(li[:, low[0], low[1]])  # (K, ns (ns + 1) / 2): rows packed
+        self._ptrs = (ctypes.c_void_p * 11)(*(addr(a) for a in (
+            Uc, osc, ils, c0c, wc, al, li, Mqc, mtc, dc, Qtc)))
+        self._sc = np.array([mid, half, tol])
+        self._work = np.empty(int(lib.sp_reduced_work_size(ctypes.addressof(self._dims))))
+        self._u = np.empty(dp)
+        self._out = np.empty(2 + dp + 2 * K)
+        self._f = lib.sp_reduced_loglik
+        self._args = (ctypes.addressof(self._dims), ctypes.addressof(self._ptrs),
+                      self._sc.ctypes.data, self._u.ctypes.data)
+        self._tail = (self._out.ctypes.data, self._work.ctypes.data)
+
+    def __call__(self, u, sigma: float):
+        """``u (d',)`` GP inputs, ``sigma`` (um) -> ``(ll, d ll/du (d',), d ll/dsigma, c (K,),
+        v (K,))`` (fresh arrays).
+
+        Raises:
+            FloatingPointError: ``I + V^1/2 A V^1/2`` not positive definite (non-finite input).
+        """
+        self._u[:] = u
+        if self._f(*self._args, sigma, *self._tail) != 0:
+            raise FloatingPointError("reduced likelihood: I + V^1/2 A V^1/2 is not positive "
+                                     "definite (non-finite inputs?)")
+        o, dp, K = self._out, self.dp, self.K
+        return (float(o[0]), o[1:1 + dp].copy(), float(o[1 + dp]), o[2 + dp:2 + dp + K].copy(),
+                o[2 + dp + K:].copy())

@@ -248,6 +248,27 @@ class PCAReduction:
         return ll, g, gv, sigma * (zz - tr), None
 
 
+def native_loglik(gps: ComponentGPs, red: PCAReduction) -> Any:
+    """The fused native version of ``red.loglik(*gps(u)[:2], sigma, None)`` with the
+    gradient chained back to ``u`` (:class:`solderpyro._native.ReducedLoglik`: ``(u (d',),
+    sigma) -> (ll, d ll/du (d',), d ll/dsigma, c (K,), v (K,))``), or None where the native
+    kernels are switched off or unavailable (then the NumPy path serves).
+
+    Why: per gradient of the loop's final posterior (K 20, 91 runs, n 2,240) the NumPy
+    component GPs, their vector-Jacobian product and the reduced likelihood took 128 of 239 us,
+    almost all of it call overhead on arrays of 20-91 values (BENCHMARKS.md issue 18, session
+    30); the native call takes ~15 us.
+    """
+    from solderpyro import _native
+
+    if _native.library() is None:
+        return None
+    mo = red._moments
+    return _native.ReducedLoglik(gps.U, gps.os, gps.inv_ls2, gps.c0, gps.w, gps.alpha, gps.linv,
+                                 gps.kernel != "gaussian", mo.Mq, mo.mt, mo.mid, mo.half, mo.TOL,
+                                 red.d, red._Qt)
+
+
 class _WeightMoments:
     """The sums ``Q^T w``, ``Q^T w^2``, ``sum w`` and ``sum log w`` over the n outputs, with
     ``w_i = 1 / (d_i + s)``, from moments of ``d`` computed once.
@@ -408,11 +429,19 @@ def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
         obox = Box(tuple(inp.theta_box.names[n_fe:]), tuple(inp.theta_box.lower[n_fe:]),
                    tuple(inp.theta_box.upper[n_fe:]), tuple(inp.theta_box.log_scale[n_fe:]))
 
+    fused = native_loglik(gps, red) if offset is None else None
+
     def loglik(x: np.ndarray) -> tuple[float, np.ndarray]:
         s = float(x[p])
         if not s * s > 0.0:  # sigma (or its square) underflowed to 0: zero density
             return -math.inf, np.zeros(p + 1)
         u, du = umap(x[:p])
+        if fused is not None:
+            ll, gu, gs, _, _ = fused(u, s)
+            g = np.zeros(p + 1)
+            g[:n_fe] = gu @ du
+            g[p] = gs
+            return ll, g
         c, v, vjp = gps(u)
         off_np = None
         if offset is not None:

@@ -215,3 +215,36 @@ def test_bad_input_is_named(gps):
     swapped = Box(("QR", "s0", "xi", "m"), (7000.0, 5.0, 1.0, 0.05), (13000.0, 25.0, 5.0, 0.5))
     with pytest.raises(ValueError, match="surrogate's inputs"):
         pca_flat(prepare_observation(_y(gp), GPEmulator(gp), swapped), Priors())
+
+
+@pytest.mark.parametrize("name", ["matern-flow", "gauss-raw-linear"])
+def test_native_reduced_likelihood_equals_numpy(gps, name):
+    """The fused native kernel (solderpyro/_native/reduced.c) gives the NumPy path's component
+    means and variances, log density and gradients (in the GP inputs and sigma), with sigma
+    from where the moment series serves to where the direct sums over the outputs do. The
+    tolerance: the gradient in u is e - A P e, a difference of terms ~cond(I + V^1/2 A V^1/2)
+    times larger (here up to ~1e5), so the two summation orders differ there by ~1e-16 x 1e5."""
+    from solderpyro import _native
+    from solderpyro.calibration.reduced import ComponentGPs, native_loglik
+
+    if _native.library() is None:
+        pytest.skip("no C compiler: the native kernels are unavailable")
+    gp = gps[name]
+    red, cg = PCAReduction(gp, _y(gp)), ComponentGPs(gp)
+    fused = native_loglik(cg, red)
+    rng = np.random.default_rng(5)
+    paths = set()
+    for _ in range(40):
+        u = rng.uniform(-0.1, 1.1, cg.U.shape[1])
+        s = float(np.exp(rng.uniform(math.log(1e-3), math.log(1.0))))
+        paths.add(red._moments(s * s) is None)
+        c, v, vjp = cg(u)
+        ll, gc, gv, gs, _ = red.loglik(c, v, s, None)
+        gu = vjp(gc, gv)
+        ll2, gu2, gs2, c2, v2 = fused(u, s)
+        np.testing.assert_allclose(c2, c, rtol=1e-12, atol=1e-12 * np.abs(c).max())
+        np.testing.assert_allclose(v2, v, rtol=1e-9, atol=1e-12 * cg.os.max())
+        assert abs(ll2 - ll) <= 1e-10 * abs(ll), (s, ll, ll2)
+        assert abs(gs2 - gs) <= 1e-8 * abs(gs) + 1e-10 * abs(ll), (s, gs, gs2)
+        np.testing.assert_allclose(gu2, gu, rtol=1e-6, atol=1e-8 * np.abs(gu).max())
+    assert paths == {True, False}, "both the series and the direct sums must be exercised"
