@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 _DIR = Path(__file__).resolve().parent
-SOURCES = ("anand.c", "linalg.c", "pool.c", "reduced.c")
+SOURCES = ("anand.c", "linalg.c", "pool.c", "reduced.c", "ridgemap.c")
 HEADERS = ("anand_simd.h", "pool.h")
 CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fno-math-errno",
           "-pthread", "-fopenmp-simd")
@@ -143,7 +143,9 @@ def _declare(lib: ctypes.CDLL) -> None:
             ("sp_bb_factor", None, [dims, *([P] * 7), L, P, P, P, P, P, P, L, P, I, P, L, P, I]),
             ("sp_bb_solve", None, [dims, P, P, P, L, P, P, P, P, I]),
             ("sp_reduced_work_size", L, [P]),
-            ("sp_reduced_loglik", I, [P, P, P, P, ctypes.c_double, P, P])):
+            ("sp_reduced_loglik", I, [P, P, P, P, ctypes.c_double, P, P]),
+            ("sp_ridge_forward", None, [L, *([P] * 9)]),
+            ("sp_ridge_vjp", None, [L, *([P] * 7)])):
         f = getattr(lib, name)
         f.restype = res
         f.argtypes = args
@@ -466,3 +468,49 @@ class ReducedLoglik:
         o, dp, K = self._out, self.dp, self.K
         return (float(o[0]), o[1:1 + dp].copy(), float(o[1 + dp]), o[2 + dp:2 + dp + K].copy(),
                 o[2 + dp + K:].copy())
+
+
+class RidgeMapKernel:
+    """:class:`~solderpyro.calibration.ridgemap.RidgeMap`'s one-point ``forward`` and ``vjp``
+    in C (``ridgemap.c``).
+
+    Args (NumPy float64): mean, sd, span, c0 ``(d,)``; b ``(d, d)`` (row k: ``b_k`` in its
+        first k columns); A, S ``(d, d, d)`` (``A_k``, ``S_k`` in the leading ``(k, k)``
+        block).
+    Raises:
+        RuntimeError: no native library; ValueError: d > 64.
+    """
+
+    def __init__(self, mean, sd, span, c0, b, A, S) -> None:
+        import numpy as np
+
+        lib = library()
+        if lib is None:
+            raise RuntimeError("the native kernels are not available")
+        self.d = d = len(mean)
+        if d > 64:
+            raise ValueError(f"RidgeMapKernel: at most 64 coordinates, got {d}")
+        c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+        self._keep = [c(a) for a in (mean, sd, span, c0, b, A, S)]
+        mean, sd, span, c0, b, A, S = (a.ctypes.data for a in self._keep)
+        self._w, self._q, self._z = np.empty(d), np.empty(d), np.empty(d)
+        self._g, self._out = np.empty(d), np.empty(d)
+        fargs = (d, mean, sd, span, c0, b, A, self._w.ctypes.data, self._q.ctypes.data,
+                 self._z.ctypes.data)
+        vargs = (d, sd, span, b, S, self._z.ctypes.data, self._g.ctypes.data,
+                 self._out.ctypes.data)
+        self._fwd = lambda: lib.sp_ridge_forward(*fargs)  # noqa: E731
+        self._vjp = lambda: lib.sp_ridge_vjp(*vargs)  # noqa: E731
+
+    def forward(self, w):
+        """``w (d,)`` -> ``q (d,)``, ``z (d,)`` (fresh arrays)."""
+        self._w[:] = w
+        self._fwd()
+        return self._q.copy(), self._z.copy()
+
+    def vjp(self, z, g):
+        """``(dq/dw)^T g (d,)`` at standardized ``z (d,)`` (a fresh array)."""
+        self._z[:] = z
+        self._g[:] = g
+        self._vjp()
+        return self._out.copy()

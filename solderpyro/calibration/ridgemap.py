@@ -176,13 +176,34 @@ class RidgeMap:
             a[:k] += a[k] * (self._b[k] + self._S[k] @ hk) * dh[:k]
         return a
 
+    def native(self) -> object | None:
+        """The one-point :meth:`forward` and :meth:`vjp` in C
+        (:class:`solderpyro._native.RidgeMapKernel`, the same formulas), or None where the
+        native kernels are unavailable. Why: in NumPy the map cost 36 us of a 137 us gradient
+        of the loop's final posterior (~60 calls on vectors of d values); in C ~3 us."""
+        from solderpyro import _native
+
+        if _native.library() is None or self.d > 64:
+            return None
+        d = self.d
+        b, A, S = np.zeros((d, d)), np.zeros((d, d, d)), np.zeros((d, d, d))
+        for k in range(1, d):
+            b[k, :k] = self._b[k]
+            A[k, :k, :k] = self._A[k]
+            S[k, :k, :k] = self._S[k]
+        return _native.RidgeMapKernel(self.mean, self.sd, self.span, np.asarray(self._c0), b,
+                                      A, S)
+
     def wrap(self, logp_and_grad: LogpGrad) -> LogpGrad:
         """The log density and gradient in ``w`` of one in ``q`` (the same density: the
-        Jacobian's determinant is the constant ``prod sd``)."""
+        Jacobian's determinant is the constant ``prod sd``); through :meth:`native` where
+        available."""
+        kern = self.native()
+        fwd, vjp = (self.forward, self.vjp) if kern is None else (kern.forward, kern.vjp)
 
         def f(w: np.ndarray) -> tuple[float, np.ndarray]:
-            q, z = self.forward(w)
+            q, z = fwd(w)
             lp, g = logp_and_grad(q)
-            return lp, self.vjp(z, g)
+            return lp, vjp(z, g)
 
         return f
