@@ -453,6 +453,7 @@ class ReducedLoglik:
         self._args = (ctypes.addressof(self._dims), ctypes.addressof(self._ptrs),
                       self._sc.ctypes.data, self._u.ctypes.data)
         self._tail = (self._out.ctypes.data, self._work.ctypes.data)
+        self._lock = threading.Lock()
 
     def __call__(self, u, sigma: float):
         """``u (d',)`` GP inputs, ``sigma`` (um) -> ``(ll, d ll/du (d',), d ll/dsigma, c (K,),
@@ -461,13 +462,14 @@ class ReducedLoglik:
         Raises:
             FloatingPointError: ``I + V^1/2 A V^1/2`` not positive definite (non-finite input).
         """
-        self._u[:] = u
-        if self._f(*self._args, sigma, *self._tail) != 0:
-            raise FloatingPointError("reduced likelihood: I + V^1/2 A V^1/2 is not positive "
-                                     "definite (non-finite inputs?)")
         o, dp, K = self._out, self.dp, self.K
-        return (float(o[0]), o[1:1 + dp].copy(), float(o[1 + dp]), o[2 + dp:2 + dp + K].copy(),
-                o[2 + dp + K:].copy())
+        with self._lock:  # the buffers are this object's: one call at a time
+            self._u[:] = u
+            if self._f(*self._args, sigma, *self._tail) != 0:
+                raise FloatingPointError("reduced likelihood: I + V^1/2 A V^1/2 is not positive "
+                                         "definite (non-finite inputs?)")
+            return (float(o[0]), o[1:1 + dp].copy(), float(o[1 + dp]),
+                    o[2 + dp:2 + dp + K].copy(), o[2 + dp + K:].copy())
 
 
 class RidgeMapKernel:
@@ -501,16 +503,19 @@ class RidgeMapKernel:
                  self._out.ctypes.data)
         self._fwd = lambda: lib.sp_ridge_forward(*fargs)  # noqa: E731
         self._vjp = lambda: lib.sp_ridge_vjp(*vargs)  # noqa: E731
+        self._lock = threading.Lock()
 
     def forward(self, w):
         """``w (d,)`` -> ``q (d,)``, ``z (d,)`` (fresh arrays)."""
-        self._w[:] = w
-        self._fwd()
-        return self._q.copy(), self._z.copy()
+        with self._lock:  # the buffers are this object's: one call at a time
+            self._w[:] = w
+            self._fwd()
+            return self._q.copy(), self._z.copy()
 
     def vjp(self, z, g):
         """``(dq/dw)^T g (d,)`` at standardized ``z (d,)`` (a fresh array)."""
-        self._z[:] = z
-        self._g[:] = g
-        self._vjp()
-        return self._out.copy()
+        with self._lock:
+            self._z[:] = z
+            self._g[:] = g
+            self._vjp()
+            return self._out.copy()

@@ -248,3 +248,24 @@ def test_native_reduced_likelihood_equals_numpy(gps, name):
         assert abs(gs2 - gs) <= 1e-8 * abs(gs) + 1e-10 * abs(ll), (s, gs, gs2)
         np.testing.assert_allclose(gu2, gu, rtol=1e-6, atol=1e-8 * np.abs(gu).max())
     assert paths == {True, False}, "both the series and the direct sums must be exercised"
+
+
+def test_without_native_kernels_the_numpy_path_gives_the_same_flat_density(gps, monkeypatch):
+    """Where no compiler is found (``library()`` None) the flat model and the ridge map run
+    in NumPy and give the same log density and gradient as the native path."""
+    from solderpyro import _native
+    from solderpyro.calibration.ridgemap import RidgeMap
+
+    gp = gps["matern-flow"]
+    inp = prepare_observation(_y(gp), GPEmulator(gp), ANAND)
+    pr = Priors(sigma_max=2.0)
+    rng = np.random.default_rng(8)
+    Q = rng.normal(0, 1, (300, 5)) @ np.triu(rng.normal(0, 0.3, (5, 5)) + np.eye(5))
+    Q[:, 1] += 0.4 * Q[:, 0] ** 2
+    fa = RidgeMap(Q).wrap(pca_flat(inp, pr).logp_and_grad)
+    monkeypatch.setattr(_native, "library", lambda: None)
+    fb = RidgeMap(Q).wrap(pca_flat(inp, pr).logp_and_grad)
+    for w in rng.normal(0, 1.5, (10, 5)):
+        (la, ga), (lb, gb) = fa(w), fb(w)
+        assert abs(la - lb) <= 1e-9 * max(1.0, abs(lb)), (la, lb)
+        np.testing.assert_allclose(ga, gb, rtol=1e-6, atol=1e-8 * np.abs(gb).max())
