@@ -9,6 +9,10 @@ store) and times, one thread, median of 5 repeats each, side by side:
   likelihood) at 600 of the run's posterior draws: the sigma-dependent sums from the moments
   of the truncation variance (``reduced._WeightMoments``, the default) against the sums over
   every output (the series switched off);
+- the same gradient in the ridge coordinates the sampler uses (``RidgeMap.wrap``, the map
+  fitted to the 600 draws), with the native kernels (``reduced.c``, ``ridgemap.c``: the
+  default where a C compiler is found) against the NumPy path they replaced, and the largest
+  differences of log density and gradient between the two (session 30);
 - the design's acquisition (``greedy_draws``, 256 draws, 512 candidates, q = 8, 4 pending,
   the loglik criterion): the kept low-rank form against the full covariance matrix with
   rank-1 updates it replaced (:func:`_greedy_full`, kept here as the reference), with the
@@ -107,6 +111,12 @@ def main() -> None:
         return (_median_time(grads) / len(Q),
                 np.array([model.logp_and_grad(q)[0] for q in Q[:50]]))
 
+    from solderpyro import _native
+    from solderpyro.calibration.ridgemap import RidgeMap
+
+    lib = _native.library
+    _native.library = lambda: None  # the series against the sums: both in NumPy (session 29)
+    fm = flat_model(observation_model, (inp, sm.priors))
     t_series, lp_series = timed_gradients(fm)
     saved = PCAReduction.__init__
 
@@ -119,12 +129,36 @@ def main() -> None:
         fm_direct = flat_model(observation_model, (inp, sm.priors))
     finally:
         PCAReduction.__init__ = saved  # type: ignore[method-assign]
-
     t_direct, lp_direct = timed_gradients(fm_direct)
+    _native.library = lib
     out["gradient_us"] = {"series": round(t_series * 1e6, 1), "direct": round(t_direct * 1e6, 1),
                           "ratio": round(t_direct / t_series, 2),
                           "max_abs_logp_difference": float(np.abs(lp_series - lp_direct).max())}
     print("gradient:", out["gradient_us"], flush=True)
+
+    rmap = RidgeMap(Q)
+    W = rmap.inverse(Q)
+    f_native = rmap.wrap(flat_model(observation_model, (inp, sm.priors)).logp_and_grad)
+    _native.library = lambda: None  # the NumPy path, as where no compiler is found
+    try:
+        f_numpy = rmap.wrap(flat_model(observation_model, (inp, sm.priors)).logp_and_grad)
+    finally:
+        _native.library = lib
+
+    def per_gradient(f) -> float:
+        for w in W:
+            f(w)
+        return _median_time(lambda: [f(w) for w in W]) / len(W)
+
+    t_nat, t_np = per_gradient(f_native), per_gradient(f_numpy)
+    pairs = [(f_native(w), f_numpy(w)) for w in W[:100]]
+    out["ridge_gradient_us"] = {
+        "native": round(t_nat * 1e6, 1), "numpy": round(t_np * 1e6, 1),
+        "ratio": round(t_np / t_nat, 2),
+        "max_rel_logp_difference": max(abs(a[0] - b[0]) / abs(b[0]) for a, b in pairs),
+        "max_rel_gradient_difference": max(float(np.abs(a[1] - b[1]).max()
+                                                 / np.abs(b[1]).max()) for a, b in pairs)}
+    print("gradient in ridge coordinates:", out["ridge_gradient_us"], flush=True)
 
     th = torch.as_tensor(T, dtype=torch.float64)
     mc = th[np.linspace(0, len(th) - 1, 256).round().astype(int)]

@@ -28,6 +28,7 @@ import torch
 
 from solderpyro.params import Box
 from solderpyro.surrogate.kernels import gaussian, matern52
+from solderpyro.surrogate.mll import mll_closure
 from solderpyro.surrogate.transforms import Standardizer
 
 
@@ -429,11 +430,14 @@ def _fit_mll(model: _BatchGP, restarts: int) -> None:
                                 line_search_fn="strong_wolfe", tolerance_grad=1e-9,
                                 tolerance_change=LBFGS_TOL_CHANGE * z.shape[0])
 
-        def closure(opt: torch.optim.LBFGS = opt) -> torch.Tensor:
+        def autograd_closure(opt: torch.optim.LBFGS = opt) -> torch.Tensor:
             opt.zero_grad()
             loss = -mll(model(x), z).sum()
             loss.backward()
             return loss
+
+        closure = (mll_closure(model, opt, autograd_closure)
+                   if x.dtype == torch.float64 and x.device.type == "cpu" else autograd_closure)
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", gpytorch.utils.warnings.NumericalWarning)
