@@ -415,7 +415,19 @@ LBFGS_TOL_CHANGE = 5e-6
 
 
 def _fit_mll(model: _BatchGP, restarts: int) -> None:
-    """Maximize the exact marginal likelihood; keep, per GP in the batch, the best restart."""
+    """Maximize the exact marginal likelihood; keep, per GP in the batch, the best restart.
+
+    BLAS runs on one thread here: the closure's products and factorizations are small
+    (``(k, n^2) x (n^2, d)``, ``n``-square Cholesky factors) and two OpenBLAS threads made a
+    fit of 86 runs 4.7x slower on two cores (10.6 s against 2.2 s; BENCHMARKS.md issue 18,
+    session 30)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        _fit_mll_restarts(model, restarts)
+
+
+def _fit_mll_restarts(model: _BatchGP, restarts: int) -> None:
     mll = gpytorch.mlls.ExactMarginalLogLikelihood(model.likelihood, model)
     x, z = model.train_inputs[0], model.train_targets
     best_state, best_loss = None, None
