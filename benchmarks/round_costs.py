@@ -13,6 +13,10 @@ store) and times, one thread, median of 5 repeats each, side by side:
   fitted to the 600 draws), with the native kernels (``reduced.c``, ``ridgemap.c``: the
   default where a C compiler is found) against the NumPy path they replaced, and the largest
   differences of log density and gradient between the two (session 30);
+- the surrogate's hyperparameter fit (``fit_surrogate`` on the run's converged design runs,
+  one thread): the marginal likelihood's loss and gradient in NumPy/LAPACK
+  (``surrogate/mll.py``, the default) against GPyTorch's autograd closure, with each fit's
+  summed negative log marginal likelihood (session 30);
 - the design's acquisition (``greedy_draws``, 256 draws, 512 candidates, q = 8, 4 pending,
   the loglik criterion): the kept low-rank form against the full covariance matrix with
   rank-1 updates it replaced (:func:`_greedy_full`, kept here as the reference), with the
@@ -159,6 +163,41 @@ def main() -> None:
         "max_rel_gradient_difference": max(float(np.abs(a[1] - b[1]).max()
                                                  / np.abs(b[1]).max()) for a, b in pairs)}
     print("gradient in ridge coordinates:", out["ridge_gradient_us"], flush=True)
+
+    import gpytorch
+
+    import solderpyro.surrogate.gp as gpmod
+    from solderpyro.pipeline.surrogate import fit_surrogate
+    from solderpyro.settings import CalibrationSettings
+
+    X = torch.as_tensor(gp._x_train)
+    Y = torch.as_tensor(gp._y_train)
+    s_med0 = float(np.median(sig))
+
+    def fit_once() -> tuple[float, float]:
+        t0 = time.perf_counter()
+        g = fit_surrogate(sm, CalibrationSettings().surrogate, X, Y, s_med0)
+        sec = time.perf_counter() - t0
+        mdl = g.model
+        mdl.train()
+        mll = gpytorch.mlls.ExactMarginalLogLikelihood(mdl.likelihood, mdl)
+        with torch.no_grad():
+            nll = -float(mll(mdl(mdl.train_inputs[0]), mdl.train_targets).sum()) * X.shape[0]
+        return sec, nll
+
+    new_fit = [fit_once() for _ in range(2)]
+    saved_closure = gpmod.mll_closure
+    gpmod.mll_closure = lambda model, opt, fallback: fallback  # GPyTorch's autograd closure
+    try:
+        old_fit = [fit_once() for _ in range(2)]
+    finally:
+        gpmod.mll_closure = saved_closure
+    t_new, t_old = min(f[0] for f in new_fit), min(f[0] for f in old_fit)
+    out["gp_fit_s"] = {"runs": int(X.shape[0]), "numpy_closure": round(t_new, 2),
+                       "gpytorch_autograd": round(t_old, 2), "ratio": round(t_old / t_new, 2),
+                       "neg_log_mll_numpy": round(new_fit[0][1], 3),
+                       "neg_log_mll_gpytorch": round(old_fit[0][1], 3)}
+    print("GP fit:", out["gp_fit_s"], flush=True)
 
     th = torch.as_tensor(T, dtype=torch.float64)
     mc = th[np.linspace(0, len(th) - 1, 256).round().astype(int)]
