@@ -126,7 +126,8 @@ int sp_reduced_loglik(const long *dims, void *const *ptr, const double *sc, cons
             const double *di = diff + i * dp;
             double r2 = 0.0;
             for (long l = 0; l < dp; ++l) r2 += di[l] * di[l] * il[l];
-            drho[k * ns + i] = matern ? sqrt(5.0) * sqrt(r2 > 1e-30 ? r2 : 1e-30) : r2;
+            /* (written so that a NaN distance stays NaN, as in NumPy) */
+            drho[k * ns + i] = matern ? sqrt(5.0) * sqrt(r2 < 1e-30 ? 1e-30 : r2) : r2;
         }
     }
     for (long j = 0; j < K * ns; ++j) kap[j] = (matern ? -1.0 : -0.5) * drho[j];

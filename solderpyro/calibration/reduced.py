@@ -437,7 +437,10 @@ def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
             return -math.inf, np.zeros(p + 1)
         u, du = umap(x[:p])
         if fused is not None:
-            ll, gu, gs, _, _ = fused(u, s)
+            try:
+                ll, gu, gs, _, _ = fused(u, s)
+            except FloatingPointError:  # non-finite inputs (the NumPy path gives NaN): the
+                return -math.inf, np.zeros(p + 1)  # sampler counts a divergence either way
             g = np.zeros(p + 1)
             g[:n_fe] = gu @ du
             g[p] = gs

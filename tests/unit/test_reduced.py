@@ -269,3 +269,19 @@ def test_without_native_kernels_the_numpy_path_gives_the_same_flat_density(gps, 
         (la, ga), (lb, gb) = fa(w), fb(w)
         assert abs(la - lb) <= 1e-9 * max(1.0, abs(lb)), (la, lb)
         np.testing.assert_allclose(ga, gb, rtol=1e-6, atol=1e-8 * np.abs(gb).max())
+
+
+def test_native_reduced_likelihood_non_finite_input_as_numpy(gps):
+    """A non-finite GP input (a leapfrog step gone far) gives a NaN log density on both paths
+    (the sampler counts a divergence), not an exception."""
+    from solderpyro import _native
+    from solderpyro.calibration.reduced import ComponentGPs, native_loglik
+
+    if _native.library() is None:
+        pytest.skip("no C compiler: the native kernels are unavailable")
+    gp = gps["matern-flow"]
+    red, cg = PCAReduction(gp, _y(gp)), ComponentGPs(gp)
+    u = np.array([0.5, np.nan, 0.5, 0.5])
+    c, v, _ = cg(u)
+    assert math.isnan(red.loglik(c, v, 0.05, None)[0])
+    assert math.isnan(native_loglik(cg, red)(u, 0.05)[0])
