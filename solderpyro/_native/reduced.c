@@ -12,7 +12,8 @@
  * dims: K, n_sim, d' (GP inputs), rows (= K(K+1)/2 + K + 1), n (outputs), kernel (0 gaussian,
  *       1 Matern 5/2), has_w (a linear mean), max_order (moment series' cap, < 128)
  * ptr:  U (n_sim, d'), os (K), inv_ls2 (K, d'), c0 (K), w (K, d') or NULL, alpha (K, n_sim),
- *       Linv (K, n_sim (n_sim + 1) / 2) lower triangles packed by rows, Mq (rows, max_order + 1), mt (max_order + 1), d (n),
+ *       Linv (K, n_sim (n_sim + 1) / 2) lower triangles packed by rows,
+ *       Mq (rows, max_order + 1), mt (max_order + 1), d (n),
  *       Qt (rows, n)
  * sc:   mid, half (of d's range), tol (series' tail bound)
  * out:  ll, d ll/du (d'), d ll/dsigma, c (K), v (K)
