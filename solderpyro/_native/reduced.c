@@ -7,7 +7,7 @@
  * PCAReduction._loglik_projected and _k_terms (NumPy), step by step; the only difference is
  * P = V^1/2 M^-1 V^1/2 formed from M's Cholesky factor instead of an LU inverse. Why C: the
  * NumPy version makes ~60 calls on arrays of 20-91 values per gradient, and the calls, not
- * the arithmetic, were 130 of its 150 us (tests/unit/test_native.py checks the two agree).
+ * the arithmetic, were most of its 128 us (tests/unit/test_reduced.py checks the two agree).
  *
  * dims: K, n_sim, d' (GP inputs), rows (= K(K+1)/2 + K + 1), n (outputs), kernel (0 gaussian,
  *       1 Matern 5/2), has_w (a linear mean), max_order (moment series' cap, < 128)
@@ -17,7 +17,7 @@
  *       Qt (rows, n)
  * sc:   mid, half (of d's range), tol (series' tail bound)
  * out:  ll, d ll/du (d'), d ll/dsigma, c (K), v (K)
- * work: reduced_work_size(dims) doubles
+ * work: sp_reduced_work_size(dims) doubles
  * Returns 0, or 1 when I + V^1/2 A V^1/2 is not positive definite (non-finite inputs).
  */
 #include <math.h>
