@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 _DIR = Path(__file__).resolve().parent
-SOURCES = ("anand.c", "linalg.c", "pool.c", "reduced.c", "ridgemap.c")
+SOURCES = ("anand.c", "linalg.c", "pool.c", "reduced.c", "ridgemap.c", "flowflat.c")
 HEADERS = ("anand_simd.h", "pool.h")
 CFLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fPIC", "-shared", "-fno-math-errno",
           "-pthread", "-fopenmp-simd")
@@ -145,7 +145,9 @@ def _declare(lib: ctypes.CDLL) -> None:
             ("sp_reduced_work_size", L, [P]),
             ("sp_reduced_loglik", I, [P, P, P, P, ctypes.c_double, P, P]),
             ("sp_ridge_forward", None, [L, *([P] * 9)]),
-            ("sp_ridge_vjp", None, [L, *([P] * 7)])):
+            ("sp_ridge_vjp", None, [L, *([P] * 7)]),
+            ("sp_flowflat_work_size", L, [P, L]),
+            ("sp_flowflat", I, [P] * 8)):
         f = getattr(lib, name)
         f.restype = res
         f.argtypes = args
@@ -519,3 +521,48 @@ class RidgeMapKernel:
             self._g[:] = g
             self._vjp()
             return self._out.copy()
+
+
+class FlowFlat:
+    """The full-field posterior's whole log density and gradient in one native call
+    (``flowflat.c``: :meth:`~solderpyro.calibration.flat.FlatModel.logp_and_grad` of
+    :func:`~solderpyro.calibration.reduced.pca_flat` in the soft-walled flow-stress
+    coordinates, without observation offsets).
+
+    Args:
+        dims: ``(p, sigma_positive, i_s0, i_qr, i_xi, i_m)``; par: the scalars and per-input
+            arrays ``flowflat.c`` lists (float64); reduced: the :class:`ReducedLoglik` of the
+            same surrogate and data.
+    Raises:
+        RuntimeError: no native library; ValueError: more than 64 parameters.
+    """
+
+    def __init__(self, dims, par, reduced: ReducedLoglik) -> None:
+        import numpy as np
+
+        lib = library()
+        if lib is None:
+            raise RuntimeError("the native kernels are not available")
+        p = int(dims[0])
+        if p > 64:
+            raise ValueError(f"FlowFlat: at most 64 parameters, got {p}")
+        self.dim = p + 1
+        self._red = reduced  # keeps its arrays alive
+        self._dims = (ctypes.c_long * 6)(*(int(v) for v in dims))
+        self._par = np.ascontiguousarray(par, dtype=np.float64)
+        rd = ctypes.addressof(reduced._dims)
+        self._work = np.empty(int(lib.sp_flowflat_work_size(rd, p)))
+        self._q = np.empty(p + 1)
+        self._out = np.empty(p + 2)
+        self._f = lib.sp_flowflat
+        self._args = (ctypes.addressof(self._dims), self._par.ctypes.data, rd,
+                      ctypes.addressof(reduced._ptrs), reduced._sc.ctypes.data,
+                      self._q.ctypes.data, self._out.ctypes.data, self._work.ctypes.data)
+        self._lock = threading.Lock()
+
+    def __call__(self, q):
+        """``q (p + 1,)`` the flat vector -> ``(log density, gradient (p + 1,))``."""
+        with self._lock:  # the buffers are this object's: one call at a time
+            self._q[:] = q
+            self._f(*self._args)
+            return float(self._out[0]), self._out[1:].copy()

@@ -84,6 +84,9 @@ class FlatModel:
         # the uniform priors' -log(hi - lo) and the Jacobians' +log(hi - lo) cancel exactly
         pos = [s for s in sites if s.positive]
         self._pos_idx = np.array([s.offset for s in pos], dtype=np.int64)
+        #: None, or the whole :meth:`logp_and_grad` compiled (``q -> (lp, g)``; e.g.
+        #: :class:`solderpyro._native.FlowFlat`, the same formulas), which it then calls
+        self.native: Any = None
 
     def logp_and_grad(self, q: np.ndarray) -> tuple[float, np.ndarray]:
         """Log posterior density (up to a constant) and its gradient at ``q (d,)``.
@@ -92,6 +95,8 @@ class FlatModel:
             (float, ``(d,)``): the log density of the unconstrained vector (log-Jacobians
             included), exactly Pyro's ``-potential_energy`` up to an additive constant.
         """
+        if self.native is not None:
+            return self.native(q)
         # interval transform on every coordinate (positive ones are overwritten below)
         with np.errstate(over="ignore"):  # q < -709: s = 0 (x at its lower bound)
             s = 1.0 / (1.0 + np.exp(-q))

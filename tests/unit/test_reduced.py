@@ -285,3 +285,41 @@ def test_native_reduced_likelihood_non_finite_input_as_numpy(gps):
     c, v, _ = cg(u)
     assert math.isnan(red.loglik(c, v, 0.05, None)[0])
     assert math.isnan(native_loglik(cg, red)(u, 0.05)[0])
+
+
+@pytest.mark.parametrize("extra", [False, True], ids=["anand", "anand+effect"])
+@pytest.mark.parametrize("pr", [Priors(sigma_known=0.05), Priors(sigma_max=2.0)],
+                         ids=["known", "flat"])
+def test_native_flow_flat_equals_the_python_flat_model(extra, pr):
+    """The whole flat log density in flow coordinates in one native call (flowflat.c, the
+    default where a compiler is found) equals FlatModel.logp_and_grad's Python path, at points
+    inside the box and far out on the soft walls (|q| up to 12), with and without a further
+    (logit) parameter beside the Anand constants, for both sigma priors."""
+    from solderpyro import _native
+
+    if _native.library() is None:
+        pytest.skip("no C compiler: the native kernels are unavailable")
+    if extra:
+        box = Box((*ANAND.names, "k"), (*ANAND.lower, -1.0), (*ANAND.upper, 1.0),
+                  log_scale=(*ANAND.log_scale, False))
+        th = lhs(box, 30, 1).to(DT)
+        y = _field(th[:, :4]) + 0.3 * th[:, 4:5]
+        gp = GPSurrogate(box, output="pca", kernel="matern52", mean="constant", ard=True,
+                         n_pc=4, inputs=FlowStressInputs(box, FIXED), restarts=1).fit(th, y)
+    else:
+        box = ANAND
+        gp = _gp("matern52", "constant", True)
+    fm = pca_flat(prepare_observation(_y(gp), GPEmulator(gp), box), pr)
+    assert fm.native is not None and fm.reparam is not None
+    nat = fm.native
+    rng = np.random.default_rng(11)
+    for scale in (0.8, 3.0, 12.0):
+        for _ in range(6):
+            q = rng.normal(0.0, scale, fm.dim)
+            q[-1] = math.log(0.05) + rng.normal(0.0, 0.3)
+            fm.native = nat
+            la, ga = fm.logp_and_grad(q)
+            fm.native = None
+            lb, gb = fm.logp_and_grad(q)
+            assert abs(la - lb) <= 1e-11 * max(1.0, abs(lb)), (q, la, lb)
+            np.testing.assert_allclose(ga, gb, rtol=1e-8, atol=1e-9 * np.abs(gb).max())
