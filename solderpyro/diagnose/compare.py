@@ -280,16 +280,22 @@ def plot_comparison(before: str | Path, after: str | Path, path: Path) -> str:
     allp = n0 + [p for p in names if p not in n0]
     axs = bot.subplots(1, len(allp), squeeze=False)[0]
     for ax, p in zip(axs, allp, strict=True):
-        for k, (zz, nm) in enumerate(((z[0], n0), (z[1], names))):
-            if p in nm:
-                ax.hist(zz["theta"][:, nm.index(p)], bins=40, density=True, histtype="step"
-                        if k else "stepfilled", color="C3" if k else "0.75", lw=1.5,
-                        label="after" if k else "before")
+        # shared bins, each histogram scaled to its own peak: a narrow "before" (e.g. the FE's
+        # best fit of a model that misfits) on a density scale flattened the "after" into
+        # its baseline
+        vals = [(k, zz["theta"][:, nm.index(p)])
+                for k, (zz, nm) in enumerate(((z[0], n0), (z[1], names))) if p in nm]
+        edges = np.histogram_bin_edges(np.concatenate([v for _, v in vals]), bins=50)
+        for k, v in vals:
+            c = np.histogram(v, bins=edges)[0].astype(float)
+            ax.stairs(c / max(c.max(), 1.0), edges, fill=not k, color="C3" if k else "0.75",
+                      lw=1.5, label="after" if k else "before")
         ax.set_title(p, fontsize=9)
         ax.set_yticks([])
         ax.tick_params(labelsize=7)
     axs[0].legend(fontsize=7)
-    bot.suptitle("Marginal posteriors before (grey) and after (red)", fontsize=9)
+    bot.suptitle("Marginal posteriors before (grey) and after (red), each scaled to its peak",
+                 fontsize=9)
     for zz in z:
         zz.close()
     fig.savefig(path, dpi=110)

@@ -92,7 +92,9 @@ def draw_maps(fig: Any, meas: Any, rows: Sequence[MapRow], sigma: float,
     for r, (label, vals, z) in enumerate(rows):
         vm = vall if shared else float(np.nanmax(np.abs(vals)))
         if not vm > 0:  # a denoised map with no structure above the noise: +-1 noise sd
-            vm, label = sigma, f"{label}: no structure above the noise"
+            vm = sigma
+        if not np.any(vals):  # said in words: a blank row (on a shared scale too) looked
+            label = f"{label}:\nno structure above the noise"  # like a plot that failed
         im = None
         for c, t in enumerate(times):
             ax = axes[r, c]

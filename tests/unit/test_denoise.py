@@ -104,3 +104,29 @@ def test_refit_fingerprints_add_up():
     np.testing.assert_allclose(fp.residual, fp.signature["a"] + fp.after["a"], atol=1e-12)
     assert fp.correlation["a"] == pytest.approx(shape_correlation(fp.signature["a"],
                                                                   fp.residual))
+
+
+def test_maps_say_in_words_when_a_row_has_no_structure():
+    """On a shared colour scale a row whose denoised residual is identically zero (nothing
+    above the noise) is labelled so, instead of showing a blank row that looks like a
+    failed plot; a row with structure gets no such label."""
+    from solderpyro.diagnose.plots import draw_maps
+    from solderpyro.fem.problem import reference_grid
+    from solderpyro.io.measurements import Measurements
+    from solderpyro.plots import plt
+
+    g = reference_grid()[1]
+    t = np.repeat([600.0, 4800.0], len(g))
+    xy = np.tile(g, (2, 1))
+    n = len(t)
+    meas = Measurements(t, np.full(n, np.nan), np.array([f"g{i}" for i in range(n)], object),
+                        xy[:, 0], xy[:, 1], np.full(n, "V", object), np.zeros(n),
+                        np.full(n, 0.05))
+    vals = 0.2 * np.sin(xy[:, 0] / 5.0)
+    fig = plt.figure()
+    draw_maps(fig, meas, [("before", vals, vals / 0.05), ("after", np.zeros(n), np.zeros(n))],
+              0.05, shared=True)
+    titles = [ax.get_title(loc="left") for ax in fig.axes if ax.get_title(loc="left")]
+    plt.close(fig)
+    assert any(s.startswith("before") and "no structure" not in s for s in titles)
+    assert any(s.startswith("after") and "no structure above the noise" in s for s in titles)
