@@ -61,6 +61,9 @@ class FlatModel:
             coordinates that ``coords`` (e.g. :class:`~.flowcoords.SoftFlowCoords`: methods
             ``forward(q (k,)) -> (t (k,), log|det dt/dq|, vjp)`` and ``inverse(t) -> q``)
             maps jointly instead of each by its logit; :attr:`coord_suffix` names them.
+        native: None, or the whole :meth:`logp_and_grad` compiled (``q (d,) -> (lp,
+            gradient (d,))``; :func:`~.reduced.pca_flat` sets it in flow coordinates where the
+            native kernels are built), which :meth:`logp_and_grad` then calls.
     """
 
     def __init__(self, sites: list[FlatSite], loglik: Any, prior_mu: float, prior_sd: float,
@@ -84,8 +87,6 @@ class FlatModel:
         # the uniform priors' -log(hi - lo) and the Jacobians' +log(hi - lo) cancel exactly
         pos = [s for s in sites if s.positive]
         self._pos_idx = np.array([s.offset for s in pos], dtype=np.int64)
-        #: None, or the whole :meth:`logp_and_grad` compiled (``q -> (lp, g)``; e.g.
-        #: :class:`solderpyro._native.FlowFlat`, the same formulas), which it then calls
         self.native: Any = None
 
     def logp_and_grad(self, q: np.ndarray) -> tuple[float, np.ndarray]:
