@@ -231,6 +231,57 @@ def test_the_fe_check_adds_observation_side_offsets_as_the_surrogate_does():
     assert max(last.fe_chi2) < 3 * len(y)  # ~ chi2(12), not ~ (2 x 0.3 / sigma)^2 per value
 
 
+def test_the_final_posterior_is_checked_in_every_chain_and_an_island_is_refitted_away():
+    """A surrogate that also "fits" the data at t = 0.2, where no FE run lies (an island only
+    the surrogate likes; the FE misfits there by thousands in chi-square): the rounds' posterior
+    does not reach it, the final one's second chain does. The FE check of every chain finds
+    the gap, its runs join the design, the refitted surrogate has no island, and the final
+    posterior drawn again is checked and agrees."""
+    base = _toy_problem()
+    y = base.y
+    island = torch.tensor([[0.2]], dtype=torch.float64)
+
+    def fit(X, Y):
+        if bool(((X - 0.2).abs() < 0.02).any()):
+            return base.fit(X, Y)  # an FE run there: the surrogate learns the misfit
+        fake = torch.cat([X, island + torch.tensor([[-0.004], [0.0], [0.004]])])
+        return base.fit(fake, torch.cat([Y, y.expand(3, -1)]))  # pretends y at t = 0.2
+
+    class Two:
+        n_chains = 2
+
+    finals = []
+
+    def sample(gp, prev, final):
+        with torch.no_grad():
+            has_island = float((gp.predict(island)[0] - y).abs().max()) < 0.1
+            mu, var = gp.predict(GRID)
+        ll = -0.5 * (((y - mu) ** 2) / (var + SIGMA**2) + torch.log(var + SIGMA**2)).sum(1)
+        ll[GRID[:, 0] < 0.4] = -math.inf  # short chains that never travel to t = 0.2
+        idx = torch.multinomial(torch.softmax(ll, 0), 400, replacement=True,
+                                generator=torch.Generator().manual_seed(0))
+        d = Draws(GRID[idx].sort(0).values, torch.full((400,), SIGMA, dtype=torch.float64))
+        if not final:
+            return d
+        finals.append(has_island)
+        t = d.theta.clone()
+        if has_island:  # the second chain sits in the island
+            t[len(t) // 2:] = 0.2 + 0.001 * torch.randn(len(t) - len(t) // 2, 1,
+                                                        generator=torch.Generator().manual_seed(1),
+                                                        dtype=torch.float64)
+        return Draws(t, d.sigma, posterior=Two())
+
+    s = LoopSettings(start=4, batch=2, check=3, budget=40, mc_points=100, candidates=200)
+    res = run_loop(LoopProblem(BOX1, y, base.fe, fit, sample), s, seed=0)
+    assert finals == [True, False]  # drawn again once, without the island
+    checks = [r for r in res.rounds if r.acquired == 0 and len(r.fe_chi2) == 4]
+    assert len(checks) >= 2 and not checks[-2].fe_ok and checks[-1].fe_ok
+    assert max(checks[-2].fe_chi2) > 1000 * len(y) ** 0.5  # the island, by the FE
+    assert bool(((res.X - 0.2).abs() < 0.01).any())  # its runs joined the design
+    assert float((res.draws.theta - 0.2).abs().min()) > 0.1  # the final draws left it
+    assert res.reason == "converged" and "first reached where only the surrogate" in res.message
+
+
 @pytest.mark.parametrize("model_fits", [False, True])
 def test_a_model_that_cannot_fit_stops_the_design_at_its_misfit_check(model_fits):
     """The problem's misfit test runs from round ``misfit_check`` on and at most once after
