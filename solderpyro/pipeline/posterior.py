@@ -112,4 +112,4 @@ def as_draws(sm: SpecimenModel, post: Posterior, inp: Any) -> Draws:
     """What the design loop needs of a posterior (FE parameters, sigma, offsets)."""
     t = post.flat("t").detach().to("cpu")
     return Draws(theta=t[:, :sm.n_fe], sigma=post.flat("sigma").detach().to("cpu"),
-                 offset=sm.offsets(t), posterior=(post, inp))
+                 offset=sm.offsets(t), posterior=(post, inp), chains=post.n_chains)

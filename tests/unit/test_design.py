@@ -247,9 +247,6 @@ def test_the_final_posterior_is_checked_in_every_chain_and_an_island_is_refitted
         fake = torch.cat([X, island + torch.tensor([[-0.004], [0.0], [0.004]])])
         return base.fit(fake, torch.cat([Y, y.expand(3, -1)]))  # pretends y at t = 0.2
 
-    class Two:
-        n_chains = 2
-
     finals = []
 
     def sample(gp, prev, final):
@@ -269,7 +266,7 @@ def test_the_final_posterior_is_checked_in_every_chain_and_an_island_is_refitted
             t[len(t) // 2:] = 0.2 + 0.001 * torch.randn(len(t) - len(t) // 2, 1,
                                                         generator=torch.Generator().manual_seed(1),
                                                         dtype=torch.float64)
-        return Draws(t, d.sigma, posterior=Two())
+        return Draws(t, d.sigma, chains=2)
 
     s = LoopSettings(start=4, batch=2, check=3, budget=40, mc_points=100, candidates=200)
     res = run_loop(LoopProblem(BOX1, y, base.fe, fit, sample), s, seed=0)
