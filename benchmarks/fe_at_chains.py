@@ -1,0 +1,61 @@
+"""The FE's chi-square at draws of every chain of a finished run (issue 19, session 30).
+
+    python benchmarks/fe_at_chains.py RUN_DIR [--per-chain 3] [--json OUT.json]
+
+Reads the run's posterior (posterior.nc), its setup (run.json: overrides, data, store) and
+solves the FE (through the run store: no solve where it holds the row) at ``--per-chain``
+draws spread through each chain; prints, per draw, the parameters and the FE's chi-square
+(noise sd from the data's sigma_um, 0.05 um in the reference case). A chain whose draws the FE
+misfits by thousands while the others fit sits in an island only the surrogate fits (the
+kinematic-hardening field case of session 30: 6,778-23,445 against 2,163-2,175).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    import arviz as az
+
+    from solderpyro.configure import build, compose
+    from solderpyro.io.measurements import read_measurements
+    from solderpyro.pipeline.problem import SpecimenModel
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
+    ap.add_argument("--per-chain", type=int, default=3)
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    run = Path(a.run)
+    info = json.loads((run / "run.json").read_text())
+    setup = build(compose(info.get("overrides") or []))
+    meas = read_measurements(info["data"])
+    sm = SpecimenModel.build(setup, meas, info["store"], 64, False)
+    post = az.from_netcdf(str(run / "posterior.nc")).posterior
+    names = list(sm.space.names)
+    n_chain, n_draw = post.sizes["chain"], post.sizes["draw"]
+    idx = np.linspace(0, n_draw - 1, a.per_chain).astype(int)
+    rows, chain = [], []
+    for c in range(n_chain):
+        for i in idx:
+            rows.append([float(post[n].values[c, i]) for n in names])
+            chain.append(c + 1)
+    V, ok = sm.fe(torch.tensor(rows, dtype=torch.float64))
+    sd = np.nanmedian(meas.sigma_um) if np.isfinite(meas.sigma_um).any() else 0.05
+    chi2 = (((V.numpy() - sm.y.numpy()[None]) / sd) ** 2).sum(1)
+    out = [{"chain": c, **dict(zip(names, r, strict=True)), "fe_chi2": float(x)}
+           for c, r, x in zip(chain, rows, chi2, strict=True)]
+    for o in out:
+        print(json.dumps(o))
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
