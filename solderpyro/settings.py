@@ -88,9 +88,10 @@ class SamplerSettings:
     recalibration in session 25 reported 358 against issue 18's bar of 400 for every
     parameter. ``max_rhat`` (1.01, issue 18's bar; 0: off): the chains also run on, for at
     least half of ``draws``, when the largest R-hat is above it but at most
-    :data:`~solderpyro.calibration.mcmc.MAP_RHAT` (1.1; chains that disagree more sit in
-    different modes, and running on does not join them): the loop's recalibration in session
-    29 ended at R-hat 1.011-1.012 on Q/R and m with every ESS above 400."""
+    :data:`~solderpyro.pipeline.posterior.RUN_ON_RHAT` (1.5 since session 30, 1.1 before;
+    chains further apart sit in different places, and running on does not join them): the
+    loop's recalibration in session 29 ended at R-hat 1.011-1.012 on Q/R and m with every ESS
+    above 400."""
 
     chains: int = 4
     warmup: int = 500
