@@ -295,6 +295,43 @@ def chi2_terms(gp: GPSurrogate, d: Draws, y: torch.Tensor, rows: np.ndarray
     return r[rows].square().sum(1).numpy(), code
 
 
+def fe_at_draws(p: LoopProblem, gp: GPSurrogate, d: Draws, y: torch.Tensor, rows: np.ndarray,
+                code_draws: int | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray, float]:
+    """The FE check at ``d.theta[rows]``: the FE's outputs there, their chi-squares (the
+    residual ``y - (FE + observation-side offset)``, inf where the FE failed), the
+    surrogate's chi-squares at the same draws and its code chi-square (:func:`chi2_terms`,
+    over all of ``d`` or, with ``code_draws``, that many spread through it). Sets
+    ``d.checked``.
+
+    Returns:
+        ``V (k, n_y)``, ``ok (k,)``, FE chi2 ``(k,)``, surrogate chi2 ``(k,)``, code chi2.
+    """
+    th = d.theta[rows]
+    V, ok = p.fe(th)
+    off = 0 if d.offset is None else d.offset[rows]
+    # the residual as chi2_terms takes it for the surrogate (the offset's sign was flipped
+    # here before: every calibration with Moire rigid motion on disagreed with the FE by ~5e5
+    # in chi-square and never stopped)
+    fe_c2 = (((y - V - off) / d.sigma[rows, None]) ** 2).sum(1).numpy()
+    fe_c2[~ok.numpy()] = np.inf
+    if code_draws is None:
+        sur_c2, code = chi2_terms(gp, d, y, rows)
+    else:  # the code chi-square over fewer draws (6,000 took seconds of GP prediction)
+        sub = np.unique(np.concatenate([spread_indices(len(d.theta), code_draws), rows]))
+        sur_c2, code = chi2_terms(gp, Draws(d.theta[sub], d.sigma[sub], None
+                                            if d.offset is None else d.offset[sub]),
+                                  y, np.searchsorted(sub, rows))
+    d.checked = (th, V, fe_c2)
+    return V, ok, fe_c2, sur_c2, code
+
+
+def _quantiles(theta: torch.Tensor, names: list[str]) -> dict[str, list[float]]:
+    """The 2.5, 50 and 97.5 % quantiles of each column of ``theta (N, d)``, by name."""
+    q = torch.quantile(theta, torch.tensor([0.025, 0.5, 0.975], dtype=torch.float64), 0)
+    return {nm: q[:, j].tolist() for j, nm in enumerate(names)}
+
+
 def stop_rule(code_chi2: float, fe_chi2: np.ndarray, sur_chi2: np.ndarray, n: int,
               s: LoopSettings) -> tuple[bool, bool, float]:
     """``(code_ok, fe_ok, tolerance)`` of the stopping rule (module docstring)."""
@@ -471,26 +508,15 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         N = len(draws.theta)
         chk = check_indices(box.to_unit(draws.theta).numpy(), s.check, s.check_ends)
         th_chk = draws.theta[chk]
-        Vc, okc = p.fe(th_chk)
+        Vc, okc, fe_c2, sur_c2, code = fe_at_draws(p, gp, draws, y, chk)
         lap("check")
-        off = 0 if draws.offset is None else draws.offset[chk]
-        # the residual y - (FE + observation-side offset), as chi2_terms takes it for the
-        # surrogate (the offset's sign was flipped here before: every calibration with Moire
-        # rigid motion on disagreed with the FE by ~5e5 in chi-square and never stopped)
-        fe_c2 = (((y - Vc - off) / draws.sigma[chk, None]) ** 2).sum(1).numpy()
-        fe_c2[~okc.numpy()] = np.inf
-        sur_c2, code = chi2_terms(gp, draws, y, chk)
-        draws.checked = (th_chk, Vc, fe_c2)
         code_ok, fe_ok, tol = stop_rule(code, fe_c2, sur_c2, n, s)
         X, V = torch.cat([X, th_chk]), torch.cat([V, Vc])
         ok = torch.cat([ok, okc])
         kind += ["check"] * len(chk)
         rnd_of += [r] * len(chk)
-        q = torch.quantile(draws.theta, torch.tensor([0.025, 0.5, 0.975], dtype=torch.float64),
-                           0)
         rec = Round(r, len(X), code, fe_c2.tolist(), sur_c2.tolist(), tol, code_ok, fe_ok,
-                    quantiles={nm: q[:, j].tolist() for j, nm in enumerate(names)},
-                    spread_tolerance=s.fe_spread)
+                    quantiles=_quantiles(draws.theta, names), spread_tolerance=s.fe_spread)
         stop = code_ok and fe_ok
         runs = None  # the misfit test's FE runs (kept in the run store, not in the record)
         if (not stop and p.misfit is not None and best_fit is None and s.misfit_check
@@ -599,16 +625,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             if len(X) + len(chk) > s.budget:
                 break
             th_chk = final.theta[chk]
-            Vc, okc = p.fe(th_chk)
-            off = 0 if final.offset is None else final.offset[chk]
-            fe_c2 = (((y - Vc - off) / final.sigma[chk, None]) ** 2).sum(1).numpy()
-            fe_c2[~okc.numpy()] = np.inf
-            # the code chi-square over 400 draws (all 6,000 took seconds of GP prediction)
-            sub = np.unique(np.concatenate([spread_indices(len(final.theta), 400), chk]))
-            sur_c2, code = chi2_terms(gp, Draws(final.theta[sub], final.sigma[sub], None
-                                                if final.offset is None else final.offset[sub]),
-                                      y, np.searchsorted(sub, chk))
-            final.checked = (th_chk, Vc, fe_c2)
+            Vc, okc, fe_c2, sur_c2, code = fe_at_draws(p, gp, final, y, chk, code_draws=400)
             lap_s = time.perf_counter() - t0
             tol = math.sqrt(2 * n)
             gap = np.abs(fe_c2 - np.asarray(sur_c2, float))
@@ -621,11 +638,8 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             kind += ["check"] * len(chk)
             r += 1
             rnd_of += [r] * len(chk)
-            q = torch.quantile(final.theta, torch.tensor([0.025, 0.5, 0.975],
-                                                         dtype=torch.float64), 0)
             rec = Round(r, len(X), code, fe_c2.tolist(), sur_c2.tolist(), tol, code_ok, fe_ok,
-                        quantiles={nm: q[:, j].tolist() for j, nm in enumerate(names)},
-                        spread_tolerance=s.fe_spread)
+                        quantiles=_quantiles(final.theta, names), spread_tolerance=s.fe_spread)
             rec.seconds = time.perf_counter() - t0
             rec.timing = {"check": lap_s}
             rounds.append(rec)
