@@ -404,6 +404,14 @@ def dezz(du, szz, edof, B, tangent):
     return out
 
 
+def _required() -> ctypes.CDLL:
+    """The loaded library for the kernel classes below (RuntimeError where there is none)."""
+    lib = library()
+    if lib is None:
+        raise RuntimeError("the native kernels are not available")
+    return lib
+
+
 class ReducedLoglik:
     """The reduced PCA log density and its gradient in one native call
     (``reduced.c``: :class:`~solderpyro.calibration.reduced.ComponentGPs`, its vector-Jacobian
@@ -425,9 +433,7 @@ class ReducedLoglik:
                  half: float, tol: float, d, Qt) -> None:
         import numpy as np
 
-        lib = library()
-        if lib is None:
-            raise RuntimeError("the native kernels are not available")
+        lib = _required()
         c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         self._keep = [c(a) for a in (U, os, inv_ls2, c0, alpha, linv, Mq, mt, d, Qt)]
         Uc, osc, ils, c0c, al, li, Mqc, mtc, dc, Qtc = self._keep
@@ -488,9 +494,7 @@ class RidgeMapKernel:
     def __init__(self, mean, sd, span, c0, b, A, S) -> None:
         import numpy as np
 
-        lib = library()
-        if lib is None:
-            raise RuntimeError("the native kernels are not available")
+        lib = _required()
         self.d = d = len(mean)
         if d > 64:
             raise ValueError(f"RidgeMapKernel: at most 64 coordinates, got {d}")
@@ -540,9 +544,7 @@ class FlowFlat:
     def __init__(self, dims, par, reduced: ReducedLoglik) -> None:
         import numpy as np
 
-        lib = library()
-        if lib is None:
-            raise RuntimeError("the native kernels are not available")
+        lib = _required()
         p = int(dims[0])
         if p > 64:
             raise ValueError(f"FlowFlat: at most 64 parameters, got {p}")
