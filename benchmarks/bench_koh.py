@@ -1,6 +1,6 @@
 """NUTS efficiency of solderpyro's calibrations against NumPyro, same posterior side by side.
 
-Usage: python benchmarks/bench_koh.py [--cases direct,joint,field_modular,joint_400]
+Usage: python benchmarks/bench_koh.py [--cases direct,joint,field_modular,joint_400,joint_400_grid]
        [--chains 4] [--warmup 500] [--draws 1000] [--seed 0]
        [--numpyro-mass both|diag|dense] [--workers 1] [--no-numpyro]
        [--out benchmarks/results_koh.json]
@@ -23,6 +23,11 @@ Cases (identical data, priors, site transforms and likelihood on both sides):
   under gravity and quadratic drag dv/dt = g - C v^2 (C, the calibration parameter,
   0.05-0.5 1/m), closed form t = acosh(exp(C h)) / sqrt(g C); runs: a 400-point LHS over
   (h, C); observations: 12 heights, C = 0.2, noise sd 1 % of each fall time, no discrepancy.
+  The runs are no product design, so solderpyro's gradient is the dense 412 x 412 Cholesky.
+- joint_400_grid: the same model and observations with the runs as SEPIA's ball drop makes
+  them: 20 drag coefficients (a 1-D Latin hypercube) each read at the same 20 heights (a 1-D
+  Latin hypercube), 400 runs. solderpyro's likelihood is then the Kronecker form
+  (calibration.kronjoint, found from the design, nothing passed); NumPyro's is the dense one.
 
 Every case uses the same chains, warm-up and draws (the command line's). Effective samples per
 second = min over the sampler's own sites (unit-cube t, sigma, sigma_c, corr) of ArviZ's bulk
@@ -69,12 +74,13 @@ from solderpyro.calibration import (  # noqa: E402
     calibrate_modular,
 )
 from solderpyro.calibration.koh import prepare_joint  # noqa: E402
+from solderpyro.calibration.kronjoint import kron_joint  # noqa: E402
 from solderpyro.calibration.mcmc import flatten_sites, run_nuts  # noqa: E402
 from solderpyro.examples.seed_math import X_OBS, code, make_data  # noqa: E402
 from solderpyro.params import Box  # noqa: E402
 
 DT = torch.float64
-CASES = ("direct", "joint", "field_modular", "joint_400")
+CASES = ("direct", "joint", "field_modular", "joint_400", "joint_400_grid")
 QS = (0.025, 0.5, 0.975)
 T_BOX = Box(("t",), (0.0,), (2.0,))
 J_BOX = Box(("t1", "t2", "t3", "t4"), (0.5, 0.5, 0.0, 0.5), (1.5, 3.0, 1.0, 2.0))
@@ -137,6 +143,23 @@ def ball_data(m: int = 400, n: int = 12, seed: int = 0) -> CalibrationData:
     _check_fall_time()
     u = torch.as_tensor(qmc.LatinHypercube(d=2, seed=seed).random(m), dtype=DT)
     xs, ts = H_BOX.from_unit(u[:, :1]), C_BOX.from_unit(u[:, 1:])
+    ys = fall_time(xs[:, 0], ts[:, 0])
+    xo = torch.linspace(H_BOX.lower[0], H_BOX.upper[0], n, dtype=DT)[:, None]
+    g = torch.Generator().manual_seed(seed)
+    t_true = fall_time(xo[:, 0], torch.tensor(C_TRUE, dtype=DT))
+    yo = t_true * (1.0 + 0.01 * torch.randn(n, generator=g, dtype=DT))
+    return CalibrationData.create(xs, ts, ys, xo, yo, ["h"], ["C"], theta_box=C_BOX,
+                                  x_box=H_BOX)
+
+
+def ball_grid_data(m_c: int = 20, m_h: int = 20, n: int = 12, seed: int = 0) -> CalibrationData:
+    """ball_data's model and observations on a product design: ``m_c`` drag coefficients, each
+    run read at the same ``m_h`` heights (both 1-D Latin hypercubes), ``m_c m_h`` runs."""
+    _check_fall_time()
+    uc = torch.as_tensor(qmc.LatinHypercube(d=1, seed=seed).random(m_c), dtype=DT)
+    uh = torch.as_tensor(qmc.LatinHypercube(d=1, seed=seed + 1).random(m_h), dtype=DT)
+    ts = C_BOX.from_unit(uc).repeat_interleave(m_h, 0)  # (m_c m_h, 1)
+    xs = H_BOX.from_unit(uh).repeat(m_c, 1)
     ys = fall_time(xs[:, 0], ts[:, 0])
     xo = torch.linspace(H_BOX.lower[0], H_BOX.upper[0], n, dtype=DT)[:, None]
     g = torch.Generator().manual_seed(seed)
@@ -423,20 +446,22 @@ def build_case(case: str, a: argparse.Namespace, nuts: dict) -> dict[str, Any]:
                                                    **nuts),
                     numpyro=lambda dense: numpyro_direct(X_OBS, y, 5.0, dense=dense, **npk),
                     truth={}, info=dict(n_obs=int(y.shape[0])))
-    if case in ("joint", "joint_400"):
+    if case in ("joint", "joint_400", "joint_400_grid"):
         if case == "joint":
             data, box, truth = joint_data(), J_BOX, J_TRUE
-            pr = Priors(sigma_max=1.0, sigma_c_max=10.0 * float(data.y_sim.std()))
         else:
-            data, box, truth = ball_data(), C_BOX, torch.tensor([C_TRUE], dtype=DT)
-            pr = Priors(sigma_max=1.0, sigma_c_max=10.0 * float(data.y_sim.std()))
+            data = ball_data() if case == "joint_400" else ball_grid_data()
+            box, truth = C_BOX, torch.tensor([C_TRUE], dtype=DT)
+        pr = Priors(sigma_max=1.0, sigma_c_max=10.0 * float(data.y_sim.std()))
         inp = prepare_joint(data)
+        kron = kron_joint(inp) is not None
         tu = box.to_unit(truth)
         return dict(solderpyro=lambda: _solderpyro(calibrate_joint, data, pr, **nuts),
                     numpyro=lambda dense: numpyro_joint(inp, pr, dense=dense, **npk),
                     truth={f"t_unit[{i}]": float(v) for i, v in enumerate(tu)},
                     info=dict(n_sim=data.n_sim, n_obs=data.n_obs,
-                              parameters=list(box.names)))
+                              parameters=list(box.names),
+                              solderpyro_likelihood="kronecker" if kron else "dense"))
     if case == "field_modular":
         fs = field_setup(a.seed)
         gp, box, feats, y_obs = fs["gp"], fs["box"], fs["feats"], fs["y_obs"]

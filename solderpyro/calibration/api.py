@@ -40,6 +40,7 @@ from solderpyro.calibration.koh import (
     prepare_joint,
     prepare_observation,
 )
+from solderpyro.calibration.kronjoint import kron_joint
 from solderpyro.calibration.mcmc import NutsRun, Posterior, run_nuts
 from solderpyro.params import Box
 from solderpyro.surrogate import GPSurrogate
@@ -140,17 +141,25 @@ def _beta_draws(inp: JointInputs, post: Posterior, pr: Priors, seed: int) -> tor
     gen = torch.Generator().manual_seed(seed)
     raw = {k: v.reshape(-1, *v.shape[2:]) for k, v in post.raw.items()}
     n = raw[SITE_T].shape[0]
+    kron = kron_joint(inp)  # a product design: beta's moments without the dense Cholesky
     out = []
     for i in range(n):
         with torch.no_grad():
-            k_delta = None
-            if inp.discrepancy:
-                from pyro import condition
-                cond = condition(_delta_cov, data={k: raw[k][i] for k in
-                                                   ("sigma_delta", "corr_delta")})
-                k_delta = cond(pr, inp.u_xobs, 1.0)
-            _, bh, bc = joint_loglik(inp, raw[SITE_T][i], raw[SITE_SIGMA][i],
-                                     raw[SITE_SIGMA_C][i], raw[SITE_CORR][i], k_delta)
+            if kron is not None:
+                x = torch.cat([raw[SITE_T][i], raw[SITE_SIGMA][i].reshape(1),
+                               raw[SITE_SIGMA_C][i].reshape(1), raw[SITE_CORR][i]])
+                bm, bv = kron.beta(x.double().numpy())
+                bh = torch.tensor([bm], dtype=raw[SITE_T].dtype)
+                bc = torch.tensor([[bv]], dtype=raw[SITE_T].dtype)
+            else:
+                k_delta = None
+                if inp.discrepancy:
+                    from pyro import condition
+                    cond = condition(_delta_cov, data={k: raw[k][i] for k in
+                                                       ("sigma_delta", "corr_delta")})
+                    k_delta = cond(pr, inp.u_xobs, 1.0)
+                _, bh, bc = joint_loglik(inp, raw[SITE_T][i], raw[SITE_SIGMA][i],
+                                         raw[SITE_SIGMA_C][i], raw[SITE_CORR][i], k_delta)
             lc = torch.linalg.cholesky(bc)
             b = bh + lc @ torch.randn(bh.shape, generator=gen, dtype=bh.dtype)
         b = b * inp.y_scale
