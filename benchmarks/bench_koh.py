@@ -139,10 +139,10 @@ def ball_code(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return fall_time(x[:, 0], t[..., 0])
 
 
-def ball_data(m: int = 400, n: int = 12, seed: int = 0) -> CalibrationData:
+def _ball(xs: torch.Tensor, ts: torch.Tensor, n: int, seed: int) -> CalibrationData:
+    """Runs at heights ``xs (m, 1)`` and drag coefficients ``ts (m, 1)``, and ``n``
+    observations at evenly spaced heights, C = 0.2, noise sd 1 % of each fall time."""
     _check_fall_time()
-    u = torch.as_tensor(qmc.LatinHypercube(d=2, seed=seed).random(m), dtype=DT)
-    xs, ts = H_BOX.from_unit(u[:, :1]), C_BOX.from_unit(u[:, 1:])
     ys = fall_time(xs[:, 0], ts[:, 0])
     xo = torch.linspace(H_BOX.lower[0], H_BOX.upper[0], n, dtype=DT)[:, None]
     g = torch.Generator().manual_seed(seed)
@@ -150,23 +150,21 @@ def ball_data(m: int = 400, n: int = 12, seed: int = 0) -> CalibrationData:
     yo = t_true * (1.0 + 0.01 * torch.randn(n, generator=g, dtype=DT))
     return CalibrationData.create(xs, ts, ys, xo, yo, ["h"], ["C"], theta_box=C_BOX,
                                   x_box=H_BOX)
+
+
+def ball_data(m: int = 400, n: int = 12, seed: int = 0) -> CalibrationData:
+    """The ball drop on a 2-D Latin hypercube over (h, C): no product structure."""
+    u = torch.as_tensor(qmc.LatinHypercube(d=2, seed=seed).random(m), dtype=DT)
+    return _ball(H_BOX.from_unit(u[:, :1]), C_BOX.from_unit(u[:, 1:]), n, seed)
 
 
 def ball_grid_data(m_c: int = 20, m_h: int = 20, n: int = 12, seed: int = 0) -> CalibrationData:
     """ball_data's model and observations on a product design: ``m_c`` drag coefficients, each
     run read at the same ``m_h`` heights (both 1-D Latin hypercubes), ``m_c m_h`` runs."""
-    _check_fall_time()
     uc = torch.as_tensor(qmc.LatinHypercube(d=1, seed=seed).random(m_c), dtype=DT)
     uh = torch.as_tensor(qmc.LatinHypercube(d=1, seed=seed + 1).random(m_h), dtype=DT)
-    ts = C_BOX.from_unit(uc).repeat_interleave(m_h, 0)  # (m_c m_h, 1)
-    xs = H_BOX.from_unit(uh).repeat(m_c, 1)
-    ys = fall_time(xs[:, 0], ts[:, 0])
-    xo = torch.linspace(H_BOX.lower[0], H_BOX.upper[0], n, dtype=DT)[:, None]
-    g = torch.Generator().manual_seed(seed)
-    t_true = fall_time(xo[:, 0], torch.tensor(C_TRUE, dtype=DT))
-    yo = t_true * (1.0 + 0.01 * torch.randn(n, generator=g, dtype=DT))
-    return CalibrationData.create(xs, ts, ys, xo, yo, ["h"], ["C"], theta_box=C_BOX,
-                                  x_box=H_BOX)
+    return _ball(H_BOX.from_unit(uh).repeat(m_c, 1),
+                 C_BOX.from_unit(uc).repeat_interleave(m_h, 0), n, seed)
 
 
 def field_setup(seed: int = 0, n_runs: int = 50) -> dict[str, Any]:
