@@ -23,6 +23,7 @@ otherwise the posterior median of sigma.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import logging
@@ -39,6 +40,7 @@ import numpy as np
 import torch
 from scipy.stats import chi2 as _chi2
 
+from solderpyro.calibration.intervals import reported_interval
 from solderpyro.diagnose.decide import (
     APART_CHI2,
     EXPLAINED_SD,
@@ -58,7 +60,8 @@ from solderpyro.diagnose.decide import (
     to_refit,
 )
 from solderpyro.diagnose.fingerprint import Fingerprints, fingerprints
-from solderpyro.diagnose.refits import MAX_REFITS, base_fit, layout, refit_candidates
+from solderpyro.diagnose.refits import MAX_REFITS, Layout, base_fit, layout, refit_candidates
+from solderpyro.diagnose.ruleout import cannot_rule_out, describe
 from solderpyro.diagnose.stats import (
     Misfit,
     PredictiveCheck,
@@ -111,6 +114,9 @@ class Diagnosis:
     floor: dict | None = None
     #: per forward step, each refit judged (:func:`~solderpyro.diagnose.decide.judge`)
     steps: list[list[dict]] = dataclasses.field(default_factory=list)
+    #: where the model fits: candidates the data do not reject that would move a constant
+    #: outside its reported interval (:func:`~solderpyro.diagnose.ruleout.cannot_rule_out`)
+    cannot_rule_out: list[dict] = dataclasses.field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         return {"misfit": self.misfit, "explained": self.explained, "verdict": self.verdict,
@@ -118,6 +124,7 @@ class Diagnosis:
                 "check": self.check, "base": self.base, "floor": self.floor,
                 "steps": self.steps, "indistinguishable": self.indistinguishable,
                 "suggestions": self.suggestions, "separation": self.separation,
+                "cannot_rule_out": self.cannot_rule_out,
                 "denoise": self.denoise, "timing": self.timing}
 
 
@@ -274,7 +281,8 @@ STAGES = {"load": "loading the run", "predictive_check": "posterior predictive c
           "best_fit": "FE best fit (baseline refit)",
           "fe_jacobians": "FE Jacobians (+ ladder runs)", "score_tests": "score tests",
           "ladder": "likelihood-ratio ladder", "profile_refits": "profile refits",
-          "verdict": "ranking and verdict", "separation": "separation",
+          "verdict": "ranking and verdict", "cannot_rule_out": "what the data cannot rule out",
+          "separation": "separation",
           "fingerprints": "fingerprints (refit predictions, denoising)",
           "write": "writing (figures)"}
 
@@ -680,6 +688,10 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
             "history": base["history"], "converged": base["converged"],
             "fe_check_ok": fe_ok, "x": {nm: float(v) for nm, v in zip(
                 fej["cols"].names[:lay.n_cal], base["x"][:lay.n_cal], strict=True)}}
+    if not diag.misfit and not diag.selected and lad:
+        with cost.stage("cannot_rule_out"):
+            _rule_out(diag, d, lay, fej, y, V[0], J[0][:, _group(fej["cols"], "theta")],
+                      sigma, lad, dr["theta"])
     if diag.indistinguishable and fits is not None:
         with cost.stage("separation"):
             group = diag.indistinguishable[0]
@@ -713,6 +725,35 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
 
     write_index(d)
     return diag
+
+
+def _rule_out(diag: Diagnosis, d: Path, lay: Layout, fej: dict[str, Any], y: np.ndarray,
+              v0: np.ndarray, j_theta: np.ndarray, sigma: float,
+              lad: dict[str, tuple[np.ndarray, np.ndarray]], draws: np.ndarray) -> None:
+    """Fill ``diag.cannot_rule_out`` (and its verdict and suggestions) against the run's
+    reported intervals (summary.csv); ``v0 (n,)``, ``j_theta (n, n_cal)`` at the best fit,
+    ``draws (N, n_cal)`` the posterior's."""
+    summ = d / "summary.csv"
+    if not summ.exists():
+        return
+    with summ.open() as f:
+        intervals = {r["parameter"]: reported_interval(r) for r in csv.DictReader(f)}
+    names = list(fej["cols"].names[:lay.n_cal])
+    found = cannot_rule_out(y, v0, j_theta, sigma, lad, draws, names, lay.lo[:lay.n_cal],
+                            lay.hi[:lay.n_cal], intervals)
+    params = {e.name: (e.params.names[0], (e.params.units or ("",))[0])
+              for e in lay.fx_all.effects if e.n_params == 1}
+    for r in found:
+        r["text"] = describe(r, *params.get(r["effect"], ("value", "")))
+    diag.cannot_rule_out = found
+    if found:
+        diag.verdict += ("; but the data cannot rule out " + ", ".join(
+            r["effect"] for r in found) + ", which would move " + ", ".join(
+            dict.fromkeys(nm for r in found for nm in r["outside"]))
+            + " outside the reported intervals (see 'What the data cannot rule out')")
+        diag.suggestions.append(
+            "recalibrate with " + " and with ".join(f"effects=[{r['effect']}]" for r in found)
+            + " to see the constants' intervals if it is present: these data cannot tell")
 
 
 def refit_predictions(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],
@@ -1200,6 +1241,11 @@ def _write(d: Path, diag: Diagnosis, mf: Misfit, pc: PredictiveCheck, sigma: flo
     if diag.indistinguishable:
         lines += ["", "Cannot be told apart from these data: "
                   + "; ".join(", ".join(g) for g in diag.indistinguishable)]
+    if diag.cannot_rule_out:
+        lines += ["", "## What the data cannot rule out", "",
+                  "The model fits, yet these effects fit as well at the magnitudes named "
+                  "(the constants refitted, linearised): the intervals assume they are "
+                  "absent.", ""] + [f"- {r['text']}." for r in diag.cannot_rule_out]
     lines += ["", "## Suggestions", ""] + ([f"- {s}" for s in diag.suggestions] or ["- none"])
     if diag.timing:
         lines += [""] + _cost_lines(diag.timing)

@@ -1,0 +1,113 @@
+"""What the data cannot rule out: effects the fit does not need, yet would move the constants.
+
+When the model fits (no candidate is selected), a candidate effect can still be present: its
+signature may be one the calibrated constants mimic. Eight point displacements with copper
+plasticity at 15 MPa fit as well as an elastic copper with a lower strain-rate exponent m (the
+hidden copper case on point data: chi2 3.3 on 4 dof, m 0.051-0.073 against the true 0.1). The
+fit is then no evidence that the effect is absent, and the reported intervals hold only if it
+is.
+
+For each one-parameter candidate the diagnosis already has the FE with the effect switched on
+at its ladder of magnitudes (:func:`~solderpyro.diagnose.run.fe_jacobians`), the calibrated
+constants at the FE's best fit: the effect's signature ``s = V(magnitude) - V(off)``. Per
+magnitude the constants are refitted to the data less the signature, linearised with their
+Jacobian J and held by the prior (the box's uniform prior as a Gaussian of the same variance,
+``P = diag(12 / (hi - lo)^2)``); what they absorb of the signature is ``delta = (J^T W J +
+P)^-1 J^T W s`` (W = 1 / sigma^2).
+Without P, four constants refitted to eight values go to the box's corners along the
+directions the data leave to the prior. Then
+
+- the data reject the magnitude when the chi-square after the refit rises by at least
+  :data:`REJECT` (95 % of chi-square on 1 dof, a profile likelihood) over the refit without
+  the effect;
+- the constants would be at ``mean - delta`` (the posterior mean of the run's draws moved by
+  what the constants absorbed of the signature).
+
+The farthest magnitude the data do not reject is reported with the constants it moves outside
+their reported 95 % intervals. Linearised: a shift is a direction and a size, clipped to the
+box (the report says so). Only one-parameter candidates have a ladder; the others are not
+assessed here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+#: chi-square rise at which the data reject a magnitude (95 % point of chi-square on 1 dof)
+REJECT = float(stats.chi2.ppf(0.95, 1))
+
+
+def cannot_rule_out(y: np.ndarray, v0: np.ndarray, j_theta: np.ndarray, sigma: float,
+                    ladder: dict[str, tuple[np.ndarray, np.ndarray]], draws: np.ndarray,
+                    names: list[str], lower: np.ndarray, upper: np.ndarray,
+                    intervals: dict[str, tuple[float, float]]) -> list[dict]:
+    """The one-parameter candidates whose unrejected magnitudes move a constant outside its
+    reported interval.
+
+    Args:
+        y: ``(n,)`` data, um; v0: ``(n,)`` FE at the best fit, every candidate off, um;
+        j_theta: ``(n, p)`` Jacobian of the outputs w.r.t. the calibrated constants there (um
+            per unit); sigma: noise sd, um.
+        ladder: effect -> ``(values (L,), V (L, n))``: its magnitudes (its own units,
+            ascending from "off") and the FE there (um), the constants as for ``v0``.
+        draws: ``(N, p)`` posterior draws of the constants (physical units); names: their
+            names; lower, upper: ``(p,)`` their box; intervals: name -> the reported 95 %
+            interval (names missing are not judged).
+
+    Returns:
+        one dict per such effect, the largest shift (in interval widths) first: ``effect``,
+        ``value`` (the farthest unrejected magnitude), ``chi2_rise`` there, ``moves`` (name ->
+        ``[posterior mean, moved, clipped to the box]``, every constant), ``outside`` (the
+        names moved outside their interval) and ``shift_widths`` (the largest move of those,
+        in interval widths).
+    """
+    w = 1.0 / sigma**2
+    prec = j_theta.T @ j_theta * w + np.diag(12.0 / (upper - lower) ** 2)
+
+    def refit(r: np.ndarray) -> tuple[np.ndarray, float]:
+        d = np.linalg.solve(prec, j_theta.T @ r * w)
+        res = r - j_theta @ d
+        return d, float(res @ res) * w
+
+    d0, chi0 = refit(y - v0)
+    mu = draws.mean(0)
+    out = []
+    for eff, (vals, vl) in ladder.items():
+        best = None
+        for v, row in zip(vals, vl, strict=True):
+            d, chi = refit(y - row)
+            if chi - chi0 < REJECT:
+                best = (float(v), chi - chi0, d0 - d)  # the farthest unrejected magnitude
+        if best is None:
+            continue
+        v, rise, absorbed = best
+        raw = mu - absorbed
+        moved = np.clip(raw, lower, upper)
+        outside = [nm for k, nm in enumerate(names) if nm in intervals
+                   and not intervals[nm][0] <= moved[k] <= intervals[nm][1]]
+        if not outside:
+            continue
+        size = max(abs(moved[names.index(nm)] - mu[names.index(nm)])
+                   / max(intervals[nm][1] - intervals[nm][0], 1e-300) for nm in outside)
+        out.append({"effect": eff, "value": v, "chi2_rise": round(rise, 3),
+                    "moves": {nm: [float(mu[k]), float(moved[k]), bool(moved[k] != raw[k])]
+                              for k, nm in enumerate(names)},
+                    "outside": outside, "shift_widths": round(float(size), 3)})
+    out.sort(key=lambda r: -r["shift_widths"])
+    return out
+
+
+def describe(r: dict, param: str, unit: str) -> str:
+    """One sentence for a :func:`cannot_rule_out` entry; ``param``, ``unit``: the effect's
+    parameter name and unit."""
+    moves = "; ".join(
+        f"{nm} {r['moves'][nm][0]:.4g} -> {r['moves'][nm][1]:.4g}"
+        + (" (the box's edge)" if r["moves"][nm][2] else "")
+        for nm in r["outside"])
+    return (f"{r['effect']} at {param} = {r['value']:.4g}{(' ' + unit) if unit else ''} fits "
+            f"the data as well (chi2 {r['chi2_rise']:+.1f} with the constants refitted; the "
+            f"data reject from +{REJECT:.2f}) and would move {moves} (posterior mean, "
+            f"linearised), outside the reported 95 % interval"
+            f"{'s' if len(r['outside']) > 1 else ''}: those intervals hold only if "
+            f"{r['effect']} is absent")

@@ -1,0 +1,89 @@
+"""What the data cannot rule out (diagnose.ruleout): on a linear model with a known answer.
+
+Eight values, two constants with outputs J theta; an effect whose signature the constants can
+mimic exactly (a multiple of J's first column) fits as well at any magnitude, and the constants
+it implies are the posterior mean less what they absorb; an effect the constants cannot mimic
+is rejected once its chi-square rise passes 3.84; an absorbed effect whose shift stays inside
+the intervals is not reported.
+"""
+
+import numpy as np
+import pytest
+
+from solderpyro.diagnose.ruleout import REJECT, cannot_rule_out, describe
+
+SIGMA = 0.05
+N = 8
+
+
+def _case(seed: int = 0):
+    rng = np.random.default_rng(seed)
+    j = np.stack([np.linspace(1.0, 2.0, N), np.cos(np.arange(N))], 1)  # (8, 2) um per unit
+    theta0 = np.array([1.0, 0.5])
+    v0 = j @ theta0
+    y = v0 + SIGMA * rng.standard_normal(N)
+    lower, upper = np.array([-10.0, -10.0]), np.array([10.0, 10.0])
+    # posterior draws of the linear-Gaussian model (flat prior; the box is far)
+    cov = np.linalg.inv(j.T @ j / SIGMA**2)
+    mean = theta0 + cov @ j.T @ (y - v0) / SIGMA**2
+    draws = rng.multivariate_normal(mean, cov, 20000)
+    q = np.quantile(draws, [0.025, 0.975], 0)
+    intervals = {"a": (q[0, 0], q[1, 0]), "b": (q[0, 1], q[1, 1])}
+    return j, theta0, v0, y, lower, upper, draws, intervals
+
+
+def test_a_mimicked_effect_is_reported_with_the_constants_it_implies():
+    j, theta0, v0, y, lower, upper, draws, intervals = _case()
+    mags = np.array([0.1, 0.3, 1.0])
+    lad = {"mimic": (mags, v0[None, :] + mags[:, None] * 0.2 * j[:, 0][None, :])}
+    out = cannot_rule_out(y, v0, j, SIGMA, lad, draws, ["a", "b"], lower, upper, intervals)
+    assert [r["effect"] for r in out] == ["mimic"]
+    r = out[0]
+    assert r["value"] == 1.0 and abs(r["chi2_rise"]) < 1e-6  # absorbed entirely
+    assert r["outside"] == ["a"]
+    # the constant a absorbs 0.2 per unit magnitude: the true a is 0.2 lower (the box prior's
+    # pull, variance 400/12 against the data's ~1e-3, is below 1e-4 of it)
+    mean_a, moved_a, clipped = r["moves"]["a"]
+    assert moved_a == pytest.approx(mean_a - 0.2, abs=1e-3) and not clipped
+    assert r["moves"]["b"][1] == pytest.approx(r["moves"]["b"][0], abs=1e-3)
+    assert "mimic at k = 1" in describe(r, "k", "")
+
+
+def test_an_effect_the_constants_cannot_mimic_is_rejected_past_its_first_rungs():
+    j, theta0, v0, y, lower, upper, draws, intervals = _case()
+    e = np.zeros(N)
+    e[::2], e[1::2] = 1.0, -1.0
+    e -= j @ np.linalg.lstsq(j, e, rcond=None)[0]  # orthogonal to J's columns
+    e /= np.linalg.norm(e)
+    # chi2 rises by (a / sigma)^2 for a signature a e (unit norm): 0.5 sigma -> 0.25, far past
+    # 3.84 at 10 sigma; a mimicked part 0.3 J[:, 1] rides along, outside b's interval
+    mags = np.array([0.5, 10.0])
+    rows = v0[None, :] + (mags[:, None] * SIGMA) * e[None, :] + 0.3 * j[:, 1][None, :]
+    out = cannot_rule_out(y, v0, j, SIGMA, {"part": (mags, rows)}, draws, ["a", "b"], lower,
+                          upper, intervals)
+    assert len(out) == 1 and out[0]["value"] == 0.5  # the 10-sigma rung is rejected
+    rise = out[0]["chi2_rise"]
+    assert rise < REJECT and rise == pytest.approx(
+        float((e @ (y - v0) * -2 * 0.5 * SIGMA + (0.5 * SIGMA) ** 2) / SIGMA**2), abs=1e-3)
+    rows_far = v0[None, :] + (mags[:, None] * SIGMA) * e[None, :]
+    far = cannot_rule_out(y, v0, j, SIGMA, {"part": (mags[1:], rows_far[1:])}, draws,
+                          ["a", "b"], lower, upper, intervals)
+    assert far == []
+
+
+def test_a_small_absorbed_shift_inside_the_intervals_is_not_reported():
+    j, theta0, v0, y, lower, upper, draws, intervals = _case()
+    half_width = 0.5 * (intervals["a"][1] - intervals["a"][0])
+    small = 0.2 * half_width  # moves a by a fifth of its half-width
+    lad = {"small": (np.array([1.0]), (v0 + small * j[:, 0])[None, :])}
+    assert cannot_rule_out(y, v0, j, SIGMA, lad, draws, ["a", "b"], lower, upper,
+                           intervals) == []
+
+
+def test_a_shift_past_the_box_is_clipped_and_says_so():
+    j, theta0, v0, y, lower, upper, draws, intervals = _case()
+    lad = {"big": (np.array([1.0]), (v0 + 30.0 * j[:, 0])[None, :])}
+    out = cannot_rule_out(y, v0, j, SIGMA, lad, draws, ["a", "b"], lower, upper, intervals)
+    mean_a, moved_a, clipped = out[0]["moves"]["a"]
+    assert clipped and moved_a == lower[0]
+    assert "the box's edge" in describe(out[0], "k", "MPa")
