@@ -94,7 +94,7 @@ def cannot_rule_out(y: np.ndarray, v0: np.ndarray, j_theta: np.ndarray, sigma: f
                     "moves": {nm: [float(mu[k]), float(moved[k]), bool(moved[k] != raw[k])]
                               for k, nm in enumerate(names)},
                     "outside": outside, "shift_widths": round(float(size), 3)})
-    out.sort(key=lambda r: -r["shift_widths"])
+    out.sort(key=lambda r: -float(r["shift_widths"]))
     return out
 
 
