@@ -31,6 +31,8 @@ assessed here.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy import stats
 
@@ -72,7 +74,7 @@ def cannot_rule_out(y: np.ndarray, v0: np.ndarray, j_theta: np.ndarray, sigma: f
 
     d0, chi0 = refit(y - v0)
     mu = draws.mean(0)
-    out = []
+    out: list[dict[str, Any]] = []
     for eff, (vals, vl) in ladder.items():
         best = None
         for v, row in zip(vals, vl, strict=True):
@@ -94,8 +96,7 @@ def cannot_rule_out(y: np.ndarray, v0: np.ndarray, j_theta: np.ndarray, sigma: f
                     "moves": {nm: [float(mu[k]), float(moved[k]), bool(moved[k] != raw[k])]
                               for k, nm in enumerate(names)},
                     "outside": outside, "shift_widths": round(float(size), 3)})
-    out.sort(key=lambda r: -float(r["shift_widths"]))
-    return out
+    return sorted(out, key=lambda r: -r["shift_widths"])
 
 
 def describe(r: dict, param: str, unit: str) -> str:
