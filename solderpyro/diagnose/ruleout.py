@@ -109,6 +109,6 @@ def describe(r: dict, param: str, unit: str) -> str:
     return (f"{r['effect']} at {param} = {r['value']:.4g}{(' ' + unit) if unit else ''} fits "
             f"the data as well (chi2 {r['chi2_rise']:+.1f} with the constants refitted; the "
             f"data reject from +{REJECT:.2f}) and would move {moves} (posterior mean, "
-            f"linearised), outside the reported 95 % interval"
-            f"{'s' if len(r['outside']) > 1 else ''}: those intervals hold only if "
+            f"linearised), outside {'their' if len(r['outside']) > 1 else 'its'} reported "
+            f"95 % interval{'s' if len(r['outside']) > 1 else ''}: the intervals hold only if "
             f"{r['effect']} is absent")
