@@ -143,6 +143,8 @@ class KronJoint:
         dtv = self.gt - t[None, :]  # (mt, p)
         dt2 = dtv * dtv
         rt = np.exp(-(dt2 @ ct if self.ard else ct[0] * dt2.sum(1)))  # (mt,)
+        if not (np.isfinite(rtt).all() and np.isfinite(rx).all()):
+            return None
         lt, qt = np.linalg.eigh(rtt)
         lx, qx = np.linalg.eigh(rx)
         e = lt[:, None] * lx[None, :] + self.nugget  # (mt, mx)

@@ -138,6 +138,10 @@ def test_a_non_positive_covariance_is_zero_density():
     x[2] = 0.0  # sigma_c = 0: A is singular
     ll, g = kron(x)
     assert ll == -np.inf and not g.any()
+    x = _points(inp, 1, 1)[0]
+    x[3] = np.nan  # a non-finite correlation parameter (as a diverging trajectory may give)
+    ll, g = kron(x)
+    assert ll == -np.inf and not g.any()
 
 
 def test_calibrate_joint_on_a_product_design_recovers_the_parameter():
