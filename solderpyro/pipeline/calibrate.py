@@ -51,6 +51,22 @@ PREDICTIVE_DRAWS = 1000
 BEST_FIT_BAND_RUNS = 48
 
 
+def unprofilable(n_params: int, n_values: int) -> str | None:
+    """Why profile-likelihood intervals of ``n_params`` parameters cannot come from
+    ``n_values`` data values, or None when they can.
+
+    Each profile refits the other ``n_params - 1`` parameters at fixed values of one: when they
+    are at least as many as the values they fit the data at every fixed value, the profile is
+    flat and its interval is the box, found after thousands of FE runs (point data with the
+    Moire offsets, 12 parameters on 8 values: more than 40 minutes in session 31).
+    """
+    if n_params - 1 < n_values:
+        return None
+    return (f"profile intervals not computed: {n_params} parameters on {n_values} values "
+            "cannot be profiled (the other parameters fit the data at every value of each: "
+            "flat profiles); measure more values or calibrate fewer parameters")
+
+
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                        settings: CalibrationSettings | None = None,
                        record: dict[str, Any] | None = None,
@@ -387,7 +403,12 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
                  "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
                  "--budget; the profile intervals (profile_ci.csv) are the FE's own")
     write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
-    if ex_s.profile_ci:
+    skip = unprofilable(space.dim, len(y)) if ex_s.profile_ci else None
+    if skip:
+        log.warning(skip)
+        problems = [*problems, skip]
+        write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
+    elif ex_s.profile_ci:
         sig_p = float(pr.sigma_known or np.median(ex.sigma))
         log.info("profile CI: 95 %% profile-likelihood intervals of %d parameters through the "
                  "FE (sigma %.4g um)", space.dim, sig_p)

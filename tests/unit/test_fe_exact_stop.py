@@ -86,3 +86,15 @@ def test_a_model_that_cannot_fit_reports_its_best_fit_with_a_widened_spread():
     assert [r["median"] for r in fit.rows[:2]] == list(fit.x)
     assert fit.rows[-1]["parameter"] == "sigma"
     assert abs(fit.sigma[0] - 0.05 * fit.scale) < 1e-12
+
+
+def test_profile_intervals_are_not_attempted_where_every_profile_is_flat():
+    """12 parameters on 8 values (point data with the Moire offsets): each profile refits 11
+    parameters to 8 values, flat at every value; 5 on 8 (copper plasticity) and 8 on 8 can be
+    profiled."""
+    from solderpyro.pipeline.calibrate import unprofilable
+
+    msg = unprofilable(12, 8)
+    assert msg is not None and "12 parameters on 8 values" in msg
+    assert unprofilable(9, 8) is not None
+    assert unprofilable(5, 8) is None and unprofilable(8, 8) is None
