@@ -118,10 +118,10 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None,
     Gaussian kernel (shared or ARD correlation parameters), a constant mean, the default priors
     (``sigma_max``, ``sigma_known``, ``sigma_c_max``, ``corr_range``) and no discrepancy. Cost
     per gradient: one Cholesky factorization and inverse of the ``(m + n)`` square covariance
-    plus a few elementwise passes over it (~0.1 ms for m + n = 58, 4.8 ms for 412); on a
+    plus a few elementwise passes over it (~0.1 ms for m + n = 58, 4.9 ms for 412); on a
     product design (every parameter set run at the same input points) of at least
     :data:`~.kronjoint.MIN_RUNS` runs, the same likelihood in Kronecker form
-    (:mod:`.kronjoint`: 0.3 ms for 20 x 20 runs and 12 observations).
+    (:mod:`.kronjoint`: 0.36 ms for 20 x 20 runs and 12 observations).
 
     Args:
         structure: "auto" (Kronecker on a product design of ``MIN_RUNS`` runs or more, else
