@@ -430,6 +430,13 @@ def _n_chains(d: Draws) -> int:
     return max(1, int(d.chains))
 
 
+def _chain_of(d: Draws, i: int) -> int:
+    """The chain (0-based) of draw ``i`` of ``d`` (draws laid out chain after chain, as
+    :func:`chain_check_indices` reads them)."""
+    c = _n_chains(d)
+    return min(int(i) // max(len(d.theta) // c, 1), c - 1)
+
+
 def chain_check_indices(d: Draws, per_chain: int) -> np.ndarray:
     """``per_chain`` draws of every chain of ``d`` (its draws laid out chain after chain),
     spread through each chain's second half: where the final posterior's chains went.
@@ -647,7 +654,7 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
                      rec.line())
             if fe_ok:
                 break
-            bad = sorted({int(i) * _n_chains(final) // len(final.theta)
+            bad = sorted({_chain_of(final, i)
                           for i, g in zip(chk, gap, strict=True) if not g <= s.fe_tol * tol})
             if len(X) + len(chk) > s.budget:
                 reason, msg = "budget", (
