@@ -34,7 +34,7 @@ from solderpyro.surrogate import GPSurrogate
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--q", type=int, default=6)
-    ap.add_argument("--out", default="benchmarks/results_acq_opt.json")
+    ap.add_argument("--out", default="benchmarks/results/acquisition_optimizers.json")
     a = ap.parse_args()
     torch.manual_seed(0)
     box = ParameterSpace.seed()

@@ -74,7 +74,7 @@ def main() -> None:
     ap.add_argument("--split", default="", metavar="B1,B2",
                     help="batch sizes to time whole on torch's threads against split over "
                          "the cores (CPU only)")
-    ap.add_argument("--out", default="benchmarks/results_fe.json")
+    ap.add_argument("--out", default="benchmarks/results/bench_fe.json")
     a = ap.parse_args()
     if a.no_native:
         os.environ["SOLDERPYRO_NATIVE"] = "0"

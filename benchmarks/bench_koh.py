@@ -541,7 +541,7 @@ def main() -> None:
                     help="solderpyro's chain processes where run_nuts has workers= (default 1: "
                          "one thread, as NumPyro's sequential chains)")
     ap.add_argument("--no-numpyro", action="store_true")
-    ap.add_argument("--out", default="benchmarks/results_koh.json")
+    ap.add_argument("--out", default="benchmarks/results/bench_koh.json")
     a = ap.parse_args()
     cases = [c.strip() for c in a.cases.split(",") if c.strip()]
     bad = [c for c in cases if c not in CASES]

@@ -58,7 +58,7 @@ def table(title: str, rows: list[dict]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", default="docs/convergence.json")
+    ap.add_argument("--out", default="benchmarks/results/convergence.json")
     ap.add_argument("--quick", action="store_true", help="skip the finest levels")
     a = ap.parse_args()
     mesh_levels = [0.5, 1.0, 2.0] if a.quick else [0.5, 1.0, 2.0, 3.0]

@@ -65,7 +65,7 @@ def main() -> None:
                          "LocalCluster of N workers (solderpyro.executor)")
     ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                     help="run the FE batches on a running Dask cluster")
-    ap.add_argument("--out", default="benchmarks/results_coverage_exact.json")
+    ap.add_argument("--out", default="benchmarks/results/coverage_exact.json")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(1)

@@ -29,7 +29,7 @@ from solderpyro.surrogate.features import FlowStressInputs
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--results", default="benchmarks/results_coverage_flow.json")
+    ap.add_argument("--results", default="benchmarks/results/coverage_specimen_uniform_starts.json")
     ap.add_argument("--store", default="runs/store")
     ap.add_argument("--noise", type=float, default=0.05)
     a = ap.parse_args()

@@ -112,7 +112,7 @@ def main() -> None:
     ap.add_argument("--only", default="", help="comma-separated dataset indices to run "
                     "(default: all; the truths and noise draws do not depend on it)")
     ap.add_argument("--store", default="runs/store")
-    ap.add_argument("--out", default="benchmarks/results_coverage.json")
+    ap.add_argument("--out", default="benchmarks/results/coverage_specimen.json")
     ap.add_argument("--cluster", default=None, metavar="local:N",
                     help="run the datasets in parallel on a Dask LocalCluster")
     ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",

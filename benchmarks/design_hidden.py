@@ -78,7 +78,7 @@ def main() -> None:
     ap.add_argument("--cases", default="modulus_temperature,none",
                     help="hidden effects, comma-separated ('none': clean data)")
     ap.add_argument("--work", default="runs/design_hidden")
-    ap.add_argument("--out", default="benchmarks/results_design_hidden.json")
+    ap.add_argument("--out", default="benchmarks/results/design_hidden.json")
     ap.add_argument("--seed", type=int, default=0, help="noise seed of the data")
     ap.add_argument("--cluster", default=None, metavar="local:N",
                     help="run the cases in parallel on a Dask LocalCluster (solderpyro.sweep)")

@@ -206,7 +206,7 @@ def main() -> None:
     ap.add_argument("--subset", default="", help="datasets to run now, e.g. 2-5 (default all; "
                     "the summary covers every dataset recorded)")
     ap.add_argument("--work", default="runs/design_vs_lhs")
-    ap.add_argument("--out", default="benchmarks/results_design_vs_lhs.json")
+    ap.add_argument("--out", default="benchmarks/results/design_vs_lhs.json")
     ap.add_argument("--cluster", default=None, metavar="local:N",
                     help="run the jobs in parallel on a Dask LocalCluster (solderpyro.sweep)")
     ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT")

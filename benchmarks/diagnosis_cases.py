@@ -161,7 +161,7 @@ def main() -> None:
                          "here when missing)")
     ap.add_argument("--work", default="runs/i20")
     ap.add_argument("--store", default=None, help="FE run store (default WORK/store)")
-    ap.add_argument("--out", default="benchmarks/results_diagnosis_cases.json")
+    ap.add_argument("--out", default="benchmarks/results/diagnosis_cases.json")
     ap.add_argument("--no-recalibrate", action="store_true")
     ap.add_argument("--keep-diagnosis", action="store_true",
                     help="use a base run's diagnosis.json as it is (default: diagnose again)")

@@ -101,7 +101,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=500)
     ap.add_argument("--work", default="runs/hidden")
     ap.add_argument("--store", default="", help="FE run store (default: WORK/store)")
-    ap.add_argument("--out", default="benchmarks/results_hidden.json")
+    ap.add_argument("--out", default="benchmarks/results/hidden_effects.json")
     ap.add_argument("--exact", default=es.mode, choices=("auto", "on", "off"),
                     help="the FE-exact posterior and profile-likelihood intervals of the 'add "
                          "it' calibrations (calibrate --exact; auto: when the design's budget "

@@ -63,7 +63,7 @@ def main() -> None:
                     help="the hidden effect of the data (an effect name, or none)")
     ap.add_argument("--out", default="runs/loop")
     ap.add_argument("--seed", type=int, default=0, help="noise seed of the data")
-    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results_loop.json"))
+    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "loop.json"))
     a = ap.parse_args()
     out = Path(a.out).resolve()
     out.mkdir(parents=True, exist_ok=True)

@@ -409,7 +409,7 @@ def main() -> None:
     ap.add_argument("--mutate", default="none",
                     choices=["none", "half-lik", "double-lik", "short", "half-jacobian",
                              "no-jacobian"])
-    ap.add_argument("--out", default="benchmarks/results_sbc.json")
+    ap.add_argument("--out", default="benchmarks/results/sbc.json")
     a = ap.parse_args()
     torch.set_default_dtype(DT)
     makers = {"direct": direct_problem, "field": field_problem, "anand": anand_problem,

@@ -39,7 +39,7 @@ import tempfile
 import time
 from pathlib import Path
 
-OUT = Path(__file__).with_name("results_scaling.json")
+OUT = Path(__file__).parent / "results" / "scaling.json"
 
 DOE_CHILD = """
 import json, sys, time, torch

@@ -34,7 +34,7 @@ def main() -> None:
     ap.add_argument("--runs", default="50,100")
     ap.add_argument("--test", type=int, default=120)
     ap.add_argument("--store", default="runs/store")
-    ap.add_argument("--out", default="benchmarks/results_surrogate_inputs.json")
+    ap.add_argument("--out", default="benchmarks/results/surrogate_inputs.json")
     a = ap.parse_args()
     warnings.filterwarnings("ignore", category=UserWarning)
     setup = build(compose([]))
