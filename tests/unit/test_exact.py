@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from solderpyro.calibration.amis import log_marginal_sigma
+from solderpyro.calibration.intervals import weighted_quantiles
 from solderpyro.coords import UnitCoords
 from solderpyro.exact import (
     exact_posterior,
@@ -18,7 +19,6 @@ from solderpyro.exact import (
     laplace_cov_w,
     profile_coordinate,
     ridge_mixture,
-    weighted_quantiles,
 )
 from solderpyro.fit import lm_fit
 from solderpyro.params import Box
