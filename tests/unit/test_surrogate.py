@@ -40,7 +40,7 @@ def test_frozen_predictor_matches_gpytorch(kernel):
     with torch.no_grad(), gpytorch.settings.fast_pred_var(False), \
             gpytorch.settings.fast_computations(False, False, False):
         ref = gp.model(BOX.to_unit(xt).expand(1, 7, 2))
-    m, c = gp._coef(xt, full_cov=True)
+    m, c = gp.coefficients(xt, full_cov=True)
     assert torch.allclose(m, ref.mean, atol=1e-8)
     assert torch.allclose(c, ref.covariance_matrix, atol=1e-8)
 
@@ -197,13 +197,13 @@ def test_analytic_mll_closure_equals_gpytorch_autograd(kernel, mean, ard):
     """The fit's closure (solderpyro.surrogate.mll: NumPy/LAPACK loss and analytic gradient)
     gives GPyTorch's ExactMarginalLogLikelihood loss and its autograd gradient in every raw
     parameter, to 1e-11 relative, at hyperparameters away from their initial values."""
-    from solderpyro.surrogate.gp import _BatchGP
+    from solderpyro.surrogate.gp import BatchGP
     from solderpyro.surrogate.mll import mll_closure
 
     g = torch.Generator().manual_seed(3)
     x = torch.rand(1, 40, 3, generator=g, dtype=torch.float64).expand(4, 40, 3)
     z = torch.sin(4 * x[..., 0]) + torch.randn(4, 40, generator=g, dtype=torch.float64)
-    m = _BatchGP(x, z, kernel, mean, ard, 1e-6).double()
+    m = BatchGP(x, z, kernel, mean, ard, 1e-6).double()
     with torch.no_grad():
         for p in m.parameters():
             p.add_(0.5 * torch.randn(p.shape, generator=g, dtype=torch.float64))
@@ -229,13 +229,13 @@ def test_analytic_mll_closure_falls_back_where_cholesky_fails():
     """Duplicate training inputs and an outputscale 1e12 times the noise: K is singular in
     float64, LAPACK's factorization fails, and the closure returns GPyTorch's own (jittered)
     evaluation instead of raising."""
-    from solderpyro.surrogate.gp import _BatchGP
+    from solderpyro.surrogate.gp import BatchGP
     from solderpyro.surrogate.mll import mll_closure
 
     x = torch.rand(1, 10, 2, dtype=torch.float64)
     x = torch.cat([x, x], 1).expand(2, 20, 2)
     z = torch.randn(2, 20, dtype=torch.float64)
-    m = _BatchGP(x, z, "gaussian", "constant", True, 1e-6).double()
+    m = BatchGP(x, z, "gaussian", "constant", True, 1e-6).double()
     m.covar_module.outputscale = 1e12
     m.likelihood.noise = 1e-6
     m.train()
