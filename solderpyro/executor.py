@@ -28,6 +28,10 @@ threads and nested calls see the right one)::
 Results do not depend on the executor: the FE solves each member independently (members of
 one batch agree with the same members solved alone to ~1e-15 um), and ``run_doe`` assembles
 rows in their input order.
+
+Imports run one way: this module turns a solved batch into run records itself
+(:func:`solve_batch`) and builds on the run store (:mod:`solderpyro.runstore`: the records, and
+the store a worker writes); :mod:`solderpyro.store`'s ``run_doe`` builds on this module.
 """
 
 from __future__ import annotations
