@@ -132,11 +132,3 @@ def test_exact_inputs_are_checked():
         fe_profile(model, UC, TRUTH, np.eye(3) * 0.01, data(), SIGMA, n_grid=1)
     with pytest.raises(ValueError, match="draws, an FE best fit or a profile"):
         initial_proposal(UC)
-
-
-def test_weighted_quantiles_match_repeated_samples():
-    x = np.array([1.0, 2.0, 3.0, 4.0])
-    # equal weights: the median is the ordinary median
-    assert abs(weighted_quantiles(x, np.ones(4), (0.5,))[0] - 2.5) < 1e-12
-    # weight 3 on 4.0 (as if it were drawn three times) moves the median to 4.0's side
-    assert weighted_quantiles(x, np.array([1.0, 1.0, 1.0, 3.0]), (0.5,))[0] > 3.0
