@@ -17,10 +17,12 @@ circle still couples the two modules both ways, it only hides it.
 
 **Private names.** A name with a leading underscore that is not a dunder (``_x``, not
 ``__version__``) belongs to its module. No module may take one from another module of the
-package, neither by ``from X import _x`` (a name or a private submodule) nor as an attribute
-``m._x`` of a module ``m`` it imported (``import solderpyro.x as m``,
-``from solderpyro import x``, ``from . import x``; an import binds its name in the scope where it
-stands and the scopes nested in it). The exception is the package of C kernels,
+package: not by ``from X import _x`` (a name, or a private submodule as ``import X._m``
+also takes), nor as an attribute ``m._x`` of a module ``m`` it imported
+(``import solderpyro.x as m``, ``from solderpyro import x``, ``from . import x``; a module-level
+import binds its name in the whole module, one in a function in that function and the ones
+nested in it, and a parameter of the same name hides it). A public name of a private module
+(``from X._m import y``) is that module's interface. The exception is the package of C kernels,
 ``solderpyro._native``: importing it is allowed (it is a private subpackage of solderpyro as
 a whole), its own private names are not. Imports from outside the package are not checked
 (``from scipy.stats import chi2 as _chi2`` is fine), nor is the name a public import is bound
@@ -36,9 +38,7 @@ import ast
 from dataclasses import dataclass
 from pathlib import Path
 
-import solderpyro
-
-ROOT = Path(solderpyro.__file__).resolve().parent
+ROOT = Path(__file__).resolve().parents[2] / "solderpyro"
 #: private modules that other modules may import
 ALLOWED_PRIVATE_MODULES = ("solderpyro._native",)
 
