@@ -325,6 +325,8 @@ class ExactPosterior:
 
     @property
     def reliable(self) -> bool:
+        """Whether the AMIS weights pass their checks (Kish ESS and Pareto k-hat;
+        :attr:`~solderpyro.calibration.amis.AMISResult.reliable`)."""
         return self.result.reliable
 
 

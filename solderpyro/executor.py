@@ -295,6 +295,7 @@ class InProcess:
             yield BatchOutcome(recs, False, time.perf_counter() - t0)
 
     def describe(self) -> str:
+        """A short label of where the batches run (for progress bars and logs)."""
         return "in-process"
 
 
@@ -441,6 +442,7 @@ class DaskExecutor:
                 f.release()
 
     def describe(self) -> str:
+        """A short label of where the batches run: the scheduler and its worker threads."""
         return f"Dask ({self.client.scheduler.address}, {self.n_workers} worker threads)"
 
     def close(self) -> None:

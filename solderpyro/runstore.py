@@ -303,6 +303,7 @@ class RunStore:
         self.root = Path(root)
 
     def config_dir(self, cfg_hash: str) -> Path:
+        """The directory of the configuration ``cfg_hash`` (its ``meta.json`` and ``runs/``)."""
         return self.root / cfg_hash
 
     def register(self, problem: Any, times: Sequence[float], field: bool,

@@ -71,6 +71,7 @@ class DoeResult:
 
     @property
     def n_failed(self) -> int:
+        """The number of rows whose member failed (``~ok``)."""
         return int((~self.ok).sum())
 
 

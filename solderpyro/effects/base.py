@@ -99,6 +99,7 @@ class Effect:
 
     @property
     def n_params(self) -> int:
+        """The number of the effect's parameters (its columns of the parameter vector)."""
         return self.params.dim
 
     def bind(self, times: Sequence[float]) -> Effect:

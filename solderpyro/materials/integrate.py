@@ -84,10 +84,12 @@ class PointState:
     X: torch.Tensor | None = None
 
     def index(self, idx) -> PointState:
+        """The state of the points ``idx`` (any torch index of the leading dimensions)."""
         return PointState(self.eps_p[idx], self.s[idx], self.eps_zz[idx],
                           None if self.X is None else self.X[idx])
 
     def detach(self) -> PointState:
+        """The same state cut from the autograd graph."""
         return PointState(self.eps_p.detach(), self.s.detach(), self.eps_zz.detach(),
                           None if self.X is None else self.X.detach())
 
@@ -289,21 +291,25 @@ class Tangent3D:
         return mm, torch.eye(4, dtype=m.dtype, device=m.device) - mm / 3.0
 
     def full(self) -> torch.Tensor:
+        """The tangent ``C`` ``(..., 4, 4)``, MPa (Mandel)."""
         mm, dev = self._consts()
         return (self.K[..., None, None] * mm + self.g2[..., None, None] * dev
                 + self.coef[..., None, None] * self.nb[..., :, None] * self.nb[..., None, :])
 
     def col_zz(self) -> torch.Tensor:
+        """Its column ``C[..., :, ZZ]`` ``(..., 4)``, MPa."""
         mm, dev = self._consts()
         return (self.K[..., None] * mm[:, ZZ] + self.g2[..., None] * dev[:, ZZ]
                 + self.coef[..., None] * self.nb * self.nb[..., ZZ, None])
 
     def row_zz(self) -> torch.Tensor:
+        """Its row ``C[..., ZZ, :]`` ``(..., 4)``, MPa."""
         mm, dev = self._consts()
         return (self.K[..., None] * mm[ZZ] + self.g2[..., None] * dev[ZZ]
                 + (self.coef * self.nb[..., ZZ])[..., None] * self.nb)
 
     def index(self, idx) -> Tangent3D:
+        """The tangent at the points ``idx`` (any torch index of the leading dimensions)."""
         return Tangent3D(self.K[idx], self.g2[idx], self.coef[idx], self.nb[idx])
 
 

@@ -85,6 +85,8 @@ class BatchGP(gpytorch.models.ExactGP):
         self.covar_module = gpytorch.kernels.ScaleKernel(base, batch_shape=bs)
 
     def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
+        """The GPs' prior at inputs ``x (b, n*, d)``: mean ``(b, n*)``, covariance
+        ``(b, n*, n*)``."""
         return gpytorch.distributions.MultivariateNormal(self.mean_module(x),
                                                          self.covar_module(x))
 
