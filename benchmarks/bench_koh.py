@@ -307,13 +307,14 @@ def jax_lowrank(gp, feats) -> Callable:
     import jax.numpy as jnp
     import jax.scipy.linalg as jsl
 
-    assert gp.output == "pca" and gp.kernel == "matern52" and gp._w is None
-    assert not any(gp.box.log_scale)
+    f, scaling = gp.factors(), gp.input_scaling
+    assert gp.output == "pca" and gp.kernel == "matern52" and f.mean_weights is None
+    assert not any(gp.box.log_scale) and scaling is not None
     # w = lengthscale^-2 as torch forms it (GPyTorch keeps the hyperparameters in float32)
     c = {k: jnp.asarray(v.detach().numpy(), dtype=jnp.float64) for k, v in dict(
-        u=gp._u, chol=gp._chol, alpha=gp._alpha, os=gp._os, w=gp._ls.pow(-2), c=gp._c,
-        basis=gp.basis, mu=gp.std.mean, scale=gp.std.scale, resid=gp.resid_var,
-        in_lo=gp._in_lo, in_span=gp._in_span).items()}
+        u=f.u, chol=f.chol, alpha=f.alpha, os=f.outputscale, w=f.lengthscale.pow(-2),
+        c=f.mean_const, basis=gp.basis, mu=gp.std.mean, scale=gp.std.scale,
+        resid=gp.resid_var, in_lo=scaling[0], in_span=scaling[1]).items()}
     lo, hi = jnp.asarray(gp.box.lower), jnp.asarray(gp.box.upper)
     i_s0, i_qr, i_xi, i_m = (feats.idx[k] for k in ("s0", "QR", "xi", "m"))
     log_a, log_sh, n_exp = math.log(feats.fixed["A"]), math.log(feats.fixed["s_hat"]), \

@@ -43,8 +43,8 @@ def _greedy_full(gp, mc_theta, cand_theta, q, sigma, y, pending):
     N, C = len(mc_theta), len(cand_theta)
     S = torch.cat([mc_theta, cand_theta, pending]).to(torch.float64)
     with torch.no_grad():
-        _, cov = gp._coef(S, full_cov=True)
-        tau = gp._noise
+        _, cov = gp.coefficients(S, full_cov=True)
+        tau = gp.factors().noise
 
         def condition(cov, i):
             den = (cov[:, i, i] + tau)[:, None, None]
@@ -102,7 +102,7 @@ def main() -> None:
     Q = np.stack([fm.to_unconstrained({SITE_T: torch.as_tensor(u[i]),
                                        SITE_SIGMA: torch.as_tensor(sig[i])}) for i in sel])
     out: dict = {"run": str(a.run), "n_obs": int(sm.y.numel()),
-                 "components": int(gp.basis.shape[1]), "fe_runs": int(gp._u.shape[1])}
+                 "components": int(gp.basis.shape[1]), "fe_runs": int(gp.x_train.shape[0])}
 
     def timed_gradients(model) -> tuple[float, np.ndarray]:
         """Seconds per gradient over Q (median of 5 passes after one untimed) and the log
@@ -170,8 +170,8 @@ def main() -> None:
     from solderpyro.pipeline.surrogate import fit_surrogate
     from solderpyro.settings import CalibrationSettings
 
-    X = torch.as_tensor(gp._x_train)
-    Y = torch.as_tensor(gp._y_train)
+    X = torch.as_tensor(gp.x_train)
+    Y = torch.as_tensor(gp.y_train)
     s_med0 = float(np.median(sig))
 
     def fit_once() -> tuple[float, float]:

@@ -125,7 +125,7 @@ def _records(root: Path, n: int, legacy: bool) -> float:
     import numpy as np
 
     from solderpyro.params import ANAND_NAMES
-    from solderpyro.store import RunRecord, RunStore, _write_atomic
+    from solderpyro.runstore import RunRecord, RunStore, write_atomic
 
     store = RunStore(root)
     names = tuple(["A", "B"] + [f"g_{i:02d}_{j:02d}" for i in range(31) for j in range(18)])
@@ -138,7 +138,7 @@ def _records(root: Path, n: int, legacy: bool) -> float:
         d = rec.to_json()
         if legacy:  # the format before base64: V as nested lists of numbers
             d["V"] = rec.V.tolist()
-        _write_atomic(store.path("cfg", rec.values), d)
+        write_atomic(store.path("cfg", rec.values), d)
     return time.perf_counter() - t0
 
 

@@ -1,7 +1,12 @@
 """Config edge: compose the YAML configs (Hydra) and turn them into typed library objects.
 
-Only the CLI and the experiment scripts import this module; the library itself takes typed
-objects (:class:`~solderpyro.fem.problem.Problem`, :class:`~solderpyro.params.ParameterSpace`).
+:func:`compose` and :func:`build` (Hydra configs -> a :class:`Setup`) serve the CLI, the
+experiment scripts and ``diagnose``'s reload of a run's config. :class:`Setup` is also the
+typed bundle (problem, parameter space, output times, dtype, surrogate settings, effects) that
+the specimen calibration (:mod:`solderpyro.specimen`) and the pipeline stages
+(:mod:`solderpyro.pipeline`) take as input. The solver, the surrogate and the calibration
+core take the typed objects themselves (:class:`~solderpyro.fem.problem.Problem`,
+:class:`~solderpyro.params.ParameterSpace`) and never import this module.
 """
 
 from __future__ import annotations

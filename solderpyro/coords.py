@@ -96,7 +96,7 @@ class FlowStressCoords(UnitCoords):
 
     def _z(self, x: torch.Tensor) -> torch.Tensor:
         fs = self.fs
-        a = fs._get(x, "A")
+        a = fs.param(x, "A")
         log_a = torch.log(a) if isinstance(a, torch.Tensor) else math.log(a)
         return math.log(fs.rate_ref) - log_a + x[..., self.i_qr] / fs.T_ref_K
 
@@ -107,7 +107,7 @@ class FlowStressCoords(UnitCoords):
         sp, fs = self.space, self.fs
         x = sp.from_unit(W)  # right for every pass-through column
         xi, m = x[:, fs.idx["xi"]], x[:, fs.idx["m"]]
-        s_hat, n = fs._get(x, "s_hat"), fs._get(x, "n")
+        s_hat, n = fs.param(x, "s_hat"), fs.param(x, "n")
         log_sh = torch.log(s_hat) if isinstance(s_hat, torch.Tensor) else math.log(s_hat)
 
         def g(z: torch.Tensor) -> torch.Tensor:  # log sigma_sat(z), increasing in z
@@ -121,7 +121,7 @@ class FlowStressCoords(UnitCoords):
             up = g(mid) > target
             hi, lo = torch.where(up, mid, hi), torch.where(up, lo, mid)
         z = 0.5 * (lo + hi)
-        a = fs._get(x, "A")
+        a = fs.param(x, "A")
         log_a = torch.log(a) if isinstance(a, torch.Tensor) else math.log(a)
         qr = (z - math.log(fs.rate_ref) + log_a) * fs.T_ref_K
         s0 = torch.exp(W[:, self.i_s0] - log_asinh_exp(m * z) + torch.log(xi))
@@ -137,7 +137,7 @@ class FlowStressCoords(UnitCoords):
         X = torch.as_tensor(np.atleast_2d(np.asarray(x, float)))
         sp, fs = self.space, self.fs
         m = X[:, fs.idx["m"]]
-        n = fs._get(X, "n")
+        n = fs.param(X, "n")
         v = (m * self._z(X)).detach().requires_grad_(True)
         dpsi = torch.autograd.grad(log_asinh_exp(v).sum(), v)[0]  # d log asinh(e^v) / dv
 

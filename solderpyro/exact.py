@@ -45,7 +45,7 @@ from solderpyro.calibration.amis import (
     log_marginal_sigma,
     weighted_em,
 )
-from solderpyro.calibration.intervals import with_intervals
+from solderpyro.calibration.intervals import weighted_quantiles, with_intervals
 from solderpyro.coords import UnitCoords
 from solderpyro.params import Box
 
@@ -299,16 +299,6 @@ def initial_proposal(coords: UnitCoords, draws: np.ndarray | None = None,
     return TMixture.combine(parts)
 
 
-def weighted_quantiles(x: np.ndarray, w: np.ndarray, probs: tuple[float, ...]) -> list[float]:
-    """Quantiles of ``x (n,)`` under weights ``w (n,)`` (normalized inside; midpoint rule with
-    linear interpolation, so equal weights give the sample quantiles' usual values)."""
-    x, w = np.asarray(x, float), np.asarray(w, float)
-    o = np.argsort(x)
-    cw = np.cumsum(w[o])
-    cw = (cw - 0.5 * w[o]) / cw[-1]
-    return [float(np.interp(p, cw, x[o])) for p in probs]
-
-
 @dataclass
 class ExactPosterior:
     """The FE-exact posterior from :func:`exact_posterior`.
@@ -335,6 +325,8 @@ class ExactPosterior:
 
     @property
     def reliable(self) -> bool:
+        """Whether the AMIS weights pass their checks (Kish ESS and Pareto k-hat;
+        :attr:`~solderpyro.calibration.amis.AMISResult.reliable`)."""
         return self.result.reliable
 
 

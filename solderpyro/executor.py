@@ -28,6 +28,10 @@ threads and nested calls see the right one)::
 Results do not depend on the executor: the FE solves each member independently (members of
 one batch agree with the same members solved alone to ~1e-15 um), and ``run_doe`` assembles
 rows in their input order.
+
+Imports run one way: this module turns a solved batch into run records itself
+(:func:`solve_batch`) and builds on the run store (:mod:`solderpyro.runstore`: the records, and
+the store a worker writes); :mod:`solderpyro.store`'s ``run_doe`` builds on this module.
 """
 
 from __future__ import annotations
@@ -44,12 +48,12 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+import numpy as np
 import torch
 
-if TYPE_CHECKING:  # no Dask import on the in-process path
-    from solderpyro.store import RunRecord, RunStore
+from solderpyro.runstore import RunRecord, RunStore
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +63,7 @@ class BatchOutcome:
     """What one FE batch gave back.
 
     Attributes:
-        records: one :class:`~solderpyro.store.RunRecord` per member, in row order.
+        records: one :class:`~solderpyro.runstore.RunRecord` per member, in row order.
         stored: whether the records are already in the store (written where they were solved).
         seconds: FE wall time of the batch where it ran, s (NaN when unknown).
         lost: the batch was never solved (its workers died): failed records that must not be
@@ -75,11 +79,43 @@ class BatchOutcome:
 def solve_batch(solver: Any, P: torch.Tensor, times: Sequence[float],
                 names: Sequence[str]) -> list[RunRecord]:
     """Solve one batch ``P (b, 9 + n_eff)`` over ``times`` (s, sorted): one
-    :class:`~solderpyro.store.RunRecord` per member (``names``: the columns of ``P``)."""
-    from solderpyro.store import _batch_records, _solve
+    :class:`~solderpyro.runstore.RunRecord` per member (``names``: the columns of ``P``).
 
+    ``solver``: anything with ``.solve(P, times, progress=False)``, or a callable
+    ``(P, times)``, returning a ``SolveResult``-like (``V (b, n_time, n_out)`` um, ``ok (b,)``,
+    ``reasons``, ``times``, ``names``, optional ``n_steps``/``n_substeps``).
+    """
     tt = [float(t) for t in times]
     return _batch_records(_solve(solver, P, tt), P, tt, names)
+
+
+def _solve(solver: Any, p: torch.Tensor, times: list[float]) -> Any:
+    if hasattr(solver, "solve"):
+        return solver.solve(p, times, progress=False)
+    return solver(p, times)
+
+
+def _batch_records(res: Any, p: torch.Tensor, times: list[float],
+                   names: Sequence[str]) -> list[RunRecord]:
+    """One :class:`RunRecord` per member of a solver result ``res`` for params ``p`` ``(b, k)``
+    named ``names`` ``(k,)``."""
+    V = res.V.detach().cpu().to(torch.float64).numpy()  # (b, n_time, n_out)
+    rtimes = tuple(float(t) for t in torch.as_tensor(res.times).tolist())
+    if V.shape[:2] != (p.shape[0], len(times)) or not np.allclose(rtimes, times, rtol=0,
+                                                                  atol=1e-9):
+        raise ValueError(f"solver returned V of shape {V.shape} at times {rtimes}, expected "
+                         f"({p.shape[0]}, {len(times)}, n_out) at {tuple(times)}")
+    ok = torch.as_tensor(res.ok).cpu().tolist()
+    reasons = list(getattr(res, "reasons", None) or [""] * len(ok))
+    n_steps, n_sub = getattr(res, "n_steps", None), getattr(res, "n_substeps", None)
+    out = []
+    for i, row in enumerate(p.tolist()):
+        why = str(reasons[i]) or ("" if ok[i] else "solver reported failure (no reason given)")
+        out.append(RunRecord(dict(zip(names, row, strict=True)), bool(ok[i]), why,
+                             tuple(times), tuple(str(n) for n in res.names), V[i],
+                             None if n_steps is None else int(n_steps),
+                             None if n_sub is None else int(n_sub), int(p.shape[0])))
+    return out
 
 
 #: solvers built on this (worker) process, by the hash of their pickled inputs
@@ -100,8 +136,6 @@ def _task(key: str, blob: bytes, P: torch.Tensor, times: list[float], names: lis
           store_root: str | None, cfg_hash: str) -> tuple[list[RunRecord], bool, float]:
     """One Dask task: solve a batch and store its runs where the worker can reach the store.
     Returns ``(records, stored, seconds)``."""
-    from solderpyro.store import RunStore
-
     torch.set_num_threads(1)  # one thread per worker: the cluster, not torch, spreads the work
     solver = _worker_solver(key, blob)
     # The task runs beside the worker's event-loop thread; at Python's 5 ms switch interval the
@@ -261,6 +295,7 @@ class InProcess:
             yield BatchOutcome(recs, False, time.perf_counter() - t0)
 
     def describe(self) -> str:
+        """A short label of where the batches run (for progress bars and logs)."""
         return "in-process"
 
 
@@ -407,6 +442,7 @@ class DaskExecutor:
                 f.release()
 
     def describe(self) -> str:
+        """A short label of where the batches run: the scheduler and its worker threads."""
         return f"Dask ({self.client.scheduler.address}, {self.n_workers} worker threads)"
 
     def close(self) -> None:
@@ -426,10 +462,6 @@ class DaskExecutor:
 def _failed(P: torch.Tensor, times: list[float], names: Sequence[str], solver: Any,
             reason: str) -> list[RunRecord]:
     """Failed records (``ok=False``, NaN outputs) for every member of a lost batch."""
-    import numpy as np
-
-    from solderpyro.store import RunRecord
-
     outs = list(getattr(solver, "names", None) or ())
     V = np.full((len(times), len(outs)), np.nan)
     return [RunRecord(dict(zip(names, row, strict=True)), False, reason, tuple(times),

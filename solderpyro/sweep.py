@@ -37,9 +37,9 @@ def _load(record: Path) -> dict[str, dict]:
 
 
 def _save(record: Path, jobs: dict[str, dict]) -> None:
-    from solderpyro.store import _write_atomic
+    from solderpyro.runstore import write_atomic
 
-    _write_atomic(record, {"jobs": jobs})
+    write_atomic(record, {"jobs": jobs})
 
 
 def _outcomes(fn: Callable[[str], dict], names: list[str], executor: Any

@@ -226,7 +226,9 @@ def kernel_threads() -> Iterator[None]:
         _budget.n = prev
 
 
-def _ptr(t: torch.Tensor | None) -> int | None:
+def ptr(t: torch.Tensor | None) -> int | None:
+    """The address of ``t``'s data for a kernel's pointer argument (``t`` contiguous, of the
+    kernel's dtype; the caller keeps it alive for the call), or None for a NULL pointer."""
     return None if t is None else t.data_ptr()
 
 
@@ -296,11 +298,11 @@ def anand_update(eps, eps_p, s_n, X_n, p, T, dt, eps_th, E, nu, C_k, guess, tang
     tg = (torch.empty(n, **tkw), torch.empty(n, **tkw), torch.empty(n, **tkw),
           torch.empty(n, 4, **tkw)) if tangent else (None,) * 4
     nt = threads("points", n)
-    lib.sp_anand_update(n, _ptr(e4), _ptr(pn), _ptr(sn), _ptr(Xn),
-                        *(_ptr(f[0]) for f in fields), None if ck is None else _ptr(ck[0]),
+    lib.sp_anand_update(n, ptr(e4), ptr(pn), ptr(sn), ptr(Xn),
+                        *(ptr(f[0]) for f in fields), None if ck is None else ptr(ck[0]),
                         ctypes.addressof(div),
-                        _ptr(g), int(bool(tangent)), _ptr(sigma), _ptr(ep_out), _ptr(s_out),
-                        _ptr(X_out), _ptr(dep), _ptr(x), *(_ptr(t) for t in tg), nt,
+                        ptr(g), int(bool(tangent)), ptr(sigma), ptr(ep_out), ptr(s_out),
+                        ptr(X_out), ptr(dep), ptr(x), *(ptr(t) for t in tg), nt,
                         int(simd))
     r = lambda t, *w: t.reshape(*shape, *w)  # noqa: E731
     tan = None if not tangent else (r(tg[0]), r(tg[1]), r(tg[2]), r(tg[3], 4))
@@ -365,12 +367,12 @@ def solder_eval(u, ezz, edof, B, Bw, S_border, state, p, T, dt, eps_th, E, nu, C
     fint = torch.empty(b, n_r, **tkw)
     dof_D, S_DD = (t.contiguous() for t in S_border)
     dims = (ctypes.c_long * 5)(b, n_e, n_qp, n_r, len(dof_D))
-    rc = lib.sp_solder_eval(dims, _ptr(uc), _ptr(zc), _ptr(edof), _ptr(dof_D), _ptr(S_DD),
-                            _ptr(B), _ptr(Bw), _ptr(pn),
-                            _ptr(sn), _ptr(Xn), *(_ptr(f[0]) for f in fields),
-                            None if ck is None else _ptr(ck[0]), ctypes.addressof(div), _ptr(g),
-                            int(plane_stress), _ptr(sig), _ptr(szz), _ptr(ep), _ptr(s_out),
-                            _ptr(X_out), _ptr(dep), _ptr(x), *(_ptr(t) for t in tg), _ptr(fint),
+    rc = lib.sp_solder_eval(dims, ptr(uc), ptr(zc), ptr(edof), ptr(dof_D), ptr(S_DD),
+                            ptr(B), ptr(Bw), ptr(pn),
+                            ptr(sn), ptr(Xn), *(ptr(f[0]) for f in fields),
+                            None if ck is None else ptr(ck[0]), ctypes.addressof(div), ptr(g),
+                            int(plane_stress), ptr(sig), ptr(szz), ptr(ep), ptr(s_out),
+                            ptr(X_out), ptr(dep), ptr(x), *(ptr(t) for t in tg), ptr(fint),
                             threads("points", n), int(simd))
     if rc != 0:
         raise RuntimeError(f"sp_solder_eval failed ({'out of memory' if rc == -1 else rc})")
@@ -399,8 +401,8 @@ def dezz(du, szz, edof, B, tangent):
     out = torch.empty(shape, dtype=torch.float64, device=du.device)
     dims = (ctypes.c_long * 4)(b, n_e, n_qp, n_r)
     duc, edof, B = du.contiguous(), edof.contiguous(), B.contiguous()
-    lib.sp_dezz(dims, _ptr(duc), _ptr(szc), _ptr(edof), _ptr(B),
-                *(_ptr(t) for t in tg), _ptr(out))
+    lib.sp_dezz(dims, ptr(duc), ptr(szc), ptr(edof), ptr(B),
+                *(ptr(t) for t in tg), ptr(out))
     return out
 
 

@@ -82,12 +82,23 @@ class Interval:
         return self.lo <= value <= self.hi
 
 
+def weighted_quantiles(x: np.ndarray, w: np.ndarray, probs: tuple[float, ...]) -> list[float]:
+    """Quantiles of ``x (n,)`` under weights ``w (n,)`` (normalized inside; midpoint rule with
+    linear interpolation, so equal weights give the sample quantiles' usual values).
+
+    Returns one value per entry of ``probs`` (each in [0, 1]), in ``x``'s units.
+    """
+    x, w = np.asarray(x, float), np.asarray(w, float)
+    o = np.argsort(x)
+    cw = np.cumsum(w[o])
+    cw = (cw - 0.5 * w[o]) / cw[-1]
+    return [float(np.interp(p, cw, x[o])) for p in probs]
+
+
 def _quantiles(x: np.ndarray, probs: Sequence[float], weights: np.ndarray | None
                ) -> np.ndarray:
     if weights is None:
         return np.quantile(x, probs)
-    from solderpyro.exact import weighted_quantiles
-
     return np.asarray(weighted_quantiles(x, weights, tuple(probs)), float)
 
 

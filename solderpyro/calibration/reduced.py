@@ -70,8 +70,10 @@ class GPInputMap:
             if not hasattr(self.feats, "value_and_jacobian"):
                 raise NotImplementedError(f"the GP input map {type(self.feats).__name__} has no "
                                           "value_and_jacobian")
-            self.in_lo = gp._in_lo.detach().cpu().numpy().astype(float)
-            self.in_span = gp._in_span.detach().cpu().numpy().astype(float)
+            scaling = gp.input_scaling
+            assert scaling is not None  # the surrogate has an input map
+            self.in_lo = scaling[0].detach().cpu().numpy().astype(float)
+            self.in_span = scaling[1].detach().cpu().numpy().astype(float)
 
     def __call__(self, t_unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``t_unit (p,)`` -> GP inputs ``u (d',)`` and ``du/dt_unit (d', n)``."""
@@ -103,16 +105,17 @@ class ComponentGPs:
     """
 
     def __init__(self, gp: GPSurrogate) -> None:
-        gp._need_fit()
+        fac = gp.factors()
         self.kernel = gp.kernel
-        self.U = gp._u[0].detach().cpu().numpy().astype(float)  # (n_sim, d')
-        self.os = gp._os.detach().cpu().numpy().astype(float)  # (K,)
-        ls = gp._ls.detach().cpu().numpy().astype(float)  # (K, d'|1)
+        self.U = fac.u[0].detach().cpu().numpy().astype(float)  # (n_sim, d')
+        self.os = fac.outputscale.detach().cpu().numpy().astype(float)  # (K,)
+        ls = fac.lengthscale.detach().cpu().numpy().astype(float)  # (K, d'|1)
         self.inv_ls2 = np.broadcast_to(1.0 / ls**2, (ls.shape[0], self.U.shape[1])).copy()
-        self.c0 = gp._c.detach().cpu().numpy().astype(float)  # (K,)
-        self.w = None if gp._w is None else gp._w.detach().cpu().numpy().astype(float)
-        self.alpha = gp._alpha.detach().cpu().numpy().astype(float)  # (K, n_sim)
-        chol = gp._chol.detach().cpu().numpy().astype(float)  # (K, n_sim, n_sim)
+        self.c0 = fac.mean_const.detach().cpu().numpy().astype(float)  # (K,)
+        self.w = (None if fac.mean_weights is None
+                  else fac.mean_weights.detach().cpu().numpy().astype(float))  # (K, d')
+        self.alpha = fac.alpha.detach().cpu().numpy().astype(float)  # (K, n_sim)
+        chol = fac.chol.detach().cpu().numpy().astype(float)  # (K, n_sim, n_sim)
         self.linv = np.stack([_trsv(c, np.eye(c.shape[0]), False) for c in chol])  # L^-1
         self.linv_t = np.ascontiguousarray(self.linv.transpose(0, 2, 1))
 
@@ -364,7 +367,7 @@ def reduced_loglik_torch(gp: GPSurrogate, y_obs: torch.Tensor, t: torch.Tensor,
     Returns:
         scalar: ``log N(y_obs; mean, F F^T + diag(d + sigma^2))`` of ``gp.mean_lowrank(t)``.
     """
-    mc, vc = gp._coef(t.reshape(1, -1), full_cov=False)  # (K, 1), (K, 1)
+    mc, vc = gp.coefficients(t.reshape(1, -1), full_cov=False)  # (K, 1), (K, 1)
     c, v = mc[:, 0], vc[:, 0].clamp_min(0.0)
     B = gp.basis * gp.std.scale[:, None]
     w = 1.0 / (gp.resid_var * gp.std.scale.square() + sigma.square())

@@ -136,15 +136,16 @@ class _PosteriorColumns:
 
     def __init__(self, gp: GPSurrogate, S: torch.Tensor) -> None:
         self.gp = gp
-        self.u, _, self.v = gp._cross(S)  # (k, M, d'), (k, n, M)
+        self.u, _, self.v = gp.cross_covariance(S)  # (k, M, d'), (k, n, M)
+        self.os = gp.factors().outputscale  # (k,)
 
     def diag(self) -> torch.Tensor:
         """``(k, M)`` the variances."""
-        return self.gp._os[:, None] - self.v.square().sum(-2)
+        return self.os[:, None] - self.v.square().sum(-2)
 
     def block(self, a: slice, b: slice) -> torch.Tensor:
         """``(k, |a|, |b|)`` the covariance between the points ``a`` and ``b``."""
-        kab = self.gp._os[:, None, None] * self.gp._corr(self.u[:, a], self.u[:, b])
+        kab = self.os[:, None, None] * self.gp.correlation(self.u[:, a], self.u[:, b])
         return kab - self.v[:, :, a].transpose(-1, -2) @ self.v[:, :, b]
 
     def column(self, i: int) -> torch.Tensor:
@@ -190,7 +191,7 @@ def greedy_draws(gp: GPSurrogate, criterion: str, mc_theta: torch.Tensor,
     S = torch.cat(parts).to(torch.float64)
     with torch.no_grad():
         cols = _PosteriorColumns(gp, S)
-        tau = gp._noise  # (k,)
+        tau = gp.factors().noise  # (k,)
         # the coefficients' posterior covariance is kept as the prior one minus the rank-1
         # terms of the runs conditioned on so far, and only its diagonal and draws x
         # candidates block are formed: the full (k, N + C + P, N + C + P) matrix and its

@@ -1,7 +1,7 @@
 """The fitted GPyTorch surrogate as a BoTorch :class:`~botorch.models.model.Model`.
 
 BoTorch's acquisition functions (and ``optimize_acqf``) work in the box's unit cube
-``X (..., d)``; the surrogate's GPs see ``GPSurrogate._unit`` of the physical inputs (the unit
+``X (..., d)``; the surrogate's GPs see ``GPSurrogate.gp_inputs`` of the physical inputs (the unit
 cube, or a physics-informed map such as the log flow stresses). :class:`SurrogateInputs`
 carries that map as a BoTorch input transform, so the model's ``posterior``, ``fantasize`` and
 ``condition_on_observations`` are BoTorch's own, with the surrogate's fitted hyperparameters.
@@ -22,6 +22,7 @@ from botorch.models import SingleTaskGP
 from botorch.models.transforms.input import InputTransform
 
 from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate.gp import BatchGP
 
 
 class SurrogateInputs(InputTransform, torch.nn.Module):
@@ -41,7 +42,7 @@ class SurrogateInputs(InputTransform, torch.nn.Module):
 
     def transform(self, X: torch.Tensor) -> torch.Tensor:
         """``X (..., d)`` in the unit cube -> ``(..., d')`` GP inputs."""
-        return self._gp._unit(self._gp.box.from_unit(X))
+        return self._gp.gp_inputs(self._gp.box.from_unit(X))
 
     def equals(self, other: InputTransform) -> bool:
         return isinstance(other, SurrogateInputs) and other._gp is self._gp
@@ -53,7 +54,7 @@ def botorch_model(gp: GPSurrogate) -> SingleTaskGP:
     Hyperparameters (kernel, lengthscales, output scales, means, nuggets) are copies of the
     fitted ones and stay fixed; the training data are the surrogate's runs. The model's
     posterior at ``X (..., q, d)`` (unit cube) equals the surrogate's GP coefficients'
-    predictive distribution (``GPSurrogate._coef``) to rounding.
+    predictive distribution (:meth:`GPSurrogate.coefficients`) to rounding.
 
     Args:
         gp: a fitted :class:`GPSurrogate` (any output layout).
@@ -63,17 +64,15 @@ def botorch_model(gp: GPSurrogate) -> SingleTaskGP:
         (``gp.basis.shape[1]``); inputs ``(..., q, d)``, outputs ``(..., q, k)`` in the
         standardized coefficient units of the surrogate.
     """
-    gp._need_fit()
+    z = gp.factors().z  # (k, n); raises before a fit
     src = gp.model
     assert src is not None
-    X = gp.box.to_unit(gp._x_train).to(gp._z)  # (n, d)
-    Z = gp._z.T.contiguous()  # (n, k)
+    X = gp.box.to_unit(gp.x_train).to(z)  # (n, d)
+    Z = z.T.contiguous()  # (n, k)
     k = Z.shape[1]
     if k == 1:  # BoTorch's single-output models carry no output batch dimension
-        from solderpyro.surrogate.gp import _BatchGP
-
         u = src.train_inputs[0][0]
-        one = _BatchGP(u[None], Z.T, gp.kernel, gp.mean, gp.ard, gp.nugget).to(Z)
+        one = BatchGP(u[None], Z.T, gp.kernel, gp.mean, gp.ard, gp.nugget).to(Z)
         st = {kk: v.reshape(-1) if v.ndim == 1 else v for kk, v in src.state_dict().items()}
         one.load_state_dict(st)
         mods = [_unbatch(m_) for m_ in (one.likelihood, one.covar_module, one.mean_module)]

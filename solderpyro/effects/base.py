@@ -1,4 +1,4 @@
-"""Optional physical effects: the :class:`Effect` base class and their composition.
+"""Optional physical effects: the :class:`Effect` base class.
 
 An effect is a piece of physics the baseline model lacks, with calibratable parameters on a
 prior box. It enters the model through one seam (shared/style.md), as a hook that transforms a
@@ -20,7 +20,8 @@ observation operator   :meth:`Effect.observe` (on the solver's V after the FE so
 Every hook receives ``q``, the effect's own columns of the parameter vector, ``(b, n_p)`` (one row
 per batch member), so each member can carry its own effect values, and the hooks are plain torch
 functions of ``q``: outputs are differentiable with respect to the effect parameters.
-The solver core calls :class:`EffectSet` only; it never names an effect.
+The solver core calls :class:`~solderpyro.effects.EffectSet` (their composition, in the
+package, beside the registry it resolves names in) only; it never names an effect.
 
 Units: temperatures degC, times s, displacements um, as everywhere at this surface.
 """
@@ -98,6 +99,7 @@ class Effect:
 
     @property
     def n_params(self) -> int:
+        """The number of the effect's parameters (its columns of the parameter vector)."""
         return self.params.dim
 
     def bind(self, times: Sequence[float]) -> Effect:
@@ -124,7 +126,7 @@ class Effect:
                 raise ValueError(f"effect {self.name!r} has no parameter {key!r}; valid: "
                                  f"{', '.join(b.names)}")
             i = b.names.index(key)
-            lo[i], hi[i] = _pair(self.name, key, pair)
+            lo[i], hi[i] = box_pair(self.name, key, pair)
         return dataclasses.replace(self, box=Box(b.names, tuple(lo), tuple(hi),
                                                  b.log_scale, b.units))
 
@@ -187,7 +189,13 @@ class Effect:
         return V
 
 
-def _pair(name: str, key: str, pair: Sequence[float]) -> tuple[float, float]:
+def box_pair(name: str, key: str, pair: Sequence[float]) -> tuple[float, float]:
+    """A prior-box override ``pair = [lower, upper]`` of key ``key`` of effect ``name`` as
+    floats ``(lower, upper)`` in the parameter's units (:meth:`Effect.with_box`).
+
+    Raises:
+        ValueError: when ``pair`` is not two numbers or ``lower >= upper``.
+    """
     try:
         lo, hi = (float(v) for v in pair)
     except (TypeError, ValueError):
@@ -195,177 +203,3 @@ def _pair(name: str, key: str, pair: Sequence[float]) -> tuple[float, float]:
     if not lo < hi:
         raise ValueError(f"effect box {name}.{key}: lower {lo:g} must be < upper {hi:g}")
     return lo, hi
-
-
-class EffectSet:
-    """The effects switched on, in order, and their columns of the effect-parameter vector.
-
-    The solver and the model hold one; :meth:`bind` specialises it to the output times (an
-    observation effect may have one parameter per image).
-
-    Args:
-        effects: effect names (registry keys) or :class:`Effect` instances, no duplicates.
-    """
-
-    def __init__(self, effects: Sequence[str | Effect]) -> None:
-        from . import get_effect
-
-        self.effects: tuple[Effect, ...] = tuple(get_effect(e) for e in effects)
-        keys = [e.name for e in self.effects]
-        if len(set(keys)) != len(keys):
-            raise ValueError(f"effects listed twice: {keys}")
-        for hook in ("temperature", "pre_history", "plastic_band"):  # replace, not compose
-            who = [e.name for e in self.effects if _overrides(e, hook)]
-            if len(who) > 1:
-                raise ValueError(f"effects {who} both override {hook}(); only one may")
-        edges, n = [], 0
-        for e in self.effects:
-            edges.append((n, n + e.n_params))
-            n += e.n_params
-        self._edges = edges
-        self.n_params = n
-
-    def __len__(self) -> int:
-        return len(self.effects)
-
-    @property
-    def keys(self) -> tuple[str, ...]:
-        """Effect names, in order."""
-        return tuple(e.name for e in self.effects)
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        """Parameter names ``(n_params,)`` in column order."""
-        return tuple(n for e in self.effects for n in e.params.names)
-
-    @property
-    def box(self) -> Box:
-        """Concatenated prior box of all parameters."""
-        bs = [e.params for e in self.effects]
-        return Box(self.names, tuple(v for b in bs for v in b.lower),
-                   tuple(v for b in bs for v in b.upper), tuple(v for b in bs for v in b.log_scale),
-                   tuple(v for b in bs for v in b.units))
-
-    @property
-    def off(self) -> tuple[float, ...]:
-        """Baseline values ``(n_params,)``."""
-        return tuple(v for e in self.effects for v in e.off)
-
-    def bind(self, times: Sequence[float]) -> EffectSet:
-        """The set for output times ``times`` (s; sorted here)."""
-        ts = tuple(sorted(float(t) for t in times))
-        return EffectSet([e.bind(ts) for e in self.effects])
-
-    def rebind_params(self, q: torch.Tensor, times_from: Sequence[float],
-                      times_to: Sequence[float]) -> torch.Tensor:
-        """``q (b, n_params)`` of this set bound to ``times_from`` -> ``(b, n_params')`` of the
-        set bound to ``times_to`` (:meth:`Effect.rebind_params` per effect)."""
-        t0 = tuple(sorted(float(t) for t in times_from))
-        t1 = tuple(sorted(float(t) for t in times_to))
-        return torch.cat([e.rebind_params(qe, t0, t1)
-                          for e, qe in zip(self.effects, self.split(q), strict=True)], 1)
-
-    def settings(self) -> list[dict[str, Any]]:
-        """Per effect, what the outputs depend on (for the run-store hash)."""
-        return [e.settings() for e in self.effects]
-
-    def split(self, q: torch.Tensor) -> list[torch.Tensor]:
-        """Columns ``(b, n_p)`` of each effect from ``q`` ``(b, n_params)``."""
-        return [q[:, a:b] for a, b in self._edges]
-
-    def check(self, q: torch.Tensor) -> None:
-        """Validate ``q`` ``(b, n_params)`` (shape, and each effect's own rules)."""
-        if q.ndim != 2 or q.shape[1] != self.n_params:
-            raise ValueError(f"effect parameters must have shape (B, {self.n_params}) for "
-                             f"{', '.join(self.names)}; got {tuple(q.shape)}")
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            e.check(qe)
-
-    # ------------------------------------------------------------------ composed hooks
-    def pre_history(self) -> tuple[float, float] | None:
-        """The one ``(duration s, largest |dT| K)`` pre-history, or None."""
-        for e in self.effects:
-            ph = e.pre_history()
-            if ph is not None:
-                return ph
-        return None
-
-    def stress_free(self, T_ref: float, q: torch.Tensor) -> torch.Tensor:
-        """Stress-free temperature ``(b,)`` degC per member."""
-        T = torch.full((q.shape[0],), float(T_ref), dtype=q.dtype, device=q.device)
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            T = e.stress_free(T, qe)
-        return T
-
-    def temperature(self, cycle: ThermalCycle, t: float, T_ref: float,
-                    q: torch.Tensor) -> torch.Tensor:
-        """Member temperature ``(b,)`` degC at time ``t`` s.
-
-        For ``t < 0`` (pre-history of duration ``D``) the temperature goes linearly from the
-        member's stress-free temperature at ``-D`` to the program's start at 0; from t = 0 on,
-        the program ``cycle(t)`` transformed by the history hooks.
-        """
-        if t < 0.0:
-            ph = self.pre_history()
-            D = 1.0 if ph is None else ph[0]
-            T0 = cycle(0.0)
-            return T0 + (self.stress_free(T_ref, q) - T0) * (-t / D)
-        T = torch.full((q.shape[0],), cycle(t), dtype=q.dtype, device=q.device)
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            T = e.temperature(T, t, cycle, qe)
-        return T
-
-    def thermal_strain(self, law: Any, T: torch.Tensor, T_ref: torch.Tensor,
-                       q: torch.Tensor) -> torch.Tensor:
-        """Free thermal strain ``(b,)`` of a material law (``law.thermal_strain``, ``law.alpha``)
-        at ``T`` from ``T_ref`` (both ``(b,)`` degC)."""
-        eps = law.thermal_strain(T, T_ref)
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            eps = e.thermal_strain(eps, law.alpha, T, T_ref, qe)
-        return eps
-
-    def modulus(self, law: Any, T: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        """Young's modulus ``(b,)`` MPa of the solder law at ``T`` ``(b,)`` degC."""
-        E = torch.as_tensor(law.modulus(T), dtype=T.dtype, device=T.device).expand_as(T)
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            E = e.modulus(E, T, qe)
-        return E
-
-    @property
-    def kinematic(self) -> bool:
-        """Whether an effect gives the solder a back stress (the state then carries ``X``)."""
-        return any(_overrides(e, "back_stress_modulus") for e in self.effects)
-
-    def back_stress_modulus(self, q: torch.Tensor) -> torch.Tensor | None:
-        """Prager modulus ``(b,)`` MPa of the solder per member, or None (no back stress)."""
-        C_k = None
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            C_k = e.back_stress_modulus(C_k, qe)
-        return C_k
-
-    def plastic_band(self) -> PlasticBand | None:
-        """The one elasto-plastic band of a linear material, or None."""
-        for e in self.effects:
-            band = e.plastic_band()
-            if band is not None:
-                return band
-        return None
-
-    def yield_stress(self, q: torch.Tensor) -> torch.Tensor | None:
-        """Yield stress ``(b,)`` MPa of the band per member (``inf``: elastic), or None."""
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            sy = e.yield_stress(qe)
-            if sy is not None:
-                return sy
-        return None
-
-    def observe(self, V: torch.Tensor, x: torch.Tensor, x_O: float,
-                q: torch.Tensor) -> torch.Tensor:
-        """Observed ``V`` ``(b, n_time, n_out)`` um; ``x`` ``(n_out,)`` mm."""
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            V = e.observe(V, x, x_O, qe)
-        return V
-
-
-def _overrides(e: Effect, hook: str) -> bool:
-    return getattr(type(e), hook) is not getattr(Effect, hook)

@@ -27,7 +27,7 @@ import torch
 
 from ..fem.loading import SEED_TIMES
 from ..params import Box
-from .base import Effect, _pair
+from .base import Effect, box_pair
 
 
 @dataclass(frozen=True)
@@ -88,9 +88,9 @@ class MoireRigidMotion(Effect):
                 raise ValueError(f"effect {self.name!r} has box keys c (um) and w (urad), "
                                  f"got {key!r}")
             if key == "c":
-                c = _pair(self.name, key, pair)
+                c = box_pair(self.name, key, pair)
             else:
-                w = _pair(self.name, key, pair)
+                w = box_pair(self.name, key, pair)
         return dataclasses.replace(self, c_range=c, w_range=w)
 
     def observe(self, V: torch.Tensor, x: torch.Tensor, x_O: float,

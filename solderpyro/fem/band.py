@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..materials.elastic import IP, ZZ, condense_zz
-from ..materials.integrate import PointState, _full_strain, ezz_predictor
+from ..materials.integrate import PointState, ezz_predictor, full_strain
 from ..materials.j2 import j2_update
 from .elements import q4_kinematics, qm6_modes
 
@@ -161,7 +161,7 @@ def _local(band, eps_u, st, eps_th, sigma_y, z, al, cz=None):
     is formed and ``C_ps`` is None.
     """
     eps_ip = eps_u if band.G is None else eps_u + (band.G @ al[:, :, None, :, None])[..., 0]
-    sig, st1, C3, dg = j2_update(_full_strain(eps_ip, z), st, eps_th, band.E, band.nu,
+    sig, st1, C3, dg = j2_update(full_strain(eps_ip, z), st, eps_th, band.E, band.nu,
                                  sigma_y, band.H, tangent=cz is None)
     szz = sig[..., ZZ]
     Cps = None

@@ -135,7 +135,7 @@ class BorderedBand:
         tg = [None] * 4 if tangent is None else [t.contiguous() for t in tangent]
         Cc = None if Cip is None else Cip.contiguous()
         dK = None if dKe is None else dKe.contiguous()
-        p = _native._ptr
+        p = _native.ptr
         lib.sp_bb_factor(self._dims, p(self._emap), p(self._brow), p(self._bcol),
                          p(self._perm), p(self._SD), p(self._B), p(self._Bw), k, p(sl),
                          p(cache), *(p(t) for t in tg), n_fact, p(Cc), int(plane_stress),
@@ -150,7 +150,7 @@ class BorderedBand:
         r = rhs.contiguous()
         x = torch.empty_like(r)
         sl = slots.to(torch.int64).contiguous()
-        p = _native._ptr
+        p = _native.ptr
         lib.sp_bb_solve(self._dims, p(self._brow), p(self._bcol), p(self._perm), len(sl),
                         p(sl), p(cache), p(r), p(x), _native.threads("solve", len(sl)))
         return x

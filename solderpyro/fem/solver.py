@@ -52,10 +52,10 @@ from ..materials.elastic import IP, ZZ, condense_zz, plane_elastic
 from ..materials.integrate import (
     PointState,
     Tangent3D,
-    _full_strain,
     ezz_predictor,
     initial_state,
 )
+from ..materials.integrate import full_strain as _full_strain
 from ..params import ANAND_NAMES
 from .assembly import condense, linear_system
 from .band import (

@@ -84,10 +84,12 @@ class PointState:
     X: torch.Tensor | None = None
 
     def index(self, idx) -> PointState:
+        """The state of the points ``idx`` (any torch index of the leading dimensions)."""
         return PointState(self.eps_p[idx], self.s[idx], self.eps_zz[idx],
                           None if self.X is None else self.X[idx])
 
     def detach(self) -> PointState:
+        """The same state cut from the autograd graph."""
         return PointState(self.eps_p.detach(), self.s.detach(), self.eps_zz.detach(),
                           None if self.X is None else self.X.detach())
 
@@ -289,21 +291,25 @@ class Tangent3D:
         return mm, torch.eye(4, dtype=m.dtype, device=m.device) - mm / 3.0
 
     def full(self) -> torch.Tensor:
+        """The tangent ``C`` ``(..., 4, 4)``, MPa (Mandel)."""
         mm, dev = self._consts()
         return (self.K[..., None, None] * mm + self.g2[..., None, None] * dev
                 + self.coef[..., None, None] * self.nb[..., :, None] * self.nb[..., None, :])
 
     def col_zz(self) -> torch.Tensor:
+        """Its column ``C[..., :, ZZ]`` ``(..., 4)``, MPa."""
         mm, dev = self._consts()
         return (self.K[..., None] * mm[:, ZZ] + self.g2[..., None] * dev[:, ZZ]
                 + self.coef[..., None] * self.nb * self.nb[..., ZZ, None])
 
     def row_zz(self) -> torch.Tensor:
+        """Its row ``C[..., ZZ, :]`` ``(..., 4)``, MPa."""
         mm, dev = self._consts()
         return (self.K[..., None] * mm[ZZ] + self.g2[..., None] * dev[ZZ]
                 + (self.coef * self.nb[..., ZZ])[..., None] * self.nb)
 
     def index(self, idx) -> Tangent3D:
+        """The tangent at the points ``idx`` (any torch index of the leading dimensions)."""
         return Tangent3D(self.K[idx], self.g2[idx], self.coef[idx], self.nb[idx])
 
 
@@ -455,7 +461,10 @@ def _back_stress(X_n, C_k, deps_p):
     return dX if X_n is None else X_n + dX
 
 
-def _full_strain(eps_ip, ezz):
+def full_strain(eps_ip: torch.Tensor, ezz: torch.Tensor) -> torch.Tensor:
+    """The 3D Mandel strain ``(..., 4)`` ``[xx, yy, zz, sqrt2 xy]`` (dimensionless) from the
+    in-plane Mandel strain ``eps_ip (..., 3)`` ``[xx, yy, sqrt2 xy]`` and the out-of-plane
+    strain ``ezz (...)``."""
     return torch.stack([eps_ip[..., 0], eps_ip[..., 1], ezz, eps_ip[..., 2]], -1)
 
 
@@ -483,7 +492,7 @@ def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stre
         consistent tangent (plane-stress condensed). Differentiable like :func:`return_map_3d`.
     """
     if plane == "strain":
-        out = return_map_3d(_full_strain(eps_ip, torch.zeros_like(eps_ip[..., 0])), state, p,
+        out = return_map_3d(full_strain(eps_ip, torch.zeros_like(eps_ip[..., 0])), state, p,
                             T, dt, eps_th, E, nu, guess, tangent, C_k=C_k)
         C = condense_zz(out[2], plane) if tangent else None
         return out[0], out[1], C, out[3], out[4]
@@ -493,7 +502,7 @@ def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stre
         ezz = ezz_predictor(eps_ip.detach(), state.detach(), torch.as_tensor(eps_th), E, nu)
         Ckd = C_k.detach() if isinstance(C_k, torch.Tensor) else C_k
         for _ in range(iters):
-            sig, _, C, _, guess = return_map_3d(_full_strain(eps_ip.detach(), ezz),
+            sig, _, C, _, guess = return_map_3d(full_strain(eps_ip.detach(), ezz),
                                                 state.detach(), p.detach(), T, dt, eps_th,
                                                 E, nu, guess, C_k=Ckd)
             if bool((sig[..., ZZ].abs() <= 1e-12 * (1.0 + sig.abs().amax(-1))).all()):
@@ -501,9 +510,9 @@ def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stre
             ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
     if torch.is_grad_enabled():  # one Newton step on eps_zz with the graph attached
         assert C is not None
-        sig, *_ = return_map_3d(_full_strain(eps_ip, ezz), state, p, T, dt, eps_th, E, nu,
+        sig, *_ = return_map_3d(full_strain(eps_ip, ezz), state, p, T, dt, eps_th, E, nu,
                                 guess, tangent=False, C_k=C_k)
         ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
-    sig, st, C, dep, x = return_map_3d(_full_strain(eps_ip, ezz), state, p, T, dt, eps_th,
+    sig, st, C, dep, x = return_map_3d(full_strain(eps_ip, ezz), state, p, T, dt, eps_th,
                                        E, nu, guess, tangent, C_k=C_k)
     return sig, st, condense_zz(C, plane) if tangent else None, dep, x

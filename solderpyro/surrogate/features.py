@@ -106,13 +106,15 @@ class FlowStressInputs:
         self.fixed = {k: float(fixed[k]) for k in FIXABLE if k not in box.names}
         self.idx = {n: box.names.index(n) for n in (*NEEDED, *FIXABLE) if n in box.names}
 
-    def _get(self, x: torch.Tensor, name: str) -> torch.Tensor | float:
+    def param(self, x: torch.Tensor, name: str) -> torch.Tensor | float:
+        """Anand constant ``name`` of physical inputs ``x (..., d)``: its column ``(...)``
+        when it is an input of the box, else its fixed value (a float); its own units."""
         return x[..., self.idx[name]] if name in self.idx else self.fixed[name]
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """``(..., d)`` physical inputs -> ``(..., d)`` GP inputs (differentiable in ``x``)."""
         s0, qr, xi, m = (x[..., self.idx[n]] for n in NEEDED)
-        a, s_hat, n = (self._get(x, k) for k in FIXABLE)
+        a, s_hat, n = (self.param(x, k) for k in FIXABLE)
         log_a = torch.log(a) if isinstance(a, torch.Tensor) else math.log(a)
         log_sh = torch.log(s_hat) if isinstance(s_hat, torch.Tensor) else math.log(s_hat)
         z = math.log(self.rate_ref) - log_a + qr / self.T_ref_K

@@ -56,8 +56,18 @@ class SurrogateWarning(UserWarning):
     """The surrogate fails its own validation: predictions are not to be trusted."""
 
 
-class _BatchGP(gpytorch.models.ExactGP):
-    """``b`` independent exact GPs on the unit cube (GPyTorch batch mode)."""
+class BatchGP(gpytorch.models.ExactGP):
+    """``b`` independent exact GPs on the unit cube (GPyTorch batch mode): the model that
+    :class:`GPSurrogate` fits, one GP per coefficient.
+
+    Args:
+        x: ``(b, n, d)`` training inputs (the GP's input scale, about [0, 1]).
+        z: ``(b, n)`` training targets (standardized units).
+        kernel: ``"gaussian"`` (RBF) or ``"matern52"``, each with an output scale.
+        mean: ``"constant"`` or ``"linear"``.
+        ard: one lengthscale per input dimension (else one shared).
+        nugget: lower bound of the noise variance (standardized units).
+    """
 
     def __init__(self, x: torch.Tensor, z: torch.Tensor, kernel: str, mean: str, ard: bool,
                  nugget: float) -> None:
@@ -75,6 +85,8 @@ class _BatchGP(gpytorch.models.ExactGP):
         self.covar_module = gpytorch.kernels.ScaleKernel(base, batch_shape=bs)
 
     def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
+        """The GPs' prior at inputs ``x (b, n*, d)``: mean ``(b, n*)``, covariance
+        ``(b, n*, n*)``."""
         return gpytorch.distributions.MultivariateNormal(self.mean_module(x),
                                                          self.covar_module(x))
 
@@ -107,6 +119,41 @@ class LooResult:
             out.append(f"RMSE is {self.rmse_rel:.1%} of the output spread "
                        f"(> {max_rmse_rel:.0%}): too few runs or a poor kernel")
         return out
+
+
+@dataclass(frozen=True)
+class GPFactors:
+    """The fitted GPs' prediction factors: ``k`` GPs (one per coefficient), ``n`` runs, ``d'``
+    GP inputs (:meth:`GPSurrogate.gp_inputs`). Everything is in the GP's own scale: inputs in
+    about [0, 1], targets and variances in standardized coefficient units. The tensors are the
+    surrogate's own (detached): read them, do not modify them in place.
+
+    The coefficients' predictive mean at GP inputs ``u* (n*, d')`` is
+    ``m(u*) + K(u*, u) alpha`` with the prior mean ``m(u) = mean_const (+ u @ mean_weights)``
+    and ``K = outputscale * correlation``; the variance is
+    ``outputscale - |L^-1 K(u, u*)|^2``.
+
+    Attributes:
+        u: ``(k, n, d')`` the training inputs (the same rows for every GP).
+        z: ``(k, n)`` the training targets.
+        outputscale: ``(k,)`` the kernels' prior variances.
+        lengthscale: ``(k, d')`` with ARD, else ``(k, 1)``; GP-input units.
+        noise: ``(k,)`` the fitted noise (nugget) variances.
+        mean_const: ``(k,)`` the constant mean, or the linear mean's bias.
+        mean_weights: ``(k, d')`` the linear mean's weights; None for a constant mean.
+        chol: ``(k, n, n)`` lower Cholesky factor ``L`` of ``K(u, u) + noise I``.
+        alpha: ``(k, n)`` ``(K(u, u) + noise I)^-1 (z - m(u))``.
+    """
+
+    u: torch.Tensor
+    z: torch.Tensor
+    outputscale: torch.Tensor
+    lengthscale: torch.Tensor
+    noise: torch.Tensor
+    mean_const: torch.Tensor
+    mean_weights: torch.Tensor | None
+    chol: torch.Tensor
+    alpha: torch.Tensor
 
 
 class GPSurrogate:
@@ -159,7 +206,7 @@ class GPSurrogate:
         self.resid_chi2, self.noise_sd = resid_chi2, noise_sd
         self.nugget, self.restarts = nugget, restarts
         self.inputs = inputs
-        self.model: _BatchGP | None = None
+        self.model: BatchGP | None = None
 
     # ------------------------------------------------------------------ fitting
     def fit(self, x: torch.Tensor, y: torch.Tensor) -> GPSurrogate:
@@ -186,11 +233,11 @@ class GPSurrogate:
                 f = self.inputs(torch.cat([x, self.box.from_unit(u0).to(x)]))
             self._in_lo = f.min(0).values
             self._in_span = (f.max(0).values - self._in_lo).clamp_min(1e-12)
-        u = self._unit(x)
+        u = self.gp_inputs(x)
         # hyperparameters in the data's dtype: GPyTorch creates them in torch's default dtype
         # (float32 outside the tests), which rounded the CLI's lengthscales to 1e-8 and the
         # predictive means of a PCA surrogate to ~1e-6 of their size
-        self.model = _BatchGP(u.expand(z.shape[0], *u.shape), z, self.kernel, self.mean,
+        self.model = BatchGP(u.expand(z.shape[0], *u.shape), z, self.kernel, self.mean,
                               self.ard, self.nugget).to(dtype=u.dtype, device=u.device)
         _fit_mll(self.model, self.restarts)
         self._freeze()
@@ -257,7 +304,7 @@ class GPSurrogate:
             self._w = None if self.mean == "constant" else mm.weights.detach()[..., 0]  # (k, d)
             n = self._u.shape[1]
             eye = torch.eye(n, dtype=zt.dtype, device=zt.device)
-            kxx = self._os[:, None, None] * self._corr(self._u, self._u) \
+            kxx = self._os[:, None, None] * self.correlation(self._u, self._u) \
                 + self._noise[:, None, None] * eye
             self._chol = torch.linalg.cholesky(kxx)  # (k, n, n)
             r = (zt - self._prior_mean(self._u)).unsqueeze(-1)
@@ -265,13 +312,19 @@ class GPSurrogate:
             self._kinv_diag = torch.cholesky_inverse(self._chol).diagonal(dim1=-2, dim2=-1)
             self._z = zt
 
-    def _unit(self, x: torch.Tensor) -> torch.Tensor:
-        """Physical inputs ``(..., d)`` -> the GP's inputs ``(..., d')`` in about [0, 1]."""
+    def gp_inputs(self, x: torch.Tensor) -> torch.Tensor:
+        """Physical inputs ``(..., d)`` -> the GP's inputs ``(..., d')`` in about [0, 1]:
+        ``box.to_unit(x)`` (``d' = d``), or with an input map ``(inputs(x) - lo) / span``
+        (:attr:`input_scaling`). Differentiable in ``x``."""
         if self.inputs is None:
             return self.box.to_unit(x)
         return (self.inputs(x) - self._in_lo) / self._in_span
 
-    def _corr(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    def correlation(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """The fitted kernels' correlations ``(k, n_a, n_b)`` between GP inputs ``a (k, n_a, d')``
+        and ``b (k, n_b, d')`` (see :meth:`gp_inputs`); the covariance is
+        ``outputscale[:, None, None]`` times it (:meth:`factors`)."""
+        self._need_fit()
         if self.kernel == "gaussian":
             return gaussian(a, b, 0.5 / self._ls.square())
         return matern52(a, b, self._ls)
@@ -287,21 +340,62 @@ class GPSurrogate:
         """Seed-style correlation parameters ``(k, d|1)`` on the unit cube (gaussian kernel)."""
         return 0.5 / self._ls.square()
 
+    # ------------------------------------------------------------- fitted factors
+    def factors(self) -> GPFactors:
+        """The fitted GPs' training inputs, hyperparameters, Cholesky factor and weights
+        (:class:`GPFactors`), for code that predicts outside this class (the reduced
+        likelihood's NumPy GPs, the closed-form acquisition)."""
+        self._need_fit()
+        return GPFactors(self._u, self._z, self._os, self._ls, self._noise, self._c, self._w,
+                         self._chol, self._alpha)
+
+    @property
+    def input_scaling(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """With an input map (``inputs``): ``(lo, span)``, each ``(d',)``, that rescale its
+        values to the GP's inputs ``(inputs(x) - lo) / span`` (the map's range over the box);
+        None without one (the GP's inputs are then ``box.to_unit(x)``). Needs :meth:`fit`."""
+        self._need_fit()
+        return None if self.inputs is None else (self._in_lo, self._in_span)
+
+    @property
+    def x_train(self) -> torch.Tensor:
+        """``(n, d)`` the training runs' inputs, physical units (as given to :meth:`fit`)."""
+        self._need_fit()
+        return self._x_train
+
+    @property
+    def y_train(self) -> torch.Tensor:
+        """``(n, n_y)`` the training runs' outputs, physical units (``n_y = 1`` for
+        ``"scalar"``)."""
+        self._need_fit()
+        return self._y_train
+
     # --------------------------------------------------------------- prediction
-    def _cross(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def cross_covariance(self, x: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """For physical inputs ``x (n*, d)``: the GP inputs ``u (k, n*, d')``, the
-        covariances with the runs ``ks (k, n*, n)`` and ``v = L^-1 ks^T (k, n, n*)``."""
-        u = self._unit(x)
+        covariances with the runs ``ks (k, n*, n)`` (standardized units^2) and
+        ``v = L^-1 ks^T (k, n, n*)`` (``L``: :attr:`GPFactors.chol`), so the coefficients'
+        posterior covariance between points ``a`` and ``b`` is
+        ``outputscale * correlation(u_a, u_b) - v_a^T v_b``."""
+        self._need_fit()
+        u = self.gp_inputs(x)
         u = u.expand(self._u.shape[0], *u.shape)  # (k, n*, d')
-        ks = self._os[:, None, None] * self._corr(u, self._u)  # (k, n*, n)
+        ks = self._os[:, None, None] * self.correlation(u, self._u)  # (k, n*, n)
         v = torch.linalg.solve_triangular(self._chol, ks.transpose(-1, -2), upper=False)
         return u, ks, v
 
-    def _coef(self, x: torch.Tensor, full_cov: bool) -> tuple[torch.Tensor, torch.Tensor]:
-        u, ks, v = self._cross(x)
+    def coefficients(self, x: torch.Tensor, full_cov: bool = False
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predictive mean ``(k, n*)`` and variance ``(k, n*)`` (``full_cov``: covariance
+        ``(k, n*, n*)``) of the ``k`` GP coefficients at physical inputs ``x (n*, d)``, in the
+        standardized coefficient units (outputs are ``std.inverse(mean^T basis^T)``); no
+        observation noise. Differentiable in ``x``."""
+        self._need_fit()
+        u, ks, v = self.cross_covariance(x)
         mean = self._prior_mean(u) + (ks * self._alpha[:, None, :]).sum(-1)  # (k, n*)
         if full_cov:
-            kss = self._os[:, None, None] * self._corr(u, u)
+            kss = self._os[:, None, None] * self.correlation(u, u)
             return mean, kss - v.transpose(-1, -2) @ v  # (k, n*, n*)
         return mean, (self._os[:, None] - v.square().sum(-2)).clamp_min(0.0)  # (k, n*)
 
@@ -315,7 +409,7 @@ class GPSurrogate:
             mean, var: ``(n*,)`` for ``"scalar"``, else ``(n*, n_y)``; physical units.
         """
         self._need_fit()
-        mc, vc = self._coef(x, full_cov=False)  # (k, n*)
+        mc, vc = self.coefficients(x, full_cov=False)  # (k, n*)
         mean = self.std.inverse(mc.T @ self.basis.T)  # (n*, n_y)
         var = (vc.T @ self.basis.T.square() + self.resid_var) * self.std.scale.square()
         if self.output == "scalar":
@@ -333,7 +427,7 @@ class GPSurrogate:
             (index ``i * n_y + j`` is point i, output j); physical units.
         """
         self._need_fit()
-        mc, cc = self._coef(x, full_cov=True)  # (k, n*), (k, n*, n*)
+        mc, cc = self.coefficients(x, full_cov=True)  # (k, n*), (k, n*, n*)
         sv = self.basis * self.std.scale[:, None]  # (n_y, k)
         mean = self.std.inverse(mc.T @ self.basis.T).reshape(-1)
         cov = torch.einsum("jk,kab,lk->ajbl", sv, cc, sv)  # (n*, n_y, n*, n_y)
@@ -357,7 +451,7 @@ class GPSurrogate:
         """
         self._need_fit()
         x = x.reshape(1, -1)
-        mc, vc = self._coef(x, full_cov=False)  # (k, 1), (k, 1)
+        mc, vc = self.coefficients(x, full_cov=False)  # (k, 1), (k, 1)
         sv = self.basis * self.std.scale[:, None]  # (n_y, k)
         mean = self.std.inverse(mc.T @ self.basis.T)[0]
         return mean, sv * vc[:, 0].clamp_min(0.0).sqrt(), self.resid_var * self.std.scale.square()
@@ -414,7 +508,7 @@ def _result(y: torch.Tensor, mean: torch.Tensor, var: torch.Tensor) -> LooResult
 LBFGS_TOL_CHANGE = 5e-6
 
 
-def _fit_mll(model: _BatchGP, restarts: int) -> None:
+def _fit_mll(model: BatchGP, restarts: int) -> None:
     """Maximize the exact marginal likelihood; keep, per GP in the batch, the best restart.
 
     BLAS runs on one thread here: the closure's products and factorizations are small
@@ -427,7 +521,7 @@ def _fit_mll(model: _BatchGP, restarts: int) -> None:
         _fit_mll_restarts(model, restarts)
 
 
-def _fit_mll_restarts(model: _BatchGP, restarts: int) -> None:
+def _fit_mll_restarts(model: BatchGP, restarts: int) -> None:
     mll = gpytorch.mlls.ExactMarginalLogLikelihood(model.likelihood, model)
     x, z = model.train_inputs[0], model.train_targets
     best_state, best_loss = None, None

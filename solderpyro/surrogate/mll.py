@@ -41,7 +41,7 @@ def mll_closure(model: Any, opt: torch.optim.Optimizer, fallback: Callable[[], t
     training point, gradient in ``.grad``.
 
     Args:
-        model: a :class:`~solderpyro.surrogate.gp._BatchGP` (float64, CPU): ``k`` GPs on the
+        model: a :class:`~solderpyro.surrogate.gp.BatchGP` (float64, CPU): ``k`` GPs on the
             same ``(n, d)`` training inputs (its ``train_inputs[0]`` is ``(k, n, d)``), targets
             ``(k, n)``.
         opt: the optimizer (its gradients are zeroed here).

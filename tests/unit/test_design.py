@@ -45,28 +45,28 @@ def gp4():
 def _var_after(gp: GPSurrogate, x_new: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
     """Closed form: the GP coefficients' variance ``(N, k)`` at ``pts`` after adding runs
     ``x_new`` (physical), hyperparameters fixed."""
-    A = torch.cat([gp._u[0], gp._unit(x_new)])  # (n + q, d')
-    P = gp._unit(pts)
+    f = gp.factors()
+    A = torch.cat([f.u[0], gp.gp_inputs(x_new)])  # (n + q, d')
+    P = gp.gp_inputs(pts)
     out = []
-    for k in range(gp._u.shape[0]):
-        gpk = gp
-        Kaa = gpk._os[k] * _corr(gpk, A, A, k) + gpk._noise[k] * torch.eye(len(A))
-        Kpa = gpk._os[k] * _corr(gpk, P, A, k)
-        out.append(gpk._os[k] - (Kpa * torch.linalg.solve(Kaa, Kpa.T).T).sum(1))
+    for k in range(f.u.shape[0]):
+        Kaa = f.outputscale[k] * _corr(f, A, A, k) + f.noise[k] * torch.eye(len(A))
+        Kpa = f.outputscale[k] * _corr(f, P, A, k)
+        out.append(f.outputscale[k] - (Kpa * torch.linalg.solve(Kaa, Kpa.T).T).sum(1))
     return torch.stack(out, 1)
 
 
-def _corr(gp, a, b, k):
+def _corr(f, a, b, k):
     from solderpyro.surrogate.kernels import matern52
 
-    return matern52(a[None], b[None], gp._ls[k:k + 1])[0]
+    return matern52(a[None], b[None], f.lengthscale[k:k + 1])[0]
 
 
 def test_botorch_model_is_the_surrogate(gp4):
     box, gp = gp4
     m = botorch_model(gp)
     x = lhs(box, 9, 7)
-    mc, vc = gp._coef(x, False)
+    mc, vc = gp.coefficients(x, False)
     post = m.posterior(box.to_unit(x))
     assert m.num_outputs == gp.basis.shape[1]
     # GPyTorch's distance (|a|^2 + |b|^2 - 2ab) rounds at ~1e-8 of the unit scale
@@ -81,7 +81,7 @@ def test_a_scalar_surrogate_is_a_single_output_botorch_model(mean):
     gp = GPSurrogate(box, mean=mean, restarts=1).fit(x, torch.sin(2 * x[:, 0]) + x[:, 1])
     m = botorch_model(gp)
     xt = lhs(box, 6, 4)
-    mc, vc = gp._coef(xt, False)
+    mc, vc = gp.coefficients(xt, False)
     post = m.posterior(box.to_unit(xt))
     assert m.num_outputs == 1
     torch.testing.assert_close(post.mean[:, 0], mc[0], atol=1e-7, rtol=0)

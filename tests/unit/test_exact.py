@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from solderpyro.calibration.amis import log_marginal_sigma
+from solderpyro.calibration.intervals import weighted_quantiles
 from solderpyro.coords import UnitCoords
 from solderpyro.exact import (
     exact_posterior,
@@ -18,7 +19,6 @@ from solderpyro.exact import (
     laplace_cov_w,
     profile_coordinate,
     ridge_mixture,
-    weighted_quantiles,
 )
 from solderpyro.fit import lm_fit
 from solderpyro.params import Box
@@ -132,11 +132,3 @@ def test_exact_inputs_are_checked():
         fe_profile(model, UC, TRUTH, np.eye(3) * 0.01, data(), SIGMA, n_grid=1)
     with pytest.raises(ValueError, match="draws, an FE best fit or a profile"):
         initial_proposal(UC)
-
-
-def test_weighted_quantiles_match_repeated_samples():
-    x = np.array([1.0, 2.0, 3.0, 4.0])
-    # equal weights: the median is the ordinary median
-    assert abs(weighted_quantiles(x, np.ones(4), (0.5,))[0] - 2.5) < 1e-12
-    # weight 3 on 4.0 (as if it were drawn three times) moves the median to 4.0's side
-    assert weighted_quantiles(x, np.array([1.0, 1.0, 1.0, 3.0]), (0.5,))[0] > 3.0

@@ -11,6 +11,7 @@ from solderpyro.calibration.intervals import (
     UPPER_FACE,
     credible_interval,
     reported_interval,
+    weighted_quantiles,
     with_intervals,
 )
 from solderpyro.params import Box
@@ -150,3 +151,11 @@ def test_bad_input_is_named(kw: dict, msg: str) -> None:
     args = {"x": np.linspace(0.5, 0.9, 10), "lower": 0.0, "upper": 1.0, **kw}
     with pytest.raises(ValueError, match=msg):
         credible_interval(**args)
+
+
+def test_weighted_quantiles_match_repeated_samples():
+    x = np.array([1.0, 2.0, 3.0, 4.0])
+    # equal weights: the median is the ordinary median
+    assert abs(weighted_quantiles(x, np.ones(4), (0.5,))[0] - 2.5) < 1e-12
+    # weight 3 on 4.0 (as if it were drawn three times) moves the median to 4.0's side
+    assert weighted_quantiles(x, np.array([1.0, 1.0, 1.0, 3.0]), (0.5,))[0] > 3.0

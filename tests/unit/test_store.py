@@ -330,6 +330,6 @@ def test_records_are_readable_by_the_other_users_of_a_shared_store(tmp_path):
         p = RunStore(tmp_path).put("cfg", _record(list(LIU2008.values())))
     finally:
         os.umask(old)
-    import solderpyro.store as st
+    import solderpyro.runstore as rs
 
-    assert p.stat().st_mode & 0o777 == 0o666 & ~st._UMASK
+    assert p.stat().st_mode & 0o777 == 0o666 & ~rs._UMASK

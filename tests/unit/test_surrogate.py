@@ -40,7 +40,7 @@ def test_frozen_predictor_matches_gpytorch(kernel):
     with torch.no_grad(), gpytorch.settings.fast_pred_var(False), \
             gpytorch.settings.fast_computations(False, False, False):
         ref = gp.model(BOX.to_unit(xt).expand(1, 7, 2))
-    m, c = gp._coef(xt, full_cov=True)
+    m, c = gp.coefficients(xt, full_cov=True)
     assert torch.allclose(m, ref.mean, atol=1e-8)
     assert torch.allclose(c, ref.covariance_matrix, atol=1e-8)
 
@@ -197,13 +197,13 @@ def test_analytic_mll_closure_equals_gpytorch_autograd(kernel, mean, ard):
     """The fit's closure (solderpyro.surrogate.mll: NumPy/LAPACK loss and analytic gradient)
     gives GPyTorch's ExactMarginalLogLikelihood loss and its autograd gradient in every raw
     parameter, to 1e-11 relative, at hyperparameters away from their initial values."""
-    from solderpyro.surrogate.gp import _BatchGP
+    from solderpyro.surrogate.gp import BatchGP
     from solderpyro.surrogate.mll import mll_closure
 
     g = torch.Generator().manual_seed(3)
     x = torch.rand(1, 40, 3, generator=g, dtype=torch.float64).expand(4, 40, 3)
     z = torch.sin(4 * x[..., 0]) + torch.randn(4, 40, generator=g, dtype=torch.float64)
-    m = _BatchGP(x, z, kernel, mean, ard, 1e-6).double()
+    m = BatchGP(x, z, kernel, mean, ard, 1e-6).double()
     with torch.no_grad():
         for p in m.parameters():
             p.add_(0.5 * torch.randn(p.shape, generator=g, dtype=torch.float64))
@@ -229,13 +229,13 @@ def test_analytic_mll_closure_falls_back_where_cholesky_fails():
     """Duplicate training inputs and an outputscale 1e12 times the noise: K is singular in
     float64, LAPACK's factorization fails, and the closure returns GPyTorch's own (jittered)
     evaluation instead of raising."""
-    from solderpyro.surrogate.gp import _BatchGP
+    from solderpyro.surrogate.gp import BatchGP
     from solderpyro.surrogate.mll import mll_closure
 
     x = torch.rand(1, 10, 2, dtype=torch.float64)
     x = torch.cat([x, x], 1).expand(2, 20, 2)
     z = torch.randn(2, 20, dtype=torch.float64)
-    m = _BatchGP(x, z, "gaussian", "constant", True, 1e-6).double()
+    m = BatchGP(x, z, "gaussian", "constant", True, 1e-6).double()
     m.covar_module.outputscale = 1e12
     m.likelihood.noise = 1e-6
     m.train()
@@ -247,3 +247,54 @@ def test_analytic_mll_closure_falls_back_where_cholesky_fails():
         return torch.tensor(7.0, dtype=torch.float64)
 
     assert float(mll_closure(m, opt, fallback)()) == 7.0 and called
+
+
+@pytest.mark.parametrize("kernel", ["gaussian", "matern52"])
+def test_the_factors_reproduce_the_coefficients_predictive(kernel):
+    """GPFactors is what prediction outside the class needs: the prior mean plus
+    ``K(u*, u) alpha`` and ``outputscale - |L^-1 K(u, u*)|^2`` rebuilt from the factors equal
+    :meth:`GPSurrogate.coefficients` (same float64 arithmetic, so to rounding: 1e-12), and the
+    factors' training inputs are the GP inputs of the training runs."""
+    x = _design(15)
+    gp = GPSurrogate(BOX, kernel=kernel, mean="linear", ard=True, restarts=1).fit(x, _f(x))
+    f = gp.factors()
+    k, n = f.z.shape
+    assert (k, n) == (1, 15) and f.u.shape == (1, 15, 2) and f.chol.shape == (1, 15, 15)
+    assert f.lengthscale.shape == (1, 2) and f.mean_weights is not None
+    assert gp.input_scaling is None
+    torch.testing.assert_close(gp.x_train, x, rtol=0, atol=0)
+    torch.testing.assert_close(gp.y_train[:, 0], _f(x), rtol=0, atol=0)
+    torch.testing.assert_close(f.u[0], gp.gp_inputs(x), rtol=0, atol=0)
+    xt = _design(6, seed=4)
+    ut = gp.gp_inputs(xt).expand(k, 6, 2)
+    ks = f.outputscale[:, None, None] * gp.correlation(ut, f.u)  # (k, 6, n)
+    prior = f.mean_const[:, None] + (ut * f.mean_weights[:, None, :]).sum(-1)
+    v = torch.linalg.solve_triangular(f.chol, ks.transpose(-1, -2), upper=False)
+    mc, vc = gp.coefficients(xt)
+    torch.testing.assert_close(mc, prior + (ks * f.alpha[:, None, :]).sum(-1), rtol=0,
+                               atol=1e-12)
+    torch.testing.assert_close(vc, (f.outputscale[:, None] - v.square().sum(-2)).clamp_min(0),
+                               rtol=0, atol=1e-12)
+    # L L^T is the training covariance with its noise
+    kxx = f.outputscale[:, None, None] * gp.correlation(f.u, f.u) \
+        + f.noise[:, None, None] * torch.eye(n, dtype=torch.float64)
+    torch.testing.assert_close(f.chol @ f.chol.transpose(-1, -2), kxx, rtol=0, atol=1e-12)
+
+
+def test_an_input_maps_scaling_is_the_gp_inputs():
+    """With an input map the GP inputs are ``(inputs(x) - lo) / span`` for the published
+    ``input_scaling``, and before a fit the factors are refused."""
+    gp = GPSurrogate(BOX, restarts=1, inputs=lambda x: torch.stack([x[..., 0] * x[..., 1],
+                                                                     x[..., 1]], -1))
+    with pytest.raises(RuntimeError, match="fit"):
+        gp.factors()
+    x = _design(12)
+    gp.fit(x, _f(x))
+    scaling = gp.input_scaling
+    assert scaling is not None
+    lo, span = scaling
+    xt = _design(5, seed=2)
+    raw = torch.stack([xt[:, 0] * xt[:, 1], xt[:, 1]], -1)
+    torch.testing.assert_close(gp.gp_inputs(xt), (raw - lo) / span, rtol=0, atol=0)
+    u = gp.gp_inputs(x)
+    assert float(u.min()) >= 0.0 and float(u.max()) <= 1.0  # the range covers the runs
