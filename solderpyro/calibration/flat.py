@@ -163,7 +163,10 @@ class FlatModel:
         return q
 
 
-def _unsupported(priors: Priors, extra: dict[str, bool]) -> None:
+def reject_unsupported(priors: Priors, extra: dict[str, bool]) -> None:
+    """Raise :class:`NotImplementedError` naming every option an analytic log density does
+    not cover: the descriptions in ``extra`` whose flag is true, and custom priors
+    (``priors.custom``), which none covers. Returns None when all are covered."""
     bad = [k for k, v in extra.items() if v]
     if priors.custom:
         bad.append(f"custom priors on {sorted(priors.custom)}")
@@ -172,8 +175,15 @@ def _unsupported(priors: Priors, extra: dict[str, bool]) -> None:
                                   + " (Pyro's potential with autograd serves it)")
 
 
-def _sigma_site(priors: Priors, y: np.ndarray, offset: int) -> tuple[FlatSite, float, float]:
-    """The sigma site as :func:`~.koh._sigma_prior` builds it, and the LogNormal (mu, sd)."""
+def sigma_site(priors: Priors, y: np.ndarray, offset: int) -> tuple[FlatSite, float, float]:
+    """The sigma site at flat index ``offset`` with the prior :class:`~.koh.Priors` gives it
+    for the observations ``y (n,)`` (output units): flat on ``(0, sigma_max)`` (default 2 x
+    the range of ``y``), or LogNormal around ``sigma_known``.
+
+    Returns:
+        ``(site, mu, sd)``: the :class:`FlatSite` (an interval, or positive for the LogNormal)
+        and the LogNormal's ``(mu, sd)`` of log sigma (``(0, 1)``, unused, for the flat prior).
+    """
     if priors.sigma_known is not None:
         return (FlatSite(SITE_SIGMA, 1, False, math.nan, math.nan, offset),
                 math.log(priors.sigma_known), 0.1)

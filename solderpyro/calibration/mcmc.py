@@ -26,7 +26,9 @@ SUMMARY_COLUMNS = ("parameter", "q2.5", "median", "mean", "q97.5", "r_hat", "ess
                    "ess_tail")
 
 
-def _arviz() -> Any:
+def import_arviz() -> Any:
+    """The ``arviz`` module, imported with its FutureWarnings silenced (the import is slow, so
+    it happens where ArviZ is first needed)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)
         import arviz as az
@@ -103,7 +105,7 @@ class Posterior:
                 (k, n_obs) predictive draws of a new measurement, "log_likelihood": (k, n_obs)
                 pointwise log density of the data (nats)}``.
         """
-        az = _arviz()
+        az = import_arviz()
         cols = self.columns()
         n_draw = next(iter(cols.values())).shape[1]
         if self.diverging is not None:
@@ -119,7 +121,7 @@ class Posterior:
 
     def summary(self) -> list[dict[str, float | str]]:
         """Rows in the seed's layout (2.5 %, median, mean, 97.5 %) plus R-hat and ESS."""
-        az = _arviz()
+        az = import_arviz()
         idata = self.to_inference_data()
         rhat = az.rhat(idata)
         ess_b = az.ess(idata, method="bulk")
