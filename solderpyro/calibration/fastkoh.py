@@ -141,15 +141,7 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None,
                             "Priors.corr_log=True": pr.corr_log,
                             "a LocalBox prior": hasattr(inp.data.theta_box, "log_support")})
     d = inp.data
-    u_sim = inp.u_sim.detach().cpu().numpy().astype(float)  # (m, n_x + p)
-    u_xo = inp.u_xobs.detach().cpu().numpy().astype(float)  # (n, n_x)
-    z = inp.z.detach().cpu().numpy().astype(float)  # (N,)
-    m, n = u_sim.shape[0], u_xo.shape[0]
-    nx, p = u_xo.shape[1], d.theta_box.dim
-    nn = m + n
-    nc = inp.n_corr
-    ys2 = inp.y_scale ** 2
-    nug = inp.nugget
+    p, nc = d.theta_box.dim, inp.n_corr
     sig, mu, sd = sigma_site(pr, d.y_obs.detach().cpu().numpy().astype(float), p)
     sc_hi = float(pr.sigma_c_max or 10 * inp.y_scale)
     lo_c, hi_c = pr.corr_range
@@ -163,6 +155,27 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None,
         if structure == "kronecker":
             raise ValueError("structure='kronecker': the simulation runs are not a product "
                              "design (every parameter set at the same input points, each once)")
+    return FlatModel(sites, dense_joint_loglik(inp), mu, sd, inp.z.dtype)
+
+
+def dense_joint_loglik(inp: JointInputs) -> Any:
+    """The full joint's log-likelihood (beta integrated out) and its analytic gradient by a
+    dense Cholesky factorization of the ``(N, N)`` covariance, ``N = n_sim + n_obs`` (the
+    derivation: this module's docstring), for :func:`joint_flat`.
+
+    Returns:
+        ``loglik(x) -> (ll, gradient (d,))`` on the constrained flat vector ``x = (t_unit
+        (p,), sigma, sigma_c, corr (n_corr,))`` (sigma, sigma_c in output units); ``ll`` is
+        ``-inf`` where the covariance is not positive definite.
+    """
+    u_sim = inp.u_sim.detach().cpu().numpy().astype(float)  # (m, n_x + p)
+    u_xo = inp.u_xobs.detach().cpu().numpy().astype(float)  # (n, n_x)
+    z = inp.z.detach().cpu().numpy().astype(float)  # (N,)
+    m, n = u_sim.shape[0], u_xo.shape[0]
+    nx, p = u_xo.shape[1], inp.data.theta_box.dim
+    nn = m + n
+    ys2 = inp.y_scale ** 2
+    nug = inp.nugget
     th_sim = u_sim[:, nx:]  # (m, p)
     # fixed parts of the per-dimension squared distances: (nc, N, N) (summed when not ARD)
     u_fix = np.concatenate([u_sim, np.concatenate([u_xo, np.zeros((n, p))], 1)])
@@ -231,7 +244,7 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None,
         g[:p] = -2.0 * sc2 * ct * (cs @ dt)
         return ll, g
 
-    return FlatModel(sites, loglik, mu, sd, inp.z.dtype)
+    return loglik
 
 
 def flat_model(model: Any, args: tuple) -> Any:

@@ -75,7 +75,9 @@ class FlatModel:
         self.coord_suffix = ({int(i): ":" + getattr(reparam[1], "name", "reparam")
                               for i in reparam[0]} if reparam else {})
         self.dim = sum(s.size for s in sites)
-        self._loglik = loglik  # constrained x (d,) -> (loglik, d loglik / dx (d,))
+        #: the log-likelihood on the constrained flat vector: ``x (d,) -> (loglik,
+        #: d loglik / dx (d,))`` (the priors and transforms are this class's)
+        self.loglik = loglik
         self._mu, self._sd = prior_mu, prior_sd  # LogNormal sigma prior (positive sites)
         self.dtype = dtype
         self._lo = np.zeros(self.dim)
@@ -122,7 +124,7 @@ class FlatModel:
             lj_all[ri] = 0.0
             lj_all[ri[0]] = ld
         lj = float(lj_all.sum())
-        ll, gx = self._loglik(x)
+        ll, gx = self.loglik(x)
         g = grad + gx * dx
         if vjp is not None:
             g[ri] = vjp(gx[ri])
