@@ -242,7 +242,8 @@ def _joint_points(inp: JointInputs, t_unit: torch.Tensor) -> torch.Tensor:
 
 def joint_basis(inp: JointInputs, u: torch.Tensor) -> torch.Tensor:
     """The mean's basis ``F (N, p)`` at unit-cube points ``u (N, n_x + n_theta)``: a column
-    of ones (``mean="constant"``, p = 1), then ``u`` itself (``"linear"``)."""
+    of ones (``mean="constant"``, p = 1), followed by the columns of ``u`` (``"linear"``,
+    p = 1 + n_x + n_theta)."""
     one = torch.ones(u.shape[0], 1, dtype=u.dtype, device=u.device)
     return one if inp.mean == "constant" else torch.cat([one, u], -1)  # (N, p)
 
