@@ -75,7 +75,7 @@ from solderpyro.calibration import (  # noqa: E402
 )
 from solderpyro.calibration.koh import prepare_joint  # noqa: E402
 from solderpyro.calibration.kronjoint import kron_joint  # noqa: E402
-from solderpyro.calibration.mcmc import flatten_sites, run_nuts  # noqa: E402
+from solderpyro.calibration.mcmc import NutsOptions, flatten_sites  # noqa: E402
 from solderpyro.examples.seed_math import X_OBS, code, make_data  # noqa: E402
 from solderpyro.params import Box  # noqa: E402
 
@@ -521,7 +521,7 @@ def run_case(case: str, a: argparse.Namespace, nuts: dict) -> dict[str, Any]:
 
 def sampler_label() -> str:
     """Which NUTS solderpyro's calibrations use by default (read, never passed)."""
-    p = inspect.signature(run_nuts).parameters.get("sampler")
+    p = inspect.signature(NutsOptions).parameters.get("sampler")
     return f"run_nuts default sampler={p.default!r}" if p is not None else "run_nuts (one sampler)"
 
 
@@ -549,7 +549,7 @@ def main() -> None:
     if bad:
         ap.error(f"unknown case(s) {bad}; choose from {', '.join(CASES)}")
     nuts: dict[str, Any] = dict(chains=a.chains, warmup=a.warmup, draws=a.draws, seed=a.seed)
-    params = inspect.signature(run_nuts).parameters
+    params = inspect.signature(NutsOptions).parameters
     if "progress" in params:
         nuts["progress"] = False
     if "workers" in params:  # chains in forked processes: one here, as NumPyro's one thread

@@ -62,8 +62,8 @@ def smooth_product(mt: int, mx: int, n: int = 5, seed: int = 0) -> CalibrationDa
 
 def time_case(data: CalibrationData, reps: int, seed: int = 1) -> dict:
     inp = prepare_joint(data)
-    dense = joint_flat(inp, Priors(), structure="dense")._loglik
-    kron = joint_flat(inp, Priors(), structure="kronecker")._loglik
+    dense = joint_flat(inp, Priors(), structure="dense").loglik
+    kron = joint_flat(inp, Priors(), structure="kronecker").loglik
     p = data.theta_box.dim
     rng = np.random.default_rng(seed)
     ys = inp.y_scale

@@ -77,6 +77,7 @@ from solderpyro.calibration.koh import (
     observation_model,
     prepare_observation,
 )
+from solderpyro.calibration.mcmc import NutsOptions
 from solderpyro.examples.seed_math import X_OBS, code
 from solderpyro.params import Box
 
@@ -252,7 +253,8 @@ def _columns(p: Problem, y: torch.Tensor, mutate: str, nuts: dict) -> dict[str, 
     if mutate != "half-lik":
         return p.calibrate(y, **nuts).columns()
     inp = ObsInputs(y, p.inp.emulator, p.inp.theta_box, p.inp.u_x)
-    samples = run_nuts(_half_lik_model, (inp, p.priors), progress=False, **nuts).samples
+    samples = run_nuts(_half_lik_model, (inp, p.priors),
+                       NutsOptions(progress=False, **nuts)).samples
     t = p.inp.theta_box.from_unit(samples[SITE_T]).numpy()
     out = {nm: t[..., i] for i, nm in enumerate(p.names)}
     out["sigma"] = samples[SITE_SIGMA].numpy()

@@ -41,7 +41,7 @@ from solderpyro.calibration.koh import (
     prepare_observation,
 )
 from solderpyro.calibration.kronjoint import kron_joint
-from solderpyro.calibration.mcmc import NutsRun, Posterior, run_nuts
+from solderpyro.calibration.mcmc import NutsOptions, NutsRun, Posterior, run_nuts
 from solderpyro.params import Box
 from solderpyro.surrogate import GPSurrogate
 
@@ -107,7 +107,8 @@ def calibrate_emulator(emulator: Any, y_obs: torch.Tensor, theta_box: Box,
 
 
 def _run_obs(inp: ObsInputs, priors: Priors | None, nuts: dict) -> Posterior:
-    return _post(run_nuts(observation_model, (inp, priors or Priors()), **nuts), inp.theta_box)
+    return _post(run_nuts(observation_model, (inp, priors or Priors()), NutsOptions(**nuts)),
+                 inp.theta_box)
 
 
 def calibrate_joint(data: CalibrationData, priors: Priors | None = None,
@@ -127,7 +128,7 @@ def calibrate_joint(data: CalibrationData, priors: Priors | None = None,
     pr = priors or Priors()
     inp = prepare_joint(data, kernel, mean, ard, discrepancy, nugget)
     nuts.setdefault("full_mass", True)  # sigma_c, theta and t are strongly correlated
-    post = _post(run_nuts(joint_model, (inp, pr), **nuts), data.theta_box)
+    post = _post(run_nuts(joint_model, (inp, pr), NutsOptions(**nuts)), data.theta_box)
     post.samples["beta"] = _beta_draws(inp, post, pr, seed=int(nuts.get("seed", 0)))
     names = list(data.x_box.names) + list(data.theta_box.names)
     post.labels[SITE_CORR] = [f"theta_{n}" for n in names] if ard else ["theta"]

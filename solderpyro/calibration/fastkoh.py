@@ -20,10 +20,12 @@ Unconstrained coordinates (Pyro's ``biject_to``): a site with support ``(lo, hi)
 site (LogNormal prior) is ``x = exp(u)``, log-Jacobian ``u``. The flat vector stacks the sites in
 the models' order: t_unit, sigma (then sigma_c, corr for the joint).
 
+Each is declared on the model it implements (``@implemented_by`` in :mod:`.koh`, the one table
+of the pairs, :data:`~.koh.FAST_DENSITIES`), and :func:`flat_model` takes them from there.
 Configurations these do not cover (custom priors, a discrepancy, GP emulators, ``corr_log``, a
 Matern kernel, a linear mean) raise :class:`NotImplementedError` naming the option, and
-:func:`flat_model` then takes Pyro's potential of the model instead
-(:mod:`.potential`), so a configuration never silently samples a different posterior.
+:func:`flat_model` then tries the model's next declared density, then Pyro's potential of the
+model (:mod:`.potential`), so a configuration never silently samples a different posterior.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import torch
 from scipy.linalg import lapack
 
 from solderpyro.calibration.emulators import FunctionEmulator
-from solderpyro.calibration.flat import FlatModel, FlatSite, _sigma_site, _unsupported
+from solderpyro.calibration.flat import FlatModel, FlatSite, reject_unsupported, sigma_site
 from solderpyro.calibration.koh import (
     SITE_CORR,
     SITE_SIGMA_C,
@@ -62,17 +64,17 @@ def direct_flat(inp: ObsInputs, priors: Priors | None = None) -> FlatModel:
         NotImplementedError: a GP / low-rank emulator, a discrepancy or custom priors.
     """
     pr = priors or Priors()
-    _unsupported(pr, {"emulators other than FunctionEmulator (the direct mode)":
-                      not isinstance(inp.emulator, FunctionEmulator),
-                      "discrepancy=True": inp.discrepancy,
-                      "a LocalBox prior": hasattr(inp.theta_box, "log_support")})
+    reject_unsupported(pr, {"emulators other than FunctionEmulator (the direct mode)":
+                            not isinstance(inp.emulator, FunctionEmulator),
+                            "discrepancy=True": inp.discrepancy,
+                            "a LocalBox prior": hasattr(inp.theta_box, "log_support")})
     em = inp.emulator
     assert isinstance(em, FunctionEmulator)
     y_t = inp.y_obs
     y = y_t.detach().cpu().numpy().astype(float)
     n, p = y.shape[0], inp.theta_box.dim
     box, f, x_obs = inp.theta_box, em.f, em.x_obs
-    sig, mu, sd = _sigma_site(pr, y, p)
+    sig, mu, sd = sigma_site(pr, y, p)
     sites = [FlatSite(SITE_T, p, True, 0.0, 1.0, 0), sig]
 
     # the theta box's unit-cube map in NumPy (as Box.from_unit): z = lo + u (hi - lo) on the
@@ -133,22 +135,14 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None,
     if structure not in ("auto", "dense", "kronecker"):
         raise ValueError(f"structure={structure!r}; choose 'auto', 'dense' or 'kronecker'")
     pr = priors or Priors()
-    _unsupported(pr, {f"kernel={inp.kernel!r}": inp.kernel != "gaussian",
-                      f"mean={inp.mean!r}": inp.mean != "constant",
-                      "discrepancy=True": inp.discrepancy,
-                      "Priors.corr_log=True": pr.corr_log,
-                      "a LocalBox prior": hasattr(inp.data.theta_box, "log_support")})
+    reject_unsupported(pr, {f"kernel={inp.kernel!r}": inp.kernel != "gaussian",
+                            f"mean={inp.mean!r}": inp.mean != "constant",
+                            "discrepancy=True": inp.discrepancy,
+                            "Priors.corr_log=True": pr.corr_log,
+                            "a LocalBox prior": hasattr(inp.data.theta_box, "log_support")})
     d = inp.data
-    u_sim = inp.u_sim.detach().cpu().numpy().astype(float)  # (m, n_x + p)
-    u_xo = inp.u_xobs.detach().cpu().numpy().astype(float)  # (n, n_x)
-    z = inp.z.detach().cpu().numpy().astype(float)  # (N,)
-    m, n = u_sim.shape[0], u_xo.shape[0]
-    nx, p = u_xo.shape[1], d.theta_box.dim
-    nn = m + n
-    nc = inp.n_corr
-    ys2 = inp.y_scale ** 2
-    nug = inp.nugget
-    sig, mu, sd = _sigma_site(pr, d.y_obs.detach().cpu().numpy().astype(float), p)
+    p, nc = d.theta_box.dim, inp.n_corr
+    sig, mu, sd = sigma_site(pr, d.y_obs.detach().cpu().numpy().astype(float), p)
     sc_hi = float(pr.sigma_c_max or 10 * inp.y_scale)
     lo_c, hi_c = pr.corr_range
     sites = [FlatSite(SITE_T, p, True, 0.0, 1.0, 0), sig,
@@ -161,6 +155,27 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None,
         if structure == "kronecker":
             raise ValueError("structure='kronecker': the simulation runs are not a product "
                              "design (every parameter set at the same input points, each once)")
+    return FlatModel(sites, dense_joint_loglik(inp), mu, sd, inp.z.dtype)
+
+
+def dense_joint_loglik(inp: JointInputs) -> Any:
+    """The full joint's log-likelihood (beta integrated out) and its analytic gradient by a
+    dense Cholesky factorization of the ``(N, N)`` covariance, ``N = n_sim + n_obs`` (the
+    derivation: this module's docstring), for :func:`joint_flat`.
+
+    Returns:
+        ``loglik(x) -> (ll, gradient (d,))`` on the constrained flat vector ``x = (t_unit
+        (p,), sigma, sigma_c, corr (n_corr,))`` (sigma, sigma_c in output units); ``ll`` is
+        ``-inf`` where the covariance is not positive definite.
+    """
+    u_sim = inp.u_sim.detach().cpu().numpy().astype(float)  # (m, n_x + p)
+    u_xo = inp.u_xobs.detach().cpu().numpy().astype(float)  # (n, n_x)
+    z = inp.z.detach().cpu().numpy().astype(float)  # (N,)
+    m, n = u_sim.shape[0], u_xo.shape[0]
+    nx, p = u_xo.shape[1], inp.data.theta_box.dim
+    nn = m + n
+    ys2 = inp.y_scale ** 2
+    nug = inp.nugget
     th_sim = u_sim[:, nx:]  # (m, p)
     # fixed parts of the per-dimension squared distances: (nc, N, N) (summed when not ARD)
     u_fix = np.concatenate([u_sim, np.concatenate([u_xo, np.zeros((n, p))], 1)])
@@ -229,30 +244,29 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None,
         g[:p] = -2.0 * sc2 * ct * (cs @ dt)
         return ll, g
 
-    return FlatModel(sites, loglik, mu, sd, inp.z.dtype)
+    return loglik
 
 
 def flat_model(model: Any, args: tuple) -> Any:
-    """The flat log density :func:`~.mcmc.run_nuts` samples for ``model(*args)``: analytic
-    where this module (direct, full joint) or :mod:`.reduced` (modular PCA) covers the
-    configuration, else Pyro's potential of the model with autograd
+    """The flat log density :func:`~.mcmc.run_nuts` samples for ``model(*args)``: the first
+    analytic density declared for the model (:func:`~.koh.implemented_by`; for :mod:`.koh`'s
+    models: :func:`direct_flat`, :func:`joint_flat` here, :func:`~.reduced.pca_flat`) that
+    covers the configuration, else Pyro's potential of the model with autograd
     (:func:`~.potential.torch_flat`). Both are the same posterior on the same unconstrained
     scale.
 
     Args:
         model: any Pyro model; args: its arguments (``(inputs, priors)`` for :mod:`.koh`'s).
+    Returns:
+        a :class:`~.flat.FlatModel` or :class:`~.potential.TorchFlat` (``dim``,
+        ``logp_and_grad``, ``to_samples``, ``to_unconstrained``).
     """
-    from solderpyro.calibration.koh import joint_model, observation_model
+    from solderpyro.calibration.koh import fast_densities
     from solderpyro.calibration.potential import torch_flat
-    from solderpyro.calibration.reduced import pca_flat
 
-    try:
-        if model is observation_model:
-            if isinstance(args[0].emulator, FunctionEmulator):
-                return direct_flat(*args)
-            return pca_flat(*args)
-        if model is joint_model:
-            return joint_flat(*args)
-    except NotImplementedError:
-        pass
+    for density in fast_densities(model):
+        try:
+            return density(*args)
+        except NotImplementedError:  # not this configuration: the next declared one
+            continue
     return torch_flat(model, args)

@@ -75,7 +75,9 @@ class FlatModel:
         self.coord_suffix = ({int(i): ":" + getattr(reparam[1], "name", "reparam")
                               for i in reparam[0]} if reparam else {})
         self.dim = sum(s.size for s in sites)
-        self._loglik = loglik  # constrained x (d,) -> (loglik, d loglik / dx (d,))
+        #: the log-likelihood on the constrained flat vector: ``x (d,) -> (loglik,
+        #: d loglik / dx (d,))`` (the priors and transforms are this class's)
+        self.loglik = loglik
         self._mu, self._sd = prior_mu, prior_sd  # LogNormal sigma prior (positive sites)
         self.dtype = dtype
         self._lo = np.zeros(self.dim)
@@ -122,7 +124,7 @@ class FlatModel:
             lj_all[ri] = 0.0
             lj_all[ri[0]] = ld
         lj = float(lj_all.sum())
-        ll, gx = self._loglik(x)
+        ll, gx = self.loglik(x)
         g = grad + gx * dx
         if vjp is not None:
             g[ri] = vjp(gx[ri])
@@ -163,7 +165,10 @@ class FlatModel:
         return q
 
 
-def _unsupported(priors: Priors, extra: dict[str, bool]) -> None:
+def reject_unsupported(priors: Priors, extra: dict[str, bool]) -> None:
+    """Raise :class:`NotImplementedError` naming every option an analytic log density does
+    not cover: the descriptions in ``extra`` whose flag is true, and custom priors
+    (``priors.custom``), which none covers. Returns None when all are covered."""
     bad = [k for k, v in extra.items() if v]
     if priors.custom:
         bad.append(f"custom priors on {sorted(priors.custom)}")
@@ -172,8 +177,15 @@ def _unsupported(priors: Priors, extra: dict[str, bool]) -> None:
                                   + " (Pyro's potential with autograd serves it)")
 
 
-def _sigma_site(priors: Priors, y: np.ndarray, offset: int) -> tuple[FlatSite, float, float]:
-    """The sigma site as :func:`~.koh._sigma_prior` builds it, and the LogNormal (mu, sd)."""
+def sigma_site(priors: Priors, y: np.ndarray, offset: int) -> tuple[FlatSite, float, float]:
+    """The sigma site at flat index ``offset`` with the prior :class:`~.koh.Priors` gives it
+    for the observations ``y (n,)`` (output units): flat on ``(0, sigma_max)`` (default 2 x
+    the range of ``y``), or LogNormal around ``sigma_known``.
+
+    Returns:
+        ``(site, mu, sd)``: the :class:`FlatSite` (an interval, or positive for the LogNormal)
+        and the LogNormal's ``(mu, sd)`` of log sigma (``(0, 1)``, unused, for the flat prior).
+    """
     if priors.sigma_known is not None:
         return (FlatSite(SITE_SIGMA, 1, False, math.nan, math.nan, offset),
                 math.log(priors.sigma_known), 0.1)

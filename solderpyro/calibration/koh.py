@@ -13,13 +13,20 @@ Two plain model functions, each taking prepared inputs (tensors computed once, o
 
 Everything is computed on the unit cube (inputs) and, for the joint model, on outputs
 standardized with the runs' mean and standard deviation; sampled sites are in physical units.
+
+These models are the definition of the likelihoods. Each declares the analytic log densities
+that implement it (:func:`implemented_by`, listed in :data:`FAST_DENSITIES`), which the
+sampler takes where they cover the configuration; a test evaluates every declared density
+against its model's log density (value and gradient).
 """
 
 from __future__ import annotations
 
+import importlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import pyro
 import pyro.distributions as dist
@@ -37,6 +44,45 @@ SITE_CORR = "corr"  #: correlation parameters theta of Eq. 4 on the unit cube
 SITE_SIGMA_D = "sigma_delta"  #: discrepancy standard deviation (output units)
 SITE_CORR_D = "corr_delta"  #: discrepancy correlation parameters on the unit cube of x
 SITE_Y = "y"  #: the likelihood
+
+#: The analytic log densities that implement each model of this module, declared on the
+#: model with :func:`implemented_by`: model -> ``"module:function"`` references, tried in
+#: this order by :func:`~.fastkoh.flat_model` (the first that covers the configuration, i.e.
+#: does not raise :class:`NotImplementedError`, is sampled; none: Pyro's potential of the
+#: model). Each is checked against the model's own log density, value and gradient, by
+#: ``tests/unit/test_fast_densities.py``, which iterates over this table.
+FAST_DENSITIES: dict[Callable[..., None], tuple[str, ...]] = {}
+
+_Model = TypeVar("_Model", bound=Callable[..., None])
+
+
+def implemented_by(*densities: str) -> Callable[[_Model], _Model]:
+    """Declare the analytic log densities that implement a Pyro model (a decorator).
+
+    Args:
+        densities: ``"package.module:function"`` references (resolved when first used: the
+            implementations import this module). Each function takes the model's arguments
+            ``(inputs, priors)`` and returns a flat model (:class:`~.flat.FlatModel`: the
+            model's posterior on Pyro's unconstrained scale, up to an additive constant) or
+            raises :class:`NotImplementedError` naming the option it does not cover.
+    Returns:
+        the decorator, which records the model in :data:`FAST_DENSITIES` and returns it
+        unchanged.
+    """
+    def declare(model: _Model) -> _Model:
+        FAST_DENSITIES[model] = tuple(densities)
+        return model
+    return declare
+
+
+def fast_densities(model: Callable[..., None]) -> tuple[Callable[..., Any], ...]:
+    """The analytic log densities declared for ``model`` (:func:`implemented_by`), as
+    functions, in order; empty for a model without any."""
+    out = []
+    for ref in FAST_DENSITIES.get(model, ()):
+        mod, _, name = ref.partition(":")
+        out.append(getattr(importlib.import_module(mod), name))
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -177,7 +223,7 @@ def joint_loglik(inp: JointInputs, t_unit: torch.Tensor, sigma: torch.Tensor,
         loglik (scalar, up to a constant), beta_hat ``(p,)`` and its covariance ``(p, p)``
         (standardized output units).
     """
-    chol, h = _joint_chol(inp, t_unit, sigma, sigma_c, corr, k_delta)
+    chol, h = joint_cholesky(inp, t_unit, sigma, sigma_c, corr, k_delta)
     a = torch.linalg.solve_triangular(chol, h, upper=False)  # (N, p)
     b = torch.linalg.solve_triangular(chol, inp.z.unsqueeze(-1), upper=False)  # (N, 1)
     g = a.T @ a
@@ -194,33 +240,44 @@ def _joint_points(inp: JointInputs, t_unit: torch.Tensor) -> torch.Tensor:
     return torch.cat([inp.u_sim, u_obs])  # (N, d)
 
 
-def _basis(inp: JointInputs, u: torch.Tensor) -> torch.Tensor:
+def joint_basis(inp: JointInputs, u: torch.Tensor) -> torch.Tensor:
+    """The mean's basis ``F (N, p)`` at unit-cube points ``u (N, n_x + n_theta)``: a column
+    of ones (``mean="constant"``, p = 1), followed by the columns of ``u`` (``"linear"``,
+    p = 1 + n_x + n_theta)."""
     one = torch.ones(u.shape[0], 1, dtype=u.dtype, device=u.device)
     return one if inp.mean == "constant" else torch.cat([one, u], -1)  # (N, p)
 
 
-def _corr(inp: JointInputs, a: torch.Tensor, b: torch.Tensor, corr: torch.Tensor
-          ) -> torch.Tensor:
+def joint_correlation(inp: JointInputs, a: torch.Tensor, b: torch.Tensor,
+                      corr: torch.Tensor) -> torch.Tensor:
+    """The code GP's correlation ``R(a, b) (n_a, n_b)`` between unit-cube points
+    ``a (n_a, d)`` and ``b (n_b, d)`` for Eq. 4's parameters ``corr (n_corr,)`` (shared or
+    one per input): ``exp(-sum_k corr_k (a_k - b_k)^2)`` for the Gaussian kernel, Matern 5/2
+    with length ``l = (2 corr)^-1/2`` otherwise. Dimensionless."""
     if inp.kernel == "gaussian":
         return KERNELS["gaussian"](a, b, corr)
     return KERNELS["matern52"](a, b, (0.5 / corr).sqrt())  # theta = 1/(2 l^2)
 
 
-def _joint_chol(inp: JointInputs, t_unit: torch.Tensor, sigma: torch.Tensor,
-                sigma_c: torch.Tensor, corr: torch.Tensor, k_delta: torch.Tensor | None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+def joint_cholesky(inp: JointInputs, t_unit: torch.Tensor, sigma: torch.Tensor,
+                   sigma_c: torch.Tensor, corr: torch.Tensor, k_delta: torch.Tensor | None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The lower Cholesky factor ``(N, N)`` of the stacked data's covariance ``S`` (in
+    standardized output units, ``N = n_sim + n_obs``) and the mean's basis ``F (N, p)``, for
+    the arguments of :func:`joint_loglik`."""
     u = _joint_points(inp, t_unit)
     m, n = inp.u_sim.shape[0], inp.u_xobs.shape[0]
     sc2 = (sigma_c / inp.y_scale).square()
-    cov = sc2 * (_corr(inp, u, u, corr)
+    cov = sc2 * (joint_correlation(inp, u, u, corr)
                  + inp.nugget * torch.eye(m + n, dtype=u.dtype, device=u.device))
     noise = (sigma / inp.y_scale).square() * torch.ones(n, dtype=u.dtype, device=u.device)
     cov = cov + torch.diag(torch.cat([torch.zeros_like(inp.z[:m]), noise]))
     if k_delta is not None:
         cov = cov + torch.nn.functional.pad(k_delta / inp.y_scale**2, (m, 0, m, 0))
-    return torch.linalg.cholesky(cov), _basis(inp, u)
+    return torch.linalg.cholesky(cov), joint_basis(inp, u)
 
 
+@implemented_by("solderpyro.calibration.fastkoh:joint_flat")
 def joint_model(inp: JointInputs, priors: Priors) -> None:
     """The seed's full-joint KOH posterior (Eq. 5-8) as a Pyro model (beta integrated out)."""
     d = inp.data
@@ -296,6 +353,8 @@ def emulator_lowrank(emulator: Any, t: torch.Tensor
     return None if lr is None else lr(t)
 
 
+@implemented_by("solderpyro.calibration.fastkoh:direct_flat",
+                "solderpyro.calibration.reduced:pca_flat")
 def observation_model(inp: ObsInputs, priors: Priors) -> None:
     """Direct or modular KOH posterior as a Pyro model."""
     y = inp.y_obs

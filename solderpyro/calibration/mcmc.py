@@ -26,7 +26,9 @@ SUMMARY_COLUMNS = ("parameter", "q2.5", "median", "mean", "q97.5", "r_hat", "ess
                    "ess_tail")
 
 
-def _arviz() -> Any:
+def import_arviz() -> Any:
+    """The ``arviz`` module, imported with its FutureWarnings silenced (the import is slow, so
+    it happens where ArviZ is first needed)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FutureWarning)
         import arviz as az
@@ -103,7 +105,7 @@ class Posterior:
                 (k, n_obs) predictive draws of a new measurement, "log_likelihood": (k, n_obs)
                 pointwise log density of the data (nats)}``.
         """
-        az = _arviz()
+        az = import_arviz()
         cols = self.columns()
         n_draw = next(iter(cols.values())).shape[1]
         if self.diverging is not None:
@@ -119,7 +121,7 @@ class Posterior:
 
     def summary(self) -> list[dict[str, float | str]]:
         """Rows in the seed's layout (2.5 %, median, mean, 97.5 %) plus R-hat and ESS."""
-        az = _arviz()
+        az = import_arviz()
         idata = self.to_inference_data()
         rhat = az.rhat(idata)
         ess_b = az.ess(idata, method="bulk")
@@ -396,32 +398,23 @@ def default_workers(chains: int) -> int:
     return max(1, min(chains, ncpu))
 
 
-def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warmup: int = 500,
-             draws: int = 1000, seed: int = 0, target_accept: float = 0.8,
-             max_tree_depth: int = 10, progress: bool = True, threads: int | None = 1,
-             full_mass: bool = False, init: str = "uniform", init_draws: int = 256,
-             workers: int | None = None, warm: WarmStart | None = None,
-             ridge: str = "auto", mapped_accept: float | None = None) -> NutsRun:
-    """NUTS on a Pyro model's posterior: the one sampler of solderpyro.
+@dataclass(frozen=True)
+class NutsOptions:
+    """The settings of :func:`run_nuts` (every one has a default).
 
-    The model's log density is taken on a flat unconstrained vector (Pyro's transforms and
-    log-Jacobians): analytic, with hand-derived gradients, for the KOH models of :mod:`.koh`
-    where one exists (direct, full joint, modular PCA through the reduced likelihood of
-    :mod:`.reduced`), else Pyro's own potential energy with autograd (:mod:`.potential`:
-    discrepancy, custom priors, local regions, any model). The trajectories are Stan's NUTS
-    with its windowed warm-up (:func:`~.nuts.sample_nuts`), checked against Pyro's NUTS on
-    the same posteriors in the tests.
-
-    Args:
-        model: a Pyro model; ``args`` are passed to it.
-        chains, warmup, draws: chain count, warm-up and kept draws per chain.
+    Attributes:
+        chains, warmup, draws: chain count, warm-up and kept draws per chain (4, 500, 1000).
+        seed: chain ``c`` is seeded ``seed + c``.
+        target_accept: the dual-averaging target of the mean acceptance statistic (0.8).
+        max_tree_depth: at most ``2**max_tree_depth - 1`` leapfrog steps per iteration (10).
+        progress: log one line per chain (else at DEBUG level).
         threads: torch (and BLAS) threads while sampling (small matrices: one is fastest);
             None leaves them alone; restored afterwards.
         full_mass: adapt a dense mass matrix (correlated posteriors).
         init: ``"uniform"``: uniform in (-2, 2) on the unconstrained scale; ``"sir"``: at
             points resampled, in proportion to their likelihood, from ``init_draws`` prior
             draws (:func:`sir_inits`), so no chain is left in a minor mode.
-        workers: chains run in this many forked processes at once (default: one per core, at
+        workers: chains run in this many forked processes at once (None: one per core, at
             most one per chain); chain ``c`` is seeded ``seed + c`` whatever ``workers`` is,
             so the draws equal the serial run's.
         warm: a related run's :class:`WarmStart`: chains start at its last positions and
@@ -437,94 +430,183 @@ def run_nuts(model: Callable[..., None], args: tuple = (), chains: int = 4, warm
             ``warm`` has none, as ``"never"``).
         mapped_accept: the target acceptance in ridge coordinates (at least ``target_accept``;
             None: :data:`MAPPED_ACCEPT`).
-        progress: log one line per chain (else at DEBUG level).
+
+    Raises:
+        ValueError naming the setting (as ``run_nuts <name> ...``) when one is out of range.
+    """
+
+    chains: int = 4
+    warmup: int = 500
+    draws: int = 1000
+    seed: int = 0
+    target_accept: float = 0.8
+    max_tree_depth: int = 10
+    progress: bool = True
+    threads: int | None = 1
+    full_mass: bool = False
+    init: str = "uniform"
+    init_draws: int = 256
+    workers: int | None = None
+    warm: WarmStart | None = None
+    ridge: str = "auto"
+    mapped_accept: float | None = None
+
+    def __post_init__(self) -> None:
+        for nm in ("chains", "warmup", "draws", "init_draws"):
+            v = getattr(self, nm)
+            if not isinstance(v, int) or v < (0 if nm == "warmup" else 1):
+                raise ValueError(f"run_nuts {nm} must be a positive integer, got {v!r}")
+        if self.init not in ("sir", "uniform"):
+            raise ValueError(f"run_nuts init must be 'sir' or 'uniform', got {self.init!r}")
+        w = self.workers
+        if w is not None and (not isinstance(w, int) or w < 1):
+            raise ValueError(f"run_nuts workers must be a positive integer, got {w!r}")
+        if self.ridge not in ("auto", "always", "never", "same"):
+            raise ValueError(f"run_nuts ridge must be 'auto', 'always', 'never' or 'same', got "
+                             f"{self.ridge!r}")
+        ma = self.mapped_accept
+        if ma is not None and not 0.0 < ma < 1.0:
+            raise ValueError(f"run_nuts mapped_accept must be in (0, 1), got {ma}")
+
+
+def run_nuts(model: Callable[..., None], args: tuple = (),
+             options: NutsOptions | None = None) -> NutsRun:
+    """NUTS on a Pyro model's posterior: the one sampler of solderpyro.
+
+    The model's log density is taken on a flat unconstrained vector (Pyro's transforms and
+    log-Jacobians): analytic, with hand-derived gradients, where one is declared for the
+    model and covers the configuration (:func:`~.fastkoh.flat_model`: for :mod:`.koh`'s
+    models direct, full joint, modular PCA through the reduced likelihood of
+    :mod:`.reduced`), else Pyro's own potential energy with autograd (:mod:`.potential`:
+    discrepancy, custom priors, local regions, any model). The trajectories are Stan's NUTS
+    with its windowed warm-up (:func:`~.nuts.sample_nuts`), checked against Pyro's NUTS on
+    the same posteriors in the tests.
+
+    Args:
+        model: a Pyro model; ``args`` are passed to it.
+        options: the sampler's settings (:class:`NutsOptions`; None: its defaults).
 
     Returns:
-        :class:`NutsRun`.
+        :class:`NutsRun`: samples ``site -> (chains, draws, ...)`` in the model's units.
     """
-    for nm, v in (("chains", chains), ("warmup", warmup), ("draws", draws),
-                  ("init_draws", init_draws)):
-        if not isinstance(v, int) or v < (0 if nm == "warmup" else 1):
-            raise ValueError(f"run_nuts {nm} must be a positive integer, got {v!r}")
-    if init not in ("sir", "uniform"):
-        raise ValueError(f"run_nuts init must be 'sir' or 'uniform', got {init!r}")
-    if workers is not None and (not isinstance(workers, int) or workers < 1):
-        raise ValueError(f"run_nuts workers must be a positive integer, got {workers!r}")
-    if ridge not in ("auto", "always", "never", "same"):
-        raise ValueError(f"run_nuts ridge must be 'auto', 'always', 'never' or 'same', got "
-                         f"{ridge!r}")
-    if mapped_accept is not None and not 0.0 < mapped_accept < 1.0:
-        raise ValueError(f"run_nuts mapped_accept must be in (0, 1), got {mapped_accept}")
     from solderpyro.calibration.fastkoh import flat_model
-    from solderpyro.calibration.koh import SITE_T
     from solderpyro.calibration.nuts import sample_nuts
 
+    o = options or NutsOptions()
     t0 = time.perf_counter()
-    limit: Any = nullcontext()
-    if threads is not None:
-        try:  # BLAS threads: as for torch, one is fastest on these small matrices
-            from threadpoolctl import threadpool_limits
-            limit = threadpool_limits(threads)
-        except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
-            pass
-    with _torch_threads(threads), limit:
+    lvl = logging.INFO if o.progress else logging.DEBUG
+    with _torch_threads(o.threads), _blas_threads(o.threads):
         fm = flat_model(model, args)
         names = coord_names(fm, args)
-        q0, inv0, step0 = None, None, None
-        if warm is not None:
-            q0, inv0, step0 = warm.apply(names, chains, full_mass)
-            box = _theta_box(args)
-            if box is not None:  # the parameters' positions whatever their coordinates
-                q0 = _with_theta(fm, q0, warm.unit_for(box.names, chains))
-        elif init == "sir":
-            pts = sir_inits(model, args, chains, init_draws, seed)
-            if all(v is not None for v in pts):
-                q0 = np.stack([fm.to_unconstrained(v) for v in pts if v is not None])
-        lvl = logging.INFO if progress else logging.DEBUG
+        st = _in_ridge_coords(_chain_starts(model, args, fm, names, o), names, o, lvl)
+        res = sample_nuts(st.f, fm.dim, o.chains, o.warmup, o.draws, o.seed, st.q0,
+                          _target_accept(o, st.rmap), o.max_tree_depth,
+                          dense_mass=o.full_mass, inv_metric=st.inv0, step_size=st.step0,
+                          workers=o.workers or default_workers(o.chains),
+                          on_chain=_chain_logger(o, lvl))
+    return _nuts_run(res, fm, st.rmap, names, args, o, t0)
 
-        def on_chain(c: int, st: dict) -> None:
-            log.log(lvl, "NUTS chain %d/%d: %d + %d iterations in %.1f s (step %.3g, %d "
-                    "gradients, %d divergent)", c + 1, chains, warmup, draws, st["seconds"],
-                    st["step_size"], st["n_leapfrog"], st["divergences"])
 
-        f = fm.logp_and_grad
-        same = (ridge == "same" and warm is not None and warm.mapped is not None
-                and list(warm.coords) == list(names))
-        rmap: Any = None
-        if same:
-            assert warm is not None and q0 is not None
-            rmap = warm.mapped[0]
-            f = rmap.wrap(f)
-            q0 = rmap.inverse(q0)
-            inv0, step0 = warm.mapped[1], warm.mapped[2]
-            log.log(lvl, "NUTS: the chains run on in the ridge coordinates they sampled in")
-        elif ridge not in ("never", "same"):
-            rmap = ridge_map(warm, names, bent=ridge == "auto")
-            if rmap is not None:
-                assert warm is not None and warm.draws is not None and q0 is not None
-                f = rmap.wrap(f)
-                q0 = rmap.inverse(q0)
-                W = rmap.inverse(warm.draws)
-                inv0 = np.cov(W.T) if full_mass else W.var(0)
-                step0 = None  # the step search starts afresh in the new coordinates
-                log.log(lvl, "NUTS: in ridge coordinates fitted to %d draws of the previous "
-                        "posterior", len(warm.draws))
-        res = sample_nuts(f, fm.dim, chains, warmup, draws, seed, q0,
-                          target_accept if rmap is None else
-                          max(target_accept, MAPPED_ACCEPT if mapped_accept is None
-                              else mapped_accept),
-                          max_tree_depth, dense_mass=full_mass,
-                          inv_metric=inv0, step_size=step0,
-                          workers=workers or default_workers(chains), on_chain=on_chain)
+@dataclass
+class _Start:
+    """The chains' log density ``f`` (``q (d,) -> (log density, gradient (d,))``), starting
+    points ``q0 (chains, d)``, inverse metric ``inv0 ((d,) or (d, d))`` and step size (None
+    where the sampler chooses), and the ridge map ``rmap`` the coordinates are in (None:
+    the flat model's own)."""
+
+    f: Callable[[np.ndarray], tuple[float, np.ndarray]]
+    q0: np.ndarray | None = None
+    inv0: np.ndarray | None = None
+    step0: float | None = None
+    rmap: Any = None
+
+
+def _blas_threads(threads: int | None) -> Any:
+    """A context limiting the BLAS threads to ``threads`` (None, or no threadpoolctl: none)."""
+    if threads is None:
+        return nullcontext()
+    try:  # BLAS threads: as for torch, one is fastest on these small matrices
+        from threadpoolctl import threadpool_limits
+        return threadpool_limits(threads)
+    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
+        return nullcontext()
+
+
+def _chain_starts(model: Callable[..., None], args: tuple, fm: Any, names: list[str],
+                  o: NutsOptions) -> _Start:
+    """Where the chains start on ``fm``'s flat vector: a warm start's positions, metric and
+    step (by coordinate name, the calibrated parameters at its unit-cube positions), SIR
+    points (``init="sir"``), or None (the sampler's uniform draws)."""
+    st = _Start(fm.logp_and_grad)
+    if o.warm is not None:
+        st.q0, st.inv0, st.step0 = o.warm.apply(names, o.chains, o.full_mass)
+        box = _theta_box(args)
+        if box is not None:  # the parameters' positions whatever their coordinates
+            st.q0 = _with_theta(fm, st.q0, o.warm.unit_for(box.names, o.chains))
+    elif o.init == "sir":
+        pts = sir_inits(model, args, o.chains, o.init_draws, o.seed)
+        if all(v is not None for v in pts):
+            st.q0 = np.stack([fm.to_unconstrained(v) for v in pts if v is not None])
+    return st
+
+
+def _in_ridge_coords(st: _Start, names: list[str], o: NutsOptions, lvl: int) -> _Start:
+    """``st`` carried into ridge coordinates where ``o.ridge`` and the warm start ask for
+    them: ``"same"``, the warm start's own map, metric and step; else a map fitted to its
+    draws (:func:`ridge_map`), the metric their covariance there, the step searched afresh."""
+    warm = o.warm
+    if (o.ridge == "same" and warm is not None and warm.mapped is not None
+            and list(warm.coords) == list(names)):
+        assert st.q0 is not None
+        rmap = warm.mapped[0]
+        log.log(lvl, "NUTS: the chains run on in the ridge coordinates they sampled in")
+        return _Start(rmap.wrap(st.f), rmap.inverse(st.q0), warm.mapped[1], warm.mapped[2],
+                      rmap)
+    if o.ridge in ("never", "same"):
+        return st
+    rmap = ridge_map(warm, names, bent=o.ridge == "auto")
+    if rmap is None:
+        return st
+    assert warm is not None and warm.draws is not None and st.q0 is not None
+    W = rmap.inverse(warm.draws)
+    log.log(lvl, "NUTS: in ridge coordinates fitted to %d draws of the previous posterior",
+            len(warm.draws))
+    return _Start(rmap.wrap(st.f), rmap.inverse(st.q0), np.cov(W.T) if o.full_mass else W.var(0),
+                  None, rmap)
+
+
+def _target_accept(o: NutsOptions, rmap: Any) -> float:
+    """NUTS's target acceptance: ``o.target_accept``, at least :data:`MAPPED_ACCEPT` (or
+    ``o.mapped_accept``) in ridge coordinates."""
+    if rmap is None:
+        return o.target_accept
+    return max(o.target_accept, MAPPED_ACCEPT if o.mapped_accept is None else o.mapped_accept)
+
+
+def _chain_logger(o: NutsOptions, lvl: int) -> Callable[[int, dict], None]:
+    """``on_chain(c, stats)`` for :func:`~.nuts.sample_nuts`: one log line per chain."""
+    def on_chain(c: int, st: dict) -> None:
+        log.log(lvl, "NUTS chain %d/%d: %d + %d iterations in %.1f s (step %.3g, %d "
+                "gradients, %d divergent)", c + 1, o.chains, o.warmup, o.draws, st["seconds"],
+                st["step_size"], st["n_leapfrog"], st["divergences"])
+    return on_chain
+
+
+def _nuts_run(res: Any, fm: Any, rmap: Any, names: list[str], args: tuple, o: NutsOptions,
+              t0: float) -> NutsRun:
+    """The :class:`NutsRun` of :func:`~.nuts.sample_nuts`'s result ``res``: draws back in the
+    flat model's coordinates, constrained samples, and the warm state for a next run."""
+    from solderpyro.calibration.koh import SITE_T
+
     Q = res.draws if rmap is None else rmap.forward(res.draws)[0]
     flat = Q.reshape(-1, Q.shape[-1])
     # the mass matrix for a next run in these (unmapped) coordinates: the draws' own
     # covariance where the chains ran in mapped ones
     inv = (np.mean(np.stack(res.inv_metric), 0) if rmap is None else
-           (np.cov(flat.T) if full_mass else flat.var(0)))
+           (np.cov(flat.T) if o.full_mass else flat.var(0)))
     samples = fm.to_samples(Q)
     box = _theta_box(args)
-    unit = (samples[SITE_T][:, -1].reshape(chains, -1).cpu().numpy().astype(float)
+    unit = (samples[SITE_T][:, -1].reshape(o.chains, -1).cpu().numpy().astype(float)
             if box is not None and SITE_T in samples else None)
     keep = np.linspace(0, len(flat) - 1, min(len(flat), WARM_DRAWS)).round().astype(int)
     ws = WarmStart(names, Q[:, -1].copy(), inv, float(np.median(res.step_size)),

@@ -20,9 +20,9 @@ from solderpyro.calibration.koh import (
     SITE_T,
     JointInputs,
     ObsInputs,
-    _basis,
-    _corr,
     emulator_lowrank,
+    joint_basis,
+    joint_correlation,
 )
 from solderpyro.calibration.mcmc import Posterior
 from solderpyro.surrogate.kernels import gaussian
@@ -218,7 +218,7 @@ def predict_joint(post: Posterior, inp: JointInputs, x_new: torch.Tensor, n_draw
                                torch.cat([inp.u_xobs, t_u.expand(n, t_u.shape[-1])], -1),
                                torch.cat([u_new, t_u.expand(p, t_u.shape[-1])], -1)])
             sc2 = (sigma_c / inp.y_scale).square()
-            cov = sc2 * (_corr(inp, u_all, u_all, corr)
+            cov = sc2 * (joint_correlation(inp, u_all, u_all, corr)
                          + inp.nugget * torch.eye(m + n + p, dtype=u_all.dtype))
             if inp.discrepancy:
                 ux = torch.cat([inp.u_xobs, u_new])
@@ -228,7 +228,7 @@ def predict_joint(post: Posterior, inp: JointInputs, x_new: torch.Tensor, n_draw
             b_std = beta.clone()
             b_std[0] = (beta[0] - inp.y_mean) / inp.y_scale
             b_std[1:] = beta[1:] / inp.y_scale
-            mean = _basis(inp, u_all) @ b_std
+            mean = joint_basis(inp, u_all) @ b_std
             noise = torch.cat([torch.zeros(m, dtype=mean.dtype),
                                (sigma / inp.y_scale).square().expand(n)])
             c11 = cov[: m + n, : m + n] + torch.diag(noise)

@@ -403,7 +403,7 @@ def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
             priors (the generic path, :func:`~.potential.torch_flat`, covers those).
     """
     from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
-    from solderpyro.calibration.flat import FlatModel, FlatSite, _sigma_site, _unsupported
+    from solderpyro.calibration.flat import FlatModel, FlatSite, reject_unsupported, sigma_site
     from solderpyro.calibration.koh import SITE_T, Priors
 
     pr = priors or Priors()
@@ -413,7 +413,7 @@ def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
           and (not isinstance(em, ObservedEmulator) or isinstance(em.base, GPEmulator)))
     if coords not in ("auto", "logit"):
         raise ValueError(f"pca_flat coords must be 'auto' or 'logit', got {coords!r}")
-    _unsupported(pr, {"emulators other than a PCA GPEmulator": not ok,
+    reject_unsupported(pr, {"emulators other than a PCA GPEmulator": not ok,
                       "discrepancy=True": inp.discrepancy,
                       "a LocalBox prior": hasattr(inp.theta_box, "log_support")})
     gp = base.gp
@@ -422,7 +422,7 @@ def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
     umap = GPInputMap(gp, inp.theta_box)
     p = inp.theta_box.dim
     n_fe = gp.box.dim
-    sig, mu, sd = _sigma_site(pr, red.y, p)
+    sig, mu, sd = sigma_site(pr, red.y, p)
     sites = [FlatSite(SITE_T, p, True, 0.0, 1.0, 0), sig]
     offset = em.offset if isinstance(em, ObservedEmulator) else None
     n_q = p - n_fe

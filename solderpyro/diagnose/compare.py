@@ -40,7 +40,7 @@ def _logpdf(y: np.ndarray, mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
 def load_idata(run_dir: str | Path) -> Any:
     """``posterior.nc`` of a run as ArviZ InferenceData, or None when it has no
     ``log_likelihood`` group (a run of an earlier version)."""
-    from solderpyro.calibration.mcmc import _arviz
+    from solderpyro.calibration.mcmc import import_arviz as _arviz
 
     p = Path(run_dir) / "posterior.nc"
     if not p.is_file():
@@ -53,7 +53,7 @@ def psis_loo(idata: Any) -> tuple[Any, list[str]]:
     """ArviZ's PSIS-LOO of ``idata`` and its warnings (the Pareto k-hat ones among them)."""
     import warnings
 
-    from solderpyro.calibration.mcmc import _arviz
+    from solderpyro.calibration.mcmc import import_arviz as _arviz
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -202,7 +202,7 @@ def _diff_se(before: str | Path, after: str | Path) -> float:
     observations."""
     import warnings
 
-    from solderpyro.calibration.mcmc import _arviz
+    from solderpyro.calibration.mcmc import import_arviz as _arviz
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

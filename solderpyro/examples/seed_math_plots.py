@@ -51,7 +51,7 @@ def fig2(path, post) -> None:
 
 def fig3(path, xs, ts, ys, data, post, inp, code) -> None:
     """The code and the GP through the LHS runs at the posterior-median hyperparameters."""
-    from solderpyro.calibration.koh import _corr
+    from solderpyro.calibration.koh import joint_correlation
 
     xg, tg = np.meshgrid(np.linspace(0, 3, 40), np.linspace(data.theta_box.lower[0],
                                                             data.theta_box.upper[0], 40))
@@ -59,12 +59,12 @@ def fig3(path, xs, ts, ys, data, post, inp, code) -> None:
     true = torch.stack([code(p[:1][None], p[1:]) for p in pts]).reshape(xg.shape)
     u = torch.cat([data.x_box.to_unit(pts[:, :1]), data.theta_box.to_unit(pts[:, 1:])], -1)
     corr = post.raw["corr"].reshape(-1, post.raw["corr"].shape[-1]).median(0).values
-    r = _corr(inp, inp.u_sim, inp.u_sim, corr) + 1e-8 * torch.eye(inp.u_sim.shape[0],
-                                                                    dtype=torch.float64)
+    r = joint_correlation(inp, inp.u_sim, inp.u_sim, corr) + 1e-8 * torch.eye(
+        inp.u_sim.shape[0], dtype=torch.float64)
     z = (ys - ys.mean()) / ys.std()
     mu = z.mean()  # GLS mean with a constant basis, close enough for a picture
     w = torch.linalg.solve(r, z - mu)
-    pred = (mu + _corr(inp, u, inp.u_sim, corr) @ w) * ys.std() + ys.mean()
+    pred = (mu + joint_correlation(inp, u, inp.u_sim, corr) @ w) * ys.std() + ys.mean()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     lev = np.linspace(float(min(true.min(), pred.min())), float(max(true.max(), pred.max())), 21)
     for ax, f, title in ((axes[0], true, "code 5 exp(-t x)"),

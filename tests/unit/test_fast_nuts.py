@@ -1,6 +1,7 @@
 """The one sampler (calibration.mcmc.run_nuts: the NumPy NUTS of calibration.nuts on the
 analytic KOH densities of calibration.fastkoh / calibration.reduced, or on Pyro's potential),
-checked against Pyro's NUTS as the reference.
+checked against Pyro's NUTS as the reference. The analytic densities themselves are checked
+against the Pyro models they implement in tests/unit/test_fast_densities.py.
 
 Statistical checks compare with references within Monte Carlo error: standard errors come
 from ArviZ's ESS (bulk ESS of the mean, quantile ESS of quantiles) and tolerances are 4.5 of
@@ -191,99 +192,11 @@ def test_fast_results_have_pyro_layout():
     assert len(fast.divergences) == 2 and fast.seconds > 0
 
 
-# ------------------------------------------------- densities: identical to Pyro's, gradients
+# -------------------------------------------------------------------- the seed's joint data
 def _seed_joint_data(n_lhs: int = 5) -> CalibrationData:
     x, y = make_data(0)
     xs, ts, ys = lhs_runs(n_lhs, 0)
     return CalibrationData.create(xs, ts, ys, x, y, ["x"], ["t"], theta_box=LHS_T, x_box=X_BOX)
-
-
-def _multi_joint_data(m: int = 12, n: int = 5) -> CalibrationData:
-    """Two x and three t inputs, so that ARD, x columns and several t are all exercised."""
-    from scipy.stats import qmc
-
-    tb = Box(("a", "b", "c"), (0.5, 0.5, 0.1), (1.5, 3.0, 1.0), log_scale=(False, True, False))
-    xb = Box(("x1", "x2"), (0.0, 0.0), (1.0, 2.0))
-    u = torch.as_tensor(qmc.LatinHypercube(d=5, seed=3).random(m), dtype=DT)
-    xs, ts = xb.from_unit(u[:, :2]), tb.from_unit(u[:, 2:])
-
-    def f(xx, tt):
-        return tt[..., 0] * torch.exp(-tt[..., 1] * xx[:, 0]) + tt[..., 2] * xx[:, 1]
-
-    ys = torch.stack([f(xs[i:i + 1], ts[i])[0] for i in range(m)])
-    xo = xb.from_unit(torch.as_tensor(qmc.LatinHypercube(d=2, seed=4).random(n), dtype=DT))
-    yo = f(xo, torch.tensor([1.0, 1.5, 0.5], dtype=DT)) + 0.05 * torch.linspace(-1, 1, n)
-    return CalibrationData.create(xs, ts, ys, xo, yo, list(xb.names), list(tb.names),
-                                  theta_box=tb, x_box=xb)
-
-
-def _cases():
-    x, y = make_data(0)
-    logbox = Box(("t",), (0.05,), (3.0,), log_scale=(True,))
-    out = []
-    for box in (T_BOX, logbox):
-        for pr in (Priors(sigma_max=5.0), Priors(sigma_known=0.6)):
-            inp = prepare_observation(y, FunctionEmulator(code, x), box, x)
-            out.append((f"direct-{box.log_scale}-{pr.sigma_known}", observation_model,
-                        (inp, pr)))
-    for data, ard in ((_seed_joint_data(), False), (_multi_joint_data(), False),
-                      (_multi_joint_data(), True)):
-        for pr in (Priors(), Priors(sigma_known=0.05, sigma_c_max=7.0, corr_range=(0.1, 20))):
-            inp = prepare_joint(data, ard=ard, nugget=1e-4)
-            out.append((f"joint-{data.theta_box.dim}-{ard}-{pr.sigma_known}", joint_model,
-                        (inp, pr)))
-    return out
-
-
-CASES = _cases()
-
-
-@pytest.mark.parametrize("name,model,args", CASES, ids=[c[0] for c in CASES])
-def test_log_density_equals_pyro_potential(name, model, args):
-    """At random unconstrained points the fast log density is exactly Pyro's
-    -potential_energy (priors, transforms and log-Jacobians included) up to one constant."""
-    from pyro.infer.mcmc.util import initialize_model
-
-    fm = flat_model(model, args)
-    _, potential, _, _ = initialize_model(model, args)
-    rng = np.random.default_rng(0)
-    diffs = []
-    for _ in range(6):
-        q = rng.uniform(-2.0, 2.0, fm.dim)
-        lp, _ = fm.logp_and_grad(q)
-        params = {}
-        for s in fm.sites:
-            v = torch.tensor(q[s.offset:s.offset + s.size], dtype=DT)
-            params[s.name] = v if s.vector else v[0]
-        diffs.append(lp + float(potential(params)))
-    assert np.ptp(diffs) < 1e-9 * max(1.0, abs(diffs[0])), (name, diffs)
-
-
-@pytest.mark.parametrize("name,model,args", CASES, ids=[c[0] for c in CASES])
-def test_analytic_gradient_matches_finite_differences(name, model, args):
-    """Every partial derivative against a 4th-order central difference (float64, rel 1e-6)."""
-    fm = flat_model(model, args)
-    rng = np.random.default_rng(1)
-    h = 1e-4
-    for _ in range(3):
-        q = rng.uniform(-1.5, 1.5, fm.dim)
-        _, g = fm.logp_and_grad(q)
-        fd = np.empty(fm.dim)
-        for i in range(fm.dim):
-            e = np.zeros(fm.dim)
-            e[i] = h
-            f = [fm.logp_and_grad(q + k * e)[0] for k in (-2, -1, 1, 2)]
-            fd[i] = (f[0] - 8 * f[1] + 8 * f[2] - f[3]) / (12 * h)
-        np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6 * max(1.0, np.abs(g).max()),
-                                   err_msg=name)
-
-
-def test_constrained_round_trip():
-    fm = flat_model(*CASES[-1][1:])
-    q = np.random.default_rng(2).uniform(-3, 3, fm.dim)
-    samples = fm.to_samples(q[None, None])
-    back = fm.to_unconstrained({k: v[0, 0] for k, v in samples.items()})
-    np.testing.assert_allclose(back, q, rtol=1e-9, atol=1e-9)
 
 
 # ---------------------------------------------------------------------- the joint posterior

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from solderpyro.calibration import CalibrationData, Priors, calibrate_direct
-from solderpyro.calibration.koh import _joint_chol, joint_loglik, prepare_joint
+from solderpyro.calibration.koh import joint_cholesky, joint_loglik, prepare_joint
 from solderpyro.examples.seed_math import LHS_T, X_BOX, code, lhs_runs, make_data
 
 DT = torch.float64
@@ -29,7 +29,7 @@ def test_beta_marginal_equals_quadrature():
     for a in args:
         ll, bh, bc = joint_loglik(inp, *a)
         ours.append(ll.item())
-        chol, h = _joint_chol(inp, *a, None)
+        chol, h = joint_cholesky(inp, *a, None)
         b = torch.linspace(bh.item() - 12 * bc.sqrt().item(), bh.item() + 12 * bc.sqrt().item(),
                            20001, dtype=DT)
         r = inp.z[None, :] - b[:, None] * h[:, 0][None, :]  # (n_b, N)

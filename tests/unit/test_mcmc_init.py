@@ -5,7 +5,7 @@ import pyro.distributions as dist
 import pytest
 import torch
 
-from solderpyro.calibration.mcmc import run_nuts, sir_inits
+from solderpyro.calibration.mcmc import NutsOptions, run_nuts, sir_inits
 
 MODES = (-3.0, 3.0)
 WEIGHTS = (0.99, 0.01)
@@ -31,14 +31,14 @@ def test_sir_starts_chains_in_proportion_to_the_mass_of_each_mode():
 
 
 def test_nuts_chains_from_sir_sit_in_the_main_mode():
-    s = run_nuts(_bimodal, chains=4, warmup=100, draws=100, seed=3, progress=False,
-                 init="sir").samples
+    s = run_nuts(_bimodal, (), NutsOptions(chains=4, warmup=100, draws=100, seed=3,
+                                           progress=False, init="sir")).samples
     med = s["t"].median(1).values  # (chains,)
     assert ((med - MODES[0]).abs() < 0.3).all(), med
 
 
 def test_bad_init_is_named():
     with pytest.raises(ValueError, match="init"):
-        run_nuts(_bimodal, init="best")
+        run_nuts(_bimodal, (), NutsOptions(init="best"))
     with pytest.raises(ValueError, match="init_draws"):
-        run_nuts(_bimodal, init_draws=0)
+        run_nuts(_bimodal, (), NutsOptions(init_draws=0))

@@ -1,6 +1,6 @@
 """The reduced (projected) likelihood of PCA surrogates (calibration.reduced): equal to the full
-low-rank Gaussian density to 1e-8, its analytic gradient equal to Pyro's autograd, the input
-map's Jacobian equal to autograd's."""
+low-rank Gaussian density to 1e-8, the input map's Jacobian equal to autograd's. (pca_flat
+against Pyro's potential of observation_model, value and gradient: test_fast_densities.py.)"""
 
 import math
 
@@ -10,8 +10,7 @@ import pytest
 import torch
 
 from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
-from solderpyro.calibration.koh import Priors, observation_model, prepare_observation
-from solderpyro.calibration.potential import torch_flat
+from solderpyro.calibration.koh import Priors, prepare_observation
 from solderpyro.calibration.reduced import PCAReduction, pca_flat, reduced_loglik_torch
 from solderpyro.design import lhs
 from solderpyro.params import Box
@@ -123,35 +122,6 @@ def _offset_emulator(gp: GPSurrogate):
     box = Box((*ANAND.names, "c", "w"), (*ANAND.lower, -1.0, -0.5), (*ANAND.upper, 1.0, 0.5),
               log_scale=(*ANAND.log_scale, False, False))
     return ObservedEmulator(GPEmulator(gp), 4, off), box
-
-
-def _flat_pair(gp, emulator, box, pr):
-    inp = prepare_observation(_y(gp), emulator, box)
-    return pca_flat(inp, pr, coords="logit"), torch_flat(observation_model, (inp, pr), jit=False)
-
-
-@pytest.mark.parametrize("name", ["matern-flow", "gauss-raw-linear"])
-@pytest.mark.parametrize("offsets", [False, True])
-@pytest.mark.parametrize("pr", [Priors(sigma_known=0.05), Priors(sigma_max=2.0)],
-                         ids=["known", "flat"])
-def test_analytic_density_and_gradient_equal_pyro_autograd(gps, name, offsets, pr):
-    """At random unconstrained points the analytic log density differs from Pyro's
-    -potential_energy of observation_model by one constant, and the gradients agree."""
-    gp = gps[name]
-    em, box = _offset_emulator(gp) if offsets else (GPEmulator(gp), ANAND)
-    fa, fg = _flat_pair(gp, em, box, pr)
-    assert fa.dim == fg.dim == box.dim + 1
-    rng = np.random.default_rng(1)
-    diffs = []
-    for _ in range(5):
-        q = rng.uniform(-1.5, 1.5, fa.dim)
-        if pr.sigma_known:
-            q[-1] = math.log(0.05) + 0.1 * rng.normal()
-        la, ga = fa.logp_and_grad(q)
-        lg, gg = fg.logp_and_grad(q)
-        diffs.append(la - lg)
-        np.testing.assert_allclose(ga, gg, rtol=1e-6, atol=1e-7 * np.abs(gg).max())
-    assert np.ptp(diffs) < 1e-7 * max(1.0, abs(lg)), diffs
 
 
 @pytest.mark.parametrize("offsets", [False, True])
