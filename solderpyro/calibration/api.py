@@ -33,7 +33,7 @@ from solderpyro.calibration.koh import (
     JointInputs,
     ObsInputs,
     Priors,
-    _delta_cov,
+    discrepancy_cov,
     joint_loglik,
     joint_model,
     observation_model,
@@ -156,7 +156,7 @@ def _beta_draws(inp: JointInputs, post: Posterior, pr: Priors, seed: int) -> tor
                 k_delta = None
                 if inp.discrepancy:
                     from pyro import condition
-                    cond = condition(_delta_cov, data={k: raw[k][i] for k in
+                    cond = condition(discrepancy_cov, data={k: raw[k][i] for k in
                                                        ("sigma_delta", "corr_delta")})
                     k_delta = cond(pr, inp.u_xobs, 1.0)
                 _, bh, bc = joint_loglik(inp, raw[SITE_T][i], raw[SITE_SIGMA][i],

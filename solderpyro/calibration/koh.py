@@ -151,8 +151,10 @@ def _corr_prior(priors: Priors, n: int, tkw: dict[str, Any]) -> dist.Distributio
     return _uniform(lo, hi, n, tkw)
 
 
-def _delta_cov(priors: Priors, u_x: torch.Tensor, scale_default: float) -> torch.Tensor:
-    """Sample the discrepancy hyperparameters and return K_delta ``(n, n)`` on u_x ``(n, n_x)``."""
+def discrepancy_cov(priors: Priors, u_x: torch.Tensor, scale_default: float) -> torch.Tensor:
+    """Sample the discrepancy hyperparameters (Pyro sites) and return K_delta ``(n, n)`` (output units^2)
+    on the unit-scaled inputs u_x ``(n, n_x)``; ``scale_default``: the discrepancy sd prior
+    scale when ``priors.delta_scale`` is unset."""
     tkw: dict[str, Any] = dict(dtype=u_x.dtype, device=u_x.device)
     sd = _site(priors, SITE_SIGMA_D, dist.HalfNormal(
         torch.tensor(priors.delta_scale or scale_default, **tkw)))
@@ -287,7 +289,7 @@ def joint_model(inp: JointInputs, priors: Priors) -> None:
     sigma_c = _site(priors, SITE_SIGMA_C, _uniform(0.0, priors.sigma_c_max or 10 * inp.y_scale,
                                                    None, tkw))
     corr = _site(priors, SITE_CORR, _corr_prior(priors, inp.n_corr, tkw))
-    k_delta = (_delta_cov(priors, inp.u_xobs, d.y_obs.std().item() if d.n_obs > 1 else 1.0)
+    k_delta = (discrepancy_cov(priors, inp.u_xobs, d.y_obs.std().item() if d.n_obs > 1 else 1.0)
                if inp.discrepancy else None)
     ll, _, _ = joint_loglik(inp, t_unit, sigma, sigma_c, corr, k_delta)
     support = getattr(d.theta_box, "log_support", None)
@@ -375,7 +377,7 @@ def observation_model(inp: ObsInputs, priors: Priors) -> None:
     k_delta = None
     if inp.discrepancy:
         assert inp.u_x is not None
-        k_delta = _delta_cov(priors, inp.u_x, y.std().item() if y.shape[0] > 1 else 1.0)
+        k_delta = discrepancy_cov(priors, inp.u_x, y.std().item() if y.shape[0] > 1 else 1.0)
     if cov is None and k_delta is None:
         pyro.sample(SITE_Y, dist.Normal(mean, sigma).to_event(1), obs=y)
         return
