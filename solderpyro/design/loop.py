@@ -463,7 +463,9 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
              names: list[str] | None = None,
              on_round: Callable[[LoopResult], None] | None = None,
              kinds: list[str] | None = None) -> LoopResult:
-    """Run the adaptive design (module docstring) on ``p`` with settings ``s``.
+    """Run the adaptive design (module docstring) on ``p`` with settings ``s``: the rounds
+    (:func:`design_rounds`), then the full-length posterior checked by the FE in every chain
+    (:func:`final_posterior`), both on ``p.y``.
 
     Args:
         p: the calibration as the loop sees it. s: settings (validated here).
@@ -475,7 +477,23 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             at a known FE best fit before the first round); default all ``"start"``.
 
     Returns:
-        :class:`LoopResult`.
+        :class:`LoopResult`; its ``draws`` are the final posterior's.
+    """
+    res = design_rounds(p, s, seed, X0, names, on_round, kinds)
+    return final_posterior(p, res, s, names, on_round)
+
+
+def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
+                  X0: torch.Tensor | None = None, names: list[str] | None = None,
+                  on_round: Callable[[LoopResult], None] | None = None,
+                  kinds: list[str] | None = None) -> LoopResult:
+    """The rounds of the adaptive design (arguments as :func:`run_loop`) until the stopping
+    rule holds, the FE's own best fit misfits, or the budget would be exceeded.
+
+    Returns:
+        :class:`LoopResult` with ``reason`` and ``message`` set; its ``draws`` are the last
+        round's posterior (``draws.checked``: that round's FE check), not yet the final one
+        (:func:`final_posterior`). ``on_round`` is not called with it.
     """
     from solderpyro.design import lhs
     from solderpyro.design.acquisition import (
@@ -616,6 +634,29 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             f"the FE budget ran out ({len(X)} of {s.budget} runs, {r} rounds) before the "
             f"surrogate was confirmed: {'; '.join(why)}" + (
                 "" if code_ok else f" (code chi2 tolerance sqrt(2n) = {tol:.3g})"))
+    assert draws is not None
+    return LoopResult(gp, draws, X, V, ok, kind, rnd_of, rounds, reason, msg, best_fit)
+
+
+def final_posterior(p: LoopProblem, res: LoopResult, s: LoopSettings,
+                    names: list[str] | None = None,
+                    on_round: Callable[[LoopResult], None] | None = None) -> LoopResult:
+    """The full-length posterior after :func:`design_rounds` ``res``, on ``p.y`` (the data
+    the caller passes: e.g. corrected for the FE's discretization error), checked by the FE
+    at draws of every chain; where the FE disagrees with the surrogate there, those runs join
+    the design, the surrogate is refitted and the posterior drawn again (within the budget).
+    After a ``"misfit"`` stop the last round's draws are kept.
+
+    Returns:
+        the :class:`LoopResult` with the final draws, every FE run and round record.
+    """
+    gp, draws, best_fit = res.gp, res.draws, res.best_fit
+    X, V, ok = res.X, res.Y, res.ok
+    kind, rnd_of, rounds = list(res.kind), list(res.round), list(res.rounds)
+    reason, msg, r = res.reason, res.message, len(res.rounds)
+    names = names or list(p.box.names)
+    y = p.y.to(torch.float64)
+    n = int(y.numel())
     if reason == "misfit":
         # the reported result is the FE's own best fit; the surrogate posterior only seeds the
         # FE check and the diagnosis, and the last round's draws are of this same surrogate
