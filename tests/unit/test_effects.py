@@ -15,8 +15,8 @@ from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import Problem
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.specimen import SpecimenModel
 from solderpyro.params import ANAND_NAMES, ParameterSpace, anand_tensor
+from solderpyro.specimen import SpecimenModel
 from solderpyro.store import RunRecord, RunStore, config_hash, param_hash, run_doe
 
 CONTRACT = ("modulus_temperature", "stress_free_temperature", "thermal_lag", "cte_temperature",
