@@ -483,6 +483,48 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
     return final_posterior(p, res, s, names, on_round)
 
 
+def acquire(gp: GPSurrogate, draws: Draws, box: Box, s: LoopSettings, y: torch.Tensor,
+            pending: torch.Tensor, q: int, seed: int) -> tuple[torch.Tensor, float]:
+    """The next ``q`` FE runs of a round (``s.criterion`` optimized by ``s.optimizer``) over
+    the posterior ``draws`` of surrogate ``gp``; ``y (n_y,)`` the data, ``pending (k, d)`` the
+    round's checked draws (already being run), ``seed`` the optimizer's.
+
+    Returns:
+        ``(q, d)`` parameter rows (physical, inside ``box``) and the criterion's value.
+    """
+    from solderpyro.design.acquisition import (
+        greedy_draws,
+        integrated_code_variance,
+        loglik_terms,
+        propose,
+        qIntegratedLogLikVariance,
+    )
+    from solderpyro.design.model import botorch_model, observed_weights
+
+    N = len(draws.theta)
+    mi = spread_indices(N, s.mc_points)
+    mc = box.to_unit(draws.theta[mi])
+    sig = float(draws.sigma.median())
+    cand_th = draws.theta[spread_indices(N, s.candidates)]
+    off_mc = None if draws.offset is None else draws.offset[mi]
+    if s.optimizer == "draws":  # closed form, the same choice as BoTorch's (tested)
+        idx, val = greedy_draws(gp, s.criterion, draws.theta[mi], cand_th, q, sig, y, off_mc,
+                                pending)
+        Xu = box.to_unit(cand_th[idx])
+    else:
+        model = botorch_model(gp)
+        pend = box.to_unit(pending)
+        if s.criterion == "loglik":
+            g, M = loglik_terms(gp, draws.theta[mi], y, sig, off_mc)
+            acq: Any = qIntegratedLogLikVariance(model, mc, g, M, X_pending=pend)
+        else:
+            acq = integrated_code_variance(model, mc, observed_weights(gp, sig), X_pending=pend)
+        Xu, val = propose(acq, box.dim, q, "optimize", seed=seed)
+    th = box.from_unit(Xu).clamp(torch.tensor(box.lower, dtype=torch.float64),
+                                 torch.tensor(box.upper, dtype=torch.float64))
+    return th, val
+
+
 def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
                   X0: torch.Tensor | None = None, names: list[str] | None = None,
                   on_round: Callable[[LoopResult], None] | None = None,
@@ -496,14 +538,6 @@ def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
         (:func:`final_posterior`). ``on_round`` is not called with it.
     """
     from solderpyro.design import lhs
-    from solderpyro.design.acquisition import (
-        greedy_draws,
-        integrated_code_variance,
-        loglik_terms,
-        propose,
-        qIntegratedLogLikVariance,
-    )
-    from solderpyro.design.model import botorch_model, observed_weights
 
     box = p.box
     s.validate(box.dim)
@@ -530,7 +564,6 @@ def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
         lap("fit")
         draws = p.sample(gp, draws, False)
         lap("posterior")
-        N = len(draws.theta)
         chk = check_indices(box.to_unit(draws.theta).numpy(), s.check, s.check_ends)
         th_chk = draws.theta[chk]
         Vc, okc, fe_c2, sur_c2, code = fe_at_draws(p, gp, draws, y, chk)
@@ -572,28 +605,8 @@ def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
             lap("localize")
         if not stop and not misfit and not localized and room >= 1:
             qn = min(s.batch, room)
-            mi = spread_indices(N, s.mc_points)
-            mc = box.to_unit(draws.theta[mi])
-            sig = float(draws.sigma.median())
-            cand_th = draws.theta[spread_indices(N, s.candidates)]
-            off_mc = None if draws.offset is None else draws.offset[mi]
-            if s.optimizer == "draws":  # closed form, the same choice as BoTorch's (tested)
-                idx, val = greedy_draws(gp, s.criterion, draws.theta[mi], cand_th, qn, sig, y,
-                                        off_mc, th_chk)
-                Xu = box.to_unit(cand_th[idx])
-            else:
-                model = botorch_model(gp)
-                pend = box.to_unit(th_chk)
-                if s.criterion == "loglik":
-                    g, M = loglik_terms(gp, draws.theta[mi], y, sig, off_mc)
-                    acq: Any = qIntegratedLogLikVariance(model, mc, g, M, X_pending=pend)
-                else:
-                    acq = integrated_code_variance(model, mc, observed_weights(gp, sig),
-                                                   X_pending=pend)
-                Xu, val = propose(acq, box.dim, qn, "optimize", seed=seed + r)
+            th_new, val = acquire(gp, draws, box, s, y, th_chk, qn, seed + r)
             lap("acquire")
-            th_new = box.from_unit(Xu).clamp(torch.tensor(box.lower, dtype=torch.float64),
-                                             torch.tensor(box.upper, dtype=torch.float64))
             Vn, okn = p.fe(th_new)
             lap("fe")
             X, V, ok = torch.cat([X, th_new]), torch.cat([V, Vn]), torch.cat([ok, okn])
