@@ -61,7 +61,7 @@ class ObservedData:
     @classmethod
     def measured(cls, y: Any) -> ObservedData:
         """The measured values ``y (n_obs,)`` um, uncorrected."""
-        t = torch.as_tensor(np.asarray(y, float), dtype=torch.float64).reshape(-1)
+        t = torch.as_tensor(y, dtype=torch.float64).reshape(-1)
         return cls(t, t)
 
     def corrected(self, delta: Any, **info: Any) -> ObservedData:
@@ -143,7 +143,7 @@ class CalibrationProblem:
         if fx is not None:
             log.info("effects on: %s (parameters %s)", ", ".join(fx.keys), ", ".join(fx.names))
         return cls(setup, meas, times, field_, fx, fx_fe, fx_obs, calibration_box(setup, fx_fe),
-                   calibration_box(setup, fx), ObservedData(y, y), pr, model)
+                   calibration_box(setup, fx), ObservedData.measured(y), pr, model)
 
     def with_data(self, data: ObservedData) -> CalibrationProblem:
         """This problem with other data (the same model, store and run tally)."""
