@@ -7,7 +7,9 @@
     (:mod:`.fe_exact`) -> outputs again.
 
 Data flow is one-directional: measurements -> observed model outputs -> FE runs (run store) ->
-surrogate -> posterior -> report. Every setting is in :class:`~.settings.CalibrationSettings`.
+surrogate -> posterior per round -> discretization correction (corrected data, a new value) ->
+final posterior, FE check and report on the corrected data. Every setting is in
+:class:`~.settings.CalibrationSettings`.
 """
 
 from __future__ import annotations
