@@ -40,7 +40,7 @@ from solderpyro.store import RunStore
 log = logging.getLogger("solderpyro")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ObservedData:
     """The data a calibration fits.
 
@@ -88,7 +88,7 @@ class ObservedData:
         return self.delta is not None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CalibrationProblem:
     """The specimen calibration's problem (built by :meth:`build`).
 
