@@ -20,7 +20,7 @@ def rebuild(run: Path, store: str | None = None, data: str | None = None) -> Sim
         run: a ``solderpyro calibrate`` run directory; store, data: its run store and
             measurement CSV (default: run.json's).
     Returns:
-        ``sm`` (SpecimenModel), ``gp``, ``inp`` (ObsInputs), ``fm`` (the flat model NUTS
+        ``sm`` (CalibrationProblem), ``gp``, ``inp`` (ObsInputs), ``fm`` (the flat model NUTS
         samples), ``post`` (posterior.nc's posterior group), ``T`` ``(N, p)`` its draws
         (physical, ``sm.space.names``), ``sig`` ``(N,)`` its noise sd draws.
     """
@@ -31,13 +31,13 @@ def rebuild(run: Path, store: str | None = None, data: str | None = None) -> Sim
     from solderpyro.calibration.koh import observation_model, prepare_observation
     from solderpyro.configure import build, compose
     from solderpyro.io.measurements import read_measurements
-    from solderpyro.pipeline.problem import SpecimenModel
+    from solderpyro.pipeline.problem import CalibrationProblem
     from solderpyro.pipeline.surrogate import fit_surrogate
     from solderpyro.settings import CalibrationSettings
 
     info = json.loads((run / "run.json").read_text())
     setup = build(compose(info.get("overrides") or []))
-    sm = SpecimenModel.build(setup, read_measurements(data or info["data"]),
+    sm = CalibrationProblem.build(setup, read_measurements(data or info["data"]),
                              store or info["store"], 64, False)
     with (run / "design.csv").open() as f:
         rows = [r for r in csv.DictReader(f) if r["converged"] == "1"]

@@ -33,13 +33,12 @@ from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.exact import profile_intervals
 from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
-from solderpyro.fem.problem import reference_grid
-from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_exact import fe_exact
 from solderpyro.specimen import (
+    SpecimenModel,
+    StoreUse,
     calibration_box,
-    fe_observed,
     observation_index,
     output_points,
     split_effects,
@@ -78,18 +77,18 @@ def main() -> None:
     times = tuple(SEED_TIMES if a.times == "seed" else EXTENDED_TIMES)
     ov = [f"loading.output_times=[{','.join(str(t) for t in times)}]", f"effects=[{a.effect}]"]
     setup = build(compose(ov))
-    fx, fx_fe, _ = split_effects(setup, times)
+    fx, _, _ = split_effects(setup, times)
     space = calibration_box(setup, fx)
     coords = sampling_coords(space, setup.space.defaults)
-    solver = SpecimenSolver(setup.problem, reference_grid(), effects=fx_fe or ())
-    store = RunStore(Path(a.work) / "store")
-    h = store.register(setup.problem, times, True, setup.dtype, effects=fx_fe or ())
+    model = SpecimenModel(setup.problem, setup.space, times, True, dtype=setup.dtype,
+                          effects=fx or ())
+    model.use_store(StoreUse(RunStore(Path(a.work) / "store")))
     base = build(compose([]))
     with executor_from_options(a.cluster, a.scheduler):  # where the FE batches run
-        _run_seeds(a, seeds, setup, space, coords, solver, store, h, base, times, out)
+        _run_seeds(a, seeds, setup, space, coords, model, base, times, out)
 
 
-def _run_seeds(a, seeds, setup, space, coords, solver, store, h, base, times, out):
+def _run_seeds(a, seeds, setup, space, coords, model, base, times, out):
     """Each noise seed in turn: data, FE-exact posterior, profiles; recorded as done."""
     done = json.loads(out.read_text()) if out.exists() else {"cases": []}
     seen = {(c["effect"], c["seed"], c.get("times", "seed"), "profile_ci" in c)
@@ -108,11 +107,13 @@ def _run_seeds(a, seeds, setup, space, coords, solver, store, h, base, times, ou
         meas = read_measurements(data, valid_points=output_points(setup.problem))
         truth = dict(TRUTH)
         truth.update(eval(meas.meta["hidden_values"]))  # noqa: S307 (our own file)
-        ti, oi = observation_index(meas, times, tuple(solver.names))
+        model.set_observations(*observation_index(meas, model.times,
+                                                  tuple(model.output_names)))
         y = torch.tensor(np.array(meas.value_um), dtype=torch.float64)
 
-        def fun(rows: np.ndarray, ti: np.ndarray = ti, oi: np.ndarray = oi) -> np.ndarray:
-            return fe_observed(solver, setup, times, ti, oi, rows, space.dim, None, store, h)
+        def fun(rows: np.ndarray) -> np.ndarray:
+            th = torch.as_tensor(np.asarray(rows, float), dtype=torch.float64)
+            return model.observed_runs(th)[0].numpy()
 
         first = start is None
         if first:  # a truth-blind start: the middle of the box (a longer fit the first time)

@@ -21,8 +21,8 @@ import torch
 
 from solderpyro.configure import build, compose
 from solderpyro.design import lhs
-from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.store import RunStore, run_doe
+from solderpyro.specimen import SpecimenModel, StoreUse
+from solderpyro.store import RunStore
 from solderpyro.surrogate import GPSurrogate
 from solderpyro.surrogate.features import FlowStressInputs
 
@@ -37,17 +37,16 @@ def main() -> None:
     res = json.load(open(a.results))
     setup = build(compose([]))
     sp, times = setup.space, setup.times
-    solver = SpecimenSolver(setup.problem, dtype=setup.dtype)
-    store = RunStore(a.store)
-    h = store.register(setup.problem, times, False, setup.dtype)
+    model = SpecimenModel(setup.problem, sp, times, dtype=setup.dtype)
+    model.use_store(StoreUse(RunStore(a.store)))
     theta = lhs(sp, res["runs"], 0)
-    doe = run_doe(solver, store, h, sp.full(theta), times, progress=False)
+    doe = model.runs(theta)
     y = doe.V.reshape(doe.V.shape[0], -1)
     gp = GPSurrogate(sp, output="pca", kernel="matern52", ard=True,
                      inputs=FlowStressInputs(sp, sp.defaults)).fit(theta[doe.ok], y[doe.ok])
     n = res["datasets"]
     truths = lhs(sp, n, 12345)
-    tv = run_doe(solver, store, h, sp.full(truths), times, progress=False)
+    tv = model.runs(truths)
     rng = np.random.default_rng(0)  # the coverage study's noise draws, in its order
     for i in range(n):
         f = tv.V[i].reshape(-1)

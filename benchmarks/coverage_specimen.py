@@ -32,8 +32,8 @@ from solderpyro.calibration import Priors, calibrate_modular
 from solderpyro.configure import build, compose
 from solderpyro.design import lhs
 from solderpyro.executor import executor_from_options
-from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.store import RunStore, run_doe
+from solderpyro.specimen import SpecimenModel, StoreUse
+from solderpyro.store import RunStore
 from solderpyro.surrogate import GPSurrogate
 from solderpyro.surrogate.features import input_map
 from solderpyro.sweep import sweep
@@ -120,11 +120,10 @@ def main() -> None:
     a = ap.parse_args()
     setup = build(compose([]))
     sp, times = setup.space, setup.times
-    solver = SpecimenSolver(setup.problem, dtype=setup.dtype)
-    store = RunStore(a.store)
-    h = store.register(setup.problem, times, False, setup.dtype)
+    model = SpecimenModel(setup.problem, sp, times, dtype=setup.dtype)
+    model.use_store(StoreUse(RunStore(a.store), progress=True))
     theta = lhs(sp, a.runs, 0)
-    doe = run_doe(solver, store, h, sp.full(theta), times)
+    doe = model.runs(theta)
     y_sim = doe.V.reshape(doe.V.shape[0], -1)  # (n_runs, n_time * n_out)
     kernel = a.kernel or setup.surrogate["kernel"]
     inputs = a.inputs or setup.surrogate["inputs"]
@@ -135,7 +134,7 @@ def main() -> None:
                      var_explained=a.var_explained).fit(
         theta[doe.ok], y_sim[doe.ok])
     truths = lhs(sp, a.datasets, 12345)  # prior draws, stratified
-    tv = run_doe(solver, store, h, sp.full(truths), times)
+    tv = model.runs(truths)
     rng = np.random.default_rng(0)
     ys = [tv.V[i].reshape(-1) + a.noise * torch.as_tensor(rng.standard_normal(y_sim.shape[1]))
           for i in range(a.datasets)]  # drawn in order: the noise does not depend on --only

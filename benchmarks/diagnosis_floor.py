@@ -29,12 +29,12 @@ from solderpyro.configure import build, compose
 from solderpyro.diagnose.decide import FLOOR_FILE, floor_from_fits
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.diagnose.refits import base_fit, layout, refit_candidates
-from solderpyro.diagnose.run import FeRuns, ladder_values
+from solderpyro.diagnose.run import ladder_values
 from solderpyro.effects import EFFECTS
 from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.io.measurements import read_measurements
-from solderpyro.specimen import output_points
+from solderpyro.specimen import SpecimenModels, output_points
 from solderpyro.store import RunStore
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
@@ -52,7 +52,7 @@ def measure(kind: str, out: Path, store: RunStore) -> dict:
     meas = read_measurements(data, valid_points=output_points(setup.problem))
     cands = tuple(EFFECTS)
     lay = layout(setup, (), cands, meas)
-    fe = FeRuns(setup, store)
+    fe = SpecimenModels(setup, store)
     t0 = time.perf_counter()
     truth = np.array([TRUTH[n] for n in setup.space.names])
     lit = np.array([setup.anand[n] for n in setup.space.names])

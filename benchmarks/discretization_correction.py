@@ -26,7 +26,7 @@ from solderpyro.configure import build, compose
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_check import discretization_error
 from solderpyro.pipeline.fe_exact import fe_best_fit
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem
 
 DATA_FE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
 VARIANTS = {
@@ -50,8 +50,8 @@ def main() -> None:
     truth_d = ast.literal_eval(meas.meta["truth"])
     sig = float(np.median(meas.sigma_um))
 
-    def model(ov: list[str]) -> SpecimenModel:
-        return SpecimenModel.build(build(compose(ov)), meas, a.store, 64, False)
+    def model(ov: list[str]) -> CalibrationProblem:
+        return CalibrationProblem.build(build(compose(ov)), meas, a.store, 64, False)
 
     sm, data_fe = model([]), model(DATA_FE)
     truth = np.array([truth_d[n] for n in sm.space.names])

@@ -24,7 +24,7 @@ from solderpyro.configure import build, compose
 from solderpyro.fit import lm_fit
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_check import refined
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem
 
 TRUTH = [12.92, 10586.0, 2.04, 0.1]
 
@@ -41,8 +41,8 @@ def main() -> None:
     a = ap.parse_args()
     meas = read_measurements(a.data)
     setup = build(compose([f"effects=[{a.effect}]"] if a.effect else []))
-    sm = SpecimenModel.build(setup, meas, a.store, 64, False)
-    fine = SpecimenModel.build(dataclasses.replace(setup, problem=refined(setup.problem)),
+    sm = CalibrationProblem.build(setup, meas, a.store, 64, False)
+    fine = CalibrationProblem.build(dataclasses.replace(setup, problem=refined(setup.problem)),
                                meas, a.store, 64, False)
     truth = np.array(TRUTH + list(a.truth_extra))
     y, sig = np.array(meas.value_um), float(np.median(meas.sigma_um))

@@ -30,13 +30,12 @@ from solderpyro.calibration import Priors
 from solderpyro.configure import build, compose
 from solderpyro.coords import sampling_coords
 from solderpyro.fem.loading import SEED_TIMES
-from solderpyro.fem.problem import reference_grid
-from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_exact import fe_exact
 from solderpyro.specimen import (
+    SpecimenModel,
+    StoreUse,
     calibration_box,
-    fe_observed,
     observation_index,
     output_points,
     split_effects,
@@ -61,21 +60,22 @@ def exact_reference(data: str | Path, effects: list[str], start: np.ndarray, sto
     """
     times = tuple(SEED_TIMES)
     setup = build(compose([f"effects=[{','.join(effects)}]"] if effects else []))
-    fx, fx_fe, _ = split_effects(setup, times)
+    fx, _, _ = split_effects(setup, times)
     space = calibration_box(setup, fx)
     if start.shape[1] != space.dim:
         raise ValueError(f"start has {start.shape[1]} values; the box {space.names} needs "
                          f"{space.dim}")
     coords = sampling_coords(space, setup.space.defaults)
-    solver = SpecimenSolver(setup.problem, reference_grid(), effects=fx_fe or ())
-    rs = RunStore(store)
-    h = rs.register(setup.problem, times, True, setup.dtype, effects=fx_fe or ())
+    model = SpecimenModel(setup.problem, setup.space, times, True, dtype=setup.dtype,
+                          effects=fx or ())
+    model.use_store(StoreUse(RunStore(store)))
     meas = read_measurements(data, valid_points=output_points(setup.problem))
-    ti, oi = observation_index(meas, times, tuple(solver.names))
+    model.set_observations(*observation_index(meas, model.times, tuple(model.output_names)))
     y = torch.tensor(np.array(meas.value_um), dtype=torch.float64)
 
     def fun(rows: np.ndarray) -> np.ndarray:
-        return fe_observed(solver, setup, times, ti, oi, rows, space.dim, None, rs, h)
+        th = torch.as_tensor(np.asarray(rows, float), dtype=torch.float64)
+        return model.observed_runs(th)[0].numpy()
 
     ex, info = fe_exact(fun, coords, y, Priors(sigma_known=noise), None, start, n, rounds, 9,
                         seed, lm_iters=lm_iters)

@@ -33,13 +33,11 @@ from scipy.special import logsumexp
 from solderpyro.configure import build, compose
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.fem.loading import SEED_TIMES
-from solderpyro.fem.problem import reference_grid
-from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.fit import lm_fit
 from solderpyro.io.measurements import read_measurements
 from solderpyro.specimen import (
+    SpecimenModel,
     calibration_box,
-    fe_observed,
     observation_index,
     output_points,
     split_effects,
@@ -61,9 +59,10 @@ def main() -> None:
     times = tuple(SEED_TIMES)
     ov = [f"loading.output_times=[{','.join(str(t) for t in times)}]", f"effects=[{a.effect}]"]
     setup = build(compose(ov))
-    fx, fx_fe, _ = split_effects(setup, times)
+    fx, _, _ = split_effects(setup, times)
     space = calibration_box(setup, fx)
-    solver = SpecimenSolver(setup.problem, reference_grid(), effects=fx_fe or ())
+    model = SpecimenModel(setup.problem, setup.space, times, True, dtype=setup.dtype,
+                          effects=fx or ())
     base = build(compose([]))
     exact = json.loads(Path(a.exact).read_text())["cases"]
     grid = np.array([float(v) for v in a.grid.split(",")])
@@ -79,7 +78,8 @@ def main() -> None:
             data.parent.mkdir(parents=True, exist_ok=True)
             make_dataset(base, a.effect, data, True, times, seed=seed)
         meas = read_measurements(data, valid_points=output_points(setup.problem))
-        ti, oi = observation_index(meas, times, tuple(solver.names))
+        model.set_observations(*observation_index(meas, model.times,
+                                                  tuple(model.output_names)))
         y = np.array(meas.value_um)
         sigma = 0.05
         truth = dict(TRUTH)
@@ -87,8 +87,9 @@ def main() -> None:
         tr = np.array([truth[n] for n in space.names])
         med = np.array([case["intervals"][n][1] for n in space.names])
 
-        def fun(rows: np.ndarray, ti: np.ndarray = ti, oi: np.ndarray = oi) -> np.ndarray:
-            return fe_observed(solver, setup, times, ti, oi, rows, space.dim)
+        def fun(rows: np.ndarray) -> np.ndarray:
+            th = torch.as_tensor(np.asarray(rows, float), dtype=torch.float64)
+            return model.observed_runs(th)[0].numpy()
 
         chi2_truth = float(((fun(tr[None])[0] - y) ** 2).sum() / sigma**2)
         X0 = []

@@ -25,7 +25,7 @@ def main() -> None:
 
     from solderpyro.configure import build, compose
     from solderpyro.io.measurements import read_measurements
-    from solderpyro.pipeline.problem import SpecimenModel
+    from solderpyro.pipeline.problem import CalibrationProblem
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
@@ -36,7 +36,7 @@ def main() -> None:
     info = json.loads((run / "run.json").read_text())
     setup = build(compose(info.get("overrides") or []))
     meas = read_measurements(info["data"])
-    sm = SpecimenModel.build(setup, meas, info["store"], 64, False)
+    sm = CalibrationProblem.build(setup, meas, info["store"], 64, False)
     post = az.from_netcdf(str(run / "posterior.nc")).posterior
     names = list(sm.space.names)
     n_chain, n_draw = post.sizes["chain"], post.sizes["draw"]

@@ -29,17 +29,17 @@ import torch
 
 from solderpyro.calibration.reduced import ComponentGPs, GPInputMap, PCAReduction
 from solderpyro.diagnose.run import load_run
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem
 from solderpyro.pipeline.surrogate import fit_surrogate
 from solderpyro.settings import CalibrationSettings
 
 
-def rebuild(run: Path) -> tuple[SpecimenModel, object, dict]:
+def rebuild(run: Path) -> tuple[CalibrationProblem, object, dict]:
     """The run's problem, its final surrogate refitted to the design's converged runs (noise
     sd for the PCA truncation: the posterior median, as the design's last round used), and
     the run as :func:`load_run` reads it."""
     r = load_run(run)
-    sm = SpecimenModel.build(r["setup"], r["meas"], r["info"]["store"], 64, False)
+    sm = CalibrationProblem.build(r["setup"], r["meas"], r["info"]["store"], 64, False)
     with (run / "design.csv").open() as f:
         rows = [row for row in csv.DictReader(f) if row["converged"] == "1"]
     X = torch.tensor([[float(row[n]) for n in sm.gp_box.names] for row in rows],

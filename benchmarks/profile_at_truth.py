@@ -25,7 +25,7 @@ from solderpyro.configure import build, compose
 from solderpyro.diagnose.hidden import TRUTH
 from solderpyro.fit import lm_fit
 from solderpyro.io.measurements import read_measurements
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
 
@@ -42,7 +42,7 @@ def main() -> None:
     a = ap.parse_args()
     meas = read_measurements(a.data)
     ov = (FINE if a.fine else []) + ([f"effects=[{a.effect}]"] if a.effect else [])
-    sm = SpecimenModel.build(build(compose(ov)), meas, a.store, 64, False)
+    sm = CalibrationProblem.build(build(compose(ov)), meas, a.store, 64, False)
     truth = np.array([TRUTH[k] for k in ("s0", "QR", "xi", "m")] + list(a.truth_extra))
     start = np.array([float(v) for v in a.start.split(",")])
     d = sm.space.dim

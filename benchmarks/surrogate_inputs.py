@@ -23,8 +23,8 @@ import torch
 
 from solderpyro.configure import build, compose
 from solderpyro.design import lhs
-from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.store import RunStore, run_doe
+from solderpyro.specimen import SpecimenModel, StoreUse
+from solderpyro.store import RunStore
 from solderpyro.surrogate import GPSurrogate
 from solderpyro.surrogate.features import FlowStressInputs
 
@@ -39,13 +39,12 @@ def main() -> None:
     warnings.filterwarnings("ignore", category=UserWarning)
     setup = build(compose([]))
     sp, times = setup.space, setup.times
-    solver = SpecimenSolver(setup.problem, dtype=setup.dtype)
-    store = RunStore(a.store)
-    h = store.register(setup.problem, times, False, setup.dtype)
+    model = SpecimenModel(setup.problem, sp, times, dtype=setup.dtype)
+    model.use_store(StoreUse(RunStore(a.store)))
 
     def runs(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
         th = lhs(sp, n, seed)
-        d = run_doe(solver, store, h, sp.full(th), times, progress=False)
+        d = model.runs(th)
         return th[d.ok], d.V.reshape(d.V.shape[0], -1)[d.ok]
 
     xt, yt = runs(a.test, 999)

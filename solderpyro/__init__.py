@@ -11,8 +11,8 @@ from .fem.loading import EXTENDED_TIMES, REFERENCE_CYCLE, SEED_TIMES, ThermalCyc
 from .fem.mesh import Layer, MeshSpec
 from .fem.problem import AnandSolder, Elastic, Problem
 from .fem.solver import SolveResult, SpecimenSolver
-from .model import SpecimenModel
 from .params import ANAND_NAMES, LIU2008, ParameterSpace
+from .specimen.model import SpecimenModel
 
 __all__ = [
     "ANAND_NAMES", "AnandSolder", "Elastic", "EXTENDED_TIMES", "LIU2008", "Layer", "MeshSpec",

@@ -30,21 +30,24 @@ def _setup(overrides):
 
 
 def simulate_table(setup, anand: dict, times, field: bool, progress: bool = True):
-    """Run one parameter set; returns ``(times, names, coords (n_out, 2), V (n_time, n_out))``."""
-    from .fem.problem import reference_grid
-    from .fem.solver import SpecimenSolver
-    from .params import anand_tensor
+    """Run one parameter set: ``anand`` (name -> value; the others ``setup.anand``) at
+    ``times`` (s), at A and B (and the 31 x 18 grid with ``field``).
 
-    solver = SpecimenSolver(setup.problem, reference_grid() if field else None,
-                            dtype=setup.dtype, device=setup.device)
+    Returns:
+        ``(times (n_time,) s, names (n_out,), coords (n_out, 2) mm, V (n_time, n_out) um)``.
+    """
+    from .params import anand_tensor
+    from .sensitivity import sensitivity_box
+    from .specimen import SpecimenModel
+
+    model = SpecimenModel(setup.problem, sensitivity_box(defaults=setup.anand), times, field,
+                          dtype=setup.dtype, device=setup.device)
     p = anand_tensor(anand, base=setup.anand, dtype=setup.dtype, device=setup.device)[None]
-    res = solver.solve(p, times, progress=progress)
+    res = model.run(p, progress=progress)
     if not bool(res.ok.all()):
         raise RuntimeError(f"the FE solve failed: {res.reasons[0]}")
-    pts = [setup.problem.points[n] for n in setup.problem.points]
-    if field:
-        pts += [tuple(x) for x in reference_grid()[1]]
-    return (res.times.cpu().numpy(), res.names, np.array(pts), res.V[0].detach().cpu().numpy())
+    return (res.times.cpu().numpy(), res.names, model.output_points.numpy(),
+            res.V[0].detach().cpu().numpy())
 
 
 def cmd_simulate(a, overrides) -> int:
@@ -383,8 +386,7 @@ def _add_design(p: argparse.ArgumentParser) -> None:
                    help="the FE-exact posterior (adaptive importance sampling with the FE in "
                    "the likelihood) and profile-likelihood intervals: auto (default) runs them "
                    "when the design's budget runs out with the FE disagreeing with the "
-                   "surrogate (calibration.exact.confirm=true: also, without profiles, when the "
-                   "design converged); on: always; off: never")
+                   "surrogate; on: always; off: never")
     p.add_argument("--exact-runs", type=int, default=es.runs, metavar="N",
                    help=f"FE runs per importance-sampling round (default {es.runs})")
     p.add_argument("--exact-rounds", type=int, default=es.rounds, metavar="R",

@@ -100,7 +100,7 @@ class Setup:
     @property
     def effect_set(self) -> EffectSet:
         """The switched-on effects with their boxes, bound to :attr:`times` (pass it as
-        ``effects=`` to :class:`~solderpyro.model.SpecimenModel` / the solver)."""
+        ``effects=`` to :class:`~solderpyro.specimen.SpecimenModel` / the solver)."""
         return effect_set(self.effects, self.times, self.effect_bounds)
 
     @property

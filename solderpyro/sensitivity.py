@@ -360,7 +360,7 @@ def fe_jacobian(model: Any, box: ParameterSpace, u: torch.Tensor, batch: int = 1
     """Outputs and their Jacobian with respect to the unit-cube coordinates, through the FE.
 
     Args:
-        model: a :class:`~solderpyro.model.SpecimenModel` over ``box``.
+        model: a :class:`~solderpyro.specimen.SpecimenModel` over ``box``.
         box: the parameter box (``n_theta = d``). u: ``(N, d)`` points in [0, 1].
         batch: members per FE solve (memory grows with it: ~0.5 GB per member on the default
             mesh, the autograd graph of the whole cycle).
@@ -476,8 +476,8 @@ def run_sensitivity(setup: Any, out: str | Path, n_runs: int = 100, grad_points:
         :class:`SensitivityResult`.
     """
     from .design import lhs
-    from .model import SpecimenModel
-    from .store import RunStore, run_doe
+    from .specimen import SpecimenModel, StoreUse
+    from .store import RunStore
 
     _check_options(n_runs, grad_points, grad_batch, n_sobol, n_boot, refits)
     times = tuple(sorted(float(t) for t in (times or setup.times)))
@@ -492,11 +492,13 @@ def run_sensitivity(setup: Any, out: str | Path, n_runs: int = 100, grad_points:
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
     store = RunStore(store_root)
-    h = store.register(setup.problem, times, False, setup.dtype)
+    model.use_store(StoreUse(store, batch_size, progress))
+    h = model.cfg_hash
+    assert h is not None
     theta = lhs(box, n_runs, seed)  # (n_runs, 9)
     log.info("sensitivity DOE: %d LHS runs over the nine-constant box (store %s)", n_runs,
              store.config_dir(h))
-    doe = run_doe(model.solver, store, h, box.full(theta), times, batch_size, progress)
+    doe = model.runs(theta)
     tm["doe_s"] = time.perf_counter() - t0
     ok = doe.ok
     if int(ok.sum()) < 10:

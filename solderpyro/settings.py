@@ -112,25 +112,15 @@ class ExactSettings:
     and the profile-likelihood intervals.
 
     ``mode``: ``"auto"`` runs them when the design stops on its budget with the FE still
-    disagreeing with the surrogate, and with ``confirm`` the light form (the FE-exact
-    posterior without the profile and the profile intervals) when the design converged;
-    ``"on"`` always (the full form); ``"off"`` never. ``runs`` FE runs per round, ``rounds``
-    rounds, a ``profile``-point chi-square profile along the ridge (0: none), ``profile_ci``:
-    the 95 % profile-likelihood intervals through the FE after it.
-
-    ``confirm`` (default off, measured): on the clean hidden-effect field data the surrogate
-    posterior missed 3 of 4 true constants and the light FE-exact one 1-2 (two runs, 37-78 s,
-    ESS 57-62); but on the recalibrations with an effect its weights were unreliable (ESS 2-15
-    in 5-D, 52-76 s for nothing) or, at ESS 51, narrower than the surrogate's and missing 3
-    of 5 truths where the surrogate missed 1 (BENCHMARKS.md issue 19, session 22). An
-    importance sample of ~200 FE runs is too small to set 95 % interval ends."""
+    disagreeing with the surrogate; ``"on"`` always; ``"off"`` never. ``runs`` FE runs per
+    round, ``rounds`` rounds, a ``profile``-point chi-square profile along the ridge (0:
+    none), ``profile_ci``: the 95 % profile-likelihood intervals through the FE after it."""
 
     mode: str = "auto"
     runs: int = 64
     rounds: int = 3
     profile: int = 9
     profile_ci: bool = True
-    confirm: bool = False
 
 
 @dataclass

@@ -463,7 +463,9 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
              names: list[str] | None = None,
              on_round: Callable[[LoopResult], None] | None = None,
              kinds: list[str] | None = None) -> LoopResult:
-    """Run the adaptive design (module docstring) on ``p`` with settings ``s``.
+    """Run the adaptive design (module docstring) on ``p`` with settings ``s``: the rounds
+    (:func:`design_rounds`), then the full-length posterior checked by the FE in every chain
+    (:func:`final_posterior`), both on ``p.y``.
 
     Args:
         p: the calibration as the loop sees it. s: settings (validated here).
@@ -475,9 +477,21 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             at a known FE best fit before the first round); default all ``"start"``.
 
     Returns:
-        :class:`LoopResult`.
+        :class:`LoopResult`; its ``draws`` are the final posterior's.
     """
-    from solderpyro.design import lhs
+    res = design_rounds(p, s, seed, X0, names, on_round, kinds)
+    return final_posterior(p, res, s, names, on_round)
+
+
+def acquire(gp: GPSurrogate, draws: Draws, box: Box, s: LoopSettings, y: torch.Tensor,
+            pending: torch.Tensor, q: int, seed: int) -> tuple[torch.Tensor, float]:
+    """The next ``q`` FE runs of a round (``s.criterion`` optimized by ``s.optimizer``) over
+    the posterior ``draws`` of surrogate ``gp``; ``y (n_y,)`` the data, ``pending (k, d)`` the
+    round's checked draws (already being run), ``seed`` the optimizer's.
+
+    Returns:
+        ``(q, d)`` parameter rows (physical, inside ``box``) and the criterion's value.
+    """
     from solderpyro.design.acquisition import (
         greedy_draws,
         integrated_code_variance,
@@ -486,6 +500,44 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         qIntegratedLogLikVariance,
     )
     from solderpyro.design.model import botorch_model, observed_weights
+
+    N = len(draws.theta)
+    mi = spread_indices(N, s.mc_points)
+    mc = box.to_unit(draws.theta[mi])
+    sig = float(draws.sigma.median())
+    cand_th = draws.theta[spread_indices(N, s.candidates)]
+    off_mc = None if draws.offset is None else draws.offset[mi]
+    if s.optimizer == "draws":  # closed form, the same choice as BoTorch's (tested)
+        idx, val = greedy_draws(gp, s.criterion, draws.theta[mi], cand_th, q, sig, y, off_mc,
+                                pending)
+        Xu = box.to_unit(cand_th[idx])
+    else:
+        model = botorch_model(gp)
+        pend = box.to_unit(pending)
+        if s.criterion == "loglik":
+            g, M = loglik_terms(gp, draws.theta[mi], y, sig, off_mc)
+            acq: Any = qIntegratedLogLikVariance(model, mc, g, M, X_pending=pend)
+        else:
+            acq = integrated_code_variance(model, mc, observed_weights(gp, sig), X_pending=pend)
+        Xu, val = propose(acq, box.dim, q, "optimize", seed=seed)
+    th = box.from_unit(Xu).clamp(torch.tensor(box.lower, dtype=torch.float64),
+                                 torch.tensor(box.upper, dtype=torch.float64))
+    return th, val
+
+
+def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
+                  X0: torch.Tensor | None = None, names: list[str] | None = None,
+                  on_round: Callable[[LoopResult], None] | None = None,
+                  kinds: list[str] | None = None) -> LoopResult:
+    """The rounds of the adaptive design (arguments as :func:`run_loop`) until the stopping
+    rule holds, the FE's own best fit misfits, or the budget would be exceeded.
+
+    Returns:
+        :class:`LoopResult` with ``reason`` and ``message`` set; its ``draws`` are the last
+        round's posterior (``draws.checked``: that round's FE check), not yet the final one
+        (:func:`final_posterior`). ``on_round`` is not called with it.
+    """
+    from solderpyro.design import lhs
 
     box = p.box
     s.validate(box.dim)
@@ -512,7 +564,6 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
         lap("fit")
         draws = p.sample(gp, draws, False)
         lap("posterior")
-        N = len(draws.theta)
         chk = check_indices(box.to_unit(draws.theta).numpy(), s.check, s.check_ends)
         th_chk = draws.theta[chk]
         Vc, okc, fe_c2, sur_c2, code = fe_at_draws(p, gp, draws, y, chk)
@@ -554,28 +605,8 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             lap("localize")
         if not stop and not misfit and not localized and room >= 1:
             qn = min(s.batch, room)
-            mi = spread_indices(N, s.mc_points)
-            mc = box.to_unit(draws.theta[mi])
-            sig = float(draws.sigma.median())
-            cand_th = draws.theta[spread_indices(N, s.candidates)]
-            off_mc = None if draws.offset is None else draws.offset[mi]
-            if s.optimizer == "draws":  # closed form, the same choice as BoTorch's (tested)
-                idx, val = greedy_draws(gp, s.criterion, draws.theta[mi], cand_th, qn, sig, y,
-                                        off_mc, th_chk)
-                Xu = box.to_unit(cand_th[idx])
-            else:
-                model = botorch_model(gp)
-                pend = box.to_unit(th_chk)
-                if s.criterion == "loglik":
-                    g, M = loglik_terms(gp, draws.theta[mi], y, sig, off_mc)
-                    acq: Any = qIntegratedLogLikVariance(model, mc, g, M, X_pending=pend)
-                else:
-                    acq = integrated_code_variance(model, mc, observed_weights(gp, sig),
-                                                   X_pending=pend)
-                Xu, val = propose(acq, box.dim, qn, "optimize", seed=seed + r)
+            th_new, val = acquire(gp, draws, box, s, y, th_chk, qn, seed + r)
             lap("acquire")
-            th_new = box.from_unit(Xu).clamp(torch.tensor(box.lower, dtype=torch.float64),
-                                             torch.tensor(box.upper, dtype=torch.float64))
             Vn, okn = p.fe(th_new)
             lap("fe")
             X, V, ok = torch.cat([X, th_new]), torch.cat([V, Vn]), torch.cat([ok, okn])
@@ -616,6 +647,29 @@ def run_loop(p: LoopProblem, s: LoopSettings, seed: int = 0, X0: torch.Tensor | 
             f"the FE budget ran out ({len(X)} of {s.budget} runs, {r} rounds) before the "
             f"surrogate was confirmed: {'; '.join(why)}" + (
                 "" if code_ok else f" (code chi2 tolerance sqrt(2n) = {tol:.3g})"))
+    assert draws is not None
+    return LoopResult(gp, draws, X, V, ok, kind, rnd_of, rounds, reason, msg, best_fit)
+
+
+def final_posterior(p: LoopProblem, res: LoopResult, s: LoopSettings,
+                    names: list[str] | None = None,
+                    on_round: Callable[[LoopResult], None] | None = None) -> LoopResult:
+    """The full-length posterior after :func:`design_rounds` ``res``, on ``p.y`` (the data
+    the caller passes: e.g. corrected for the FE's discretization error), checked by the FE
+    at draws of every chain; where the FE disagrees with the surrogate there, those runs join
+    the design, the surrogate is refitted and the posterior drawn again (within the budget).
+    After a ``"misfit"`` stop the last round's draws are kept.
+
+    Returns:
+        the :class:`LoopResult` with the final draws, every FE run and round record.
+    """
+    gp, draws, best_fit = res.gp, res.draws, res.best_fit
+    X, V, ok = res.X, res.Y, res.ok
+    kind, rnd_of, rounds = list(res.kind), list(res.round), list(res.rounds)
+    reason, msg, r = res.reason, res.message, len(res.rounds)
+    names = names or list(p.box.names)
+    y = p.y.to(torch.float64)
+    n = int(y.numel())
     if reason == "misfit":
         # the reported result is the FE's own best fit; the surrogate posterior only seeds the
         # FE check and the diagnosis, and the last round's draws are of this same surrogate

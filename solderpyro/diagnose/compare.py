@@ -66,7 +66,7 @@ def psis_loo(idata: Any) -> tuple[Any, list[str]]:
 def measured(run_dir: str | Path) -> np.ndarray:
     """``(n_obs,)`` um: the measured values a run was calibrated on. A run whose data had the
     FE's discretization error taken off (``discretization_correction.npz``, see
-    :meth:`~solderpyro.pipeline.problem.SpecimenModel.correct`) keeps the corrected ones in
+    :meth:`~solderpyro.pipeline.problem.ObservedData.corrected`) keeps the corrected ones in
     ``draws.npz``; its residuals and log densities are those of the measured data under the
     corrected model, so two runs with different corrections compare as they are."""
     d = Path(run_dir)

@@ -103,17 +103,17 @@ def make_dataset(setup: Any, effect: str | tuple[str, ...] | None, path: str | P
         several effects joined by ``+``).
     """
     from solderpyro.effects import effect_set
-    from solderpyro.fem.problem import reference_grid
-    from solderpyro.fem.solver import SpecimenSolver
     from solderpyro.io.measurements import from_arrays, write_measurements
     from solderpyro.params import anand_tensor
+    from solderpyro.sensitivity import sensitivity_box
+    from solderpyro.specimen import SpecimenModel
 
     names = () if effect is None else ((effect,) if isinstance(effect, str) else tuple(effect))
     truth = dict(anand or TRUTH)
     a = anand_tensor(truth, base=setup.anand, dtype=torch.float64)[None]
     meta = {"generator": "solderpyro hidden-effect dataset", "truth": str(truth),
             "noise_sigma_um": str(noise), "hidden_effect": "+".join(names) or "none"}
-    grid = reference_grid() if field else None
+    fx: Any = None
     if names:
         fx = effect_set(names, times, setup.effect_bounds)
         if values is None:
@@ -131,20 +131,17 @@ def make_dataset(setup: Any, effect: str | tuple[str, ...] | None, path: str | P
         meta["hidden_values"] = str(dict(zip(fx.names, np.asarray(values).tolist(),
                                              strict=True)))
         a = torch.cat([a, torch.tensor(np.asarray(values, float))[None]], 1)
-        solver = SpecimenSolver(setup.problem, grid, dtype=setup.dtype, effects=fx)
-    else:
-        solver = SpecimenSolver(setup.problem, grid, dtype=setup.dtype)
-    res = solver.solve(a, times)
+    model = SpecimenModel(setup.problem, sensitivity_box(defaults=setup.anand), times, field,
+                          dtype=setup.dtype, effects=fx or ())
+    res = model.run(a)
     if not bool(res.ok.all()):
         raise RuntimeError(f"the FE solve of the hidden-effect data failed: {res.reasons[0]}")
     V = res.V[0].detach().numpy()
-    pts = [setup.problem.points[n] for n in setup.problem.points]
-    if field:
-        pts += [tuple(x) for x in reference_grid()[1]]
+    pts = model.output_points.numpy()
     rng = np.random.default_rng(seed + 1000)
     y = V + noise * rng.standard_normal(V.shape)
     temps = [setup.problem.cycle(t) for t in res.times.tolist()]
-    m = from_arrays(res.times.numpy(), res.names, np.array(pts), y, temperature_C=temps,
+    m = from_arrays(res.times.numpy(), res.names, pts, y, temperature_C=temps,
                     sigma_um=noise, meta=meta)
     write_measurements(path, m)
     return Path(path)

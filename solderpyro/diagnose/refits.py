@@ -14,7 +14,7 @@
 
 Rows are laid out as :class:`Layout` says: the calibrated parameters (``setup.space``, then the
 run's own effects), then every candidate's parameters bound to the measured times. Every FE
-row goes through the diagnosis's :class:`~solderpyro.diagnose.run.FeRuns` (the run store), so
+row goes through the diagnosis's :class:`~solderpyro.specimen.SpecimenModels` (the run store), so
 rows shared with the Jacobians or an earlier diagnosis are read back, not solved.
 """
 
@@ -124,25 +124,26 @@ def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,
     """Fit several models through the FE at once (one batched solve per LM step).
 
     Args:
-        lay: the layout; fe: the diagnosis's FeRuns; meas: the data; sigma: noise sd, um.
+        lay: the layout; fe: the diagnosis's :class:`~solderpyro.specimen.SpecimenModels`;
+            meas: the data; sigma: noise sd, um.
         models: name -> (the candidates it fits beside the calibrated parameters, its start
             row ``(n_col,)``, physical units).
         iters, tol, rel: of :func:`~solderpyro.fit.lm_fit`.
     Returns:
         name -> :class:`~solderpyro.fit.LMFit` (``x`` a full row).
     """
-    from solderpyro.specimen import fe_params, observation_index
+    from solderpyro.specimen import observation_index
 
     y = np.asarray(meas.value_um, float)
     idx: dict[str, Any] = {}
 
     def run(rows: np.ndarray) -> np.ndarray:
         P = torch.tensor(rows, dtype=torch.float64)
-        res = fe.solve(fe_params(lay.setup, P), lay.times, lay.field, lay.fx_all)
+        res = fe.runs(P, lay.times, lay.field, lay.fx_all)
         if "ti" not in idx:
             idx["ti"], idx["oi"] = observation_index(meas, res.times, res.names)
-        V = res.V[:, idx["ti"], idx["oi"]]
-        V[~res.ok] = np.nan
+        V = res.V.numpy()[:, idx["ti"], idx["oi"]]
+        V[~res.ok.numpy()] = np.nan
         return V
 
     names = list(models)

@@ -27,7 +27,6 @@ import csv
 import dataclasses
 import json
 import logging
-import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -72,6 +71,7 @@ from solderpyro.diagnose.stats import (
     predictive_check,
     score_test,
 )
+from solderpyro.specimen import SpecimenModels
 
 log = logging.getLogger("solderpyro")
 
@@ -128,154 +128,6 @@ class Diagnosis:
                 "denoise": self.denoise, "timing": self.timing}
 
 
-@dataclass
-class FeOut:
-    """Outputs of :meth:`FeRuns.solve`, row for row.
-
-    Attributes:
-        V: ``(n, n_time, n_out)`` um, float64 (NaN rows where a member failed); ok: ``(n,)``
-        bool; reasons: ``n`` strings (empty where converged); times: ``(n_time,)`` s, sorted;
-        names: ``n_out`` output labels.
-    """
-
-    V: np.ndarray
-    ok: np.ndarray
-    reasons: list[str]
-    times: tuple[float, ...]
-    names: tuple[str, ...]
-
-
-class FeRuns:
-    """The FE solves of a diagnosis: one solver per configuration (output times, field grid or
-    not, FE-side effects switched on), set up once, and every run through the run store
-    ``store`` (None: solved directly, nothing kept), registered under that configuration exactly
-    as the calibration registers its own (:meth:`~solderpyro.store.RunStore.register`).
-
-    Observation-side effects (``moire_rigid_motion``: they act on V after the FE) are applied
-    to the FE's outputs here, as the calibration applies them, so rows that differ only in
-    their parameters share one FE run (e.g. each difference step of a Moire offset).
-
-    Args:
-        setup: the run's :class:`~solderpyro.configure.Setup`.
-        store: the run store, or None. batch_size: members per batched FE solve (each batch is
-            stored as soon as it finishes: a killed diagnosis loses at most one batch).
-    Attributes:
-        computed: parameter sets solved so far; reused: rows served without a solve (read from
-            the store, or duplicates of a row of the same call).
-    """
-
-    def __init__(self, setup: Any, store: Any = None, batch_size: int = 64) -> None:
-        if batch_size < 1:
-            raise ValueError(f"FeRuns: batch_size must be >= 1, got {batch_size}")
-        self.setup, self.store, self.batch_size = setup, store, batch_size
-        self.computed = 0
-        self.reused = 0
-        self._configs: dict[tuple, tuple[_LazySolver, str | None]] = {}
-
-    def config(self, times: tuple[float, ...], field: bool, effects: Any = None
-               ) -> tuple[_LazySolver, str | None]:
-        """``(solver, store hash or None)`` of the configuration; ``effects``: an
-        :class:`~solderpyro.effects.EffectSet` the solver simulates (None or empty: none).
-        The solver is set up on its first solve (not at all when every run is stored)."""
-        fx = effects if effects is not None and len(effects) else None
-        key = (tuple(sorted(float(t) for t in times)), bool(field),
-               json.dumps(fx.bind(times).settings(), sort_keys=True, default=str)
-               if fx is not None else "")
-        if key not in self._configs:
-            s = self.setup
-            h = (self.store.register(s.problem, times, field, s.dtype, effects=fx or ())
-                 if self.store is not None else None)
-            self._configs[key] = (_LazySolver(s, field, fx), h)
-        return self._configs[key]
-
-    def solve(self, rows: torch.Tensor, times: tuple[float, ...], field: bool,
-              effects: Any = None, progress: bool = False) -> FeOut:
-        """The FE at solver rows ``(n, 9 + n_eff)`` (:func:`~solderpyro.specimen.fe_params`;
-        the effects' parameters in the order of ``effects``) over ``times`` (s), with the
-        31 x 18 grid when ``field``; stored runs are read back, the others solved in batches
-        of ``batch_size`` and stored; observation-side effects applied after the FE."""
-        from solderpyro.effects import EffectSet
-        from solderpyro.params import ANAND_NAMES
-        from solderpyro.specimen import OBSERVATION_SEAM
-        from solderpyro.store import run_doe
-
-        rows = torch.as_tensor(rows, dtype=torch.float64)
-        fe_cols, obs_cols = list(range(len(ANAND_NAMES))), list[int]()
-        fx_fe = fx_obs = None
-        if effects is not None and len(effects):
-            fxb = effects.bind(times)
-            n = len(ANAND_NAMES)
-            for e in fxb.effects:
-                (obs_cols if e.seam == OBSERVATION_SEAM else fe_cols).extend(
-                    range(n, n + e.n_params))
-                n += e.n_params
-            fe_fx = [e for e in fxb.effects if e.seam != OBSERVATION_SEAM]
-            obs_fx = [e for e in fxb.effects if e.seam == OBSERVATION_SEAM]
-            fx_fe = EffectSet(fe_fx) if fe_fx else None
-            fx_obs = EffectSet(obs_fx) if obs_fx else None
-        solver, h = self.config(times, field, fx_fe)
-        P = rows[:, fe_cols]
-        pnames = [*ANAND_NAMES, *(fx_fe.names if fx_fe is not None else ())]
-        res: Any
-        if self.store is None or h is None:  # each distinct row solved once
-            uniq, inv = torch.unique(P, dim=0, return_inverse=True)
-            res = solver.solve(uniq, times, progress=progress)
-            res = SimpleNamespace(V=res.V[inv], ok=res.ok[inv], times=res.times,
-                                  names=res.names,
-                                  reasons=[res.reasons[i] for i in inv.tolist()])
-            self.computed += len(uniq)
-            self.reused += len(P) - len(uniq)
-        else:
-            res = run_doe(solver, self.store, h, P, times, self._batch(h, P),
-                          progress=progress, param_names=pnames)
-            self.computed += res.n_computed
-            self.reused += len(rows) - res.n_computed
-        Vt = res.V.detach().cpu().to(torch.float64)
-        if fx_obs is not None:  # as the solver applies them: V + offset(x of each output)
-            from solderpyro.specimen import output_points
-
-            pts = output_points(self.setup.problem)
-            x = torch.tensor([pts[n][0] for n in res.names], dtype=torch.float64)
-            Vt = fx_obs.observe(Vt, x, float(self.setup.problem.origin[0]), rows[:, obs_cols])
-        V = Vt.numpy()
-        ok = torch.as_tensor(res.ok).cpu().numpy().astype(bool)
-        tt = tuple(float(t) for t in torch.as_tensor(res.times).tolist())
-        return FeOut(V, ok, [str(r) for r in res.reasons], tt, tuple(res.names))
-
-
-    def _batch(self, h: str, P: torch.Tensor) -> int:
-        """Members per solve: the rows not yet stored split into equal batches of at most
-        ``batch_size`` (66 rows: two of 33, not 64 and 2)."""
-        from solderpyro.store import param_hash
-
-        first = {param_hash(r): i for i, r in enumerate(P)}
-        n = sum(not self.store.path(h, P[i]).exists() for i in first.values())
-        return max(1, math.ceil(n / max(1, math.ceil(n / self.batch_size))))
-
-
-class _LazySolver:
-    """A :class:`~solderpyro.fem.solver.SpecimenSolver` set up on its first :meth:`solve`."""
-
-    def __init__(self, setup: Any, field: bool, effects: Any) -> None:
-        self.setup, self.field, self.effects = setup, field, effects
-        self._solver: Any = None
-
-    @property
-    def solver(self) -> Any:
-        if self._solver is None:
-            from solderpyro.fem.problem import reference_grid
-            from solderpyro.fem.solver import SpecimenSolver
-
-            s = self.setup
-            self._solver = SpecimenSolver(s.problem, reference_grid() if self.field else None,
-                                          dtype=s.dtype, device=s.device,
-                                          effects=self.effects or ())
-        return self._solver
-
-    def solve(self, params: torch.Tensor, times: Any, progress: bool = False) -> Any:
-        return self.solver.solve(params, times, progress=progress)
-
-
 #: stage -> its label in the log and in diagnosis.md
 STAGES = {"load": "loading the run", "predictive_check": "posterior predictive check",
           "best_fit": "FE best fit (baseline refit)",
@@ -292,7 +144,7 @@ class _Costs:
 
     def __init__(self) -> None:
         self.t0 = time.perf_counter()
-        self.fe: FeRuns | None = None
+        self.fe: SpecimenModels | None = None
         self.stages: dict[str, dict[str, float | int]] = {}
 
     def _counts(self) -> tuple[int, int]:
@@ -394,7 +246,7 @@ def _fd_design(box_names, box_lo, box_hi, cands: dict[str, Any], rel: float) -> 
 
 def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
                  candidates: tuple[str, ...], times: tuple[float, ...], field: bool,
-                 rel: float = 1e-3, progress: bool = True, fe: FeRuns | None = None
+                 rel: float = 1e-3, progress: bool = True, fe: SpecimenModels | None = None
                  ) -> dict[str, Any]:
     """FE outputs and finite-difference Jacobians at calibrated draws, candidates at "off".
 
@@ -406,7 +258,8 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         run_effects: effects already on in the calibration; candidates: effects to test.
         times: output times, s; field: also the 31 x 18 grid.
         rel: step as a share of each parameter's box width (one-sided at a box edge).
-        fe: the diagnosis's :class:`FeRuns` (run store, solvers); None: solve directly.
+        fe: the diagnosis's :class:`~solderpyro.specimen.SpecimenModels` (run store, models);
+            None: solve directly.
     Returns:
         dict: ``V (K, n_time, n_out)`` at the draws (um), ``J (K, n_time, n_out, n_col)``
         (um per unit), ``cols`` (:class:`_Columns`), ``names`` (output labels), ``times``,
@@ -414,9 +267,9 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
         (FE rows of the ladder). The draws' rows and the ladder's are one batched solve.
     """
     from solderpyro.effects import effect_set
-    from solderpyro.specimen import calibration_box, fe_params
+    from solderpyro.specimen import calibration_box
 
-    fe = fe if fe is not None else FeRuns(setup)
+    fe = fe if fe is not None else SpecimenModels(setup)
 
     fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
     cands = {e.name: e for e in fx_all.effects if e.name in candidates}
@@ -449,13 +302,12 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
             r[j] = v
             rows.append(r)
     P = torch.tensor(np.array(rows), dtype=torch.float64)
-    full = fe_params(setup, P)
     n_lad = sum(len(v) for v in ladder.values())
     log.info("diagnose: %d FE rows (%d draws x %d Jacobian columns, %d ladder runs, "
              "candidates: %s)", len(rows), len(theta), len(cols.names), n_lad,
              ", ".join(candidates) or "none")
-    res = fe.solve(full, times, field, fx_all, progress=progress)
-    V = res.V
+    res = fe.runs(P, times, field, fx_all, progress=progress)
+    V = res.V.numpy()
     if not bool(res.ok.all()):
         bad = [r for r in res.reasons if r]
         raise RuntimeError(f"{len(bad)} FE runs of the diagnosis failed: {bad[:2]}")
@@ -602,8 +454,9 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         unknown = [c for c in candidates if c not in EFFECTS]
         if unknown:
             raise ValueError(f"unknown effect(s) {unknown}; valid: {', '.join(EFFECTS)}")
-        cost.fe = fe = FeRuns(setup, run_store(info, d), batch_size)
-        log.info("diagnose: FE runs kept in the run store %s", fe.store.root)
+        store = run_store(info, d)
+        cost.fe = fe = SpecimenModels(setup, store, batch_size)
+        log.info("diagnose: FE runs kept in the run store %s", store.root)
     with cost.stage("predictive_check"):
         y = np.asarray(meas.value_um, float)
         sigma_draws = dr["sigma"]
@@ -719,7 +572,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     diag.timing = cost.table()
     tot = diag.timing["total"]
     log.info("diagnose: total %.1f s, %d FE runs computed, %d reused (store %s)",
-             tot["seconds"], tot["fe_runs"], tot["fe_reused"], fe.store.root)
+             tot["seconds"], tot["fe_runs"], tot["fe_reused"], store.root)
     _write(d, diag, mf, pc, sigma, figs)
     from solderpyro.index import write_index
 
@@ -757,7 +610,7 @@ def _rule_out(diag: Diagnosis, d: Path, lay: Layout, fej: dict[str, Any], y: np.
 
 
 def refit_predictions(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],
-                      fits: dict[str, dict[str, Any]], meas: Any, fe: FeRuns
+                      fits: dict[str, dict[str, Any]], meas: Any, fe: SpecimenModels
                       ) -> dict[str, np.ndarray]:
     """The FE at each refit of the first step (:func:`~.refits.refit_candidates`;
     ``"baseline"`` and every candidate), row for row with ``meas``; their rows were solved by
@@ -767,21 +620,22 @@ def refit_predictions(setup: Any, run_effects: tuple[str, ...], candidates: tupl
         model -> ``(n,)`` V, um.
     """
     from solderpyro.effects import effect_set
-    from solderpyro.specimen import fe_params, observation_index
+    from solderpyro.specimen import observation_index
 
     times = tuple(float(t) for t in meas.times())
     field = any(p not in setup.problem.points for p in meas.points())
     fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
     names = list(fits)
     X = torch.tensor(np.array([fits[m]["x"] for m in names]), dtype=torch.float64)
-    res = fe.solve(fe_params(setup, X), times, field, fx_all)
+    res = fe.runs(X, times, field, fx_all)
     ti, oi = observation_index(meas, res.times, res.names)
-    return {m: res.V[k][ti, oi] for k, m in enumerate(names) if res.ok[k]}
+    V = res.V.numpy()
+    return {m: V[k][ti, oi] for k, m in enumerate(names) if res.ok[k]}
 
 
 def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...],
                fits: dict[str, dict[str, Any]], group: list[str], meas: Any,
-               sigma: float, fe: FeRuns | None = None) -> dict[str, Any]:
+               sigma: float, fe: SpecimenModels | None = None) -> dict[str, Any]:
     """Which measurement would tell the effects in ``group`` apart?
 
     Each effect's refit (:func:`~.refits.refit_candidates`: the FE with that effect on,
@@ -794,8 +648,8 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
     Args:
         fits: the first step's refits (rows laid out as calibrated parameters, then the
             candidates' parameters bound to the measured times); group: effect names (>= 2).
-        meas: the data; sigma: noise sd, um; fe: the diagnosis's :class:`FeRuns` (run store);
-        None: solve directly.
+        meas: the data; sigma: noise sd, um; fe: the diagnosis's
+            :class:`~solderpyro.specimen.SpecimenModels` (run store); None: solve directly.
     Returns:
         ``{"effects", "options": [{"measurement", "n_new", "pair", "rms_diff_um",
         "max_diff_um", "time_s", "point", "xy_mm", "chi2_apart"}, ...] best first,
@@ -831,7 +685,8 @@ def separation(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, 
 
 
 def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
-                       labels: list[str], meas: Any, sigma: float, fe: FeRuns | None = None
+                       labels: list[str], meas: Any, sigma: float,
+                       fe: SpecimenModels | None = None
                        ) -> tuple[list[dict[str, Any]], tuple[list[str], str] | None]:
     """Where would new measurements tell apart parameter sets that fit ``meas`` equally well?
 
@@ -846,7 +701,8 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
         X: ``(g, dim)`` parameter rows (g >= 2): the Anand constants of ``setup.space``, then
             the effects' parameters bound to the measured times; labels: ``g`` names of them.
         meas: the data (which values exist already); sigma: noise sd, um.
-        fe: a :class:`FeRuns` (the diagnosis's run store and solvers); None: solve directly.
+        fe: a :class:`~solderpyro.specimen.SpecimenModels` (the diagnosis's run store and
+            models); None: solve directly.
     Returns:
         ``(options, failed)``: options ``[{"measurement", "n_new", "pair", "rms_diff_um",
         "max_diff_um", "time_s", "point", "xy_mm", "chi2_apart"}, ...]`` best first, where
@@ -860,7 +716,6 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
     from solderpyro.effects import effect_set
     from solderpyro.fem.loading import EXTENDED_TIMES
     from solderpyro.fem.problem import reference_grid
-    from solderpyro.specimen import fe_params
 
     if len(X) < 2 or len(labels) != len(X):
         raise ValueError(f"separation_options: need >= 2 rows and one label per row, got "
@@ -882,12 +737,12 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
     else:
         fx_u, rows = None, Xt[:, :n_a]
     grid = reference_grid()
-    fe = fe if fe is not None else FeRuns(setup)
-    res = fe.solve(fe_params(setup, rows), t_u, True, fx_u)
+    fe = fe if fe is not None else SpecimenModels(setup)
+    res = fe.runs(rows, t_u, True, fx_u)
     if not bool(res.ok.all()):
         bad = [g for g, ok in zip(labels, res.ok.tolist(), strict=True) if not ok]
         return [], (bad, next(r for r in res.reasons if r))
-    V = res.V  # (g, T, n_out)
+    V = res.V.numpy()  # (g, T, n_out)
     times = [float(t) for t in res.times]
     out_names = list(res.names)
     xy = {n: tuple(float(v) for v in p) for n, p in setup.problem.points.items()}
@@ -948,7 +803,7 @@ def _starts(setup: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool
     return out
 
 
-def _refit_steps(lay: Any, fe: FeRuns, meas: Any, sigma: float, base: dict[str, Any],
+def _refit_steps(lay: Any, fe: SpecimenModels, meas: Any, sigma: float, base: dict[str, Any],
                  scores: list[Score], screened: list[Score], floor: Floor, n_cand: int
                  ) -> tuple[dict[str, dict[str, Any]], list[list[Judged]], tuple[str, ...],
                             list[str]]:

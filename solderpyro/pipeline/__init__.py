@@ -1,10 +1,12 @@
 """The specimen calibration as a sequence of stages, one module each, read top-down:
 
-1. :mod:`.problem` -- what is observed and how the FE runs (run store).
+1. :mod:`.problem` -- what is observed (the data, :class:`~.problem.ObservedData`) and how the
+   FE runs (:class:`~solderpyro.specimen.SpecimenModel` through the run store).
 2. :mod:`.surrogate` -- the GP of the observed outputs.
 3. :mod:`.posterior` -- modular KOH with NUTS through the surrogate.
 4. :mod:`.adaptive` -- the adaptive design that repeats 2-3 and places FE runs (BoTorch,
-   :mod:`solderpyro.design`) until the FE confirms the surrogate.
+   :mod:`solderpyro.design`) until the FE confirms the surrogate; then the discretization
+   correction, which returns the corrected data, and the final posterior on them.
 5. :mod:`.fe_check` -- the FE at posterior draws: does the model itself fit?
 6. :mod:`.fe_exact` -- the FE-exact posterior and profile intervals, when the design's budget
    ran out with the FE disagreeing.

@@ -1,12 +1,17 @@
 """Stage 2-3 together, the adaptive design: the calibration places its own FE runs.
 
-Wires :func:`solderpyro.design.loop.run_loop` to the specimen: the FE through the run store
-(:meth:`SpecimenModel.fe`), the surrogate fit (:mod:`.surrogate`) and the warm-started
-posterior (:mod:`.posterior`). After every round it writes ``design.csv`` (every FE run: round,
-kind, parameters, converged), ``design_rounds.json`` and ``design.png`` (marginals per round,
-code chi-square per round, where the runs went), so a crashed run leaves its record; the FE
-runs themselves are in the run store, and a rerun with the same settings proposes the same
-runs (every step is seeded), so it reuses them instead of solving again.
+Wires :mod:`solderpyro.design.loop` to the specimen: the FE through the run store
+(:meth:`~.problem.CalibrationProblem.fe`), the surrogate fit (:mod:`.surrogate`) and the
+warm-started posterior (:mod:`.posterior`). Three steps, the data flowing one way: the rounds
+(:func:`adaptive_design`) on the measured data; the discretization correction
+(:func:`correct_discretization`), which returns corrected data; the final posterior
+(:func:`final_design_posterior`) on the data it is given.
+
+After every round it writes ``design.csv`` (every FE run: round, kind, parameters, converged),
+``design_rounds.json`` and ``design.png`` (marginals per round, code chi-square per round,
+where the runs went), so a crashed run leaves its record; the FE runs themselves are in the run
+store, and a rerun with the same settings proposes the same runs (every step is seeded), so it
+reuses them instead of solving again.
 """
 
 from __future__ import annotations
@@ -22,9 +27,15 @@ import numpy as np
 import torch
 
 from solderpyro.design import lhs
-from solderpyro.design.loop import Draws, LoopProblem, LoopResult, run_loop
+from solderpyro.design.loop import (
+    Draws,
+    LoopProblem,
+    LoopResult,
+    design_rounds,
+    final_posterior,
+)
 from solderpyro.pipeline.posterior import as_draws, sample_posterior
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem, ObservedData
 from solderpyro.pipeline.surrogate import fit_surrogate
 from solderpyro.settings import CalibrationSettings
 from solderpyro.surrogate import GPSurrogate
@@ -32,85 +43,111 @@ from solderpyro.surrogate import GPSurrogate
 log = logging.getLogger("solderpyro")
 
 
-def adaptive_design(sm: SpecimenModel, s: CalibrationSettings, out: Path,
+def loop_problem(cp: CalibrationProblem, s: CalibrationSettings,
+                 warm: Any = None) -> LoopProblem:
+    """The design loop's view of ``cp`` (:class:`LoopProblem`): its data ``cp.y``, the FE
+    through the run store, the surrogate fit and the warm-started posterior (``warm``: a
+    :class:`~solderpyro.calibration.mcmc.WarmStart` for the first round's posterior)."""
+    last: list[float | None] = [None]  # the latest posterior's noise sd (PCA truncation)
+
+    def fit(X: torch.Tensor, Y: torch.Tensor) -> GPSurrogate:
+        return fit_surrogate(cp, s.surrogate, X, Y, last[0])
+
+    def sample(gp: GPSurrogate, prev: Draws | None, final: bool) -> Draws:
+        w = prev.posterior[0].warm if prev is not None else warm
+        if prev is not None and prev.start and w is not None:  # the loop localized
+            w = replace(w, point=prev.start).placed(cp.space, cp.priors.sigma_known is not None,
+                                                    seed=s.seed)
+        post, inp = sample_posterior(cp, gp, s.sampler, s.seed, w, final, s.progress)
+        d = as_draws(cp, post, inp)
+        last[0] = float(d.sigma.median())
+        return d
+
+    return LoopProblem(cp.gp_box, cp.y, cp.fe, fit, sample, misfit_test(cp))
+
+
+def adaptive_design(cp: CalibrationProblem, s: CalibrationSettings, out: Path,
                     warm: Any = None, refit: dict[str, float] | None = None) -> LoopResult:
-    """Run the adaptive design on the specimen and keep its record in ``out``.
+    """The adaptive design's rounds on the specimen (:func:`~solderpyro.design.loop.
+    design_rounds`), their record kept in ``out``.
 
     Args:
-        sm: the problem. s: the settings (``s.design``: the loop's; ``s.sampler``: NUTS).
-        out: the run directory. warm: a :class:`~solderpyro.calibration.mcmc.WarmStart` for
-            the first round's posterior (e.g. the run this one adds an effect to).
+        cp: the problem (the measured data). s: the settings (``s.design``: the loop's;
+            ``s.sampler``: NUTS). out: the run directory. warm: a
+            :class:`~solderpyro.calibration.mcmc.WarmStart` for the first round's posterior
+            (e.g. the run this one adds an effect to).
         refit: the FE's best fit of this very model where one is known (``name -> value``,
             physical units; ``solderpyro diagnose``'s refit, :func:`~.warm.refit_point`): up
             to ``s.design.localize`` runs around it join the start design
             (:func:`refit_design`).
 
     Returns:
-        the :class:`~solderpyro.design.loop.LoopResult`; its ``draws.posterior`` is the
-        final ``(Posterior, ObsInputs)``.
+        the rounds' :class:`~solderpyro.design.loop.LoopResult` (its ``draws``: the last
+        round's posterior); :func:`final_design_posterior` draws the final one.
     """
-
-    last: list[float | None] = [None]  # the latest posterior's noise sd (PCA truncation)
-
-    def fit(X: torch.Tensor, Y: torch.Tensor) -> GPSurrogate:
-        return fit_surrogate(sm, s.surrogate, X, Y, last[0])
-
-    def sample(gp: GPSurrogate, prev: Draws | None, final: bool) -> Draws:
-        w = prev.posterior[0].warm if prev is not None else warm
-        if prev is not None and prev.start and w is not None:  # the loop localized
-            w = replace(w, point=prev.start).placed(sm.space, sm.priors.sigma_known is not None,
-                                                    seed=s.seed)
-        if final and s.discretization == "correct" and prev is not None:
-            correct_discretization(sm, prev)
-        post, inp = sample_posterior(sm, gp, s.sampler, s.seed, w, final, s.progress)
-        d = as_draws(sm, post, inp)
-        last[0] = float(d.sigma.median())
-        return d
-
-    p = LoopProblem(sm.gp_box, sm.y, sm.fe, fit, sample, misfit_test(sm))
+    p = loop_problem(cp, s, warm)
     log.info("design: %d Latin-hypercube runs over %s, then rounds of %d acquired + %d check "
-             "runs (%s criterion) up to %d FE runs", s.design.start, ", ".join(sm.gp_box.names),
+             "runs (%s criterion) up to %d FE runs", s.design.start, ", ".join(cp.gp_box.names),
              s.design.batch, s.design.check, s.design.criterion, s.design.budget)
-    X0 = lhs(sm.gp_box, s.design.start, s.seed)
+    X0 = lhs(cp.gp_box, s.design.start, s.seed)
     kinds = ["start"] * len(X0)
-    near = refit_design(sm, refit, X0,
+    near = refit_design(cp, refit, X0,
                         min(s.design.localize, s.design.budget - s.design.start - s.design.check),
                         s.seed)
     if near is not None:
         X0 = torch.cat([X0, near])
         kinds += ["fe_fit"] * len(near)
-    return run_loop(p, s.design, s.seed, X0, names=list(sm.gp_box.names),
-                    on_round=lambda r: save_design(r, sm.gp_box.names, out), kinds=kinds)
+    return design_rounds(p, s.design, s.seed, X0, names=list(cp.gp_box.names),
+                         on_round=lambda r: save_design(r, cp.gp_box.names, out), kinds=kinds)
 
 
-def correct_discretization(sm: SpecimenModel, d: Draws) -> None:
-    """Take the FE's discretization error off ``sm``'s data (:meth:`SpecimenModel.correct`),
-    estimated by one refinement (:func:`~.fe_check.discretization_error`, one FE run more) at
-    the best of ``d``'s checked draws (the FE's outputs there come with them). Nothing
-    happens when no checked draw converged or the refined run fails (logged): the
-    calibration goes on uncorrected, and its discretization check says so."""
+def final_design_posterior(cp: CalibrationProblem, s: CalibrationSettings, out: Path,
+                           rounds: LoopResult) -> LoopResult:
+    """The design's final posterior on ``cp``'s data (corrected, where the calibration
+    corrected them), checked by the FE in every chain
+    (:func:`~solderpyro.design.loop.final_posterior`); its record kept in ``out``.
+
+    Returns:
+        the :class:`~solderpyro.design.loop.LoopResult`; its ``draws.posterior`` is the
+        final ``(Posterior, ObsInputs)``.
+    """
+    return final_posterior(loop_problem(cp, s), rounds, s.design, list(cp.gp_box.names),
+                           on_round=lambda r: save_design(r, cp.gp_box.names, out))
+
+
+def correct_discretization(cp: CalibrationProblem, d: Draws) -> ObservedData:
+    """``cp``'s data with the FE's discretization error taken off
+    (:meth:`~.problem.ObservedData.corrected`), estimated by one refinement
+    (:func:`~.fe_check.discretization_error`, one FE run more) at the best of ``d``'s checked
+    draws (the FE's outputs there come with them). When no checked draw converged or the
+    refined run fails (logged) the data come back uncorrected, and the calibration's
+    discretization check says so.
+
+    Returns:
+        the data every later stage uses (:meth:`~.problem.CalibrationProblem.with_data`).
+    """
     from solderpyro.pipeline.fe_check import discretization_error
 
     if d.checked is None:
-        return
+        return cp.data
     th, V, c2 = d.checked
     c2 = np.asarray(c2, float)
     if not np.isfinite(c2).any():
         log.warning("discretization: no checked draw converged; the data are not corrected")
-        return
+        return cp.data
     j = int(np.nanargmin(np.where(np.isfinite(c2), c2, np.nan)))
     x = th[j].numpy()
-    delta = discretization_error(sm, x, V=V[j].numpy())
+    delta = discretization_error(cp, x, V=V[j].numpy())
     if not np.all(np.isfinite(delta)):
         log.warning("discretization: the refined FE run failed; the data are not corrected")
-        return
-    sig = float(sm.priors.sigma_known or d.sigma.median())
+        return cp.data
+    sig = float(cp.priors.sigma_known or d.sigma.median())
     chi = float(np.sum(delta ** 2) / sig ** 2)
-    sm.correct(delta, at=dict(zip(sm.gp_box.names, map(float, x), strict=True)), chi2=chi,
-               sigma=sig)
     log.info("discretization: the FE's error by one refinement at the best checked draw (chi2 "
              "%.3g, RMS %.3g um) is taken off the data for the final posterior", chi,
              float(np.sqrt(np.mean(delta ** 2))))
+    return cp.data.corrected(delta, at=dict(zip(cp.gp_box.names, map(float, x), strict=True)),
+                             chi2=chi, sigma=sig)
 
 
 #: the Laplace approximation at a known FE best fit is widened by this factor (in sd) for the
@@ -119,7 +156,7 @@ def correct_discretization(sm: SpecimenModel, d: Draws) -> None:
 REFIT_WIDEN = 2.0
 
 
-def refit_design(sm: SpecimenModel, point: dict[str, float] | None, have: torch.Tensor, m: int,
+def refit_design(cp: CalibrationProblem, point: dict[str, float] | None, have: torch.Tensor, m: int,
                  seed: int = 0) -> torch.Tensor | None:
     """FE runs around a known FE best fit of this model, for the start design.
 
@@ -134,7 +171,7 @@ def refit_design(sm: SpecimenModel, point: dict[str, float] | None, have: torch.
     iteration (the point, or a step better) first.
 
     Args:
-        sm: the problem. point: ``name -> value`` (physical units) covering every calibrated
+        cp: the problem. point: ``name -> value`` (physical units) covering every calibrated
             parameter (else None is returned). have: ``(n, n_fe)`` the runs already planned.
         m: the most runs to place. seed: of the draws.
     Returns:
@@ -143,16 +180,16 @@ def refit_design(sm: SpecimenModel, point: dict[str, float] | None, have: torch.
     from solderpyro.design.loop import spaced_rows
     from solderpyro.pipeline.fe_exact import fe_best_fit
 
-    space = sm.space
+    space = cp.space
     if not point or m < 1 or not all(nm in point for nm in space.names):
         return None
     x0 = np.array([[min(max(point[nm], lo), hi) for nm, lo, hi in zip(
         space.names, space.lower, space.upper, strict=True)]])
-    y = sm.y.detach().cpu().numpy()
-    sig = float(sm.priors.sigma_known or point.get("sigma") or 0.0)
+    y = cp.y.detach().cpu().numpy()
+    sig = float(cp.priors.sigma_known or point.get("sigma") or 0.0)
     if not sig > 0:
         return None
-    fit = fe_best_fit(sm.observed, x0, space, y, sig, 1)
+    fit = fe_best_fit(cp.observed, x0, space, y, sig, 1)
     Ju = fit.jacobian_unit(space.lower, space.upper, space.log_scale)
     u0 = space.to_unit(torch.as_tensor(fit.x[None], dtype=torch.float64)).numpy()[0]
     if Ju is None or not np.isfinite(Ju).all():
@@ -166,17 +203,17 @@ def refit_design(sm: SpecimenModel, point: dict[str, float] | None, have: torch.
         # draws outside the box are dropped, not clipped: a clipped draw of a long ridge
         # lands on a face far from the posterior (measured on the toy of the tests)
         cand = np.vstack([u0, z[((z >= 0.0) & (z <= 1.0)).all(1)]])
-    gp_u = cand[:, :sm.n_fe]  # the FE-side parameters: what the surrogate sees
-    keep = spaced_rows(gp_u, sm.gp_box.to_unit(have).numpy(), m)
+    gp_u = cand[:, :cp.n_fe]  # the FE-side parameters: what the surrogate sees
+    keep = spaced_rows(gp_u, cp.gp_box.to_unit(have).numpy(), m)
     if not len(keep):
         return None
-    rows = sm.gp_box.from_unit(torch.as_tensor(gp_u[keep], dtype=torch.float64))
+    rows = cp.gp_box.from_unit(torch.as_tensor(gp_u[keep], dtype=torch.float64))
     log.info("design: the diagnosis's FE refit of this model (chi2 %.0f) places %d runs "
              "around it in the start design", fit.chi2, len(rows))
     return rows
 
 
-def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
+def misfit_test(cp: CalibrationProblem, lm_iters: int = 4) -> Any:
     """The design loop's ``misfit`` test for the specimen (:class:`LoopProblem`).
 
     When the FE misfits the data at every checked posterior draw (the FE check's rule,
@@ -198,9 +235,9 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
     from solderpyro.pipeline.fe_check import misfits
     from solderpyro.pipeline.fe_exact import fe_best_fit
 
-    n = int(sm.y.numel())
-    y = sm.y.detach().cpu().numpy()
-    space = sm.space
+    n = int(cp.y.numel())
+    y = cp.y.detach().cpu().numpy()
+    space = cp.space
 
     def test(d: Draws, chk: np.ndarray, fe_c2: np.ndarray, far: bool) -> dict[str, Any] | None:
         all_misfit = misfits(float(np.min(fe_c2)), n)
@@ -212,16 +249,16 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
         # posterior median), in one batched fit: the draws of a misfitting model's surrogate
         # posterior sit in islands, and diagnose, which starts from this fit, need not scout
         # from the literature constants again (24 of its 74 s in the loop, session 29)
-        anand = sm.setup.anand
+        anand = cp.setup.anand
         lit = np.array([anand.get(nm, v) for nm, v in zip(space.names, np.median(full, 0),
                                                           strict=True)], float)
         starts = np.concatenate([full[chk[np.argsort(fe_c2)[:2]]],
                                  np.clip(lit, space.lower, space.upper)[None]])
-        sig = float(sm.priors.sigma_known or d.sigma.median())
+        sig = float(cp.priors.sigma_known or d.sigma.median())
         seen: list[tuple[np.ndarray, np.ndarray]] = []  # (rows, their chi-squares)
 
         def counted(rows: np.ndarray) -> np.ndarray:
-            V = sm.observed(rows)
+            V = cp.observed(rows)
             seen.append((rows, (((y - V) / sig) ** 2).sum(1)))
             return V
 
@@ -238,7 +275,7 @@ def misfit_test(sm: SpecimenModel, lm_iters: int = 4) -> Any:
                "chi2": float(best.chi2), "rms_over_sigma": float(np.sqrt(best.chi2 / n)),
                "misfits": misfits(float(best.chi2), n), "fe_runs": len(rows),
                "starts": ["best checked draw", "second checked draw", "literature constants"],
-               "runs": rows[np.argsort(c2, kind="stable"), :sm.n_fe]}
+               "runs": rows[np.argsort(c2, kind="stable"), :cp.n_fe]}
         log.info("design: %s; the FE's own best fit: chi2 %.0f (%.2f noise sd, %d FE runs)%s",
                  "the FE misfits at every checked draw" if all_misfit else
                  "the round is far from converged", out["chi2"],

@@ -7,7 +7,9 @@
     (:mod:`.fe_exact`) -> outputs again.
 
 Data flow is one-directional: measurements -> observed model outputs -> FE runs (run store) ->
-surrogate -> posterior -> report. Every setting is in :class:`~.settings.CalibrationSettings`.
+surrogate -> posterior per round -> discretization correction (corrected data, a new value) ->
+final posterior, FE check and report on the corrected data. Every setting is in
+:class:`~.settings.CalibrationSettings`.
 """
 
 from __future__ import annotations
@@ -28,7 +30,12 @@ from solderpyro.calibration.predictive import Bands
 from solderpyro.configure import Setup
 from solderpyro.design.loop import StageClock, spread_indices
 from solderpyro.io.measurements import Measurements
-from solderpyro.pipeline.adaptive import adaptive_design, save_design
+from solderpyro.pipeline.adaptive import (
+    adaptive_design,
+    correct_discretization,
+    final_design_posterior,
+    save_design,
+)
 from solderpyro.pipeline.fe_check import (
     FE_CHECK_DRAWS,
     discretization_check,
@@ -37,7 +44,7 @@ from solderpyro.pipeline.fe_check import (
 )
 from solderpyro.pipeline.fe_exact import SUMMARY, WEAK_SHARE, exact_rows, fe_exact, identifiability
 from solderpyro.pipeline.outputs import SpecimenCalibration, save_run
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem
 from solderpyro.settings import CalibrationSettings
 
 log = logging.getLogger("solderpyro")
@@ -92,14 +99,18 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     clock = StageClock(log_each=True)
-    sm = SpecimenModel.build(setup, meas, s.store, s.batch, s.progress)
-    s.validate(sm.n_fe)
-    y_liu = sm.literature()
+    cp = CalibrationProblem.build(setup, meas, s.store, s.batch, s.progress)
+    s.validate(cp.n_fe)
+    y_liu = cp.literature()
     refit = warm.point if warm is not None else None  # the diagnosis's FE refit, if any
     if warm is not None:  # chains at the diagnosis's FE refit of this model, where there is one
-        warm = warm.placed(sm.space, sm.priors.sigma_known is not None, seed=s.seed)
+        warm = warm.placed(cp.space, cp.priors.sigma_known is not None, seed=s.seed)
     clock("problem")
-    loop = adaptive_design(sm, s, out, warm, refit)
+    rounds = adaptive_design(cp, s, out, warm, refit)
+    if s.discretization == "correct" and rounds.reason != "misfit":
+        # the data every later stage uses: the final posterior, the FE check, the outputs
+        cp = cp.with_data(correct_discretization(cp, rounds.draws))
+    loop = final_design_posterior(cp, s, out, rounds)
     clock("design")
     post, inp = loop.draws.posterior
     gp = loop.gp
@@ -110,12 +121,12 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         log.warning(loop.message)
         problems = [*problems, loop.message]
     # the FE at a few posterior draws: does the exact model fit where the surrogate says so?
-    pr = sm.priors
+    pr = cp.priors
     sig_fe = pr.sigma_known or float(post.flat("sigma").median())
     draws = post.flat("t").detach().cpu().numpy()
     pick = spread_indices(len(draws), FE_CHECK_DRAWS)
-    V_chk = sm.observed(draws[pick])
-    chk = fe_check(V_chk, sm.y, sig_fe)
+    V_chk = cp.observed(draws[pick])
+    chk = fe_check(V_chk, cp.y, sig_fe)
     clock("fe_check")
     log.info("FE check: best RMS residual of the FE over %d posterior draws %.4g um (%.2f "
              "noise sd)", chk["draws"], chk["rms_um"], chk["rms_over_sigma"])
@@ -126,7 +137,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                f"the data show (solderpyro diagnose names candidate effects)")
         log.warning(msg)
         problems = [*problems, msg]
-    space = sm.space
+    space = cp.space
     # the reported 95 % interval: central, or from a box face the posterior piles against
     rows = with_intervals(post.summary(), draws, space)
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
@@ -137,29 +148,25 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     # posterior.nc: the surrogate posterior with the data, the predictive and the pointwise
     # log-likelihood at the same draws (az.plot_ppc, az.loo, az.compare on the file)
     post.save(out / "posterior.nc", predictive={
-        "y": sm.y.numpy(), "index": pick_pp.numpy(), "observed": bands.obs_draws.numpy(),
-        "log_likelihood": bands.log_likelihood(sm.y).numpy()})
+        "y": cp.y.numpy(), "index": pick_pp.numpy(), "observed": bands.obs_draws.numpy(),
+        "log_likelihood": bands.log_likelihood(cp.y).numpy()})
     nk = {"chains": s.sampler.chains, "draws": s.sampler.draws, "warmup": s.sampler.warmup}
     # a model whose own FE best fit misfits (loop.reason "misfit") gets no FE-exact posterior
     full_exact = s.exact.mode == "on" or (
         s.exact.mode == "auto" and loop.reason == "budget" and not loop.rounds[-1].fe_ok)
-    # a converged design: the FE-exact posterior with the surrogate's as its proposal, light
-    confirm = (not full_exact and s.exact.mode == "auto" and s.exact.confirm
-               and loop.converged)
-    run_exact = full_exact or confirm
     fit = None
     if loop.reason == "misfit":
         trust = _misfit_trust((loop.best_fit or {}).get("rms_over_sigma", float("nan")),
                               "so the design stopped refining its surrogate")
         if loop.best_fit and loop.best_fit.get("x"):
-            fit, bands = _best_fit_stage(sm, s, loop.best_fit, sig_fe)
+            fit, bands = _best_fit_stage(cp, s, loop.best_fit, sig_fe)
             # the design's record and figure show the fit that is reported (and diagnose
             # starts there)
-            n_y = int(sm.y.numel())
+            n_y = int(cp.y.numel())
             loop.best_fit.update({
                 "x": dict(zip(space.names, map(float, fit.x), strict=True)),
                 "chi2": fit.chi2, "rms_over_sigma": float(np.sqrt(fit.chi2 / n_y))})
-            save_design(loop, sm.gp_box.names, out)
+            save_design(loop, cp.gp_box.names, out)
             write_summary(rows, out / "summary_surrogate.csv", SUMMARY)
             rows = [{**r, "r_hat": float("nan"), "ess_bulk": float("nan"),
                      "ess_tail": float("nan")} for r in fit.rows]
@@ -169,34 +176,33 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
             clock("best_fit")
     elif loop.converged:
         trust = ("the surrogate posterior: the design converged and the FE confirms the "
-                 "surrogate at posterior draws" + (" (the FE-exact posterior follows)"
-                                                   if confirm else ""))
+                 "surrogate at posterior draws")
     else:
         trust = ("the surrogate posterior, with care: the design's budget ran out before the "
                  "FE confirmed the surrogate" + (" (the FE-exact posterior follows)"
-                                                 if run_exact else ""))
+                                                 if full_exact else ""))
     # the FE's own discretization error against what the data resolve (two FE runs)
     # at the FE's best fit where there is one, else at the best checked posterior draw (the
     # marginal medians can lie off a curved ridge: there the refined FE fitted the modulus
     # data 165 chi-square worse, a change of the point, not of the mesh)
     best_chk = chk["best"]
     x_disc = fit.x if fit is not None else draws[pick][best_chk]
-    corr = sm.correction
-    if corr is not None:  # the correction the final posterior used, kept with the run whatever
-        # the check below does (compare needs it to see the measured data)
-        np.savez(out / "discretization_correction.npz", delta=corr["delta"],
-                 y_measured=corr["y_measured"].numpy())
+    data = cp.data
+    if data.delta is not None:  # the correction the final posterior used, kept with the run
+        # whatever the check below does (compare needs it to see the measured data)
+        np.savez(out / "discretization_correction.npz", delta=data.delta,
+                 y_measured=data.y_measured.numpy())
     try:
         # a model that misfits: measured against its misfit-widened noise sd (the check's
         # shift is then noise beside the missing effect)
-        disc = discretization_check(sm, x_disc, sig_fe if fit is None else float(fit.sigma[0]),
+        disc = discretization_check(cp, x_disc, sig_fe if fit is None else float(fit.sigma[0]),
                                     V=None if fit is not None else V_chk[best_chk],
-                                    delta=None if corr is None else corr["delta"])
+                                    delta=data.delta)
     except Exception as err:  # advisory: never lose the run over it
         log.warning("the discretization check failed", exc_info=True)
         disc = {"warn": False, "message": f"discretization check failed: {err!r}"}
-    if corr is not None:
-        disc["correction"] = {k: v for k, v in corr.items() if k not in ("delta", "y_measured")}
+    if data.delta is not None:
+        disc["correction"] = dict(data.info)
     log.info(disc["message"])
     if disc["warn"]:
         problems = [*problems, disc["message"]]
@@ -220,7 +226,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
             saved, kind = (fit.theta, fit.sigma), "fe-best-fit"
         write_summary(rows, out / "summary.csv", SUMMARY)
         sg = s.surrogate
-        save_run(out, meas, space, sm.effects, post, bands, sm.y, y_liu, pr,
+        save_run(out, meas, space, cp.effects, post, bands, cp.y, y_liu, pr,
                  {**(record or {}), "settings": s.as_dict(), "seed": s.seed, "store": s.store,
                   "kernel": sg.kernel, "ard": sg.ard, "mean": sg.mean,
                   "surrogate_output": gp.output, "surrogate_inputs": sg.inputs,
@@ -249,7 +255,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                             f"surrogate's is in summary_surrogate.csv")
         if fit is not None:
             notes.insert(1, f"**summary: the FE's own best fit** (chi2 {fit.chi2:.0f} on "
-                            f"{sm.y.numel()} values), intervals from its Laplace covariance "
+                            f"{cp.y.numel()} values), intervals from its Laplace covariance "
                             f"widened by sqrt(chi2 / (n - dim)) = {fit.scale:.2f}; the "
                             "surrogate's posterior is in summary_surrogate.csv")
         ident = (ex_info or {}).get("identifiability") or {}
@@ -259,8 +265,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                          + ", ".join(v["parameter"] for v in ident["weak"])
                          + "; see 'Identifiability' below for the measurement that would "
                          "narrow them")
-        ti, oi = sm.index
-        t = sm.tally  # every FE run of the calibration so far (Liu, design, checks, exact)
+        ti, oi = cp.index
+        t = cp.tally  # every FE run of the calibration so far (Liu, design, checks, exact)
         doe = SimpleNamespace(ok=torch.tensor([True] * t.n_ok + [False] * t.n_failed),
                               n_reused=t.n_reused, n_computed=t.n_computed)
         report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk,
@@ -269,9 +275,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
 
     write_all(rows, bands, problems)  # the surrogate's results are safe before the FE-exact step
     clock("report")
-    if run_exact:
-        rows, bands, problems = _exact_stage(sm, s, out, loop, post, draws, pick, V_chk, rows,
-                                             bands, problems, write_all, light=confirm)
+    if full_exact:
+        rows, bands, problems = _exact_stage(cp, s, out, loop, post, draws, pick, V_chk, rows,
+                                             bands, problems, write_all)
         clock("exact")
     print(format_summary(rows))
     info = json.loads((out / "run.json").read_text())
@@ -285,7 +291,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                                loop.as_dict())
 
 
-def _best_fit_stage(sm: SpecimenModel, s: CalibrationSettings, best: dict[str, Any],
+def _best_fit_stage(cp: CalibrationProblem, s: CalibrationSettings, best: dict[str, Any],
                     noise_sd: float) -> tuple[Any, Bands]:
     """A model whose own FE best fit misfits: that best fit, with its misfit-scaled Laplace
     spread (:func:`~.fe_exact.best_fit_posterior`), and the FE's predictive at
@@ -294,17 +300,17 @@ def _best_fit_stage(sm: SpecimenModel, s: CalibrationSettings, best: dict[str, A
     from solderpyro.pipeline.fe_exact import best_fit_posterior
 
     sg = s.surrogate
-    coords = sampling_coords(sm.space, sm.setup.space.defaults, "auto", sg.inputs_T_C,
+    coords = sampling_coords(cp.space, cp.setup.space.defaults, "auto", sg.inputs_T_C,
                              sg.inputs_rate)
-    x = np.array([best["x"][nm] for nm in sm.space.names])
-    y = sm.y.detach().cpu().numpy()
-    fit = best_fit_posterior(sm.observed, coords, x, y, noise_sd, PREDICTIVE_DRAWS, s.seed)
+    x = np.array([best["x"][nm] for nm in cp.space.names])
+    y = cp.y.detach().cpu().numpy()
+    fit = best_fit_posterior(cp.observed, coords, x, y, noise_sd, PREDICTIVE_DRAWS, s.seed)
     log.info("the FE's own best fit (chi2 %.0f, spread widened %.2fx for the misfit) is the "
              "reported result: %s", fit.chi2, fit.scale, ", ".join(
                  f"{r['parameter']}={r['median']:.4g} [{r['q2.5']:.4g}, {r['q97.5']:.4g}]"
                  for r in fit.rows))
     pick = spread_indices(len(fit.theta), BEST_FIT_BAND_RUNS)
-    V = torch.as_tensor(sm.observed(np.vstack([fit.x[None], fit.theta[pick]])))  # one solve
+    V = torch.as_tensor(cp.observed(np.vstack([fit.x[None], fit.theta[pick]])))  # one solve
     ok = torch.isfinite(V).all(1)
     V = V[ok]
     st = torch.full((len(V),), float(fit.sigma[0]), dtype=V.dtype)
@@ -320,22 +326,16 @@ def _misfit_trust(rms_sd: float, why: str) -> str:
             f"fit is {rms_sd:.1f} noise sd off), {why}; run solderpyro diagnose")
 
 
-def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any, post: Any,
+def _exact_stage(cp: CalibrationProblem, s: CalibrationSettings, out: Path, loop: Any, post: Any,
                  draws: np.ndarray, pick: np.ndarray, V_chk: np.ndarray, rows: list[dict],
-                 bands: Any, problems: list[str], write_all: Any, light: bool = False
+                 bands: Any, problems: list[str], write_all: Any
                  ) -> tuple[list[dict], Any, list[str]]:
     """The FE-exact posterior, identifiability and profile intervals; rewrites the outputs.
-    ``light`` (a converged design's confirmation): no chi-square profile and no profile
-    intervals, the surrogate posterior and the FE's best fit make the proposal.
     Returns the rows, bands and problems to report."""
-    import dataclasses
-
     ex_s = s.exact
-    if light:
-        ex_s = dataclasses.replace(ex_s, profile=0, profile_ci=False)
-    pr = sm.priors
-    y = sm.y
-    space = sm.space
+    pr = cp.priors
+    y = cp.y
+    space = cp.space
     log.info("exact: the FE-exact posterior, %d rounds of %d FE runs after a best fit%s",
              ex_s.rounds, ex_s.runs, f" and a {ex_s.profile}-point profile"
              if ex_s.profile >= 2 else "")
@@ -343,10 +343,10 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
     from solderpyro.coords import sampling_coords
 
     sg = s.surrogate
-    coords = sampling_coords(space, sm.setup.space.defaults, "auto", sg.inputs_T_C,
+    coords = sampling_coords(space, cp.setup.space.defaults, "auto", sg.inputs_T_C,
                              sg.inputs_rate)
     try:
-        ex, ex_info = fe_exact(sm.observed, coords, y, pr, draws, starts, ex_s.runs,
+        ex, ex_info = fe_exact(cp.observed, coords, y, pr, draws, starts, ex_s.runs,
                                ex_s.rounds, ex_s.profile, s.seed, len(draws),
                                stop_if_misfit=ex_s.mode == "auto",
                                noise_sd=pr.sigma_known or float(post.flat("sigma").median()))
@@ -373,7 +373,7 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
                  "ess_tail": ex_info["ess"]} for r in rows]
         try:  # which parameters lie along a ridge, and what would narrow them
             ex_info["identifiability"] = identifiability(
-                sm.setup, sm.effects, space, rows, ex, sm.meas,
+                cp.setup, cp.effects, space, rows, ex, cp.meas,
                 float(pr.sigma_known or np.median(ex.sigma)))
         except Exception as err:  # advisory: never lose the run's files over it
             log.warning("identifiability not computed", exc_info=True)
@@ -396,10 +396,7 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
                f"stays the surrogate's; a larger calibration.exact.runs or more rounds")
         log.warning(msg)
         problems = [*problems, msg]
-        trust = ("the surrogate posterior: the design converged and the FE confirms the "
-                 "surrogate at posterior draws; the FE-exact posterior's weights are not "
-                 "reliable enough to replace it (exact_posterior.csv has it)" if light else
-                 "neither posterior: the design's budget ran out with the FE "
+        trust = ("neither posterior: the design's budget ran out with the FE "
                  "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
                  "--budget; the profile intervals (profile_ci.csv) are the FE's own")
     write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
@@ -415,7 +412,7 @@ def _exact_stage(sm: SpecimenModel, s: CalibrationSettings, out: Path, loop: Any
         from solderpyro.exact import profile_intervals
 
         try:
-            pci = profile_intervals(sm.observed, space, y.numpy(), sig_p, ex.samples,
+            pci = profile_intervals(cp.observed, space, y.numpy(), sig_p, ex.samples,
                                     np.asarray(ex.result.extra["ssr"], float))
         except (RuntimeError, ValueError) as err:
             log.warning("the profile-likelihood intervals failed: %s", err)

@@ -91,39 +91,41 @@ def refined(problem: Any, factor: float = REFINE_FACTOR) -> Any:
                                      dwell_dt0=st.dwell_dt0 / factor))
 
 
-def refined_model(sm: Any, factor: float = REFINE_FACTOR) -> Any:
-    """``sm`` (:class:`~.problem.SpecimenModel`) on the FE once refined (:func:`refined`), the
-    same data, store and effects; its runs count in ``sm.tally`` when added there."""
+def refined_model(cp: Any, factor: float = REFINE_FACTOR) -> Any:
+    """``cp`` (:class:`~.problem.CalibrationProblem`) on the FE once refined
+    (:func:`refined`), the same data, store and effects; its runs count in ``cp.tally`` when
+    added there."""
     import dataclasses
 
-    from solderpyro.pipeline.problem import SpecimenModel
+    from solderpyro.pipeline.problem import CalibrationProblem
 
-    fine_setup = dataclasses.replace(sm.setup, problem=refined(sm.setup.problem, factor))
-    return SpecimenModel.build(fine_setup, sm.meas, str(sm.store.root), sm.batch, False)
+    fine_setup = dataclasses.replace(cp.setup, problem=refined(cp.setup.problem, factor))
+    return CalibrationProblem.build(fine_setup, cp.meas, str(cp.store.root), cp.batch,
+                                    False).with_data(cp.data)
 
 
-def discretization_error(sm: Any, theta: np.ndarray, factor: float = REFINE_FACTOR,
+def discretization_error(cp: Any, theta: np.ndarray, factor: float = REFINE_FACTOR,
                          V: np.ndarray | None = None) -> np.ndarray:
     """The FE's discretization error at the observed values, estimated by one refinement:
     ``FE_refined(theta) - FE(theta)`` (two FE runs through the run store; observation-side
     effects cancel, so only the FE parameters enter).
 
     Args:
-        sm: the :class:`~.problem.SpecimenModel`; theta: ``(n_fe,)`` FE parameters,
+        cp: the :class:`~.problem.CalibrationProblem`; theta: ``(n_fe,)`` FE parameters,
             physical units; V: ``(n_obs,)`` the calibration FE at ``theta`` where at hand.
     Returns:
         ``(n_obs,)`` um (NaN where either FE run failed).
     """
-    th = torch.as_tensor(np.asarray(theta, float)[None, :sm.n_fe], dtype=torch.float64)
+    th = torch.as_tensor(np.asarray(theta, float)[None, :cp.n_fe], dtype=torch.float64)
     if V is None:
-        V = sm.fe(th)[0][0].numpy()
-    fine = refined_model(sm, factor)
+        V = cp.fe(th)[0][0].numpy()
+    fine = refined_model(cp, factor)
     Vf = fine.fe(th)[0][0].numpy()
-    sm.tally.add(fine.tally)
+    cp.tally.add(fine.tally)
     return Vf - np.asarray(V, float)
 
 
-def discretization_check(sm: Any, x: np.ndarray, sigma: float,
+def discretization_check(cp: Any, x: np.ndarray, sigma: float,
                          factor: float = REFINE_FACTOR, V: np.ndarray | None = None,
                          delta: np.ndarray | None = None) -> dict[str, Any]:
     """How far the FE's own discretization error reaches into what the data resolve.
@@ -141,25 +143,25 @@ def discretization_check(sm: Any, x: np.ndarray, sigma: float,
     better).
 
     Args:
-        sm: the :class:`~.problem.SpecimenModel`; x: ``(dim,)`` a full parameter row,
+        cp: the :class:`~.problem.CalibrationProblem`; x: ``(dim,)`` a full parameter row,
             physical (the FE's best fit, or the best checked posterior draw); sigma: noise
             sd, um; V: ``(n_obs,)`` the calibration FE's outputs at ``x`` where they are at
-            hand (else one more call of ``sm.observed``). The refined run counts in
-            ``sm.tally`` (an FE run of the calibration; the store keeps it under the refined
+            hand (else one more call of ``cp.observed``). The refined run counts in
+            ``cp.tally`` (an FE run of the calibration; the store keeps it under the refined
             problem's hash). delta: ``(n_obs,)`` the correction the calibration applied
-            (:meth:`~.problem.SpecimenModel.correct`, taken at another point): the check then
-            measures what is left, ``|V_fine - V - delta|^2 / sigma^2`` (and ``sm.y`` holds the
+            (:meth:`~.problem.ObservedData.corrected`, taken at another point): the check then
+            measures what is left, ``|V_fine - V - delta|^2 / sigma^2`` (and ``cp.y`` holds the
             corrected data).
     Returns:
         ``{"factor", "shift_chi2", "fit_change", "warn", "message"}`` (and, with ``delta``,
         ``"uncorrected_chi2"``: the shift without the correction).
     """
     row = np.asarray(x, float)[None]
-    V = sm.observed(row)[0] if V is None else np.asarray(V, float)
-    off = sm.offsets(torch.as_tensor(row, dtype=torch.float64))
-    d = discretization_error(sm, row[0], factor, V if off is None else V - off[0].numpy())
+    V = cp.observed(row)[0] if V is None else np.asarray(V, float)
+    off = cp.offsets(torch.as_tensor(row, dtype=torch.float64))
+    d = discretization_error(cp, row[0], factor, V if off is None else V - off[0].numpy())
     Vf = V + d
-    y = sm.y.detach().cpu().numpy()
+    y = cp.y.detach().cpu().numpy()
     corr = np.zeros_like(V) if delta is None else np.asarray(delta, float)
     shift = float(np.sum((Vf - V - corr) ** 2) / sigma**2)
     change = float((np.sum((y + corr - Vf) ** 2) - np.sum((y - V) ** 2)) / sigma**2)

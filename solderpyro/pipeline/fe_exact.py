@@ -43,7 +43,7 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` the FE's observed outputs, um (e.g.
-            :func:`fe_observed` through the run store).
+            :meth:`~solderpyro.specimen.SpecimenModel.observed_runs` through the run store).
         y_obs: ``(n_obs,)`` um; priors: the calibration's (sigma's prior).
         draws: ``(n, dim)`` surrogate posterior draws (or None); starts: ``(k, dim)`` starts of
             the best fit (e.g. the FE check's best draws), physical units.

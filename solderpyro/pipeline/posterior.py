@@ -10,7 +10,7 @@ from solderpyro.calibration import calibrate_emulator
 from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
 from solderpyro.calibration.mcmc import Posterior, WarmStart
 from solderpyro.design.loop import Draws
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem
 from solderpyro.settings import SamplerSettings
 from solderpyro.surrogate import GPSurrogate
 
@@ -37,26 +37,26 @@ def nuts_options(s: SamplerSettings, seed: int, progress: bool, final: bool = Tr
     return nk
 
 
-def sample_posterior(sm: SpecimenModel, gp: GPSurrogate, s: SamplerSettings, seed: int,
+def sample_posterior(cp: CalibrationProblem, gp: GPSurrogate, s: SamplerSettings, seed: int,
                      warm: WarmStart | None = None, final: bool = True,
                      progress: bool = True) -> tuple[Posterior, Any]:
-    """The modular KOH posterior of ``sm.space`` with ``gp`` as the code (its variance in the
+    """The modular KOH posterior of ``cp.space`` with ``gp`` as the code (its variance in the
     likelihood), observation-side effects added after it.
 
     Returns:
         ``(Posterior, ObsInputs)`` (the inputs feed the posterior predictive).
     """
     em: Any = GPEmulator(gp)
-    off = sm.offset()
+    off = cp.offset()
     if off is not None:
-        em = ObservedEmulator(em, sm.n_fe, off)
+        em = ObservedEmulator(em, cp.n_fe, off)
     nk = nuts_options(s, seed, progress, final)
     if warm is not None:
         nk["warm"] = warm
-    post, inp = calibrate_emulator(em, sm.y, sm.space, priors=sm.priors, **nk)
+    post, inp = calibrate_emulator(em, cp.y, cp.space, priors=cp.priors, **nk)
     if final and (s.min_ess > 0 or s.max_rhat > 0):
         post = reach_min_ess(post, s, lambda **kw: calibrate_emulator(
-            em, sm.y, sm.space, priors=sm.priors, **{**nk, **kw})[0], seed)
+            em, cp.y, cp.space, priors=cp.priors, **{**nk, **kw})[0], seed)
     return post, inp
 
 
@@ -115,8 +115,8 @@ def reach_min_ess(post: Posterior, s: SamplerSettings, run: Any, seed: int) -> P
     return out
 
 
-def as_draws(sm: SpecimenModel, post: Posterior, inp: Any) -> Draws:
+def as_draws(cp: CalibrationProblem, post: Posterior, inp: Any) -> Draws:
     """What the design loop needs of a posterior (FE parameters, sigma, offsets)."""
     t = post.flat("t").detach().to("cpu")
-    return Draws(theta=t[:, :sm.n_fe], sigma=post.flat("sigma").detach().to("cpu"),
-                 offset=sm.offsets(t), posterior=(post, inp), chains=post.n_chains)
+    return Draws(theta=t[:, :cp.n_fe], sigma=post.flat("sigma").detach().to("cpu"),
+                 offset=cp.offsets(t), posterior=(post, inp), chains=post.n_chains)

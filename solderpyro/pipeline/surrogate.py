@@ -7,19 +7,19 @@ import math
 
 import torch
 
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem
 from solderpyro.settings import SurrogateSettings
 from solderpyro.surrogate import GPSurrogate
 
 log = logging.getLogger("solderpyro")
 
 
-def fit_surrogate(sm: SpecimenModel, s: SurrogateSettings, X: torch.Tensor, Y: torch.Tensor,
+def fit_surrogate(cp: CalibrationProblem, s: SurrogateSettings, X: torch.Tensor, Y: torch.Tensor,
                   noise_sd: float | None = None) -> GPSurrogate:
     """Fit the surrogate to converged runs.
 
     Args:
-        sm: the problem (its ``gp_box``, and Anand defaults for the flow-stress inputs).
+        cp: the problem (its ``gp_box``, and Anand defaults for the flow-stress inputs).
         s: kernel, ARD, mean, output layout (``"pca"`` unless one value is observed), inputs.
         X: ``(n, n_fe)`` FE parameters, physical units; Y: ``(n, n_obs)`` observed outputs, um.
         noise_sd: the noise sd (um) for the PCA truncation rule (``s.truncation``); default
@@ -31,11 +31,11 @@ def fit_surrogate(sm: SpecimenModel, s: SurrogateSettings, X: torch.Tensor, Y: t
     from solderpyro.surrogate.features import input_map
 
     output = s.output if Y.shape[1] > 1 else "batched"
-    feats = input_map(s.inputs, sm.gp_box, sm.setup.space.defaults, s.inputs_T_C,
+    feats = input_map(s.inputs, cp.gp_box, cp.setup.space.defaults, s.inputs_T_C,
                       s.inputs_rate)
-    sd = noise_sd if noise_sd is not None else sm.priors.sigma_known
+    sd = noise_sd if noise_sd is not None else cp.priors.sigma_known
     use = bool(sd) and output == "pca"
-    gp = GPSurrogate(sm.gp_box, output=output, kernel=s.kernel, ard=s.ard, mean=s.mean,
+    gp = GPSurrogate(cp.gp_box, output=output, kernel=s.kernel, ard=s.ard, mean=s.mean,
                      inputs=feats,
                      resid_chi2=s.truncation * math.sqrt(2 * Y.shape[1]) if use else None,
                      noise_sd=sd if use else None)

@@ -244,7 +244,7 @@ def test_demo_command_runs_tiny(tmp_path):
     assert (out / "exact_posterior.png").stat().st_size > 1000
     ex_info = info["exact"]
     assert info["settings"]["exact"] == {"mode": "on", "runs": 6, "rounds": 2, "profile": 3,
-                                         "profile_ci": True, "confirm": False}
+                                         "profile_ci": True}
     assert info["posterior"] == ("fe-exact" if ex_info["reliable"] else "surrogate")
     assert len(ex_info["rounds"]) == 2 and ex_info["samples"] == 12
     # the profile-likelihood intervals: one per calibrated parameter inside the box, each end

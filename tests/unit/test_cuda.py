@@ -25,3 +25,33 @@ def test_a_batched_cuda_solve_equals_the_cpu_solve() -> None:
     assert gpu.V.device.type == "cuda"
     # the same Newton iterations in the same order: agreement to round-off (1e-13 um measured)
     assert float((gpu.V.cpu() - cpu.V).abs().max()) < 1e-9
+
+
+def test_the_specimen_model_moved_to_cuda_gives_the_cpu_reference(tmp_path) -> None:
+    """``SpecimenModel.to("cuda")``: its buffers and its solver follow; V and dV/dtheta equal
+    the CPU's reference values (tests/unit/test_specimen_model.py) to round-off, and the
+    run-store path on the GPU equals the direct solve."""
+    import numpy as np
+    from test_specimen_model import G_REF, THETA, V_REF, W  # this folder
+
+    from solderpyro import SpecimenModel
+    from solderpyro.specimen import StoreUse
+    from solderpyro.store import RunStore
+
+    f64 = torch.float64
+    m = SpecimenModel().to("cuda")
+    assert all(b.device.type == "cuda" for b in m.buffers())
+    th = torch.tensor(THETA, dtype=f64, device="cuda", requires_grad=True)
+    V = m(th)
+    assert m.solver.tkw["device"].type == "cuda" and V.device.type == "cuda"
+    (g,) = torch.autograd.grad((V * torch.tensor(W, dtype=f64, device="cuda")).sum(), th)
+    torch.testing.assert_close(V.detach().cpu(), torch.tensor(V_REF, dtype=f64), rtol=1e-9,
+                               atol=0)
+    torch.testing.assert_close(g.cpu(), torch.tensor(G_REF, dtype=f64), rtol=1e-9, atol=0)
+    ti, oi = np.array([0, 1, 2, 3, 3]), np.array([0, 0, 1, 0, 1])
+    m.set_observations(ti, oi).use_store(StoreUse(RunStore(tmp_path / "store"), batch=2))
+    Vs, ok = m.observed_runs(torch.tensor(THETA, dtype=f64))
+    assert bool(ok.all())
+    torch.testing.assert_close(Vs, V.detach().cpu()[:, ti, oi], rtol=0, atol=1e-9)
+    m.to("cpu")
+    assert m.solver.tkw["device"].type == "cpu"

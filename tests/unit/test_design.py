@@ -16,7 +16,15 @@ from solderpyro.design.acquisition import (
     propose,
     qIntegratedLogLikVariance,
 )
-from solderpyro.design.loop import Draws, LoopProblem, LoopSettings, run_loop, stop_rule
+from solderpyro.design.loop import (
+    Draws,
+    LoopProblem,
+    LoopSettings,
+    design_rounds,
+    final_posterior,
+    run_loop,
+    stop_rule,
+)
 from solderpyro.design.model import botorch_model, observed_weights
 from solderpyro.params import Box, ParameterSpace
 from solderpyro.surrogate import GPSurrogate
@@ -209,6 +217,37 @@ def test_the_stopping_rule_stops_on_an_exact_surrogate_and_not_on_a_biased_one()
     assert biased.reason == "budget" and "budget ran out" in biased.message
     assert not biased.rounds[-1].fe_ok
     assert len(biased.X) <= s.budget
+
+
+def test_the_final_posterior_and_its_fe_check_use_the_data_they_are_given():
+    """The rounds on the measured data, then other data (as the discretization correction
+    returns them): the final posterior is drawn on those, and its FE check in every chain
+    measures the FE against them: chi2 = |y' - FE|^2 / sigma^2 at each checked draw, to
+    rounding (12 values of size ~1: 1e-12 relative), not against the rounds' data (a shift of
+    half a noise sd per value changes it by n / 4 + sum_i (y_i - FE_i) / sigma: measured 2.5
+    and 2.9 at the two checked draws; the test asks for 0.1)."""
+    import dataclasses
+
+    s = LoopSettings(start=4, batch=2, check=3, budget=30, mc_points=100, candidates=200)
+    p = _toy_problem()
+    rounds = design_rounds(p, s, seed=0)
+    assert rounds.reason == "converged" and rounds.draws.checked is not None
+    y2 = p.y - 0.5 * SIGMA
+    finals: list[bool] = []
+
+    def sample(gp, prev, final):
+        finals.append(final)
+        return _toy_posterior(gp, y2)
+
+    res = final_posterior(dataclasses.replace(p, y=y2, sample=sample), rounds, s)
+    assert finals == [True] and res.rounds[:-1] == rounds.rounds
+    assert res.draws.checked is not None
+    th, V, c2 = res.draws.checked
+    want = (((y2 - V) / SIGMA) ** 2).sum(1).numpy()
+    np.testing.assert_allclose(c2, want, rtol=1e-12, atol=0)
+    old = (((p.y - V) / SIGMA) ** 2).sum(1).numpy()
+    assert np.all(np.abs(old - c2) > 0.1), (old, c2)
+    np.testing.assert_allclose(res.rounds[-1].fe_chi2, c2, rtol=0, atol=0)
 
 
 def test_the_fe_check_adds_observation_side_offsets_as_the_surrogate_does():

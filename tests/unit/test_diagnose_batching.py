@@ -1,5 +1,6 @@
-"""The diagnosis's FE runs through the run store (:class:`solderpyro.diagnose.run.FeRuns`):
-stored runs are read back, duplicates solved once, every solve counted; and the stage costs."""
+"""The diagnosis's FE runs through the run store (:class:`solderpyro.specimen.SpecimenModels`,
+one :class:`~solderpyro.specimen.SpecimenModel` per configuration): stored runs are read back,
+duplicates solved once, every solve counted; and the stage costs."""
 
 import json
 import logging
@@ -8,9 +9,9 @@ import numpy as np
 import torch
 
 from solderpyro.configure import build, compose
-from solderpyro.diagnose.run import STAGES, FeRuns, _cost_lines, _Costs
+from solderpyro.diagnose.run import STAGES, _cost_lines, _Costs
 from solderpyro.effects import effect_set
-from solderpyro.specimen import fe_params
+from solderpyro.specimen import SpecimenModels, fe_params
 from solderpyro.store import RunStore, config_hash
 
 TINY = ["experiment=quick", "loading.times_s=[0,600,900,1500]",
@@ -24,26 +25,27 @@ def test_fe_runs_through_the_store(tmp_path):
     fx = effect_set(("thermal_lag",), TIMES, setup.effect_bounds)
     theta = torch.tensor([[12.92, 10586.0, 2.04, 0.1, 0.0], [13.5, 10400.0, 2.1, 0.12, 30.0],
                           [12.92, 10586.0, 2.04, 0.1, 0.0]], dtype=torch.float64)
-    rows = fe_params(setup, theta)
     store = RunStore(tmp_path / "store")
-    fe = FeRuns(setup, store, batch_size=2)
-    a = fe.solve(rows, TIMES, False, fx)
+    fe = SpecimenModels(setup, store, batch_size=2)
+    a = fe.runs(theta, TIMES, False, fx)
     assert (fe.computed, fe.reused) == (2, 1)  # the duplicate row is solved once
     assert a.V.shape == (3, 3, 2) and a.ok.all() and a.times == TIMES
-    np.testing.assert_array_equal(a.V[0], a.V[2])
+    np.testing.assert_array_equal(a.V[0].numpy(), a.V[2].numpy())
     # registered with the effects switched on, as the calibration registers its own runs
     h = config_hash(setup.problem, TIMES, False, setup.dtype, effects=fx)
     assert len(store.records(h)) == 2
     assert json.loads((store.root / h / "meta.json").read_text())["inputs"]["effects"]
-    again = FeRuns(setup, store)
-    b = again.solve(rows, TIMES, False, fx)
+    again = SpecimenModels(setup, store)
+    b = again.runs(theta, TIMES, False, fx)
     assert (again.computed, again.reused) == (0, 3)
-    np.testing.assert_array_equal(a.V, b.V)
+    np.testing.assert_array_equal(a.V.numpy(), b.V.numpy())
     # without a store: the same values, all computed
-    direct = FeRuns(setup)
-    c = direct.solve(rows[:2], TIMES, False, fx)
+    direct = SpecimenModels(setup)
+    c = direct.runs(theta[:2], TIMES, False, fx)
     assert (direct.computed, direct.reused) == (2, 0)
-    np.testing.assert_allclose(c.V, a.V[:2], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(c.V.numpy(), a.V[:2].numpy(), rtol=1e-10, atol=1e-12)
+    # one model per configuration: the same times and effects give the same model
+    assert again.get(TIMES, False, fx) is again.get(tuple(reversed(TIMES)), False, fx)
 
 
 def test_observation_effects_share_the_fe_run(tmp_path):
@@ -58,19 +60,20 @@ def test_observation_effects_share_the_fe_run(tmp_path):
     base = [12.92, 10586.0, 2.04, 0.1, *([0.0] * 6), 20.0]
     shifted = list(base)
     shifted[4] = 0.2  # moire_c_1: the 600 s image
-    rows = fe_params(setup, torch.tensor([base, shifted], dtype=torch.float64))
+    theta = torch.tensor([base, shifted], dtype=torch.float64)
+    rows = fe_params(setup, theta)
     store = RunStore(tmp_path / "store")
-    fe = FeRuns(setup, store)
-    out = fe.solve(rows, TIMES, False, fx)
+    fe = SpecimenModels(setup, store)
+    out = fe.runs(theta, TIMES, False, fx)
     assert (fe.computed, fe.reused) == (1, 1)
-    dV = out.V[1] - out.V[0]
+    dV = (out.V[1] - out.V[0]).numpy()
     np.testing.assert_allclose(dV[0], 0.2, rtol=0, atol=1e-12)
     np.testing.assert_allclose(dV[1:], 0.0, rtol=0, atol=1e-12)
     lag = effect_set(("thermal_lag",), TIMES, setup.effect_bounds)
     assert len(store.records(config_hash(setup.problem, TIMES, False, setup.dtype,
                                          effects=lag))) == 1
     ref = SpecimenSolver(setup.problem, dtype=setup.dtype, effects=fx).solve(rows, TIMES)
-    np.testing.assert_allclose(out.V, ref.V.numpy(), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(out.V.numpy(), ref.V.numpy(), rtol=1e-10, atol=1e-10)
 
 
 def test_stage_costs(caplog):

@@ -15,8 +15,8 @@ from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import Problem
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.model import SpecimenModel
 from solderpyro.params import ANAND_NAMES, ParameterSpace, anand_tensor
+from solderpyro.specimen import SpecimenModel
 from solderpyro.store import RunRecord, RunStore, config_hash, param_hash, run_doe
 
 CONTRACT = ("modulus_temperature", "stress_free_temperature", "thermal_lag", "cte_temperature",
@@ -246,7 +246,11 @@ def test_model_theta_layout_and_names():
     assert model.n_theta == 9 and model.effect_box.names == tuple(model.param_names[4:])
     theta = torch.tensor([[12.41, 9400.0, 1.5, 0.303, 30.0, 0.1, 0.2, 5.0, -5.0]])
     V = model(theta)
-    direct = model.solver.solve(torch.cat([space.full(theta[:, :4]), theta[:, 4:]], 1), TIMES).V
+    # the model's solver simulates the FE-side effect, the Moire offsets act after it: the
+    # same operations as a solver with both on (which applies them to its own outputs)
+    both = SpecimenSolver(small_problem(), effects=("thermal_lag", "moire_rigid_motion"))
+    direct = both.solve(torch.cat([space.full(theta[:, :4]), theta[:, 4:]], 1), TIMES).V
+    assert model.solver.param_names(TIMES) == [*ANAND_NAMES, "tau"]
     assert V.shape == (1, 2, 2) and torch.equal(V, direct)
     with pytest.raises(ValueError, match=r"shape \(B, 9\) for s0, QR, xi, m, tau, moire_c_1"):
         model(theta[:, :4])

@@ -114,7 +114,7 @@ def test_fe_jacobian_matches_central_differences():
     margin yet catches a wrong chain factor (ln(A_hi/A_lo) = 4.6) or a missing implicit
     correction."""
     from solderpyro.configure import build, compose
-    from solderpyro.model import SpecimenModel
+    from solderpyro.specimen import SpecimenModel
 
     setup = build(compose(["experiment=quick", *SHORT_CYCLE]))
     box = sensitivity_box(setup.space)

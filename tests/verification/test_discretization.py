@@ -10,7 +10,7 @@ from solderpyro.configure import build, compose
 from solderpyro.io.measurements import from_arrays
 from solderpyro.params import LIU2008
 from solderpyro.pipeline.fe_check import DISCRETIZATION_CHI2, discretization_check, refined
-from solderpyro.pipeline.problem import SpecimenModel
+from solderpyro.pipeline.problem import CalibrationProblem
 
 
 def test_refined_multiplies_every_count_and_divides_every_step():
@@ -50,11 +50,11 @@ def test_the_check_measures_the_shift_in_noise_units(tmp_path):
     t, names, pts, V = simulate_table(setup, {}, times, True, progress=False)
     temps = np.array([setup.problem.cycle(x) for x in t])
     meas = from_arrays(t, names, pts, V, temperature_C=temps, sigma_um=np.full(V.shape, 0.05))
-    sm = SpecimenModel.build(setup, meas, str(tmp_path / "store"), 64, False)
+    sm = CalibrationProblem.build(setup, meas, str(tmp_path / "store"), 64, False)
     x = np.array([LIU2008[nm] for nm in sm.space.names])
     a = discretization_check(sm, x, 0.05)
-    fine = SpecimenModel.build(dataclasses.replace(setup, problem=refined(setup.problem)),
-                               meas, str(tmp_path / "store"), 64, False)
+    fine = CalibrationProblem.build(dataclasses.replace(setup, problem=refined(setup.problem)),
+                                    meas, str(tmp_path / "store"), 64, False)
     d = fine.observed(x[None])[0] - sm.observed(x[None])[0]
     assert np.isclose(a["shift_chi2"], np.sum(d**2) / 0.05**2, rtol=1e-10)
     sig_edge = np.sqrt(np.sum(d**2) / DISCRETIZATION_CHI2)  # the sigma where it starts to warn
@@ -80,7 +80,7 @@ def test_a_correction_taken_at_one_point_of_the_ridge_holds_all_along_it(tmp_pat
     t, names, pts, V = simulate_table(setup, {}, SEED_TIMES, True, progress=False)
     temps = np.array([setup.problem.cycle(x) for x in t])
     meas = from_arrays(t, names, pts, V, temperature_C=temps, sigma_um=np.full(V.shape, 0.05))
-    sm = SpecimenModel.build(setup, meas, str(tmp_path / "store"), 64, False)
+    sm = CalibrationProblem.build(setup, meas, str(tmp_path / "store"), 64, False)
     ridge = np.array([[12.92, 10586.0, 2.04, 0.1], [13.6, 12025.0, 3.02, 0.1127],
                       [16.4, 11820.0, 3.4, 0.108]])
     full = ridge  # the FE parameters are the four Anand constants calibrated
@@ -92,16 +92,21 @@ def test_a_correction_taken_at_one_point_of_the_ridge_holds_all_along_it(tmp_pat
         for j in range(3):
             left = ((d[j] - d[i]) ** 2).sum() / sig**2
             assert left < 0.01 * raw[j], (i, j, left, raw[j])
-    # the check after a correction measures what is left, exactly
-    sm.correct(d[0], at=0)
-    y0 = sm.correction["y_measured"].numpy()
-    np.testing.assert_allclose(sm.y.numpy(), y0 - d[0], rtol=0, atol=1e-15)
-    chk = discretization_check(sm, full[1], sig, delta=d[0])
+    # the check after a correction measures what is left, exactly; the correction is a new
+    # data value, the problem's own data stay as measured
+    y0 = sm.y.numpy().copy()
+    data = sm.data.corrected(d[0], at=0)
+    assert not sm.data.is_corrected and data.is_corrected and dict(data.info) == {"at": 0}
+    np.testing.assert_allclose(data.y.numpy(), y0 - d[0], rtol=0, atol=1e-15)
+    cp = sm.with_data(data)
+    assert cp.model is sm.model and cp.tally is sm.tally  # the same model and run count
+    chk = discretization_check(cp, full[1], sig, delta=d[0])
     assert np.isclose(chk["shift_chi2"], ((d[1] - d[0]) ** 2).sum() / sig**2, rtol=1e-8)
     assert np.isclose(chk["uncorrected_chi2"], raw[1], rtol=1e-8) and not chk["warn"]
-    sm.correct(d[1])  # a second correction replaces the first, from the measured data
-    np.testing.assert_allclose(sm.y.numpy(), y0 - d[1], rtol=0, atol=1e-15)
+    again = data.corrected(d[1])  # a second correction replaces the first, from the measured
+    np.testing.assert_allclose(again.y.numpy(), y0 - d[1], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(sm.y.numpy(), y0)
     import pytest
 
     with pytest.raises(ValueError, match="delta must be"):
-        sm.correct(np.full(len(y0), np.nan))
+        data.corrected(np.full(len(y0), np.nan))

@@ -1,25 +1,26 @@
 """The specimen as the calibration observes it: which parameters the FE varies, which model
-outputs the measurements are, and the FE's observed outputs at parameter rows.
+outputs the measurements are, the observation-side effects' offsets, the run directory's files.
 
-The lowest layer of the specimen pipeline: :mod:`solderpyro.pipeline` (the calibration) and
-:mod:`solderpyro.diagnose` (the diagnosis) both build on it, and it imports neither.
+The lowest layer of the specimen pipeline with :mod:`.model`: :mod:`solderpyro.pipeline` (the
+calibration) and :mod:`solderpyro.diagnose` (the diagnosis) both build on it, and it imports
+neither.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
-from solderpyro.configure import Setup
 from solderpyro.effects import EffectSet, effect_set
 from solderpyro.fem.problem import reference_grid
-from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.io.measurements import Measurements
 from solderpyro.params import Box
-from solderpyro.store import RunStore, run_doe
+
+if TYPE_CHECKING:
+    from solderpyro.configure import Setup
+    from solderpyro.io.measurements import Measurements
 
 
 def calibration_box(setup: Setup, fx: EffectSet | None = None) -> Box:
@@ -118,26 +119,3 @@ def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple
 RUN_FILES = ("run.json", "data.csv", "draws.npz")
 #: the sampler's adapted state in a run directory (:class:`~solderpyro.calibration.mcmc.WarmStart`)
 WARM_FILE = "sampler_state.npz"
-
-
-def fe_observed(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...], ti: np.ndarray,
-                oi: np.ndarray, rows: np.ndarray, n_fe: int, obs_offset: Any = None,
-                store: RunStore | None = None, cfg_hash: str | None = None,
-                batch_size: int = 64) -> np.ndarray:
-    """The FE's observed outputs ``(b, n_obs)`` um for parameter rows ``(b, space.dim)``
-    (FE-side parameters first, ``n_fe`` of them, then observation-side ones, which
-    ``obs_offset: q -> (n_obs,)`` adds); NaN rows for members that did not converge.
-
-    With ``store`` and ``cfg_hash`` the runs go through :func:`~solderpyro.store.run_doe`:
-    stored as soon as each batch of ``batch_size`` finishes, and read back when already there.
-    """
-    P = fe_params(setup, torch.tensor(np.asarray(rows)[:, :n_fe], dtype=torch.float64))
-    if store is not None and cfg_hash is not None:
-        res: Any = run_doe(solver, store, cfg_hash, P, times, batch_size, progress=False)
-    else:
-        res = solver.solve(P, times)
-    V = res.V.detach().cpu().numpy()[:, ti, oi]
-    if obs_offset is not None:
-        V = V + np.stack([obs_offset(torch.tensor(r[n_fe:])).detach().numpy() for r in rows])
-    V[~res.ok.cpu().numpy()] = np.nan
-    return V

@@ -1,0 +1,36 @@
+"""The specimen as the calibration and the diagnosis see it.
+
+:mod:`.model`: the forward model, :class:`SpecimenModel` (a ``torch.nn.Module``: parameter rows
+-> the FE's outputs ``(B, n_time, n_out)`` um, or the observed ones ``(B, n_obs)``; directly and
+differentiably, or through the run store) and :class:`SpecimenModels` (one per configuration).
+:mod:`.observed`: which parameters the FE varies, which outputs the measurements are, the
+observation-side effects' offsets, the run directory's files.
+
+The lowest layer of the specimen pipeline: :mod:`solderpyro.pipeline` (the calibration) and
+:mod:`solderpyro.diagnose` (the diagnosis) both build on it, and it imports neither.
+"""
+
+from solderpyro.specimen.model import (
+    ModelRuns,
+    RunTally,
+    SpecimenModel,
+    SpecimenModels,
+    StoreUse,
+)
+from solderpyro.specimen.observed import (
+    OBSERVATION_SEAM,
+    RUN_FILES,
+    WARM_FILE,
+    calibration_box,
+    fe_params,
+    observation_index,
+    observation_offset,
+    output_points,
+    split_effects,
+)
+
+__all__ = [
+    "OBSERVATION_SEAM", "RUN_FILES", "WARM_FILE", "ModelRuns", "RunTally", "SpecimenModel",
+    "SpecimenModels", "StoreUse", "calibration_box", "fe_params", "observation_index",
+    "observation_offset", "output_points", "split_effects",
+]
