@@ -117,19 +117,6 @@ class Measurements:
         """
         return list(dict.fromkeys(self.point.tolist()))
 
-    def point_coords(self) -> dict[str, tuple[float, float]]:
-        """Coordinates of each point label (first occurrence).
-
-        Returns:
-            Mapping label -> (x_mm, y_mm), in first-seen order.
-        """
-        out: dict[str, tuple[float, float]] = {}
-        for p, x, y in zip(
-            self.point.tolist(), self.x_mm.tolist(), self.y_mm.tolist(), strict=True
-        ):
-            out.setdefault(p, (x, y))
-        return out
-
     def to_table(
         self,
         times: Sequence[float] | np.ndarray | None = None,
