@@ -111,13 +111,13 @@ def test_box_overrides_and_errors():
 
 @pytest.mark.parametrize("name", CONTRACT)
 def test_off_value_gives_the_baseline(name, baseline):
-    """The off value reproduces the baseline model to 1e-13 of max|V| (rounding only: the
-    effect's terms at their off value are exact zeros or ones, ~1 ulp of V measured)."""
+    """The off value reproduces the baseline model to 1e-12 of max|V| (rounding only: the
+    effect's terms at their off value are exact zeros or ones; bit-identical measured)."""
     solver = SpecimenSolver(small_problem(), effects=(name,))
     off = EFFECTS[name].bind(TIMES).off
     V = solver.solve(with_anand([off]), TIMES).V
     err = (V - baseline).abs().max().item()
-    assert err <= 1e-13 * baseline.abs().max().item(), (name, err)
+    assert err <= 1e-12 * baseline.abs().max().item(), (name, err)
 
 
 # ------------------------------------------------------------------ (b) batch invariance
@@ -125,7 +125,7 @@ def test_off_value_gives_the_baseline(name, baseline):
 def test_batch_invariance_with_mixed_effect_values(baseline):
     """All effects on at once, each member with its own values (one all-off): every member of
     the batch equals its single run to 1e-11 of max|V|, and the all-off member is the
-    baseline to 1e-13 of it (rounding only: a member's iterations do not depend on its batch,
+    baseline to 1e-12 of it (rounding only: a member's iterations do not depend on its batch,
     ~1 ulp of max|V| measured; a member that saw another's values would be off by far more)."""
     names = CONTRACT
     solver = SpecimenSolver(small_problem(), effects=names)
@@ -139,7 +139,7 @@ def test_batch_invariance_with_mixed_effect_values(baseline):
     batch = solver.solve(P, TIMES)
     assert bool(batch.ok.all())
     vmax = baseline.abs().max().item()
-    assert (batch.V[0] - baseline[0]).abs().max() <= 1e-13 * vmax
+    assert (batch.V[0] - baseline[0]).abs().max() <= 1e-12 * vmax
     for i in range(1, len(P)):
         single = solver.solve(P[i:i + 1], TIMES).V[0]
         tol = 1e-11 * single.abs().max().item()
@@ -151,7 +151,7 @@ def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
     """kinematic_hardening and copper_plasticity together, members on both discretisations
     (off copper: baseline path; yielding copper, 10-12 MPa: banded) and with back stress: every
     member equals its single run to 1e-11 of max|V|, the all-off member is the baseline to
-    1e-13 of it (batched products round differently; its single run is bit-identical, see the
+    1e-12 of it (batched products round differently; its single run is bit-identical, see the
     off test),
     and the copper really yields (V moves by > 0.01 um)."""
     solver = SpecimenSolver(small_problem(), effects=("kinematic_hardening", "copper_plasticity"))
@@ -159,7 +159,7 @@ def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
     P[3, :9] = anand_tensor({"s0": 9.0, "xi": 3.0, "m": 0.1}, dtype=F64)
     batch = solver.solve(P, TIMES)
     vmax = baseline.abs().max().item()
-    assert bool(batch.ok.all()) and (batch.V[0] - baseline[0]).abs().max() <= 1e-13 * vmax
+    assert bool(batch.ok.all()) and (batch.V[0] - baseline[0]).abs().max() <= 1e-12 * vmax
     for i in range(1, len(P)):
         single = solver.solve(P[i:i + 1], TIMES).V[0]
         tol = 1e-11 * single.abs().max().item()

@@ -117,8 +117,9 @@ def test_two_workers_give_the_in_process_numbers(tmp_path, cluster):
     assert current_executor().describe() == "in-process"
     assert bool(ref.ok.all()) and torch.equal(got.ok, ref.ok)
     # the workers solve other batches of the same runs: rounding only (a member's iterations
-    # do not depend on its batch; ~1 ulp of max|V| measured), bounded by 1e-13 max|V|
-    torch.testing.assert_close(got.V, ref.V, rtol=0, atol=1e-13 * ref.V.abs().max().item())
+    # do not depend on its batch; <= 2e-14 of max|V| measured over a 30-run design), bounded
+    # by 1e-12 max|V|
+    torch.testing.assert_close(got.V, ref.V, rtol=0, atol=1e-12 * ref.V.abs().max().item())
     files = sorted(p.name for p in (tmp_path / "dask" / h / "runs").glob("*.json"))
     assert files == sorted(f"{param_hash(r)}.json" for r in P)  # each run stored once
     again = run_doe(solver, dask_store, h, P, SEED_TIMES, executor=cluster, progress=False)
@@ -153,7 +154,7 @@ def test_worker_killed_mid_campaign_completes_with_every_run_stored_once(tmp_pat
     assert files == sorted(f"{param_hash(r)}.json" for r in P)
     ref = run_doe(solver, RunStore(tmp_path / "ref"), h, P, SEED_TIMES, progress=False,
                   executor=InProcess())
-    torch.testing.assert_close(res.V, ref.V, rtol=0, atol=1e-13 * ref.V.abs().max().item())
+    torch.testing.assert_close(res.V, ref.V, rtol=0, atol=1e-12 * ref.V.abs().max().item())
     cluster.client.wait_for_workers(2, timeout=60)  # the nanny restarted the dead worker
 
 
