@@ -152,8 +152,7 @@ def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
     (off copper: baseline path; yielding copper, 10-12 MPa: banded) and with back stress: every
     member equals its single run to 1e-11 of max|V|, the all-off member is the baseline to
     1e-12 of it (batched products round differently; its single run is bit-identical, see the
-    off test),
-    and the copper really yields (V moves by > 0.01 um)."""
+    off test), and the copper really yields (V moves by > 0.01 um)."""
     solver = SpecimenSolver(small_problem(), effects=("kinematic_hardening", "copper_plasticity"))
     P = with_anand([[0.0, 400.0], [800.0, 400.0], [0.0, 10.0], [1500.0, 12.0]])
     P[3, :9] = anand_tensor({"s0": 9.0, "xi": 3.0, "m": 0.1}, dtype=F64)
