@@ -292,8 +292,8 @@ def test_copper_plasticity_elastic_limit_is_the_baseline():
     """The off member (400 MPa, baseline path) is the baseline to the last bit, and the solver
     reports the largest elastic von Mises stress of the band over the cycle; with sigma_y
     0.1 % above it the banded solve (plastic band, QM6 modes solved per element) gives the
-    baseline to 1e-9 um (nothing yields), 2 % below it the copper yields and V changes (so the
-    reported peak is right to 2 %), and more so at 0.7 x."""
+    baseline to 1e-10 of max|V| (nothing yields; ~1e-14 of it measured), 2 % below it the
+    copper yields and V changes (so the reported peak is right to 2 %), and more so at 0.7 x."""
     base = SpecimenSolver(small_problem()).solve(anand_tensor(dtype=F64)[None], TIMES).V[0]
     solver = SpecimenSolver(small_problem(), effects=("copper_plasticity",))
     r0 = solver.solve(rows([[400.0]]), TIMES)
@@ -304,7 +304,7 @@ def test_copper_plasticity_elastic_limit_is_the_baseline():
     err, dev1, dev = ((res.V[i] - base).abs().max().item() for i in range(3))
     print(f"band peak {peak:.3f} MPa; 1.001 x: {err:.2e} um; 0.98 x: {dev1:.2e} um; "
           f"0.7 x: {dev:.3f} um")
-    assert err < 1e-9 and dev1 > 1e-7 and dev > 1e-2
+    assert err < 1e-10 * base.abs().max().item() and dev1 > 1e-7 and dev > 1e-2
 
 
 # ------------------------------------------------------------------ (e) size at the box top
