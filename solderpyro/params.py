@@ -148,97 +148,6 @@ class Box:
 
 
 @dataclass(frozen=True)
-class LocalBox(Box):
-    """A parallelepiped inside a prior box, aligned with a posterior's principal directions.
-
-    Where the data pin the parameters to a thin, tilted ridge (a long correlated posterior),
-    an axis-aligned box around it is mostly empty of posterior mass, and a surrogate trained
-    over it must be accurate far from where the posterior lies. A ``LocalBox`` is
-    ``v = center + basis (2u - 1)``, ``u`` in the unit cube, ``v`` the prior box's own unit
-    coordinates (logarithmic where flagged): with ``basis = c chol(cov)`` it spans +-c
-    standard deviations of a Gaussian approximation along every principal direction. Its
-    unit-cube map is what the sampler (uniform prior on the parallelepiped, i.e. the prior
-    truncated to it) and a GP (:class:`~solderpyro.surrogate.gp.GPSurrogate`: whitened
-    inputs) see; :meth:`log_support` keeps the sampler inside ``outer`` too.
-
-    Attributes (beyond :class:`Box`'s; ``lower``/``upper`` are the parallelepiped's bounding
-    box clipped to ``outer``, for tables and plots):
-        outer: the prior box (physical bounds, log scale).
-        center: ``(dim,)`` centre on ``outer``'s unit scale.
-        basis: ``(dim, dim)`` rows of the matrix ``B`` (``outer`` unit scale per unit of
-            ``2u - 1``), invertible.
-    """
-
-    outer: Box = None  # type: ignore[assignment]  # required; checked in __post_init__
-    center: tuple[float, ...] = ()
-    basis: tuple[tuple[float, ...], ...] = ()
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.outer is None or self.outer.names != self.names:
-            raise ValueError("LocalBox.outer must be a Box with the same names")
-        B = torch.tensor(self.basis, dtype=torch.float64)
-        if len(self.center) != self.dim or B.shape != (self.dim, self.dim):
-            raise ValueError(f"LocalBox: center needs {self.dim} entries and basis "
-                             f"{self.dim}x{self.dim}, got {len(self.center)} and "
-                             f"{tuple(B.shape)}")
-        if not bool(torch.isfinite(B).all()) or abs(float(torch.linalg.det(B))) < 1e-300:
-            raise ValueError("LocalBox.basis must be finite and invertible")
-
-    @classmethod
-    def gaussian(cls, outer: Box, center: Sequence[float], cov: torch.Tensor,
-                 half: float) -> LocalBox:
-        """The +-``half`` sd parallelepiped of ``N(center, cov)``.
-
-        Args:
-            outer: prior box; center: ``(dim,)`` physical units (inside ``outer``);
-            cov: ``(dim, dim)`` covariance on ``outer``'s unit scale (positive definite);
-            half: half-width in standard deviations (e.g. 3.5).
-        """
-        if not half > 0:
-            raise ValueError(f"LocalBox half-width must be > 0 sd, got {half}")
-        c = outer.to_unit(torch.as_tensor(center, dtype=torch.float64))
-        L = torch.linalg.cholesky(torch.as_tensor(cov, dtype=torch.float64))
-        B = half * L
-        # bounding box of the parallelepiped: centre +- sum_j |B_ij|, clipped to the prior box
-        r = B.abs().sum(1)
-        lo_u, hi_u = (c - r).clamp(0.0, 1.0), (c + r).clamp(0.0, 1.0)
-        lo_x, hi_x = outer.from_unit(lo_u), outer.from_unit(hi_u)
-        hi_x = torch.maximum(hi_x, lo_x + 1e-12 * lo_x.abs().clamp_min(1.0))
-        return cls(outer.names, tuple(lo_x.tolist()), tuple(hi_x.tolist()), outer.log_scale,
-                   outer.units, outer=Box(outer.names, outer.lower, outer.upper,
-                                          outer.log_scale, outer.units),
-                   center=tuple(c.tolist()), basis=tuple(tuple(b) for b in B.tolist()))
-
-    def _cb(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return (torch.tensor(self.center, dtype=like.dtype, device=like.device),
-                torch.tensor(self.basis, dtype=like.dtype, device=like.device))
-
-    def to_unit(self, theta: torch.Tensor) -> torch.Tensor:
-        """``(..., dim)`` physical -> ``(..., dim)`` parallelepiped coordinates (in [0, 1]
-        inside it)."""
-        c, B = self._cb(theta)
-        v = self.outer.to_unit(theta) - c
-        z = torch.linalg.solve(B, v.unsqueeze(-1)).squeeze(-1)
-        return 0.5 * (z + 1.0)
-
-    def from_unit(self, u: torch.Tensor) -> torch.Tensor:
-        """Inverse of :meth:`to_unit` (any real ``u``; the unit cube is the parallelepiped)."""
-        c, B = self._cb(u)
-        return self.outer.from_unit(c + (2.0 * u - 1.0) @ B.T)
-
-    def log_support(self, theta: torch.Tensor) -> torch.Tensor:
-        """Log prior factor ``(...)`` keeping ``theta`` inside ``outer``: 0 inside, a steep
-        linear wall outside, -1e4 per half-width of the region in that coordinate (an
-        effective truncation with gradients a sampler can follow: 1e-3 of the half-width,
-        ~1/1000 of the posterior's spread, past a bound costs 10 nats)."""
-        c, B = self._cb(theta)
-        r = B.abs().sum(1)  # the region's half-width per coordinate, outer's unit scale
-        v = self.outer.to_unit(theta)
-        return -1e4 * ((torch.relu(-v) + torch.relu(v - 1.0)) / r).sum(-1)
-
-
-@dataclass(frozen=True)
 class ParameterSpace(Box):
     """Calibration parameters: which Anand constants vary, their box, scaling and defaults.
 
@@ -309,8 +218,3 @@ def parse_theta(text: str) -> dict[str, float]:
             raise ValueError(f"--theta value of {k!r} is not a number: {v!r}") from None
     check_anand_values(out)
     return out
-
-
-def names_to_columns(names: Sequence[str]) -> list[int]:
-    """Indices of ``names`` in ANAND_NAMES order."""
-    return [ANAND_NAMES.index(n) for n in names]

@@ -292,9 +292,6 @@ def joint_model(inp: JointInputs, priors: Priors) -> None:
     k_delta = (discrepancy_cov(priors, inp.u_xobs, d.y_obs.std().item() if d.n_obs > 1 else 1.0)
                if inp.discrepancy else None)
     ll, _, _ = joint_loglik(inp, t_unit, sigma, sigma_c, corr, k_delta)
-    support = getattr(d.theta_box, "log_support", None)
-    if support is not None:  # a LocalBox inside the prior box: stay inside the prior box
-        pyro.factor("support", support(d.theta_box.from_unit(t_unit)))
     pyro.factor(SITE_Y, ll)
 
 
@@ -363,9 +360,6 @@ def observation_model(inp: ObsInputs, priors: Priors) -> None:
     tkw: dict[str, Any] = dict(dtype=y.dtype, device=y.device)
     t_unit = _site(priors, SITE_T, _uniform(0.0, 1.0, inp.theta_box.dim, tkw))
     t = inp.theta_box.from_unit(t_unit)
-    support = getattr(inp.theta_box, "log_support", None)
-    if support is not None:  # a LocalBox inside the prior box: stay inside the prior box
-        pyro.factor("support", support(t))
     lr = None if inp.discrepancy else emulator_lowrank(inp.emulator, t)
     if lr is not None:  # PCA surrogate (full field): Woodbury, O(n k^2) per evaluation
         sigma = _site(priors, SITE_SIGMA, _sigma_prior(priors, y, tkw))

@@ -117,19 +117,6 @@ class Measurements:
         """
         return list(dict.fromkeys(self.point.tolist()))
 
-    def point_coords(self) -> dict[str, tuple[float, float]]:
-        """Coordinates of each point label (first occurrence).
-
-        Returns:
-            Mapping label -> (x_mm, y_mm), in first-seen order.
-        """
-        out: dict[str, tuple[float, float]] = {}
-        for p, x, y in zip(
-            self.point.tolist(), self.x_mm.tolist(), self.y_mm.tolist(), strict=True
-        ):
-            out.setdefault(p, (x, y))
-        return out
-
     def to_table(
         self,
         times: Sequence[float] | np.ndarray | None = None,
@@ -212,6 +199,215 @@ def _point_hint(label: str, valid: Sequence[str]) -> str:
     return hint
 
 
+@dataclass(frozen=True)
+class _Columns:
+    """Where a file's columns are: ``index`` name -> position, ``ncol`` fields per row,
+    ``value_col`` the column read as the value (``value_um`` or ``fringe_order``)."""
+
+    index: dict[str, int]
+    ncol: int
+    value_col: str
+
+
+def _split_lines(spath: str) -> tuple[dict[str, str], list[str], int, list[tuple[int, list[str]]]]:
+    """Read a file into its metadata, header and data rows.
+
+    Blank lines are skipped; ``# key: value`` comment lines become metadata, other comments are
+    skipped; the first other line is the header.
+
+    Returns:
+        ``(meta, header, header_line, rows)``: the ``# key: value`` pairs, the header's stripped
+        column names, its 1-based line number and, per data row, its 1-based line number and
+        stripped cells.
+
+    Raises:
+        ValueError: for a file without a header line. OSError: if it cannot be read.
+    """
+    with open(spath, encoding="utf-8-sig", newline="") as fh:
+        lines = fh.read().splitlines()
+    meta: dict[str, str] = {}
+    header: list[str] | None = None
+    header_line = 0
+    rows: list[tuple[int, list[str]]] = []
+    for lineno, raw in enumerate(lines, start=1):
+        stripped = raw.strip()
+        if not stripped:
+            continue
+        if stripped.startswith("#"):
+            mm = _META_RE.match(stripped)
+            if mm:
+                meta[mm.group(1)] = mm.group(2)
+            continue
+        cells = [c.strip() for c in next(csv.reader([raw]))]
+        if header is None:
+            header, header_line = cells, lineno
+        else:
+            rows.append((lineno, cells))
+    if header is None:
+        raise _fail(spath, None, "empty file: no header line found")
+    return meta, header, header_line, rows
+
+
+def _map_columns(spath: str, header: list[str], header_line: int) -> _Columns:
+    """Check the header (no empty or duplicate names, the required columns present) and pick
+    the value column: ``value_um`` when present (logged if ``fringe_order`` is too), else
+    ``fringe_order``.
+
+    Raises:
+        ValueError: naming the file and the header's line.
+    """
+    seen: set[str] = set()
+    for name in header:
+        if name == "":
+            raise _fail(spath, header_line, "empty column name in header")
+        if name in seen:
+            raise _fail(spath, header_line, f"duplicate column {name}")
+        seen.add(name)
+    col = {name: i for i, name in enumerate(header)}
+    for name in REQUIRED_COLUMNS:
+        if name not in col:
+            raise _fail(
+                spath, header_line,
+                f"missing required column {name}", f"header: {', '.join(header)}",
+            )
+    if "value_um" in col:
+        if "fringe_order" in col:
+            log.info("%s: both value_um and fringe_order present; using value_um", spath)
+        return _Columns(col, len(header), "value_um")
+    if "fringe_order" in col:
+        return _Columns(col, len(header), "fringe_order")
+    raise _fail(
+        spath, header_line,
+        "missing required column value_um (or fringe_order)", f"header: {', '.join(header)}",
+    )
+
+
+def _fringe_scale(spath: str, meta: Mapping[str, str], header_line: int,
+                  grating_lines_per_mm: float | None) -> float:
+    """µm per fringe, ``1000 / f``, for a fringe-order file (V = N / f mm = 1000 N / f µm).
+
+    ``f`` (lines/mm) is ``grating_lines_per_mm`` when given, else the file's
+    ``# grating_lines_per_mm:`` metadata.
+
+    Raises:
+        ValueError: naming the file for a missing, non-numeric or non-positive frequency.
+    """
+    if grating_lines_per_mm is not None:
+        f = float(grating_lines_per_mm)
+        src = "argument grating_lines_per_mm"
+    elif GRATING_KEY in meta:
+        try:
+            f = float(meta[GRATING_KEY])
+        except ValueError:
+            raise _fail(
+                spath, None,
+                f"non-numeric metadata {GRATING_KEY}: {meta[GRATING_KEY]!r}",
+            ) from None
+        src = f"metadata '# {GRATING_KEY}:'"
+    else:
+        raise _fail(
+            spath, header_line,
+            f"column fringe_order needs the grating frequency: add '# {GRATING_KEY}: <f>' "
+            "to the file or pass grating_lines_per_mm",
+        )
+    if not (math.isfinite(f) and f > 0):
+        raise _fail(spath, None, f"grating frequency from {src} must be > 0, got {f!r}")
+    return 1000.0 / f
+
+
+#: One parsed V row: time_s, temperature_C, point, x_mm, y_mm, value (file units), sigma_um.
+_Row = tuple[float, float, str, float, float, float, float]
+
+
+def _parse_row(spath: str, lineno: int, cells: list[str], cols: _Columns) -> _Row | None:
+    """Parse and check one data row's cells; None for a ``U`` row (dropped).
+
+    Temperature and sigma are NaN where their column is absent or the cell empty; the value is
+    in the file's units (µm, or fringes for ``fringe_order``).
+
+    Raises:
+        ValueError: naming the file, ``lineno`` and the column, for a wrong field count, a
+            missing or unknown quantity, a missing / non-numeric / non-finite value, or a
+            non-positive ``sigma_um``.
+    """
+    ncol, col = cols.ncol, cols.index
+    if len(cells) < ncol or (len(cells) > ncol and any(c for c in cells[ncol:])):
+        raise _fail(spath, lineno, f"expected {ncol} fields, found {len(cells)}")
+    q = cells[col["quantity"]]
+    if q == "":
+        raise _fail(spath, lineno, "missing value in column quantity")
+    if q not in KNOWN_QUANTITIES:
+        raise _fail(
+            spath, lineno,
+            f"unknown quantity {q!r} in column quantity",
+            f"expected one of {', '.join(KNOWN_QUANTITIES)}",
+        )
+    if q == "U":
+        return None
+
+    def num(name: str, optional: bool = False) -> float:
+        if name not in col:
+            return math.nan
+        return _parse_float(cells[col[name]], name, spath, lineno, optional=optional)
+
+    t = num("time_s")
+    p = cells[col["point"]]
+    if p == "" or p.lower() == "nan":
+        raise _fail(spath, lineno, "missing value in column point")
+    x, y, v = num("x_mm"), num("y_mm"), num(cols.value_col)
+    temp, sig = num("temperature_C", optional=True), num("sigma_um", optional=True)
+    if not math.isnan(sig) and sig <= 0:
+        raise _fail(spath, lineno, f"sigma_um must be > 0, got {sig!r} in column sigma_um")
+    return t, temp, p, x, y, v, sig
+
+
+def _check_point(spath: str, lineno: int, row: _Row,
+                 valid_points: Mapping[str, tuple[float, float]] | None,
+                 first_xy: dict[str, tuple[float, float, int]]) -> None:
+    """Check a row's point: one of ``valid_points`` at its coordinates (within
+    ``COORD_TOL_MM`` mm) when given, else at the coordinates of its first row, which
+    ``first_xy`` (label -> (x_mm, y_mm, line)) records.
+
+    Raises:
+        ValueError: naming the file, ``lineno`` and the point.
+    """
+    _, _, p, x, y, _, _ = row
+    if valid_points is not None:
+        if p not in valid_points:
+            raise _fail(
+                spath, lineno,
+                f"point {p!r} in column point is not a model output point",
+                _point_hint(p, list(valid_points)),
+            )
+        vx, vy = (float(c) for c in valid_points[p])
+        if abs(x - vx) > COORD_TOL_MM or abs(y - vy) > COORD_TOL_MM:
+            raise _fail(
+                spath, lineno,
+                f"coordinates (x_mm, y_mm) = ({x!r}, {y!r}) of point {p!r} disagree with "
+                f"the model's ({vx!r}, {vy!r}) by more than {COORD_TOL_MM} mm",
+            )
+        return
+    prev = first_xy.setdefault(p, (x, y, lineno))
+    if abs(x - prev[0]) > COORD_TOL_MM or abs(y - prev[1]) > COORD_TOL_MM:
+        raise _fail(
+            spath, lineno,
+            f"coordinates (x_mm, y_mm) = ({x!r}, {y!r}) of point {p!r} disagree with "
+            f"({prev[0]!r}, {prev[1]!r})",
+            f"the same point was given at line {prev[2]}",
+        )
+
+
+def _assemble(parsed: list[_Row], scale: float, meta: dict[str, str]) -> Measurements:
+    """:class:`Measurements` of the parsed V rows, values times ``scale`` (µm per file unit)."""
+    t, temp, p, x, y, v, sig = (list(c) for c in zip(*parsed, strict=True))
+    return Measurements(
+        time_s=np.array(t), temperature_C=np.array(temp), point=np.array(p, dtype=object),
+        x_mm=np.array(x), y_mm=np.array(y),
+        quantity=np.array(["V"] * len(t), dtype=object),
+        value_um=np.array([vi * scale for vi in v]), sigma_um=np.array(sig), meta=meta,
+    )
+
+
 def read_measurements(
     path: str | os.PathLike,
     valid_points: Mapping[str, tuple[float, float]] | None = None,
@@ -240,178 +436,25 @@ def read_measurements(
         OSError: if the file cannot be read.
     """
     spath = os.fspath(path)
-    with open(spath, encoding="utf-8-sig", newline="") as fh:
-        lines = fh.read().splitlines()
-
-    meta: dict[str, str] = {}
-    header: list[str] | None = None
-    header_line = 0
-    rows: list[tuple[int, list[str]]] = []
-    for lineno, raw in enumerate(lines, start=1):
-        stripped = raw.strip()
-        if not stripped:
-            continue
-        if stripped.startswith("#"):
-            mm = _META_RE.match(stripped)
-            if mm:
-                meta[mm.group(1)] = mm.group(2)
-            continue
-        cells = [c.strip() for c in next(csv.reader([raw]))]
-        if header is None:
-            header, header_line = cells, lineno
-        else:
-            rows.append((lineno, cells))
-
-    if header is None:
-        raise _fail(spath, None, "empty file: no header line found")
-    seen: set[str] = set()
-    for name in header:
-        if name == "":
-            raise _fail(spath, header_line, "empty column name in header")
-        if name in seen:
-            raise _fail(spath, header_line, f"duplicate column {name}")
-        seen.add(name)
-    col = {name: i for i, name in enumerate(header)}
-    for name in REQUIRED_COLUMNS:
-        if name not in col:
-            raise _fail(
-                spath, header_line,
-                f"missing required column {name}", f"header: {', '.join(header)}",
-            )
-    if "value_um" in col:
-        fringe = False
-        value_col = "value_um"
-        if "fringe_order" in col:
-            log.info("%s: both value_um and fringe_order present; using value_um", spath)
-    elif "fringe_order" in col:
-        fringe = True
-        value_col = "fringe_order"
-    else:
-        raise _fail(
-            spath, header_line,
-            "missing required column value_um (or fringe_order)", f"header: {', '.join(header)}",
-        )
-
-    scale = 1.0
-    if fringe:
-        if grating_lines_per_mm is not None:
-            f = float(grating_lines_per_mm)
-            src = "argument grating_lines_per_mm"
-        elif GRATING_KEY in meta:
-            try:
-                f = float(meta[GRATING_KEY])
-            except ValueError:
-                raise _fail(
-                    spath, None,
-                    f"non-numeric metadata {GRATING_KEY}: {meta[GRATING_KEY]!r}",
-                ) from None
-            src = f"metadata '# {GRATING_KEY}:'"
-        else:
-            raise _fail(
-                spath, header_line,
-                f"column fringe_order needs the grating frequency: add '# {GRATING_KEY}: <f>' "
-                "to the file or pass grating_lines_per_mm",
-            )
-        if not (math.isfinite(f) and f > 0):
-            raise _fail(spath, None, f"grating frequency from {src} must be > 0, got {f!r}")
-        scale = 1000.0 / f  # µm per fringe: V = N / f [mm] = 1000 N / f [µm]
-
-    valid_names = list(valid_points) if valid_points is not None else []
-    has_temp = "temperature_C" in col
-    has_sigma = "sigma_um" in col
-    out_t: list[float] = []
-    out_T: list[float] = []
-    out_p: list[str] = []
-    out_x: list[float] = []
-    out_y: list[float] = []
-    out_v: list[float] = []
-    out_s: list[float] = []
+    meta, header, header_line, rows = _split_lines(spath)
+    cols = _map_columns(spath, header, header_line)
+    scale = (_fringe_scale(spath, meta, header_line, grating_lines_per_mm)
+             if cols.value_col == "fringe_order" else 1.0)
+    parsed: list[_Row] = []
     first_xy: dict[str, tuple[float, float, int]] = {}
-    n_u = 0
-    ncol = len(header)
     for lineno, cells in rows:
-        if len(cells) < ncol:
-            raise _fail(spath, lineno, f"expected {ncol} fields, found {len(cells)}")
-        if len(cells) > ncol and any(c for c in cells[ncol:]):
-            raise _fail(spath, lineno, f"expected {ncol} fields, found {len(cells)}")
-
-        q = cells[col["quantity"]]
-        if q == "":
-            raise _fail(spath, lineno, "missing value in column quantity")
-        if q not in KNOWN_QUANTITIES:
-            raise _fail(
-                spath, lineno,
-                f"unknown quantity {q!r} in column quantity",
-                f"expected one of {', '.join(KNOWN_QUANTITIES)}",
-            )
-        if q == "U":
-            n_u += 1
-            continue
-
-        t = _parse_float(cells[col["time_s"]], "time_s", spath, lineno, optional=False)
-        p = cells[col["point"]]
-        if p == "" or p.lower() == "nan":
-            raise _fail(spath, lineno, "missing value in column point")
-        x = _parse_float(cells[col["x_mm"]], "x_mm", spath, lineno, optional=False)
-        y = _parse_float(cells[col["y_mm"]], "y_mm", spath, lineno, optional=False)
-        v = _parse_float(cells[col[value_col]], value_col, spath, lineno, optional=False)
-        temp = (
-            _parse_float(cells[col["temperature_C"]], "temperature_C", spath, lineno,
-                         optional=True)
-            if has_temp else math.nan
-        )
-        sig = (
-            _parse_float(cells[col["sigma_um"]], "sigma_um", spath, lineno, optional=True)
-            if has_sigma else math.nan
-        )
-        if not math.isnan(sig) and sig <= 0:
-            raise _fail(spath, lineno, f"sigma_um must be > 0, got {sig!r} in column sigma_um")
-
-        if valid_points is not None:
-            if p not in valid_points:
-                raise _fail(
-                    spath, lineno,
-                    f"point {p!r} in column point is not a model output point",
-                    _point_hint(p, valid_names),
-                )
-            vx, vy = (float(c) for c in valid_points[p])
-            if abs(x - vx) > COORD_TOL_MM or abs(y - vy) > COORD_TOL_MM:
-                raise _fail(
-                    spath, lineno,
-                    f"coordinates (x_mm, y_mm) = ({x!r}, {y!r}) of point {p!r} disagree with "
-                    f"the model's ({vx!r}, {vy!r}) by more than {COORD_TOL_MM} mm",
-                )
-        else:
-            prev = first_xy.setdefault(p, (x, y, lineno))
-            if abs(x - prev[0]) > COORD_TOL_MM or abs(y - prev[1]) > COORD_TOL_MM:
-                raise _fail(
-                    spath, lineno,
-                    f"coordinates (x_mm, y_mm) = ({x!r}, {y!r}) of point {p!r} disagree with "
-                    f"({prev[0]!r}, {prev[1]!r})",
-                    f"the same point was given at line {prev[2]}",
-                )
-
-        out_t.append(t)
-        out_T.append(temp)
-        out_p.append(p)
-        out_x.append(x)
-        out_y.append(y)
-        out_v.append(v * scale if fringe else v)
-        out_s.append(sig)
-
+        row = _parse_row(spath, lineno, cells, cols)
+        if row is not None:
+            _check_point(spath, lineno, row, valid_points, first_xy)
+            parsed.append(row)
+    n_u = len(rows) - len(parsed)
     if n_u:
         log.info("%s: dropped %d row(s) with quantity U (only V is used)", spath, n_u)
-    if not out_t:
+    if not parsed:
         if rows:
             raise _fail(spath, None, f"no data rows with quantity V ({n_u} U row(s) dropped)")
         raise _fail(spath, None, "no data rows after the header")
-
-    return Measurements(
-        time_s=np.array(out_t), temperature_C=np.array(out_T), point=np.array(out_p, dtype=object),
-        x_mm=np.array(out_x), y_mm=np.array(out_y),
-        quantity=np.array(["V"] * len(out_t), dtype=object),
-        value_um=np.array(out_v), sigma_um=np.array(out_s), meta=meta,
-    )
+    return _assemble(parsed, scale, meta)
 
 
 def _fmt(v: float) -> str:

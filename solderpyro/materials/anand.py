@@ -27,22 +27,6 @@ def log_sinh(y: torch.Tensor) -> torch.Tensor:
     return y + torch.log(-torch.expm1(-2.0 * y)) - LOG2
 
 
-def log_flow_rate(sigma: torch.Tensor, s: torch.Tensor, T: torch.Tensor,
-                  p: torch.Tensor) -> torch.Tensor:
-    """Log of the inelastic strain rate, ``log(A) - QR/T + log(sinh(xi*sigma/s))/m``.
-
-    Args:
-        sigma: von Mises stress, MPa, ``(...)`` (> 0).
-        s: deformation resistance, MPa, ``(...)``.
-        T: temperature, K, broadcastable.
-        p: ``(..., 9)`` Anand constants.
-    Returns:
-        ``(...)`` log of the equivalent inelastic strain rate in 1/s.
-    """
-    _, QR, A, xi, m, *_ = unpack(p)
-    return torch.log(A) - QR / T + log_sinh(xi * sigma / s) / m
-
-
 def saturation(rate: torch.Tensor, T: torch.Tensor,
                p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Closed-form saturation at constant inelastic rate and temperature (anand.md).

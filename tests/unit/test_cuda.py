@@ -23,8 +23,9 @@ def test_a_batched_cuda_solve_equals_the_cpu_solve() -> None:
         p.to("cuda"), SEED_TIMES)
     assert bool(cpu.ok.all()) and bool(gpu.ok.all())
     assert gpu.V.device.type == "cuda"
-    # the same Newton iterations in the same order: agreement to round-off (1e-13 um measured)
-    assert float((gpu.V.cpu() - cpu.V).abs().max()) < 1e-9
+    # the same Newton iterations in the same order: agreement to round-off (1e-13 um measured,
+    # ~1e-14 of max|V|), bounded by 1e-10 of max|V|
+    assert float((gpu.V.cpu() - cpu.V).abs().max()) < 1e-10 * float(cpu.V.abs().max())
 
 
 def test_the_specimen_model_moved_to_cuda_gives_the_cpu_reference(tmp_path) -> None:

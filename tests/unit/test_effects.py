@@ -111,19 +111,22 @@ def test_box_overrides_and_errors():
 
 @pytest.mark.parametrize("name", CONTRACT)
 def test_off_value_gives_the_baseline(name, baseline):
-    """The off value reproduces the baseline model to 1e-12 um (rounding only)."""
+    """The off value reproduces the baseline model to 1e-12 of max|V| (rounding only: the
+    effect's terms at their off value are exact zeros or ones; bit-identical measured)."""
     solver = SpecimenSolver(small_problem(), effects=(name,))
     off = EFFECTS[name].bind(TIMES).off
     V = solver.solve(with_anand([off]), TIMES).V
     err = (V - baseline).abs().max().item()
-    assert err <= 1e-12, (name, err)
+    assert err <= 1e-12 * baseline.abs().max().item(), (name, err)
 
 
 # ------------------------------------------------------------------ (b) batch invariance
 
 def test_batch_invariance_with_mixed_effect_values(baseline):
     """All effects on at once, each member with its own values (one all-off): every member of
-    the batch equals its single run to 1e-10 um, and the all-off member is the baseline."""
+    the batch equals its single run to 1e-11 of max|V|, and the all-off member is the
+    baseline to 1e-12 of it (rounding only: a member's iterations do not depend on its batch,
+    ~1 ulp of max|V| measured; a member that saw another's values would be off by far more)."""
     names = CONTRACT
     solver = SpecimenSolver(small_problem(), effects=names)
     fx = EffectSet(names).bind(TIMES)
@@ -135,27 +138,31 @@ def test_batch_invariance_with_mixed_effect_values(baseline):
     P[2, :9] = anand_tensor({"s0": 9.0, "xi": 3.0, "m": 0.1}, dtype=F64)  # another material, too
     batch = solver.solve(P, TIMES)
     assert bool(batch.ok.all())
-    assert (batch.V[0] - baseline[0]).abs().max() <= 1e-12
+    vmax = baseline.abs().max().item()
+    assert (batch.V[0] - baseline[0]).abs().max() <= 1e-12 * vmax
     for i in range(1, len(P)):
         single = solver.solve(P[i:i + 1], TIMES).V[0]
-        assert torch.allclose(batch.V[i], single, rtol=0, atol=1e-10), (i, batch.V[i] - single)
+        tol = 1e-11 * single.abs().max().item()
+        assert torch.allclose(batch.V[i], single, rtol=0, atol=tol), (i, batch.V[i] - single)
         assert (batch.V[i] - baseline[0]).abs().max() > 0.1  # the members really differ
 
 
 def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
     """kinematic_hardening and copper_plasticity together, members on both discretisations
     (off copper: baseline path; yielding copper, 10-12 MPa: banded) and with back stress: every
-    member equals its single run to 1e-10 um, the all-off member is the baseline to 1e-12 um
-    (batched products round differently; its single run is bit-identical, see the off test),
-    and the copper really yields (V moves by > 0.01 um)."""
+    member equals its single run to 1e-11 of max|V|, the all-off member is the baseline to
+    1e-12 of it (batched products round differently; its single run is bit-identical, see the
+    off test), and the copper really yields (V moves by > 0.01 um)."""
     solver = SpecimenSolver(small_problem(), effects=("kinematic_hardening", "copper_plasticity"))
     P = with_anand([[0.0, 400.0], [800.0, 400.0], [0.0, 10.0], [1500.0, 12.0]])
     P[3, :9] = anand_tensor({"s0": 9.0, "xi": 3.0, "m": 0.1}, dtype=F64)
     batch = solver.solve(P, TIMES)
-    assert bool(batch.ok.all()) and (batch.V[0] - baseline[0]).abs().max() <= 1e-12
+    vmax = baseline.abs().max().item()
+    assert bool(batch.ok.all()) and (batch.V[0] - baseline[0]).abs().max() <= 1e-12 * vmax
     for i in range(1, len(P)):
         single = solver.solve(P[i:i + 1], TIMES).V[0]
-        assert torch.allclose(batch.V[i], single, rtol=0, atol=1e-10), (i, batch.V[i] - single)
+        tol = 1e-11 * single.abs().max().item()
+        assert torch.allclose(batch.V[i], single, rtol=0, atol=tol), (i, batch.V[i] - single)
     assert (batch.V[2] - baseline[0]).abs().max() > 0.01
 
 

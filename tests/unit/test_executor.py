@@ -116,7 +116,10 @@ def test_two_workers_give_the_in_process_numbers(tmp_path, cluster):
         got = run_doe(solver, dask_store, h, P, SEED_TIMES, batch_size=64, progress=False)
     assert current_executor().describe() == "in-process"
     assert bool(ref.ok.all()) and torch.equal(got.ok, ref.ok)
-    torch.testing.assert_close(got.V, ref.V, rtol=0, atol=1e-12)
+    # the workers solve other batches of the same runs: rounding only (a member's iterations
+    # do not depend on its batch; <= 2e-14 of max|V| measured over a 30-run design), bounded
+    # by 1e-12 max|V|
+    torch.testing.assert_close(got.V, ref.V, rtol=0, atol=1e-12 * ref.V.abs().max().item())
     files = sorted(p.name for p in (tmp_path / "dask" / h / "runs").glob("*.json"))
     assert files == sorted(f"{param_hash(r)}.json" for r in P)  # each run stored once
     again = run_doe(solver, dask_store, h, P, SEED_TIMES, executor=cluster, progress=False)
@@ -151,7 +154,7 @@ def test_worker_killed_mid_campaign_completes_with_every_run_stored_once(tmp_pat
     assert files == sorted(f"{param_hash(r)}.json" for r in P)
     ref = run_doe(solver, RunStore(tmp_path / "ref"), h, P, SEED_TIMES, progress=False,
                   executor=InProcess())
-    torch.testing.assert_close(res.V, ref.V, rtol=0, atol=1e-12)
+    torch.testing.assert_close(res.V, ref.V, rtol=0, atol=1e-12 * ref.V.abs().max().item())
     cluster.client.wait_for_workers(2, timeout=60)  # the nanny restarted the dead worker
 
 
@@ -293,9 +296,10 @@ def test_client_killed_mid_campaign_then_rerun_reuses_every_stored_run(tmp_path)
 
 def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeypatch, caplog):
     """solve_split (the in-process default): 16 runs split over two one-thread processes come
-    back in row order with the runs of the whole batch solved at once (1e-11 um: a member
-    does not depend on its batch), and a forked part that dies is solved in this process,
-    with a warning, nothing lost."""
+    back in row order with the runs of the whole batch solved at once (to 1e-12 of max|V|: a
+    member's iterations do not depend on its batch, so the parts differ from the whole by
+    rounding, ~1 ulp of max|V|), and a forked part that dies is solved in this process, with
+    a warning, nothing lost."""
     import solderpyro.executor as exe
 
     if not exe._can_fork():
@@ -304,11 +308,12 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
     P = _params(16)
     names = list(ANAND_NAMES)
     whole = exe.solve_batch(solver, P, SEED_TIMES, names)
+    tol = 1e-12 * max(float(abs(r.V).max()) for r in whole)
     split = exe.solve_split(solver, P, SEED_TIMES, names, 2)
     assert [r.params for r in split] == [r.params for r in whole]
     for a, b in zip(whole, split, strict=True):
         assert a.ok and b.ok
-        np.testing.assert_allclose(b.V, a.V, rtol=0, atol=1e-11)
+        np.testing.assert_allclose(b.V, a.V, rtol=0, atol=tol)
     # one run, or one process: solved here, whole
     assert exe.solve_split(solver, P[:1], SEED_TIMES, names, 2)[0].ok
     assert len(exe.solve_split(solver, P[:3], SEED_TIMES, names, 1)) == 3
@@ -328,7 +333,7 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
     proc.start()
     got = r.recv()
     proc.join()
-    assert proc.exitcode == 0 and len(got) == 4 and max(got) <= 1e-11
+    assert proc.exitcode == 0 and len(got) == 4 and max(got) <= tol
 
     def dies(conn, *args):
         os._exit(3)
@@ -338,7 +343,7 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
         again = exe.solve_split(solver, P, SEED_TIMES, names, 2)
     assert "failed" in caplog.text and "solved here" in caplog.text
     for a, b in zip(whole, again, strict=True):
-        np.testing.assert_allclose(b.V, a.V, rtol=0, atol=1e-11)
+        np.testing.assert_allclose(b.V, a.V, rtol=0, atol=tol)
 
 
 class _ParentFails:

@@ -263,6 +263,34 @@ def test_empty(tmp_path, text, pattern):
     assert re.search(pattern, msg), msg
 
 
+FRINGE = "time_s,point,x_mm,y_mm,quantity,fringe_order\n600,A,15,4.5,V,3\n"
+
+
+@pytest.mark.parametrize(
+    "text, pattern",
+    [
+        ("time_s,,point\n1,2,A\n", r"empty column name in header at line 1"),
+        ("# c\ntime_s,point,time_s\n1,A,2\n", r"duplicate column time_s at line 2"),
+        (f"# grating_lines_per_mm: fine\n{FRINGE}",
+         r"non-numeric metadata grating_lines_per_mm: 'fine'$"),
+        (f"# grating_lines_per_mm: -2400\n{FRINGE}",
+         r"grating frequency from metadata '# grating_lines_per_mm:' must be > 0, got -2400.0$"),
+        (f"{HEADER}\n600,75,A,15,4.5,V,1.0,0.05,,x\n", r"expected 8 fields, found 10 at line 2"),
+    ],
+)
+def test_bad_header_grating_and_row_length(tmp_path, text, pattern):
+    msg = _err(tmp_path, text)
+    assert re.search(pattern, msg), msg
+
+
+def test_trailing_empty_fields_and_value_um_over_fringe_order(tmp_path, caplog):
+    text = f"{HEADER},fringe_order\n600,75,A,15,4.5,V,1.0,0.05,7,,\n"
+    with caplog.at_level(logging.INFO, logger="solderpyro.io.measurements"):
+        r = read_measurements(write(tmp_path, text))
+    assert r.value_um.tolist() == [1.0] and r.sigma_um.tolist() == [0.05]
+    assert "both value_um and fringe_order present; using value_um" in caplog.text
+
+
 # ----------------------------------------------------------------------------- API
 
 

@@ -242,20 +242,21 @@ def test_fused_evaluation_matches_torch(monkeypatch, plane):
 
 @pytest.mark.parametrize("plane", ["stress", "strain"])
 def test_solve_matches_torch_path(monkeypatch, plane):
-    """Whole solves (the batch of the contract tests): native and torch paths agree to
-    1e-10 um."""
+    """Whole solves (the batch of the contract tests): native and torch paths agree to 1e-11
+    of max|V| (both Newton iterations reach the same discrete solution; their different
+    factorizations and sums leave ~1e-14 of max|V|, measured)."""
     solver = SpecimenSolver(small_problem(plane=plane))
     p = params(ROWS)
     V = solver.solve(p, [600.0, 1500.0]).V
     monkeypatch.setenv("SOLDERPYRO_NATIVE", "0")
     ref = solver.solve(p, [600.0, 1500.0]).V
-    assert (V - ref).abs().max() <= 1e-10
+    assert (V - ref).abs().max() <= 1e-11 * ref.abs().max()
     assert (V[0] - V[1]).abs().max() > 0.05
 
 
 def test_solve_with_effects_matches_torch_path(monkeypatch):
     """Back stress, temperature-dependent modulus and a yielding copper band (per-member
-    fields, the banded discretisation): native and torch paths agree to 1e-10 um."""
+    fields, the banded discretisation): native and torch paths agree to 1e-11 of max|V|."""
     effects = ("kinematic_hardening", "modulus_temperature", "copper_plasticity")
     solver = SpecimenSolver(small_problem(), effects=effects)
     names = solver.param_names()
@@ -265,7 +266,7 @@ def test_solve_with_effects_matches_torch_path(monkeypatch):
     V = solver.solve(p, [600.0, 1500.0]).V
     monkeypatch.setenv("SOLDERPYRO_NATIVE", "0")
     ref = solver.solve(p, [600.0, 1500.0]).V
-    assert torch.isfinite(V).all() and (V - ref).abs().max() <= 1e-10
+    assert torch.isfinite(V).all() and (V - ref).abs().max() <= 1e-11 * ref.abs().max()
 
 
 def test_switched_off_uses_the_torch_path(monkeypatch):

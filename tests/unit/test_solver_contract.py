@@ -33,14 +33,19 @@ ROWS = [{}, {"s0": 5.0, "QR": 7000.0, "xi": 5.0, "m": 0.05},
 
 @pytest.mark.parametrize("plane", ["stress", "strain"])
 def test_batch_invariance(plane):
-    """Each member of a batch equals its single run to 1e-10 um (the stiffest members sub-step
-    on their own, so the others' time grid is untouched)."""
+    """Each member of a batch equals its single run to 1e-11 of max|V| (the stiffest members
+    sub-step on their own, so the others' time grid is untouched)."""
     solver = SpecimenSolver(small_problem(plane=plane))
     p = params(ROWS)
     batch = solver.solve(p, [600.0, 1500.0]).V
+    # a member's Newton iterations do not depend on its batch (converged members are
+    # frozen), so batch and single runs differ by the rounding of the batched products
+    # and solves (~1 ulp of max|V| measured); 1e-11 max|V| bounds it with room, while a
+    # member that saw another's time grid would be off by its discretisation error
     for i in range(len(ROWS)):
         single = solver.solve(p[i:i + 1], [600.0, 1500.0]).V
-        assert torch.allclose(batch[i], single[0], rtol=0, atol=1e-10), (i, batch[i] - single[0])
+        tol = 1e-11 * single.abs().max().item()
+        assert torch.allclose(batch[i], single[0], rtol=0, atol=tol), (i, batch[i] - single[0])
     # the batch really differs between members (not a constant)
     assert (batch[0] - batch[1]).abs().max() > 0.05
 
@@ -75,8 +80,8 @@ def test_failed_member_is_flagged_and_isolated():
     assert r.ok.tolist() == [True, False, True]
     assert "no convergence" in r.reasons[1] and r.reasons[0] == ""
     assert torch.isnan(r.V[1]).all() and torch.isfinite(r.V[[0, 2]]).all()
-    single = solver.solve(p[:1], [600.0, 1500.0]).V
-    assert torch.allclose(r.V[0], single[0], rtol=0, atol=1e-10)
+    single = solver.solve(p[:1], [600.0, 1500.0]).V  # rounding only, as in the batch test
+    assert torch.allclose(r.V[0], single[0], rtol=0, atol=1e-11 * single.abs().max().item())
 
 
 def test_bad_params_raise():

@@ -319,7 +319,10 @@ def test_kill_minus_9_mid_doe_loses_nothing_computed(tmp_path):
     assert res.ok.all() and len(store.records(h)) == 4
     fresh = solver.solve(params, SEED_TIMES)  # all four, one batch, in this process
     assert fresh.ok.all()
-    torch.testing.assert_close(res.V, fresh.V.to(torch.float64), rtol=0, atol=1e-10)
+    # batches of one against one of four: rounding only (a member's iterations do not depend
+    # on its batch; ~1 ulp of max|V| measured), bounded by 1e-11 max|V|
+    ref = fresh.V.to(torch.float64)
+    torch.testing.assert_close(res.V, ref, rtol=0, atol=1e-11 * ref.abs().max().item())
 
 
 def test_records_are_readable_by_the_other_users_of_a_shared_store(tmp_path):
