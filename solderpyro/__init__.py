@@ -13,10 +13,10 @@ from .fem.problem import AnandSolder, Elastic, Problem
 from .fem.solver import SolveResult, SpecimenSolver
 from .params import ANAND_NAMES, LIU2008, ParameterSpace
 from .specimen.model import SpecimenModel
+from .version import __version__
 
 __all__ = [
     "ANAND_NAMES", "AnandSolder", "Elastic", "EXTENDED_TIMES", "LIU2008", "Layer", "MeshSpec",
     "ParameterSpace", "Problem", "REFERENCE_CYCLE", "SEED_TIMES", "SolveResult",
-    "SpecimenModel", "SpecimenSolver", "ThermalCycle", "TimeStepping",
+    "SpecimenModel", "SpecimenSolver", "ThermalCycle", "TimeStepping", "__version__",
 ]
-__version__ = "0.1.0"

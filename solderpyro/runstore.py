@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from .params import ANAND_NAMES
+from .version import __version__
 
 log = logging.getLogger(__name__)
 
@@ -164,8 +165,6 @@ def _now() -> str:
 
 
 def _version() -> str:
-    from . import __version__
-
     return str(__version__)
 
 

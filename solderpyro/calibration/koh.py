@@ -152,9 +152,9 @@ def _corr_prior(priors: Priors, n: int, tkw: dict[str, Any]) -> dist.Distributio
 
 
 def discrepancy_cov(priors: Priors, u_x: torch.Tensor, scale_default: float) -> torch.Tensor:
-    """Sample the discrepancy hyperparameters (Pyro sites) and return K_delta ``(n, n)`` (output units^2)
-    on the unit-scaled inputs u_x ``(n, n_x)``; ``scale_default``: the discrepancy sd prior
-    scale when ``priors.delta_scale`` is unset."""
+    """Sample the discrepancy hyperparameters (Pyro sites) and return K_delta ``(n, n)``
+    (output units^2) on the unit-scaled inputs u_x ``(n, n_x)``; ``scale_default``: the
+    discrepancy sd prior scale when ``priors.delta_scale`` is unset."""
     tkw: dict[str, Any] = dict(dtype=u_x.dtype, device=u_x.device)
     sd = _site(priors, SITE_SIGMA_D, dist.HalfNormal(
         torch.tensor(priors.delta_scale or scale_default, **tkw)))
