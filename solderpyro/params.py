@@ -115,7 +115,7 @@ class Box:
     def to_unit(self, theta: torch.Tensor) -> torch.Tensor:
         """Map ``(..., dim)`` physical values to the unit cube (log where flagged)."""
         lo, hi = self._lohi(theta)
-        return (self._fwd(theta) - lo) / (hi - lo)
+        return (self.to_working(theta) - lo) / (hi - lo)
 
     def from_unit(self, u: torch.Tensor) -> torch.Tensor:
         """Inverse of :meth:`to_unit`: ``(..., dim)`` in [0, 1] -> physical units."""
@@ -125,14 +125,17 @@ class Box:
         # inner where: exp never sees a large linear-scale value (inf there poisons gradients)
         return torch.where(logm, torch.exp(torch.where(logm, z, torch.zeros_like(z))), z)
 
-    def _fwd(self, x: torch.Tensor) -> torch.Tensor:
+    def to_working(self, x: torch.Tensor) -> torch.Tensor:
+        """``(..., dim)`` physical values on the box's working scale: the log of the columns
+        flagged log-scale (values <= 0 clamped to 1e-300 first), the others unchanged. The unit
+        cube is this scale's affine image."""
         logm = torch.tensor(self.log_scale, device=x.device)
         safe = torch.where(logm, x, torch.ones_like(x)).clamp_min(1e-300)
         return torch.where(logm, torch.log(safe), x)
 
     def _lohi(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b = torch.tensor([self.lower, self.upper], dtype=like.dtype, device=like.device)
-        b = self._fwd(b)
+        b = self.to_working(b)
         return b[0], b[1]
 
     @classmethod

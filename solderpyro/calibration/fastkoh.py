@@ -79,7 +79,7 @@ def direct_flat(inp: ObsInputs, priors: Priors | None = None) -> FlatModel:
 
     # the theta box's unit-cube map in NumPy (as Box.from_unit): z = lo + u (hi - lo) on the
     # (log where flagged) scale, t = exp(z) where flagged, dt/du = (t or 1) (hi - lo)
-    bnd = box._fwd(torch.tensor([box.lower, box.upper], dtype=torch.float64)).numpy()
+    bnd = box.to_working(torch.tensor([box.lower, box.upper], dtype=torch.float64)).numpy()
     lo_f, w_f = bnd[0], bnd[1] - bnd[0]
     logm = np.asarray(box.log_scale, dtype=bool)
 

@@ -91,7 +91,7 @@ class GPInputMap:
 def _unit_map(box: Box, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(lo, width, log)`` of a box's first ``n`` coordinates on its (log where flagged)
     scale: ``z = lo + u * width``."""
-    b = box._fwd(torch.tensor([box.lower, box.upper], dtype=torch.float64)).numpy()[:, :n]
+    b = box.to_working(torch.tensor([box.lower, box.upper], dtype=torch.float64)).numpy()[:, :n]
     return b[0], b[1] - b[0], np.asarray(box.log_scale[:n], dtype=bool)
 
 
@@ -484,7 +484,7 @@ def _native_flow_flat(fused: Any, umap: GPInputMap, flow: Any, sig: Any, mu: flo
 
     feats = umap.feats
     box = feats.box
-    lh = box._fwd(torch.tensor([box.lower, box.upper], dtype=torch.float64)).numpy()[:, :p]
+    lh = box.to_working(torch.tensor([box.lower, box.upper], dtype=torch.float64)).numpy()[:, :p]
     head = [mu, sd] if sig.positive else [sig.lo, sig.hi - sig.lo]
     head += [flow.T, flow.lr, flow.lsh, flow.n, flow.frac, flow.za, flow.zb, flow.ls0a,
              flow.ls0b, *flow.p0, *flow.pw, *(float(v) for v in flow.log)]

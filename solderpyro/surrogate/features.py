@@ -136,7 +136,7 @@ class FlowStressInputs:
         d = x.shape[0]
         ix = self.idx
         if not hasattr(self, "_np_box"):
-            lh = self.box._fwd(torch.tensor([self.box.lower, self.box.upper],
+            lh = self.box.to_working(torch.tensor([self.box.lower, self.box.upper],
                                             dtype=torch.float64)).numpy()
             self._np_box = (lh[0], lh[1], np.asarray(self.box.log_scale, dtype=bool))
         lo, hi, logm = self._np_box
