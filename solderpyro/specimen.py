@@ -115,11 +115,6 @@ def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple
     return ti, oi
 
 
-RUN_FILES = ("run.json", "data.csv", "draws.npz")
-#: the sampler's adapted state in a run directory (:class:`~solderpyro.calibration.mcmc.WarmStart`)
-WARM_FILE = "sampler_state.npz"
-
-
 def fe_observed(solver: SpecimenSolver, setup: Setup, times: tuple[float, ...], ti: np.ndarray,
                 oi: np.ndarray, rows: np.ndarray, n_fe: int, obs_offset: Any = None,
                 store: RunStore | None = None, cfg_hash: str | None = None,
