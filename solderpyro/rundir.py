@@ -236,7 +236,7 @@ class RunInfo:
             if kw.get(k) is None:
                 kw.pop(k, None)
         design = DesignSummary(d.pop("design", None) or {})
-        kw.setdefault("posterior", "surrogate")
+        kw["posterior"] = str(kw.get("posterior") or "surrogate")
         kw["trust"] = str(kw.get("trust") or "")
         sk = kw["sigma_known"]
         kw["sigma_known"] = None if sk is None else float(sk)
