@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -33,12 +32,13 @@ def rebuild(run: Path, store: str | None = None, data: str | None = None) -> Sim
     from solderpyro.io.measurements import read_measurements
     from solderpyro.pipeline.problem import CalibrationProblem
     from solderpyro.pipeline.surrogate import fit_surrogate
+    from solderpyro.rundir import RunDir
     from solderpyro.settings import CalibrationSettings
 
-    info = json.loads((run / "run.json").read_text())
-    setup = build(compose(info.get("overrides") or []))
-    sm = CalibrationProblem.build(setup, read_measurements(data or info["data"]),
-                             store or info["store"], 64, False)
+    info = RunDir.read(run).info
+    setup = build(compose(info.overrides))
+    sm = CalibrationProblem.build(setup, read_measurements(data or info.data),
+                             store or info.store, 64, False)
     with (run / "design.csv").open() as f:
         rows = [r for r in csv.DictReader(f) if r["converged"] == "1"]
     names = list(sm.gp_box.names)

@@ -18,9 +18,11 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from diagnosis_cases import _covered, _truth  # noqa: E402
 
+from solderpyro.rundir import RUN_JSON, RunDir  # noqa: E402
+
 
 def _run(d: Path) -> dict:
-    info = json.loads((d / "run.json").read_text())
+    info = RunDir.read(d).info
     with (d / "summary.csv").open() as f:
         rows = list(csv.DictReader(f))
     rep = (d / "report.md").read_text().splitlines()
@@ -34,14 +36,14 @@ def _run(d: Path) -> dict:
                 ess.append(float(cells[-1]))
             except ValueError:
                 pass
-    des = info["design"]
-    disc = info.get("discretization") or {}
-    return {"posterior": info.get("posterior"), "design": des["reason"],
-            "runs": info["n_runs"], "fe_check_sd": round(info["fe_check"]["rms_over_sigma"], 2),
-            "fe_ok": info["fe_check"]["ok"], "rhat": max(rh) if rh else None,
+    chk = info.checks.fe_check
+    disc = info.checks.discretization
+    return {"posterior": info.posterior, "design": info.design.reason,
+            "runs": info.n_runs, "fe_check_sd": round(chk["rms_over_sigma"], 2),
+            "fe_ok": chk["ok"], "rhat": max(rh) if rh else None,
             "ess": min(ess) if ess else None,
             "discretization_chi2": disc.get("shift_chi2"),
-            "seconds": round(sum(info["timing_s"].values()))}
+            "seconds": round(sum(info.timing_s.values()))}
 
 
 def main() -> None:
@@ -51,7 +53,7 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     out = []
-    for case in sorted(p for p in Path(a.work).iterdir() if (p / "base" / "run.json").exists()):
+    for case in sorted(p for p in Path(a.work).iterdir() if (p / "base" / RUN_JSON).exists()):
         hidden, truth = _truth(Path(a.data_dir) / f"{case.name}.csv")
         rec = {"case": case.name, "hidden": hidden, "base": _run(case / "base")}
         dj = case / "base" / "diagnosis.json"

@@ -37,6 +37,7 @@ from solderpyro.configure import build, compose
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import SEED_TIMES
+from solderpyro.rundir import RunDir
 from solderpyro.sweep import sweep
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
@@ -52,7 +53,7 @@ def _rhat_max(nc: Path) -> float:
 
 def record(case: str, data: Path, run: Path, command: str, wall: float) -> dict:
     """One case's result from its run directory."""
-    info = json.loads((run / "run.json").read_text())
+    info = RunDir.read(run).info
     truth = dict(TRUTH)
     for line in data.read_text().splitlines():
         if line.startswith("# hidden_values:"):
@@ -61,16 +62,16 @@ def record(case: str, data: Path, run: Path, command: str, wall: float) -> dict:
         rows = {row["parameter"]: row for row in csv.DictReader(f)}
     ivs = {k: reported_interval(rows[k]) for k in truth if k in rows}
     cover = {k: lo <= truth[k] <= hi for k, (lo, hi) in ivs.items()}
-    chk = info["fe_check"]
+    chk = info.checks.fe_check
     return {"case": case, "command": command, "wall_s": round(wall, 1),
-            "design": {k: info["design"][k] for k in ("reason", "fe_runs")},
-            "rounds": len(info["design"]["rounds"]),
+            "design": {"reason": info.design.reason, "fe_runs": info.design.fe_runs},
+            "rounds": len(info.design.record["rounds"]),
             "fe_check_rms_sd": chk["rms_over_sigma"], "fe_check_ok": chk["ok"],
             "covered": cover, "n_covered": sum(cover.values()), "n_truth": len(cover),
             "intervals": {k: list(iv) for k, iv in ivs.items()},
             "r_hat_max": _rhat_max(run / "posterior.nc"),
-            "posterior": info.get("posterior"), "trust": info.get("trust"),
-            "timing_s": info.get("timing_s")}
+            "posterior": info.posterior, "trust": info.trust,
+            "timing_s": info.timing_s}
 
 
 def main() -> None:

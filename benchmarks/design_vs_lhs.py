@@ -45,6 +45,7 @@ import torch
 from solderpyro.configure import build, compose
 from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import SEED_TIMES
+from solderpyro.rundir import RunDir
 from solderpyro.sweep import sweep
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
@@ -107,18 +108,18 @@ def run_calibrate(data: Path, out: Path, store: Path, extra: list[str]) -> dict:
     (out / "stdout.log").write_text(r.stdout + r.stderr)
     if r.returncode != 0:
         raise RuntimeError(f"calibrate failed (rc {r.returncode}); see {out / 'stdout.log'}")
-    info = json.loads((out / "run.json").read_text())
+    info = RunDir.read(out).info
     sur = out / "summary_surrogate.csv"
-    ex = info.get("exact") or {}
+    ex = info.exact or {}
     return {"command": "solderpyro " + " ".join(cmd[3:]),
             "quantiles": _quantiles(out / "summary.csv"),
             "surrogate_quantiles": _quantiles(sur if sur.exists() else out / "summary.csv"),
-            "reported": info.get("posterior"), "trust": info.get("trust"),
-            "design_reason": info["design"]["reason"],
-            "design_fe_runs": info["design"]["fe_runs"],
+            "reported": info.posterior, "trust": info.trust,
+            "design_reason": info.design.reason,
+            "design_fe_runs": info.design.fe_runs,
             "exact_fe_runs": ex.get("fe_runs", 0),
-            "fe_check_rms_sd": info["fe_check"]["rms_over_sigma"],
-            "fe_check_ok": info["fe_check"]["ok"]}
+            "fe_check_rms_sd": info.checks.fe_check["rms_over_sigma"],
+            "fe_check_ok": info.checks.fe_check["ok"]}
 
 
 def job(name: str, work: str, lhs: tuple[int, ...]) -> dict:

@@ -39,6 +39,7 @@ from solderpyro.calibration.intervals import reported_interval
 from solderpyro.diagnose.hidden import TRUTH
 from solderpyro.executor import executor_from_options
 from solderpyro.io.measurements import read_measurements
+from solderpyro.rundir import RunDir
 from solderpyro.sweep import sweep
 
 
@@ -87,11 +88,11 @@ def _recalibrate(csv_p: Path, base: Path, wd: Path, effects: list[str], store: s
     wall[f"compare {eff}"] = _cli(["compare", str(base), str(wd)],
                                   wd.parent / f"{wd.name}_compare.log")
     cmp = json.loads((wd / "comparison.json").read_text())
-    info = json.loads((wd / "run.json").read_text())
-    sig = float(info.get("sigma_known") or 0.05)
+    info = RunDir.read(wd).info
+    sig = float(info.sigma_known or 0.05)
     return {"rms_before_sd": cmp["before"]["rms_um"] / sig,
             "rms_after_sd": cmp["after"]["rms_um"] / sig,
-            "fe_check_after": {k: (info.get("fe_check") or {}).get(k)
+            "fe_check_after": {k: info.checks.fe_check.get(k)
                                for k in ("rms_over_sigma", "ok")},
             "covered_after": _covered(wd, truth),
             "covered_after_central": _covered(wd, truth, central=True),

@@ -26,6 +26,7 @@ def main() -> None:
     from solderpyro.configure import build, compose
     from solderpyro.io.measurements import read_measurements
     from solderpyro.pipeline.problem import CalibrationProblem
+    from solderpyro.rundir import RunDir
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
@@ -33,10 +34,10 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     run = Path(a.run)
-    info = json.loads((run / "run.json").read_text())
-    setup = build(compose(info.get("overrides") or []))
-    meas = read_measurements(info["data"])
-    sm = CalibrationProblem.build(setup, meas, info["store"], 64, False)
+    info = RunDir.read(run).info
+    setup = build(compose(info.overrides))
+    meas = read_measurements(info.data)
+    sm = CalibrationProblem.build(setup, meas, info.store, 64, False)
     post = az.from_netcdf(str(run / "posterior.nc")).posterior
     names = list(sm.space.names)
     n_chain, n_draw = post.sizes["chain"], post.sizes["draw"]

@@ -40,6 +40,7 @@ from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
+from solderpyro.rundir import RunDir
 from solderpyro.settings import (
     DesignSettings,
     ExactSettings,
@@ -157,11 +158,11 @@ def run_case(job: str, a: argparse.Namespace) -> dict:
     if not (d / "base" / "draws.npz").exists():  # a rerun re-diagnoses finished ones
         _calibrate(ov, data, d / "base", a)
     dg = diagnose(d / "base", n_draws=2, progress=False)
-    run = json.loads((d / "base" / "run.json").read_text())
+    run = RunDir.read(d / "base").info
     rec = {"kind": kind, "hidden": h, "hidden_values": meta.get("hidden_values"),
-           "surrogate": f"{run.get('surrogate_inputs')} ({run.get('kernel')})",
-           "design_base": {k: (run.get("design") or {}).get(k)
-                           for k in ("reason", "fe_runs")},
+           "surrogate": f"{run.surrogate.inputs} ({run.surrogate.kernel})"
+           if run.surrogate else "None (None)",
+           "design_base": {"reason": run.design.reason, "fe_runs": run.design.fe_runs},
            "hidden_rms_point_um": meta.get("hidden_rms_point_um"),
            "misfit": dg.misfit, "verdict": dg.verdict,
            "ranking": [(r["effect"], r["evidence"], r["flagged"]) for r in dg.ranking],
@@ -183,16 +184,16 @@ def run_case(job: str, a: argparse.Namespace) -> dict:
             truth = dict(TRUTH)
             if h == e and meta.get("hidden_values"):
                 truth.update(ast.literal_eval(meta["hidden_values"]))
-            info = json.loads((wd / "run.json").read_text())
-            ex = info.get("exact") or {}
+            info = RunDir.read(wd).info
+            ex = info.exact or {}
             refits[e] = {"rms_after_um": cmp["after"]["rms_um"],
                          "elpd_gain": cmp["elpd_gain"],
                          "covered_after": _covered(wd, truth),
                          "intervals": _intervals(wd),
-                         "fe_check": info.get("fe_check"),
-                         "design": {k: (info.get("design") or {}).get(k)
-                                    for k in ("reason", "fe_runs")},
-                         "posterior": info.get("posterior", "surrogate"),
+                         "fe_check": info.checks.fe_check,
+                         "design": {"reason": info.design.reason,
+                                    "fe_runs": info.design.fe_runs},
+                         "posterior": info.posterior,
                          **({"exact": {k: ex.get(k) for k in (
                              "ess", "khat", "reliable", "fe_runs", "coordinates")}}
                             if ex else {}),

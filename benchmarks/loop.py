@@ -44,17 +44,20 @@ def _summary(run: Path) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         import arviz as az
+
+    from solderpyro.rundir import RunDir
+
     with (run / "summary.csv").open() as f:
         rows = list(csv.DictReader(f))
-    info = json.loads((run / "run.json").read_text())
+    info = RunDir.read(run).info
     idata = az.from_netcdf(str(run / "posterior.nc"))
     rhat = az.rhat(idata)
     ess = az.ess(idata, method="bulk")
     div = int(idata.sample_stats["diverging"].values.sum())
     return {"r_hat_max": float(max(rhat[v].values.max() for v in rhat.data_vars)),
             "ess_bulk_min": float(min(ess[v].values.min() for v in ess.data_vars)),
-            "divergences": div, "rows": rows, "timing_s": info.get("timing_s"),
-            "fe_check": info.get("fe_check")}
+            "divergences": div, "rows": rows, "timing_s": info.timing_s,
+            "fe_check": info.checks.fe_check}
 
 
 def main() -> None:

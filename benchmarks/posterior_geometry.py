@@ -39,7 +39,7 @@ def rebuild(run: Path) -> tuple[CalibrationProblem, object, dict]:
     sd for the PCA truncation: the posterior median, as the design's last round used), and
     the run as :func:`load_run` reads it."""
     r = load_run(run)
-    sm = CalibrationProblem.build(r["setup"], r["meas"], r["info"]["store"], 64, False)
+    sm = CalibrationProblem.build(r["setup"], r["meas"], r["info"].store, 64, False)
     with (run / "design.csv").open() as f:
         rows = [row for row in csv.DictReader(f) if row["converged"] == "1"]
     X = torch.tensor([[float(row[n]) for n in sm.gp_box.names] for row in rows],

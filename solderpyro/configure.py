@@ -73,7 +73,7 @@ def calibration_settings(cfg: Any, surrogate: Mapping[str, Any] | None = None) -
 
 def task_overrides() -> list[str]:
     """Inside a ``@hydra.main`` script: the command line's overrides of the model (what
-    ``run.json`` keeps so that ``solderpyro diagnose`` rebuilds the same model), without the
+    the run record keeps so that ``solderpyro diagnose`` rebuilds the same model), without the
     script's own settings (``data.``, ``calibration.``, ``case.``, ``hydra.``)."""
     from hydra.core.hydra_config import HydraConfig
 

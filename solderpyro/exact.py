@@ -424,7 +424,7 @@ class ProfileInterval:
     truncated: bool = False
 
     def as_dict(self) -> dict:
-        """JSON-ready (run.json)."""
+        """JSON-ready (the run record's ``exact``)."""
         return {"parameter": self.parameter, "lower": self.lower, "upper": self.upper,
                 "at_lower_bound": self.at_lower_bound, "at_upper_bound": self.at_upper_bound,
                 "grid": self.grid.tolist(), "chi2": self.chi2.tolist(),

@@ -12,10 +12,18 @@ from __future__ import annotations
 
 import csv
 import html
-import json
 import os
 from pathlib import Path
 from typing import Any
+
+from solderpyro.rundir import (
+    COMPARISON_JSON,
+    DIAGNOSIS_JSON,
+    RUN_JSON,
+    RunInfo,
+    read_json,
+    try_read,
+)
 
 #: figures, in the order a reader needs them: where it fails, which effect, the fall, the rest
 FIGURES = (
@@ -37,7 +45,7 @@ LINKS = (("report.html", "calibration report"), ("diagnosis.html", "diagnosis"),
          ("comparison.md", "comparison (Markdown)"), ("summary.csv", "posterior summary (CSV)"),
          ("posterior.nc", "posterior, predictive and log-likelihood (ArviZ NetCDF)"),
          ("diagnosis.json", "diagnosis (JSON)"), ("comparison.json", "comparison (JSON)"),
-         ("run.json", "run settings (JSON)"))
+         (RUN_JSON, "run settings (JSON)"))
 STYLE = ("body{font-family:sans-serif;max-width:100em;margin:1.5em auto;padding:0 1em;"
          "color:#222}.verdict{border-left:.5em solid #888;padding:.6em 1em;margin:1em 0;"
          "background:#f4f4f4;font-size:1.1em}.bad{border-color:#c0392b;background:#fdecea}"
@@ -45,13 +53,6 @@ STYLE = ("body{font-family:sans-serif;max-width:100em;margin:1.5em auto;padding:
          "margin:.5em 0}td,th{border:1px solid #bbb;padding:.2em .6em;text-align:right}"
          "th{background:#eee}td:first-child{text-align:left}img{max-width:100%;"
          "border:1px solid #ddd}figcaption{color:#555;font-size:.9em;margin-bottom:1.5em}")
-
-
-def _json(p: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads(p.read_text())
-    except (OSError, ValueError):
-        return None
 
 
 def _e(s: Any) -> str:
@@ -71,7 +72,7 @@ def _num(v: Any, fmt: str = ".4g") -> str:
         return str(v)
 
 
-def _verdicts(d: Path, diag: dict | None, cmp: dict | None, run: dict | None
+def _verdicts(d: Path, diag: dict | None, cmp: dict | None, run: RunInfo | None
               ) -> list[tuple[str, str]]:
     """``(css class, html)`` of each verdict, most telling first."""
     out: list[tuple[str, str]] = []
@@ -99,9 +100,9 @@ def _verdicts(d: Path, diag: dict | None, cmp: dict | None, run: dict | None
                      f"residual {_num(b['rms_um'])} &rarr; {_num(a['rms_um'])} um; {loo} "
                      f"{_num(b['elpd'], '.1f')} &rarr; {_num(a['elpd'], '.1f')}{diff}."))
     if run is not None:
-        chk = run.get("fe_check") or {}
+        chk = run.checks.fe_check
         ok = chk.get("ok", True)
-        txt = f"<b>Calibration:</b> trust {_e(run.get('trust', ''))}."
+        txt = f"<b>Calibration:</b> trust {_e(run.trust)}."
         if chk:
             txt += (f" FE check: best RMS residual {_num(chk.get('rms_um'))} um = "
                     f"{_num(chk.get('rms_over_sigma'), '.2f')} noise sd.")
@@ -154,8 +155,9 @@ def write_index(run_dir: str | Path) -> Path:
         the path of ``index.html``.
     """
     d = Path(run_dir)
-    diag, cmp, run = (_json(d / "diagnosis.json"), _json(d / "comparison.json"),
-                      _json(d / "run.json"))
+    rd = try_read(d)
+    diag, cmp = read_json(d / DIAGNOSIS_JSON), read_json(d / COMPARISON_JSON)
+    run = rd.info if rd is not None else None
     body = [f"<h1>solderpyro run: {_e(d.name)}</h1>"]
     body += [f'<div class="verdict {c}">{t}</div>' for c, t in _verdicts(d, diag, cmp, run)]
     figs = [(f, cap) for f, cap in FIGURES if (d / f).is_file()]

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import html
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
-import torch
 
 from solderpyro.calibration.intervals import CENTRAL, LOWER_FACE, UPPER_FACE
 from solderpyro.io.measurements import Measurements
 from solderpyro.plots import plot_traces, plot_validation
+from solderpyro.rundir import RunDir
 
 
 def _by_point(meas: Measurements) -> dict[str, np.ndarray]:
@@ -72,22 +73,75 @@ def _interval_cell(r: dict) -> str:
             f"{mark.get(str(r.get('interval')), '')}")
 
 
-def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: list[str],
-          bands, y_liu: torch.Tensor, doe, ti, oi, nuts: dict[str, Any],
-          exact_rows: list[dict] | None = None, notes: list[str] | None = None,
-          exact: tuple | None = None) -> Path:
-    """Write the figures and ``report.md`` into ``out``; returns the report path.
+@dataclass
+class FeRunCounts:
+    """Every FE run of a calibration (Liu constants, design, checks, FE-exact step): converged,
+    failed, read back from the run store and computed."""
 
-    ``notes``: more lines for the report's opening list (e.g. the FE check, a local region).
-    ``exact_rows`` and ``exact = (ExactPosterior, info, surrogate draws (n, dim), box)``: the
-    FE-exact posterior's section and figure (:func:`solderpyro.pipeline.fe_exact.fe_exact`).
+    ok: int
+    failed: int
+    reused: int
+    computed: int
+
+
+@dataclass
+class ExactReport:
+    """The FE-exact posterior's section (:func:`solderpyro.pipeline.fe_exact.fe_exact`; its
+    record is the run's ``exact``).
+
+    Attributes:
+        posterior: the ExactPosterior (``samples (n_s, dim)``, ``result.weights()``).
+        rows: its summary rows beside the surrogate's (``q2.5``, ``median``, ``q97.5``,
+            ``surrogate_q2.5``, ...). surrogate_draws: ``(n, dim)`` the surrogate posterior's
+            draws, physical units.
     """
+
+    posterior: Any
+    rows: list[dict]
+    surrogate_draws: np.ndarray
+
+
+@dataclass
+class CalibrationReport:
+    """What ``report.md`` and its figures show of a calibration.
+
+    Attributes:
+        run: the run directory just written (its path; its record: the sampler's lengths, the
+            parameter names, the FE-exact step's record).
+        meas: the measurements (n_obs rows). rows: the reported summary rows. post: the
+            surrogate posterior (NUTS: traces, divergences, seconds). loo: the surrogate's
+            leave-one-out check. bands: the reported predictive (``median``, ``obs_lo``,
+            ``obs_hi``: ``(n_obs,)`` um). y_liu: ``(n_obs,)`` the model with the literature
+            constants, um. fe_runs: :class:`FeRunCounts`. problems: warnings. notes: more
+            lines for the report's opening list (e.g. the FE check). exact: the FE-exact
+            section, or None.
+    """
+
+    run: RunDir
+    meas: Measurements
+    rows: list[dict]
+    post: Any
+    loo: Any
+    bands: Any
+    y_liu: np.ndarray
+    fe_runs: FeRunCounts
+    problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    exact: ExactReport | None = None
+
+
+def write(rep: CalibrationReport) -> Path:
+    """Write the figures, ``report.md`` and ``report.html`` into ``rep.run.path``; returns the
+    path of ``report.md``."""
+    out, meas, post, loo, bands = rep.run.path, rep.meas, rep.post, rep.loo, rep.bands
+    rows, doe, nuts = rep.rows, rep.fe_runs, rep.run.info.sampler
+
     def save(fig, name: str) -> str:
         fig.savefig(out / name, dpi=120)
         plt.close(fig)
         return name
 
-    liu = y_liu.numpy()
+    liu = np.asarray(rep.y_liu)
     f8 = save(plot_model_vs_data(meas, {"Liu 2008 (seed Table IV)": (liu, None, None)},
                                  "Model with literature constants vs measurement (seed Fig. 8)"),
               "fig8_literature.png")
@@ -104,13 +158,13 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
     lines = ["# solderpyro calibration report", "",
              f"- data: {len(meas)} values at {len(meas.points())} point(s) x "
              f"{len(meas.times())} time(s)",
-             f"- FE runs: {int(doe.ok.sum())} converged, {int((~doe.ok).sum())} failed "
-             f"({doe.n_reused} reused from the run store, {doe.n_computed} computed)",
+             f"- FE runs: {doe.ok} converged, {doe.failed} failed "
+             f"({doe.reused} reused from the run store, {doe.computed} computed)",
              f"- NUTS: {nuts['chains']} chains x {nuts['draws']} draws after {nuts['warmup']} "
              f"warm-up; divergences per chain {post.divergences}; {post.seconds:.0f} s",
              f"- RMSE model vs data: Liu 2008 constants {rmse_liu:.3g} um -> posterior "
              f"median {rmse_post:.3g} um; {inside:.0%} of the measurements inside the 95 % "
-             "predictive band", *[f"- {n}" for n in notes or []], "",
+             "predictive band", *[f"- {n}" for n in rep.notes], "",
              "## Posterior (seed Table V layout)", "",
              "| parameter | 2.5 % | median | mean | 97.5 % | 95 % interval | R-hat | ESS |",
              "|---|---|---|---|---|---|---|---|"]
@@ -128,14 +182,16 @@ def write(out: Path, meas: Measurements, rows: list[dict], post, loo, problems: 
                   + "; ".join(f"{r['parameter']} from its {r['interval']}" for r in faces)
                   + "). A face that is a physical limit is a result; one that is only the "
                   "box's edge says the box may be too narrow."]
-    warn = list(problems)
+    warn = list(rep.problems)
     warn += [f"R-hat of {r['parameter']} is {float(r['r_hat']):.3f} (> 1.01): chains disagree"
              for r in rows if float(r["r_hat"]) > 1.01]
     if sum(post.divergences):
         warn.append(f"{sum(post.divergences)} divergent transitions")
     lines += ["", "## Warnings", ""] + ([f"- {w}" for w in warn] or ["- none"])
-    if exact_rows and exact is not None:
-        lines += _exact_section(exact_rows, exact, save, _truth(meas))
+    ex_info = rep.run.info.exact
+    if rep.exact is not None and rep.exact.rows and ex_info:
+        lines += _exact_section(rep.exact, ex_info, rep.run.info.parameters, save,
+                                _truth(meas))
     lines += ["", "## Figures", ""]
     if (out / "design.png").exists():  # the adaptive design's rounds (solderpyro.design)
         lines += ["![adaptive design: marginals per round, stopping rule, where the runs went]"
@@ -175,15 +231,16 @@ def _truth(meas: Measurements) -> dict[str, float] | None:
     return out or None
 
 
-def _exact_section(rows: list[dict], exact: tuple, save: Any,
+def _exact_section(exact: ExactReport, info: dict[str, Any], names: list[str], save: Any,
                    truth: dict[str, float] | None = None) -> list[str]:
-    """The report's lines on the FE-exact posterior, and its figure (``save(fig, name)``);
-    ``truth``: true values drawn in the figure (synthetic data)."""
+    """The report's lines on the FE-exact posterior (``info``: the run's FE-exact record;
+    ``names``: the parameters), and its figure (``save(fig, name)``); ``truth``: true values
+    drawn in the figure (synthetic data)."""
     from solderpyro.plots import plot_exact
 
-    ex, info, draws, space = exact
+    ex, rows = exact.posterior, exact.rows
     prof = info.get("profile")
-    fig = save(plot_exact(list(space.names), ex.samples, ex.result.weights(), draws,
+    fig = save(plot_exact(list(names), ex.samples, ex.result.weights(), exact.surrogate_draws,
                           None if prof is None else (prof["parameter"], prof["values"],
                                                      prof["chi2"]), truth),
                "exact_posterior.png")

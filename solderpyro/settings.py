@@ -200,7 +200,7 @@ class CalibrationSettings:
         return self
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain nested dict (for run.json)."""
+        """Plain nested dict (for the run record, :class:`~solderpyro.rundir.RunInfo`)."""
         return asdict(self)
 
     @classmethod

@@ -122,7 +122,7 @@ def sweep(names: Sequence[str], fn: Callable[[str], dict], record: str | Path,
 def calibrate_job(data: str, out: str, store: str, args: Sequence[str] = ()) -> dict:
     """One sweep job: ``solderpyro calibrate --data DATA --out OUT --store STORE --quiet ARGS``
     in a subprocess (its own logs go to ``OUT/log.txt``); returns the run's headline numbers
-    (``trust``, the FE check, the design's stop) from ``run.json``."""
+    (the FE check, the design's stop) from its record (:class:`~solderpyro.rundir.RunDir`)."""
     Path(out).mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "solderpyro.cli", "calibrate", "--data", data, "--out", out,
            "--store", store, "--quiet", *args]
@@ -131,8 +131,10 @@ def calibrate_job(data: str, out: str, store: str, args: Sequence[str] = ()) -> 
     if rc != 0:
         tail = (Path(out) / "log.txt").read_text().splitlines()[-3:]
         raise RuntimeError(f"calibrate exited {rc}: {' | '.join(tail)}")
-    info = json.loads((Path(out) / "run.json").read_text())
-    chk = info.get("fe_check") or {}
+    from solderpyro.rundir import RunDir
+
+    info = RunDir.read(out).info
+    chk = info.checks.fe_check
     return {"command": " ".join(cmd[2:]), "out": out,
-            "design": {k: (info.get("design") or {}).get(k) for k in ("reason", "fe_runs")},
+            "design": {"reason": info.design.reason, "fe_runs": info.design.fe_runs},
             "fe_check_rms_sd": chk.get("rms_over_sigma"), "fe_check_ok": chk.get("ok")}

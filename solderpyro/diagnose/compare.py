@@ -23,7 +23,6 @@ Reads two run directories of ``solderpyro calibrate`` on the same data (e.g. wit
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from solderpyro.diagnose.stats import predictive_check
+from solderpyro.rundir import POSTERIOR_NC, RUN_FILES, RunDir
 
 
 def _logpdf(y: np.ndarray, mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -42,7 +42,7 @@ def load_idata(run_dir: str | Path) -> Any:
     ``log_likelihood`` group (a run of an earlier version)."""
     from solderpyro.calibration.mcmc import import_arviz as _arviz
 
-    p = Path(run_dir) / "posterior.nc"
+    p = Path(run_dir) / POSTERIOR_NC
     if not p.is_file():
         return None
     idata = _arviz().from_netcdf(str(p))
@@ -69,12 +69,11 @@ def measured(run_dir: str | Path) -> np.ndarray:
     :meth:`~solderpyro.pipeline.problem.ObservedData.corrected`) keeps the corrected ones in
     ``draws.npz``; its residuals and log densities are those of the measured data under the
     corrected model, so two runs with different corrections compare as they are."""
-    d = Path(run_dir)
-    y = np.load(d / "draws.npz")["y_obs"]
-    corr = d / "discretization_correction.npz"
-    if corr.is_file():
-        with np.load(corr) as z:
-            y = y + z["delta"]
+    run = RunDir.read(run_dir, RUN_FILES)
+    y = run.draws().y_obs
+    corr = run.correction()
+    if corr is not None:
+        y = y + corr["delta"]
     return y
 
 
@@ -87,24 +86,20 @@ def run_metrics(run_dir: str | Path) -> dict[str, Any]:
         (observations with k-hat > 0.7), ``pareto_k_max``, ``warnings``, ``n``, ``effects``
         and ``summary`` (parameter -> row of summary.csv).
     """
-    d = Path(run_dir)
-    with np.load(d / "draws.npz") as z:
-        y, mu, sig, obs = z["y_obs"], z["process"], z["sigma_pred"], z["observed"]
-    info = json.loads((d / "run.json").read_text())
+    run = RunDir.read(run_dir, RUN_FILES)
+    d, info, dr = run.path, run.info, run.draws()
+    y, mu, sig, obs = dr.y_obs, dr.process, dr.sigma_pred, dr.observed
     pc = predictive_check(y, mu, sig)
-    with open(d / "summary.csv", newline="") as fh:
-        summ = {r["parameter"]: {k: v if k == "interval" else float(v)  # the kind is a word
-                                 for k, v in r.items() if k != "parameter"}
-                for r in csv.DictReader(fh)}
+    summ = run.summary()
     out: dict[str, Any] = {
         "rms_um": float(np.sqrt(np.mean((np.median(mu, 0) - y) ** 2))),
         "misfit_mean": float(pc.t_obs.mean()), "misfit_p": pc.p_value, "n": int(len(y)),
-        "effects": info.get("effects", []), "summary": summ, "warnings": []}
+        "effects": list(info.effects), "summary": summ, "warnings": []}
     # posterior.nc holds the surrogate's NUTS posterior; where the run reports another one (the
     # FE's own best fit of a model that misfits, whose surrogate posterior sits in an island
     # only the surrogate likes, or the FE-exact one) its PSIS-LOO is not the reported result's
     # (it came out nan on such a base run): the reported predictive in draws.npz is used below
-    kind = info.get("posterior", "surrogate")
+    kind = info.posterior
     idata = load_idata(d) if kind == "surrogate" else None
     if idata is not None:
         loo, msgs = psis_loo(idata)
@@ -211,13 +206,11 @@ def _diff_se(before: str | Path, after: str | Path) -> float:
     return float(tab["dse"].max())
 
 
-def _sigma(d: Path) -> float:
+def _sigma(run: RunDir) -> float:
     """The noise sd of a run, um: the data's stated one, else the posterior median."""
-    info = json.loads((d / "run.json").read_text())
-    if info.get("sigma_known"):
-        return float(info["sigma_known"])
-    with np.load(d / "draws.npz") as z:
-        return float(np.median(z["sigma"]))
+    if run.info.sigma_known:
+        return float(run.info.sigma_known)
+    return float(np.median(run.draws().sigma))
 
 
 def plot_comparison(before: str | Path, after: str | Path, path: Path) -> str:
@@ -231,23 +224,21 @@ def plot_comparison(before: str | Path, after: str | Path, path: Path) -> str:
     """
     from solderpyro.diagnose.denoise import denoise
     from solderpyro.diagnose.plots import draw_maps, is_field, map_size
-    from solderpyro.io.measurements import read_measurements
     from solderpyro.plots import plt
 
-    d0, d1 = Path(before), Path(after)
-    meas = read_measurements(d0 / "data.csv")
-    sigma = _sigma(d0)
-    z = [np.load(d / "draws.npz") for d in (d0, d1)]
-    res = [zz["y_obs"] - np.median(zz["process"], 0) for zz in z]
-    names = [str(n) for n in z[1]["names"]]
-    n0 = [str(n) for n in z[0]["names"]]
+    runs = [RunDir.read(d, RUN_FILES) for d in (before, after)]
+    d0, d1 = runs[0].path, runs[1].path
+    meas = runs[0].measurements()
+    sigma = _sigma(runs[0])
+    z = [r.draws() for r in runs]
+    res = [zz.y_obs - np.median(zz.process, 0) for zz in z]
+    names, n0 = z[1].names, z[0].names
     field = is_field(meas)
     w, h = map_size(meas, 2) if field else (10.0, 5.0)
     fig = plt.figure(figsize=(max(w, 10.0), h + 2.6), layout="constrained")
     sub: Any = fig.subfigures(2, 1, height_ratios=[h, 2.6])
     top, bot = sub[0], sub[1]
-    eff = [", ".join(json.loads((d / "run.json").read_text()).get("effects", [])) or "baseline"
-           for d in (d0, d1)]
+    eff = [", ".join(r.info.effects) or "baseline" for r in runs]
     lab = [f"{d.name} ({e})" for d, e in zip((d0, d1), eff, strict=True)]
     if field:
         xy = np.c_[meas.x_mm, meas.y_mm]
@@ -265,8 +256,8 @@ def plot_comparison(before: str | Path, after: str | Path, path: Path) -> str:
             rows = rows[np.argsort(meas.time_s[rows])]
             t = meas.time_s[rows] / 60
             for k, (zz, r) in enumerate(zip(z, res, strict=True)):
-                med = np.median(zz["process"], 0)
-                lo, hi = np.quantile(zz["observed"], [0.025, 0.975], 0)
+                med = np.median(zz.process, 0)
+                lo, hi = np.quantile(zz.observed, [0.025, 0.975], 0)
                 col = "0.4" if k == 0 else "C3"
                 ax.fill_between(t, (lo - med)[rows], (hi - med)[rows], color=col, alpha=0.15)
                 ax.plot(t, r[rows], "o-" if k == 0 else "s-", color=col,
@@ -283,7 +274,7 @@ def plot_comparison(before: str | Path, after: str | Path, path: Path) -> str:
         # shared bins, each histogram scaled to its own peak: a narrow "before" (e.g. the FE's
         # best fit of a model that misfits) on a density scale flattened the "after" into
         # its baseline
-        vals = [(k, zz["theta"][:, nm.index(p)])
+        vals = [(k, zz.theta[:, nm.index(p)])
                 for k, (zz, nm) in enumerate(((z[0], n0), (z[1], names))) if p in nm]
         edges = np.histogram_bin_edges(np.concatenate([v for _, v in vals]), bins=50)
         for k, v in vals:
@@ -296,8 +287,6 @@ def plot_comparison(before: str | Path, after: str | Path, path: Path) -> str:
     axs[0].legend(fontsize=7)
     bot.suptitle("Marginal posteriors before (grey) and after (red), each scaled to its peak",
                  fontsize=9)
-    for zz in z:
-        zz.close()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path.name

@@ -1,6 +1,6 @@
 """``solderpyro diagnose RUN_DIR``: does the calibrated model fit, and which effect is missing?
 
-Data flow: the run directory of ``solderpyro calibrate`` (``run.json``, ``data.csv``,
+Data flow: the run directory of ``solderpyro calibrate`` (its record, ``data.csv``,
 ``draws.npz``) -> posterior predictive checks of the surrogate predictive (with code
 uncertainty) -> the FE at a few posterior draws, with every candidate effect switched on at
 "off", and finite-difference Jacobians w.r.t. the calibrated parameters and each effect's
@@ -9,7 +9,7 @@ parameters -> misfit chi-square after a linearised refit and a score test per ef
 ``diagnosis.md`` and figures.
 
 Every FE run goes through the calibration's run store (:class:`~solderpyro.store.RunStore`,
-``run.json``'s ``"store"``), registered with the solver's problem, times, field flag, dtype and
+the run record's ``store``), registered with the solver's problem, times, field flag, dtype and
 the effects switched on: each run is kept as soon as its batch finishes, a rerun of the
 diagnosis reads every run back, and rows that several stages share (the Jacobians' base and
 forward rows, the refits' first steps, a refit that did not move) are solved once. Each
@@ -71,6 +71,7 @@ from solderpyro.diagnose.stats import (
     predictive_check,
     score_test,
 )
+from solderpyro.rundir import RunInfo
 from solderpyro.specimen import SpecimenModels
 
 log = logging.getLogger("solderpyro")
@@ -169,12 +170,12 @@ class _Costs:
         return {**self.stages, "total": total}
 
 
-def run_store(info: dict[str, Any], run_dir: Path) -> Any:
-    """The run store of the calibration (``run.json``'s ``"store"``; a relative path is taken
+def run_store(info: RunInfo, run_dir: Path) -> Any:
+    """The run store of the calibration (its record's ``store``; a relative path is taken
     from the working directory, as ``calibrate`` took it), else ``run_dir/fe_store``."""
     from solderpyro.store import RunStore
 
-    root = info.get("store")
+    root = info.store
     return RunStore(Path(root) if root else run_dir / "fe_store")
 
 
@@ -182,26 +183,22 @@ def load_run(run_dir: str | Path) -> dict[str, Any]:
     """Read what ``solderpyro calibrate`` left in ``run_dir`` for a diagnosis.
 
     Returns:
-        dict with ``info`` (run.json), ``setup`` (:class:`~solderpyro.configure.Setup`),
-        ``meas`` (measurements), ``draws`` (arrays of draws.npz).
+        dict with ``run`` (:class:`~solderpyro.rundir.RunDir`), ``info`` (its
+        :class:`~solderpyro.rundir.RunInfo`), ``setup`` (:class:`~solderpyro.configure.Setup`),
+        ``meas`` (measurements), ``draws`` (:meth:`~solderpyro.rundir.Draws.arrays`).
     Raises:
-        FileNotFoundError naming the missing file.
+        FileNotFoundError naming the missing file; RunDirError naming the file and the key
+        of a record this version cannot read.
     """
     from solderpyro.configure import build, compose
-    from solderpyro.io.measurements import read_measurements
-    from solderpyro.specimen import RUN_FILES, output_points
+    from solderpyro.rundir import RUN_FILES, RunDir
+    from solderpyro.specimen import output_points
 
-    d = Path(run_dir)
-    for f in RUN_FILES:
-        if not (d / f).is_file():
-            raise FileNotFoundError(f"{d / f} is missing: RUN_DIR must be a directory written "
-                                    "by 'solderpyro calibrate' (this version)")
-    info = json.loads((d / "run.json").read_text())
-    setup = build(compose(list(info.get("overrides", []))))
-    meas = read_measurements(d / "data.csv", valid_points=output_points(setup.problem))
-    with np.load(d / "draws.npz") as z:
-        draws = {k: z[k] for k in z.files}
-    return {"info": info, "setup": setup, "meas": meas, "draws": draws}
+    run = RunDir.read(run_dir, RUN_FILES)
+    setup = build(compose(list(run.info.overrides)))
+    meas = run.measurements(valid_points=output_points(setup.problem))
+    return {"run": run, "info": run.info, "setup": setup, "meas": meas,
+            "draws": run.draws().arrays()}
 
 
 def _pick_draws(theta: np.ndarray, k: int, seed: int) -> np.ndarray:
@@ -448,7 +445,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     with cost.stage("load"):
         run = load_run(d)
         info, setup, meas, dr = run["info"], run["setup"], run["meas"], run["draws"]
-        run_effects = tuple(info.get("effects", []))
+        run_effects = tuple(info.effects)
         if candidates is None:
             candidates = tuple(n for n in EFFECTS if n not in run_effects)
         unknown = [c for c in candidates if c not in EFFECTS]
@@ -460,7 +457,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     with cost.stage("predictive_check"):
         y = np.asarray(meas.value_um, float)
         sigma_draws = dr["sigma"]
-        sig_known = info.get("sigma_known")
+        sig_known = info.sigma_known
         sigma = float(sig_known) if sig_known else float(np.median(sigma_draws))
         pc = predictive_check(y, dr["process"], dr["sigma_pred"], seed=seed)
     n = len(y)
@@ -469,28 +466,27 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     floor = load_floor("field" if field else "points")
     # other posterior draws only where the FE check accepted the posterior (issue 20: never a
     # draw the FE rejected)
-    fe_ok = bool((info.get("fe_check") or {}).get("ok", False))
+    fe_ok = info.checks.fe_ok
     idx = _pick_draws(dr["theta"], n_draws if fe_ok else 1, seed)
     thetas = dr["theta"][idx].copy()
     base: dict[str, Any] | None = None
     if refit:
         with cost.stage("best_fit"):
-            design = info.get("design") or {}
-            bf = (design.get("best_fit") or {}).get("x") or {}
-            names = list(info.get("parameters") or [])
+            design = info.design
+            bf = design.best_fit.get("x") or {}
+            names = list(info.parameters)
             has_bf = (bool(names) and all(nm in bf for nm in names)
                       and len(names) == dr["theta"].shape[1])
             # where the design stopped because the model misfits, the posterior draws sit in
             # surrogate islands and are no starts (on the modulus-temperature field data they
             # scouted at chi2 1e5-3e5 against 1.7e4 from the best fit and the literature
             # constants): the calibration's own FE best fit and the literature constants
-            islands = has_bf and design.get("reason") == "misfit"
+            islands = has_bf and design.reason == "misfit"
             starts = _starts(setup, dr["theta"], idx, fe_ok and not islands)
             if islands:
                 # the calibration's best fit already started from the literature constants
                 # too (its misfit test, since session 29): no second scout from them
-                scouted = "literature constants" in (design.get("best_fit") or {}).get(
-                    "starts", [])
+                scouted = "literature constants" in design.best_fit.get("starts", [])
                 starts = {} if scouted else {
                     "literature constants": starts["literature constants"]}
             if has_bf:

@@ -14,10 +14,8 @@ final posterior, FE check and report on the corrected data. Every setting is in
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -43,8 +41,9 @@ from solderpyro.pipeline.fe_check import (
     ranked,
 )
 from solderpyro.pipeline.fe_exact import SUMMARY, WEAK_SHARE, exact_rows, fe_exact, identifiability
-from solderpyro.pipeline.outputs import SpecimenCalibration, save_run
+from solderpyro.pipeline.outputs import SpecimenCalibration, posterior_draws, save_run
 from solderpyro.pipeline.problem import CalibrationProblem
+from solderpyro.rundir import Checks, DesignSummary, RunDir, RunInfo, SurrogateRecord
 from solderpyro.settings import CalibrationSettings
 
 log = logging.getLogger("solderpyro")
@@ -88,7 +87,8 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         settings: every setting (:class:`CalibrationSettings`; default: the adaptive design
             with its default budget).
         record: how the run was asked for (e.g. ``{"overrides": [...], "data": path}``), kept in
-            ``run.json`` so that ``solderpyro diagnose`` can rebuild the model.
+            the run's record (:class:`~solderpyro.rundir.RunInfo`) so that ``solderpyro
+            diagnose`` can rebuild the model.
         warm: a related run's sampler state (``--warm-from``) for the first posterior.
 
     Returns:
@@ -150,7 +150,6 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     post.save(out / "posterior.nc", predictive={
         "y": cp.y.numpy(), "index": pick_pp.numpy(), "observed": bands.obs_draws.numpy(),
         "log_likelihood": bands.log_likelihood(cp.y).numpy()})
-    nk = {"chains": s.sampler.chains, "draws": s.sampler.draws, "warmup": s.sampler.warmup}
     # a model whose own FE best fit misfits (loop.reason "misfit") gets no FE-exact posterior
     full_exact = s.exact.mode == "on" or (
         s.exact.mode == "auto" and loop.reason == "budget" and not loop.rounds[-1].fe_ok)
@@ -216,7 +215,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     def write_all(rows: list[dict], bands: Any, problems: list[str], ex: Any = None,
                   ex_info: dict[str, Any] | None = None, ex_rows: list[dict] | None = None,
                   trust: str = trust) -> None:
-        """summary.csv, draws.npz, run.json and the report (the FE-exact posterior's where
+        """summary.csv, draws.npz, the run's record and the report (the FE-exact posterior's where
         ``ex`` is reliable); written before the FE-exact step and again after it."""
         from solderpyro import report
 
@@ -226,17 +225,20 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
             saved, kind = (fit.theta, fit.sigma), "fe-best-fit"
         write_summary(rows, out / "summary.csv", SUMMARY)
         sg = s.surrogate
-        save_run(out, meas, space, cp.effects, post, bands, cp.y, y_liu, pr,
-                 {**(record or {}), "settings": s.as_dict(), "seed": s.seed, "store": s.store,
-                  "kernel": sg.kernel, "ard": sg.ard, "mean": sg.mean,
-                  "surrogate_output": gp.output, "surrogate_inputs": sg.inputs,
-                  "inputs_T_C": sg.inputs_T_C, "inputs_rate": sg.inputs_rate,
-                  "n_runs": int(len(loop.X)), "design": loop.as_dict(),
-                  "loo_rmse_rel": float(loo.rmse_rel), "loo_coverage95": float(loo.coverage95),
-                  "fe_check": chk, "discretization": disc, "timing_s": clock.seconds,
-                  "trust": trust,
-                  "posterior": kind,
-                  **({"exact": ex_info} if ex_info else {})}, draws=saved)
+        asked = dict(record or {})
+        info = RunInfo(
+            list(space.names), list(space.lower), list(space.upper), list(cp.effects),
+            pr.sigma_known, [float(t) for t in meas.times()], list(meas.points()),
+            overrides=list(asked.pop("overrides", [])), data=asked.pop("data", None),
+            store=s.store, seed=s.seed, settings=s.as_dict(),
+            surrogate=SurrogateRecord(sg.kernel, sg.ard, sg.mean, gp.output, sg.inputs,
+                                      sg.inputs_T_C, sg.inputs_rate),
+            n_runs=int(len(loop.X)), design=DesignSummary(loop.as_dict()),
+            checks=Checks(chk, disc, float(loo.rmse_rel), float(loo.coverage95)),
+            timing_s=clock.seconds, trust=trust, posterior=kind, exact=ex_info or None,
+            extra=asked)
+        run = save_run(out, meas, info,
+                       posterior_draws(post, bands, space.names, cp.y, y_liu, saved), post.warm)
         last = loop.rounds[-1]
         notes = [f"**trust**: {trust}",
                  f"adaptive design: {len(loop.X)} FE runs in {len(loop.rounds)} rounds "
@@ -265,13 +267,11 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                          + ", ".join(v["parameter"] for v in ident["weak"])
                          + "; see 'Identifiability' below for the measurement that would "
                          "narrow them")
-        ti, oi = cp.index
         t = cp.tally  # every FE run of the calibration so far (Liu, design, checks, exact)
-        doe = SimpleNamespace(ok=torch.tensor([True] * t.n_ok + [False] * t.n_failed),
-                              n_reused=t.n_reused, n_computed=t.n_computed)
-        report.write(out, meas, rows, post, loo, problems, bands, y_liu, doe, ti, oi, nk,
-                     ex_rows, notes,
-                     exact=(ex, ex_info, draws, space) if ex is not None else None)
+        report.write(report.CalibrationReport(
+            run, meas, rows, post, loo, bands, y_liu.numpy(),
+            report.FeRunCounts(t.n_ok, t.n_failed, t.n_reused, t.n_computed), problems, notes,
+            None if ex is None or not ex_rows else report.ExactReport(ex, ex_rows, draws)))
 
     write_all(rows, bands, problems)  # the surrogate's results are safe before the FE-exact step
     clock("report")
@@ -280,9 +280,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
                                              bands, problems, write_all)
         clock("exact")
     print(format_summary(rows))
-    info = json.loads((out / "run.json").read_text())
-    info["timing_s"] = clock.seconds
-    (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
+    run = RunDir.read(out)
+    run.info.timing_s = clock.seconds
+    run.write()
     from solderpyro.index import write_index
 
     write_index(out)

@@ -56,7 +56,7 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
             sigma, else the fits' own, which is the RMS residual at the first start and so
             would never call a misfit: pass the posterior's noise sd then).
     Returns:
-        ``(ExactPosterior, info)``; ``info`` for run.json: ESS, k-hat, reliable, the number of
+        ``(ExactPosterior, info)``; ``info`` for the run record: ESS, k-hat, reliable, the number of
         FE runs, the coordinates, the best fit, the profile and each round's diagnostics.
         With ``stop_if_misfit`` and a misfitting best fit: ``(None, info)``, ``info["stopped"]``
         saying why.

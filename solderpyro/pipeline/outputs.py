@@ -1,14 +1,15 @@
 """Stage 7, the outputs: what a calibration leaves in its run directory.
 
-``summary.csv``, ``draws.npz``, ``data.csv``, ``run.json`` (what ``solderpyro diagnose``
-needs to rebuild the model), ``posterior.nc``, the sampler's state, the figures and
-``report.md``/``report.html``. Written after the surrogate posterior, and again after the
-FE-exact step, so that nothing computed is lost if a later step fails.
+``summary.csv``, ``draws.npz``, ``data.csv``, the run's record (what ``solderpyro diagnose``
+needs to rebuild the model; :class:`~solderpyro.rundir.RunDir`), ``posterior.nc``, the
+sampler's state, the figures and ``report.md``/``report.html``. Written after the surrogate
+posterior, and again after the FE-exact step, so that nothing computed is lost if a later
+step fails.
 """
 
 from __future__ import annotations
 
-import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,11 +17,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from solderpyro.calibration import Priors
-from solderpyro.calibration.mcmc import Posterior
+from solderpyro.calibration.mcmc import Posterior, WarmStart
 from solderpyro.io.measurements import Measurements
-from solderpyro.params import Box
-from solderpyro.specimen import WARM_FILE
+from solderpyro.rundir import Draws, RunDir, RunInfo
 from solderpyro.surrogate import LooResult
 
 
@@ -44,34 +43,42 @@ class SpecimenCalibration:
     design: dict[str, Any] | None = None
 
 
-def save_run(out: Path, meas: Measurements, space: Box, effects: tuple[str, ...],
-             post: Posterior, bands: Any, y_obs: torch.Tensor, y_liu: torch.Tensor,
-             priors: Priors, record: dict[str, Any],
-             draws: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-    """Keep what a later ``solderpyro diagnose`` needs in the run directory.
+def posterior_draws(post: Posterior, bands: Any, names: Sequence[str], y_obs: torch.Tensor,
+                    y_liu: torch.Tensor,
+                    draws: tuple[np.ndarray, np.ndarray] | None = None) -> Draws:
+    """``draws.npz`` of a run (:class:`~solderpyro.rundir.Draws`): flat posterior draws
+    ``theta (n, dim)`` in physical units with ``names``, ``sigma (n,)`` in um, the predictive
+    ``process (n_pred, n_obs)`` and ``observed (n_pred, n_obs)`` draws with their noise
+    ``sigma_pred (n_pred,)``, ``y_obs (n_obs,)`` and the Liu-constants model ``y_liu
+    (n_obs,)``, all in um.
 
-    Writes ``data.csv`` (the measurements, exact round trip), ``draws.npz`` (flat posterior
-    draws ``theta (n, dim)`` in physical units with ``names``, ``sigma (n,)`` in um, the
-    predictive ``process (n_pred, n_obs)`` and ``observed (n_pred, n_obs)`` draws with their
-    noise ``sigma_pred (n_pred,)``, ``y_obs`` and
-    the Liu-constants model ``y_liu``, all in um) and ``run.json`` (settings, parameter box).
-    ``draws``: ``(theta (n, dim), sigma (n,))`` to save instead of ``post``'s (the FE-exact
-    posterior's resampled draws).
+    Args:
+        post: the surrogate posterior (NUTS). bands: its predictive
+            (:func:`~solderpyro.calibration.predictive.predict_observation_model`).
+        names: the parameter box's names (``dim``).
+        draws: ``(theta (n, dim), sigma (n,))`` to save instead of ``post``'s (the FE-exact
+            posterior's resampled draws, or the FE's best fit's).
     """
-    from solderpyro.io.measurements import write_measurements
-
-    write_measurements(out / "data.csv", meas)
     theta, sigma = draws if draws is not None else (post.flat("t").numpy(),
                                                      post.flat("sigma").numpy())
-    np.savez(out / "draws.npz", theta=theta, sigma=sigma,
-             names=np.array(space.names), process=bands.draws.numpy(),
-             observed=bands.obs_draws.numpy(), y_obs=y_obs.numpy(), y_liu=y_liu.numpy(),
-             sigma_pred=(bands.sigma if bands.sigma is not None
-                         else torch.full((bands.draws.shape[0],), float("nan"))).numpy())
-    info = {**record, "parameters": list(space.names), "lower": list(space.lower),
-            "upper": list(space.upper), "sigma_known": priors.sigma_known,
-            "effects": list(effects),
-            "times_s": [float(t) for t in meas.times()], "points": list(meas.points())}
-    (out / "run.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
-    if post.warm is not None:  # a recalibration can start from here (--warm-from)
-        post.warm.save(out / WARM_FILE)
+    sig_pred = (bands.sigma if bands.sigma is not None
+                else torch.full((bands.draws.shape[0],), float("nan")))
+    return Draws(theta=np.asarray(theta), sigma=np.asarray(sigma), names=list(names),
+                 process=bands.draws.numpy(), observed=bands.obs_draws.numpy(),
+                 y_obs=y_obs.numpy(), y_liu=y_liu.numpy(), sigma_pred=sig_pred.numpy())
+
+
+def save_run(out: Path, meas: Measurements, info: RunInfo, draws: Draws,
+             warm: WarmStart | None = None) -> RunDir:
+    """Keep what a later ``solderpyro diagnose`` needs in the run directory ``out``:
+    ``data.csv`` (the measurements, exact round trip), ``draws.npz`` (``draws``) and the
+    run's record ``info`` (:class:`~solderpyro.rundir.RunDir`), and the sampler's state
+    ``warm`` where there is one (a recalibration can start from it, ``--warm-from``).
+
+    Returns:
+        the written :class:`~solderpyro.rundir.RunDir`.
+    """
+    run = RunDir(out, info).write(meas, draws)
+    if warm is not None:
+        warm.save(run.warm_path)
+    return run

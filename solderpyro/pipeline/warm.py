@@ -4,17 +4,18 @@ From the related run's sampler state (its chains' last positions and adapted met
 coordinate name), and, where ``solderpyro diagnose`` refitted exactly the effects the new run
 switches on, with every chain started at the end of that FE refit: the FE's own best fit of
 the new model, where the new posterior is (:meth:`~solderpyro.calibration.mcmc.WarmStart.
-placed`). The diagnosis is read from its file (``diagnosis.json``); nothing here imports it.
+placed`). The diagnosis is read from its file (:meth:`~solderpyro.rundir.RunDir.diagnosis`);
+nothing here imports it.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Sequence
 from pathlib import Path
 
 from solderpyro.calibration.mcmc import WarmStart
+from solderpyro.rundir import RunDir
 
 log = logging.getLogger("solderpyro")
 
@@ -23,19 +24,22 @@ def refit_point(run_dir: str | Path, effects: Sequence[str]) -> dict[str, float]
     """The end of the diagnosis's FE refit of ``effects`` (beyond the run's own), or None.
 
     Args:
-        run_dir: a calibrated, diagnosed run directory (run.json, diagnosis.json).
+        run_dir: a calibrated, diagnosed run directory (:class:`~solderpyro.rundir.RunDir`,
+            its diagnosis).
         effects: the new run's switched-on effects (registry names).
     Returns:
         ``name -> value`` (physical units; the calibrated parameters, the effects'
         parameters and ``sigma`` = the refit's RMS residual, um) of a converged refit whose
         effects are exactly the new ones, else None (no diagnosis, or no such refit).
     """
-    d = Path(run_dir)
     try:
-        diag = json.loads((d / "diagnosis.json").read_text())
-        had = set(json.loads((d / "run.json").read_text()).get("effects") or [])
-    except (FileNotFoundError, json.JSONDecodeError):
+        run = RunDir.read(run_dir)
+    except FileNotFoundError:
         return None
+    diag = run.diagnosis()
+    if diag is None:
+        return None
+    had = set(run.info.effects)
     new = set(effects) - had
     if not new:
         return None
@@ -56,7 +60,7 @@ def warm_start(run_dir: str | Path, effects: Sequence[str]) -> WarmStart:
     Raises:
         FileNotFoundError naming the missing sampler state.
     """
-    from solderpyro.specimen import WARM_FILE
+    from solderpyro.rundir import WARM_FILE
 
     ws = WarmStart.load(Path(run_dir) / WARM_FILE)
     ws.point = refit_point(run_dir, effects)

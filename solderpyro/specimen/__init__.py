@@ -4,7 +4,7 @@
 -> the FE's outputs ``(B, n_time, n_out)`` um, or the observed ones ``(B, n_obs)``; directly and
 differentiably, or through the run store) and :class:`SpecimenModels` (one per configuration).
 :mod:`.observed`: which parameters the FE varies, which outputs the measurements are, the
-observation-side effects' offsets, the run directory's files.
+observation-side effects' offsets.
 
 The lowest layer of the specimen pipeline: :mod:`solderpyro.pipeline` (the calibration) and
 :mod:`solderpyro.diagnose` (the diagnosis) both build on it, and it imports neither.
@@ -19,8 +19,6 @@ from solderpyro.specimen.model import (
 )
 from solderpyro.specimen.observed import (
     OBSERVATION_SEAM,
-    RUN_FILES,
-    WARM_FILE,
     calibration_box,
     fe_params,
     observation_index,
@@ -30,7 +28,7 @@ from solderpyro.specimen.observed import (
 )
 
 __all__ = [
-    "OBSERVATION_SEAM", "RUN_FILES", "WARM_FILE", "ModelRuns", "RunTally", "SpecimenModel",
+    "OBSERVATION_SEAM", "ModelRuns", "RunTally", "SpecimenModel",
     "SpecimenModels", "StoreUse", "calibration_box", "fe_params", "observation_index",
     "observation_offset", "output_points", "split_effects",
 ]

@@ -1,5 +1,5 @@
 """The specimen as the calibration observes it: which parameters the FE varies, which model
-outputs the measurements are, the observation-side effects' offsets, the run directory's files.
+outputs the measurements are, and the observation-side effects' offsets.
 
 The lowest layer of the specimen pipeline with :mod:`.model`: :mod:`solderpyro.pipeline` (the
 calibration) and :mod:`solderpyro.diagnose` (the diagnosis) both build on it, and it imports
@@ -116,6 +116,3 @@ def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple
     return ti, oi
 
 
-RUN_FILES = ("run.json", "data.csv", "draws.npz")
-#: the sampler's adapted state in a run directory (:class:`~solderpyro.calibration.mcmc.WarmStart`)
-WARM_FILE = "sampler_state.npz"

@@ -175,6 +175,26 @@ def test_compare_takes_a_best_fit_runs_elpd_from_its_reported_predictive(runs, t
     assert any("fe-best-fit" in w for w in cmp["warnings"])
 
 
+def test_a_version_1_run_directory_still_loads(runs, tmp_path):
+    """A run directory written before run.json had a schema (the same keys without it) reads
+    as version 1: the diagnosis's loading and compare take it as they take the new one."""
+    from solderpyro.diagnose.compare import run_metrics
+    from solderpyro.diagnose.run import load_run
+    from solderpyro.rundir import SCHEMA, RunDir
+
+    old = tmp_path / "lag_v1"
+    shutil.copytree(runs / "lag", old)
+    info = json.loads((old / "run.json").read_text())
+    assert info.pop("schema") == SCHEMA
+    (old / "run.json").write_text(json.dumps(info))
+    new = RunDir.read(runs / "lag").info
+    got = load_run(old)["info"]
+    assert got.schema == 1 and got.overrides == new.overrides
+    assert got.checks == new.checks and got.design == new.design
+    a, b = run_metrics(old), run_metrics(runs / "lag")
+    assert a["elpd"] == b["elpd"] and a["rms_um"] == b["rms_um"]
+
+
 def test_diagnose_rejects_a_directory_without_a_run(tmp_path, capsys):
     assert main(["diagnose", str(tmp_path)]) == 2
     assert "run.json" in capsys.readouterr().err

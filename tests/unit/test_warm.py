@@ -11,7 +11,7 @@ import pytest
 from solderpyro.calibration.mcmc import WarmStart
 from solderpyro.params import Box
 from solderpyro.pipeline.warm import refit_point, warm_start
-from solderpyro.specimen import WARM_FILE
+from solderpyro.rundir import WARM_FILE, RunDir, RunInfo
 
 
 def _state(chains: int = 4) -> WarmStart:
@@ -59,7 +59,8 @@ def test_placed_without_a_point_is_unchanged_and_a_bound_stays_finite() -> None:
 
 
 def _run(tmp_path, effects_had, steps):
-    (tmp_path / "run.json").write_text(json.dumps({"effects": effects_had}))
+    RunDir(tmp_path, RunInfo(["s0", "QR"], [5.0, 7000.0], [25.0, 13000.0], effects_had, None,
+                             [600.0], ["A"])).write()
     (tmp_path / "diagnosis.json").write_text(json.dumps({"steps": steps}))
     st = _state()
     np.savez(tmp_path / WARM_FILE, coords=np.array(st.coords), q=st.q,
