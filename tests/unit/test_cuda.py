@@ -53,6 +53,10 @@ def test_the_specimen_model_moved_to_cuda_gives_the_cpu_reference(tmp_path) -> N
     m.set_observations(ti, oi).use_store(StoreUse(RunStore(tmp_path / "store"), batch=2))
     Vs, ok = m.observed_runs(torch.tensor(THETA, dtype=f64))
     assert bool(ok.all())
-    torch.testing.assert_close(Vs, V.detach().cpu()[:, ti, oi], rtol=0, atol=1e-9)
+    # two converged Newton solves (residual rtol 1e-10) on the GPU: CUDA's atomic scatter-adds
+    # give each solve its own round-off, so Newton may stop one iteration apart; they agree to
+    # the Newton tolerance times the stiffness's conditioning (5e-9 of max|V| on an H100)
+    scale = float(V.detach().abs().max())
+    torch.testing.assert_close(Vs, V.detach().cpu()[:, ti, oi], rtol=0, atol=5e-8 * scale)
     m.to("cpu")
     assert m.solver.tkw["device"].type == "cpu"
