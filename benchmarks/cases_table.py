@@ -4,7 +4,7 @@ diagnosis's first candidate and selection, each recalibration's posterior kind, 
 ``compare``), FE check, truths covered by the 95 % intervals, R-hat / min bulk ESS, design,
 discretization check, and wall times.
 
-Usage: python benchmarks/cases_table.py WORK [--data-dir runs/i21] [--json OUT]
+Usage: python benchmarks/cases_table.py WORK [--data-dir runs/hidden_effect_data] [--json OUT]
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ def _run(d: Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("work")
-    ap.add_argument("--data-dir", default="runs/i21")
+    ap.add_argument("--data-dir", default="runs/hidden_effect_data",
+                    help="the cases' data CSVs, CASE.csv per case directory in WORK")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     out = []

@@ -19,8 +19,8 @@ each candidate's likelihood ratio, RMS after and flag, failed refits, the RMS be
 cost. The cases run as one sweep (``--cluster local:2``: two at a time).
 
 Usage: python benchmarks/diagnosis_cases.py --data NAME=CSV ... [--base NAME=DIR ...]
-       [--work runs/i20] [--out benchmarks/results_diagnosis_cases.json] [--no-recalibrate]
-       [--cluster local:2] [--keep-diagnosis] [--with-hidden]
+       [--work runs/diagnosis_cases] [--out benchmarks/results/diagnosis_cases.json]
+       [--no-recalibrate] [--cluster local:2] [--keep-diagnosis] [--with-hidden]
 """
 
 from __future__ import annotations
@@ -160,7 +160,7 @@ def main() -> None:
     ap.add_argument("--base", nargs="*", action="extend", default=[], metavar="NAME=DIR",
                     help="existing base run directories (default WORK/NAME/base, calibrated "
                          "here when missing)")
-    ap.add_argument("--work", default="runs/i20")
+    ap.add_argument("--work", default="runs/diagnosis_cases")
     ap.add_argument("--store", default=None, help="FE run store (default WORK/store)")
     ap.add_argument("--out", default="benchmarks/results/diagnosis_cases.json")
     ap.add_argument("--no-recalibrate", action="store_true")

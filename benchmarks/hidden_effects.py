@@ -4,7 +4,7 @@
 Usage: python benchmarks/hidden_effects.py [--kind field|point|both] [--effects a,b,...]
        [--budget N] [--start N] [--q N] [--chains 2] [--warmup 300] [--draws 500]
        [--exact auto|on|off] [--work runs/hidden] [--store DIR]
-       [--out benchmarks/results_hidden.json] [--cluster local:2 | --scheduler ADDRESS]
+       [--out benchmarks/results/hidden_effects.json] [--cluster local:2 | --scheduler ADDRESS]
 
 Every calibration is ``solderpyro calibrate``'s (solderpyro.pipeline.calibrate_specimen: the
 adaptive design up to ``--budget`` FE runs, then NUTS); the FE-exact posterior and profile

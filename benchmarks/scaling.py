@@ -25,7 +25,7 @@ calibration's field run) in the record format of the store, and times ``RunStore
 reading them all back; the same for 1/5 as many records in the old format (V as lists of
 numbers), for scale.
 
-Results: benchmarks/results_scaling.json (merged per subcommand).
+Results: benchmarks/results/scaling.json (merged per subcommand).
 """
 
 from __future__ import annotations
