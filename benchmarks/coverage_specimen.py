@@ -1,4 +1,4 @@
-"""Coverage of the specimen calibration's 95 % intervals over synthetic datasets (issue 5).
+"""Coverage of the specimen calibration's 95 % intervals over synthetic datasets.
 
 Usage: python benchmarks/coverage_specimen.py [--datasets 20] [--runs 50] [--chains 2]
        [--warmup 300] [--draws 500] [--output batched|pca] [--kernel gaussian|matern52]

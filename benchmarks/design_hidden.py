@@ -1,4 +1,4 @@
-"""The adaptive design on data nobody here calibrates with (issue 19, "Done when").
+"""The adaptive design on data nobody here calibrates with.
 
 For each case: full-field data (the 31 x 18 grid + A, B at the four seed times, noise 0.05 um)
 made by a *finer* FE than the calibration's (``mesh=fine``, time steps dT 2 K / dt 150 s: no

@@ -1,4 +1,4 @@
-"""The adaptive design against plain Latin hypercubes at the same FE budget (issue 19).
+"""The adaptive design against plain Latin hypercubes at the same FE budget.
 
     python benchmarks/design_vs_lhs.py [--datasets 10] [--lhs 100,200] [--work runs/design_vs_lhs]
         [--out benchmarks/results/design_vs_lhs.json] [--cluster local:2]

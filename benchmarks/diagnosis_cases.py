@@ -1,4 +1,4 @@
-"""The diagnosis on data nobody here calibrates with (issue 20, "Done when").
+"""The diagnosis on data nobody here calibrates with.
 
 Per case, exactly what a user types, default flags, on a measurement CSV made by a finer FE
 than the calibration's (``mesh=fine``, 2 K / 150 s steps; see benchmarks/design_hidden.py):
@@ -148,7 +148,7 @@ def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, 
         ([[e] for e in rec["tie"][0]] if rec["tie"] else [])
     if recalibrate and with_hidden and eff and eff not in tried:
         # "after adding the hidden effect": what a user who knows the effect does, also
-        # where the data cannot tell it from the others (issue 19's point data)
+        # where the data cannot tell it from the others (the point data)
         rec["hidden_recalibrated"] = _recalibrate(csv_p, base, w / f"with_{'+'.join(eff)}",
                                                   eff, store, truth, wall)
     return rec

@@ -1,4 +1,4 @@
-"""Proof on data with a hidden effect (issue 6 §5): calibrate -> diagnose -> add the top effect
+"""Proof on data with a hidden effect: calibrate -> diagnose -> add the top effect
 -> calibrate again, for one dataset per effect plus a clean one, full-field and point data.
 
 Usage: python benchmarks/hidden_effects.py [--kind field|point|both] [--effects a,b,...]

@@ -1,4 +1,4 @@
-"""The mission's loop on full-field data, timed as a user runs it (issue 18).
+"""The mission's loop on full-field data, timed as a user runs it.
 
     python benchmarks/loop.py --effect modulus_temperature --out runs/loop
 

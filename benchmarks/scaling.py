@@ -1,4 +1,4 @@
-"""Scale-out measurements (issue 22): a 512-run DOE in-process vs on 1 and 2 Dask workers, and
+"""Scale-out measurements: a 512-run DOE in-process vs on 1 and 2 Dask workers, and
 reading a 10,000-run store back.
 
     python benchmarks/scaling.py doe   [--runs 512] [--batch 64] [--repeats 1]
