@@ -1,5 +1,7 @@
-"""The hidden-effect cases' table (BENCHMARKS.md issue 19) from the run directories that
-``benchmarks/diagnosis_cases.py --work WORK`` leaves: per case the base run's design, the
+"""The hidden-effect cases' table from the run directories of benchmarks/diagnosis_cases.py.
+
+Read from what ``benchmarks/diagnosis_cases.py --work WORK`` leaves (BENCHMARKS.md, "Hidden
+effects: diagnose, recalibrate, cover the truths"): per case the base run's design, the
 diagnosis's first candidate and selection, each recalibration's posterior kind, RMS (noise sd,
 ``compare``), FE check, truths covered by the 95 % intervals, R-hat / min bulk ESS, design,
 discretization check, and wall times.
