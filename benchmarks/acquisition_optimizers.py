@@ -1,7 +1,8 @@
 """How to choose the q runs of a design round: BoTorch's continuous optimize_acqf, its discrete
 optimizer over posterior draws, and the closed-form greedy choice (docs/design.md).
 
-Usage: python benchmarks/acquisition_optimizers.py [--q 6] [--out benchmarks/results_acq_opt.json]
+Usage: python benchmarks/acquisition_optimizers.py [--q 6]
+       [--out benchmarks/results/acquisition_optimizers.json]
 
 A 4-parameter PCA surrogate (24 LHS runs of a smooth 15-output toy, the test suite's), data at
 the box's centre, 64 "posterior draws" in the box's middle fifth; the likelihood-aware

@@ -2,11 +2,11 @@
 
 Usage: python benchmarks/bench_fe.py [--sizes 1,8,64,256] [--sequential 64] [--lhs 50]
        [--device cpu|cuda] [--threads N] [--no-native] [--check-cpu N] [--split B1,B2,...]
-       [--out benchmarks/results_fe.json]
+       [--out benchmarks/results/bench_fe.json]
 
 ``--split``: for each batch size, the same parameter sets solved in one process on torch's
 threads and split over every core's one-thread process (:func:`solderpyro.executor.
-solve_split`, the in-process default since session 29), paired, with the largest |dV|
+solve_split`, the in-process default), paired, with the largest |dV|
 between the two.
 
 On a GPU (``--device cuda``) one small solve runs first, untimed (CUDA context and kernel

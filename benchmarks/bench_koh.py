@@ -3,7 +3,7 @@
 Usage: python benchmarks/bench_koh.py [--cases direct,joint,field_modular,joint_400,joint_400_grid]
        [--chains 4] [--warmup 500] [--draws 1000] [--seed 0]
        [--numpyro-mass both|diag|dense] [--workers 1] [--no-numpyro]
-       [--out benchmarks/results_koh.json]
+       [--out benchmarks/results/bench_koh.json]
 
 Cases (identical data, priors, site transforms and likelihood on both sides):
 - direct: the seed's mathematical example, t and sigma (Table I's posterior);

@@ -1,10 +1,12 @@
-"""The hidden-effect cases' table (BENCHMARKS.md issue 19) from the run directories that
-``benchmarks/diagnosis_cases.py --work WORK`` leaves: per case the base run's design, the
+"""The hidden-effect cases' table from the run directories of benchmarks/diagnosis_cases.py.
+
+Read from what ``benchmarks/diagnosis_cases.py --work WORK`` leaves (BENCHMARKS.md, "Hidden
+effects: diagnose, recalibrate, cover the truths"): per case the base run's design, the
 diagnosis's first candidate and selection, each recalibration's posterior kind, RMS (noise sd,
 ``compare``), FE check, truths covered by the 95 % intervals, R-hat / min bulk ESS, design,
 discretization check, and wall times.
 
-Usage: python benchmarks/cases_table.py WORK [--data-dir runs/i21] [--json OUT]
+Usage: python benchmarks/cases_table.py WORK [--data-dir runs/hidden_effect_data] [--json OUT]
 """
 
 from __future__ import annotations
@@ -49,7 +51,8 @@ def _run(d: Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("work")
-    ap.add_argument("--data-dir", default="runs/i21")
+    ap.add_argument("--data-dir", default="runs/hidden_effect_data",
+                    help="the cases' data CSVs, CASE.csv per case directory in WORK")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     out = []

@@ -2,7 +2,7 @@
 
 Usage: python benchmarks/coverage_exact.py [--effect stress_free_temperature] [--seeds 1-10]
        [--times seed|extended] [--n 128] [--rounds 4] [--profile 9]
-       [--work runs/coverage_exact] [--out benchmarks/results_coverage_exact.json]
+       [--work runs/coverage_exact] [--out benchmarks/results/coverage_exact.json]
 
 The same truth (solderpyro.diagnose.hidden.TRUTH and the effect's hidden value), full-field data
 at the seed times (``--times extended``: at the seven extended times, the measurement that

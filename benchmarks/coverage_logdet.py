@@ -1,6 +1,7 @@
 """Why the coverage study's intervals miss: the modular likelihood's two terms at each truth.
 
-Usage: python benchmarks/coverage_logdet.py [--results benchmarks/results_coverage_flow.json]
+Usage: python benchmarks/coverage_logdet.py
+       [--results benchmarks/results/coverage_specimen_uniform_starts.json]
        [--store runs/store]
 
 Rebuilds the default surrogate of benchmarks/coverage_specimen.py (50-run LHS, PCA, Matern 5/2 on

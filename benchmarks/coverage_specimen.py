@@ -1,4 +1,4 @@
-"""Coverage of the specimen calibration's 95 % intervals over synthetic datasets (issue 5).
+"""Coverage of the specimen calibration's 95 % intervals over synthetic datasets.
 
 Usage: python benchmarks/coverage_specimen.py [--datasets 20] [--runs 50] [--chains 2]
        [--warmup 300] [--draws 500] [--output batched|pca] [--kernel gaussian|matern52]
@@ -6,7 +6,7 @@ Usage: python benchmarks/coverage_specimen.py [--datasets 20] [--runs 50] [--cha
        [--var-explained 0.999]
        [--workflow [--budget N] [--start N] [--exact auto|on|off] --work runs/coverage]
        [--only i,j,...]
-       [--store runs/store] [--out benchmarks/results_coverage.json]
+       [--store runs/store] [--out benchmarks/results/coverage_specimen.json]
        [--cluster local:2 | --scheduler tcp://HOST:PORT]
 
 Truths are drawn from the prior (uniform on the seed box), so for an exact posterior the

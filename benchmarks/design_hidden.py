@@ -1,4 +1,4 @@
-"""The adaptive design on data nobody here calibrates with (issue 19, "Done when").
+"""The adaptive design on data nobody here calibrates with.
 
 For each case: full-field data (the 31 x 18 grid + A, B at the four seed times, noise 0.05 um)
 made by a *finer* FE than the calibration's (``mesh=fine``, time steps dT 2 K / dt 150 s: no
@@ -12,7 +12,7 @@ wall time, why the design stopped and its FE runs, the FE check (best RMS over p
 in noise sd, ok), which truths lie in the 95 % intervals (summary.csv), the trust line.
 
 Usage: python benchmarks/design_hidden.py [--cases modulus_temperature,none,...]
-       [--work runs/design_hidden] [--out benchmarks/results_design_hidden.json]
+       [--work runs/design_hidden] [--out benchmarks/results/design_hidden.json]
        [--cluster local:2 | --scheduler tcp://HOST:PORT]
 
 The cases run as one sweep (:mod:`solderpyro.sweep`): one after another by default, in

@@ -1,7 +1,7 @@
-"""The adaptive design against plain Latin hypercubes at the same FE budget (issue 19).
+"""The adaptive design against plain Latin hypercubes at the same FE budget.
 
-    python benchmarks/design_vs_lhs.py [--datasets 10] [--lhs 100,200] [--work runs/dvl]
-        [--out benchmarks/results_design_vs_lhs.json] [--cluster local:2]
+    python benchmarks/design_vs_lhs.py [--datasets 10] [--lhs 100,200] [--work runs/design_vs_lhs]
+        [--out benchmarks/results/design_vs_lhs.json] [--cluster local:2]
 
 Datasets: full-field data (the 31 x 18 grid + A, B at the four seed times, 2,240 values) of
 the clean model, each at its own truth (a Latin hypercube over the middle 60 % of the

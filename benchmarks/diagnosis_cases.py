@@ -1,4 +1,4 @@
-"""The diagnosis on data nobody here calibrates with (issue 20, "Done when").
+"""The diagnosis on data nobody here calibrates with.
 
 Per case, exactly what a user types, default flags, on a measurement CSV made by a finer FE
 than the calibration's (``mesh=fine``, 2 K / 150 s steps; see benchmarks/design_hidden.py):
@@ -19,8 +19,8 @@ each candidate's likelihood ratio, RMS after and flag, failed refits, the RMS be
 cost. The cases run as one sweep (``--cluster local:2``: two at a time).
 
 Usage: python benchmarks/diagnosis_cases.py --data NAME=CSV ... [--base NAME=DIR ...]
-       [--work runs/i20] [--out benchmarks/results_diagnosis_cases.json] [--no-recalibrate]
-       [--cluster local:2] [--keep-diagnosis] [--with-hidden]
+       [--work runs/diagnosis_cases] [--out benchmarks/results/diagnosis_cases.json]
+       [--no-recalibrate] [--cluster local:2] [--keep-diagnosis] [--with-hidden]
 """
 
 from __future__ import annotations
@@ -148,7 +148,7 @@ def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, 
         ([[e] for e in rec["tie"][0]] if rec["tie"] else [])
     if recalibrate and with_hidden and eff and eff not in tried:
         # "after adding the hidden effect": what a user who knows the effect does, also
-        # where the data cannot tell it from the others (issue 19's point data)
+        # where the data cannot tell it from the others (the point data)
         rec["hidden_recalibrated"] = _recalibrate(csv_p, base, w / f"with_{'+'.join(eff)}",
                                                   eff, store, truth, wall)
     return rec
@@ -160,7 +160,7 @@ def main() -> None:
     ap.add_argument("--base", nargs="*", action="extend", default=[], metavar="NAME=DIR",
                     help="existing base run directories (default WORK/NAME/base, calibrated "
                          "here when missing)")
-    ap.add_argument("--work", default="runs/i20")
+    ap.add_argument("--work", default="runs/diagnosis_cases")
     ap.add_argument("--store", default=None, help="FE run store (default WORK/store)")
     ap.add_argument("--out", default="benchmarks/results/diagnosis_cases.json")
     ap.add_argument("--no-recalibrate", action="store_true")

@@ -1,4 +1,4 @@
-"""Measure the diagnosis's discretization floor (issue 20) and write
+"""Measure the diagnosis's discretization floor and write
 solderpyro/diagnose/floor.json.
 
 Two FE discretizations never agree exactly, so on enough values every candidate effect

@@ -1,5 +1,5 @@
 """Which refinement removes the calibration FE's discretization error, and what does the
-correction (``calibration.discretization=correct``) buy? (issue 19, session 27)
+correction (``calibration.discretization=correct``) buy?
 
     python benchmarks/discretization_correction.py DATA.csv [--store DIR] [--at x1,x2,x3,x4]
 

@@ -1,4 +1,4 @@
-"""Would a discretization-error term in the likelihood move the truth inside (issue 19)?
+"""Would a discretization-error term in the likelihood move the truth inside?
 
 The calibration FE (default mesh and steps) against field data made by a finer FE: the
 Levenberg-Marquardt best fit, and the truth's chi-square above it, with and without a
@@ -9,8 +9,9 @@ away exactly (``W = I - beta e e^T / |e|^2``), so LM fits ``W f`` to ``W y``.
 
 Usage: python benchmarks/discretization_term.py DATA.csv [--effect NAME --truth-extra V]
        [--at liu|x1,x2,...] [--store DIR]
-(session 22: runs/i21/none.csv --at 13.6,12025,3.02,0.1127 and --at liu; runs/i21/
-thermal_lag.csv --effect thermal_lag --truth-extra 105 --at 15.93,12020.8,3.446,0.10805,105.515)
+(e.g. runs/hidden_effect_data/none.csv --at 13.6,12025,3.02,0.1127 and --at liu;
+runs/hidden_effect_data/thermal_lag.csv --effect thermal_lag --truth-extra 105 --at
+15.93,12020.8,3.446,0.10805,105.515)
 """
 
 from __future__ import annotations

@@ -11,7 +11,8 @@ iterations, the chi-square profile along the ridge, ``--rounds`` AMIS rounds of 
 runs with the FE itself in the likelihood (noise sd known, 0.05 um). Prints and writes the
 2.5 / 50 / 97.5 % quantiles, the weights' ESS and Pareto k-hat, and, for each ``--compare``
 run directory, the largest quantile error per parameter divided by the FE-exact interval's
-width (issue 19's accuracy measure).
+width (the accuracy measure of BENCHMARKS.md, "The adaptive design against fixed Latin
+hypercubes").
 """
 
 from __future__ import annotations

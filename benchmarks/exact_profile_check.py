@@ -2,7 +2,7 @@
 
 Usage: python benchmarks/exact_profile_check.py [--effect stress_free_temperature] [--seeds 1,2,5]
        [--grid 8,10,11,12,13,14,16,18,20,22,24] [--iters 10] [--work runs/coverage_exact]
-       [--out benchmarks/results_exact_profile_check.json]
+       [--out benchmarks/results/exact_profile_check.json]
 
 For the datasets of benchmarks/coverage_exact.py (same truth, full field at the seed times,
 noise 0.05 um, one noise seed each), s0 is held at each grid value and the other calibrated
@@ -11,7 +11,7 @@ the FE-exact posterior's marginal medians (with s0 replaced), which lie on diffe
 of the ridge. Each fit gives a Laplace mass ``exp(-chi2/2) det(H)^(-1/2)`` (H = J'J/sigma^2 of
 the refitted parameters on the box's unit scale, where the prior is flat); the branches are
 summed and the marginal density of s0 interpolated between grid values. Its 2.5 / 50 / 97.5 %
-quantiles are compared with the FE-exact posterior's (AMIS, results_coverage_exact.json). The
+quantiles are compared with the FE-exact posterior's (AMIS, results/coverage_exact.json). The
 truth's chi-square against the best fit says whether the dataset is a typical one (for 5
 parameters chi2(5): mean 5, 95 % below 11.1). Approximations: Laplace in the refitted
 parameters, a grid in s0 ending at its last value (the box reaches 25 MPa), fits stopped after

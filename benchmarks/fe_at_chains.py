@@ -1,4 +1,4 @@
-"""The FE's chi-square at draws of every chain of a finished run (issue 19, session 30).
+"""The FE's chi-square at draws of every chain of a finished run.
 
     python benchmarks/fe_at_chains.py RUN_DIR [--per-chain 3] [--json OUT.json]
 
@@ -7,7 +7,7 @@ solves the FE (through the run store: no solve where it holds the row) at ``--pe
 draws spread through each chain; prints, per draw, the parameters and the FE's chi-square
 (noise sd from the data's sigma_um, 0.05 um in the reference case). A chain whose draws the FE
 misfits by thousands while the others fit sits in an island only the surrogate fits (the
-kinematic-hardening field case of session 30: 6,778-23,445 against 2,163-2,175).
+kinematic-hardening field case: 6,778-23,445 against 2,163-2,175).
 """
 
 from __future__ import annotations

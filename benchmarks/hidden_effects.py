@@ -1,10 +1,10 @@
-"""Proof on data with a hidden effect (issue 6 §5): calibrate -> diagnose -> add the top effect
+"""Proof on data with a hidden effect: calibrate -> diagnose -> add the top effect
 -> calibrate again, for one dataset per effect plus a clean one, full-field and point data.
 
 Usage: python benchmarks/hidden_effects.py [--kind field|point|both] [--effects a,b,...]
        [--budget N] [--start N] [--q N] [--chains 2] [--warmup 300] [--draws 500]
        [--exact auto|on|off] [--work runs/hidden] [--store DIR]
-       [--out benchmarks/results_hidden.json] [--cluster local:2 | --scheduler ADDRESS]
+       [--out benchmarks/results/hidden_effects.json] [--cluster local:2 | --scheduler ADDRESS]
 
 Every calibration is ``solderpyro calibrate``'s (solderpyro.pipeline.calibrate_specimen: the
 adaptive design up to ``--budget`` FE runs, then NUTS); the FE-exact posterior and profile

@@ -1,4 +1,4 @@
-"""The mission's loop on full-field data, timed as a user runs it (issue 18).
+"""The mission's loop on full-field data, timed as a user runs it.
 
     python benchmarks/loop.py --effect modulus_temperature --out runs/loop
 
@@ -12,7 +12,7 @@
 
 Each command runs as its own process (what a user waits for); the wall time of each, the
 calibrations' own stage times (run.json ``timing_s``), R-hat, bulk ESS and divergences go to
-``--json`` (default benchmarks/results_loop.json). Data and runs stay in ``--out``.
+``--json`` (default benchmarks/results/loop.json). Data and runs stay in ``--out``.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""Why the full-field surrogate posterior is hard to sample (issue 18, "find the cause").
+"""Why the full-field surrogate posterior is hard to sample.
 
 Rebuilds a calibration run's final surrogate from its ``design.csv`` runs (read back from the
 run store: no FE solve), then, at posterior draws of the run, the Hessian of the reduced
 log likelihood (central differences of its analytic gradient) whitened by the draws'
-covariance, in four coordinate systems: the logit of the box's unit cube (Pyro's transform,
-what NUTS sampled in before session 21), the unit cube itself, the GP's own inputs (flow
-stresses), and the soft-walled flow-stress coordinates NUTS samples in since session 21
+covariance, in four coordinate systems: the logit of the box's unit cube (Pyro's transform
+and NumPyro's), the unit cube itself, the GP's own inputs (flow stresses), and the soft-walled
+flow-stress coordinates NUTS samples in
 (:class:`solderpyro.calibration.flowcoords.SoftFlowCoords`, ``--frac`` its walls' width).
 For a Gaussian every eigenvalue is 1; large ones are directions far narrower locally than
 the posterior's spread, negative ones are curvature (a bent ridge). Optionally

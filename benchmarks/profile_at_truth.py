@@ -1,17 +1,18 @@
 """Does the data's own model put the truth outside? Profile chi-square at each true constant.
 
-For field data with a known truth: the Levenberg-Marquardt best fit of a chosen FE (``--fine``:
-the FE that made the data, ``mesh=fine`` with 2 K / 150 s steps, as benchmarks/design_hidden.py
-makes it; default: the calibration's FE), and for each parameter the fit with that parameter
-held at its true value. ``Delta = chi2_profile - chi2_best``; above 3.84 the truth lies outside
-the 95 % profile-likelihood interval. If every Delta is below it, a calibration whose interval
-misses the truth is wrong, not unlucky (issue 19, BENCHMARKS.md session 23).
+For field data with a known truth: the Levenberg-Marquardt best fit of a chosen FE (``--fine``: the
+FE that made the data, ``mesh=fine`` with 2 K / 150 s steps, as benchmarks/design_hidden.py makes
+it; default: the calibration's FE), and for each parameter the fit with that parameter held at its
+true value. ``Delta = chi2_profile - chi2_best``; above 3.84 the truth lies outside the 95 %
+profile-likelihood interval. If every Delta is below it, a calibration whose interval misses the
+truth is wrong, not unlucky (BENCHMARKS.md, "Hidden effects: diagnose, recalibrate, cover the
+truths").
 
 Usage: python benchmarks/profile_at_truth.py DATA.csv --start x1,x2,... [--effect NAME]
        [--truth-extra V ...] [--params 0,1,...] [--fine] [--store DIR]
-(session 23: runs/i21/none.csv --start 13.44,11160,2.41,0.104 with and without --fine;
-runs/i21/moire_rigid_motion.csv --effect moire_rigid_motion --fine --params 1,2,5 with the
-truth's and the posterior medians' Moire values appended)
+(e.g. runs/hidden_effect_data/none.csv --start 13.44,11160,2.41,0.104 with and without --fine;
+runs/hidden_effect_data/moire_rigid_motion.csv --effect moire_rigid_motion --fine --params 1,2,5
+with the truth's and the posterior medians' Moire values appended)
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """NUTS in ridge coordinates against the sampler's own coordinates, on a finished run's
-posterior (issue 18; solderpyro.calibration.ridgemap).
+posterior (solderpyro.calibration.ridgemap).
 
     python benchmarks/ridge_coords.py RUN_DIR [--store STORE] [--json OUT.json]
         [--modes plain@0.8,ridge@0.9,ridge@0.95:150] [--seed S]

@@ -1,4 +1,4 @@
-"""Per-call costs inside a design round, paired in one process (issue 18, session 29).
+"""Per-call costs inside a design round, paired in one process.
 
     python benchmarks/round_costs.py RUN_DIR [--store STORE] [--json OUT.json]
 
@@ -12,11 +12,11 @@ store) and times, one thread, median of 5 repeats each, side by side:
 - the same gradient in the ridge coordinates the sampler uses (``RidgeMap.wrap``, the map
   fitted to the 600 draws), with the native kernels (``reduced.c``, ``ridgemap.c``: the
   default where a C compiler is found) against the NumPy path they replaced, and the largest
-  differences of log density and gradient between the two (session 30);
+  differences of log density and gradient between the two;
 - the surrogate's hyperparameter fit (``fit_surrogate`` on the run's converged design runs,
   one thread): the marginal likelihood's loss and gradient in NumPy/LAPACK
   (``surrogate/mll.py``, the default) against GPyTorch's autograd closure, with each fit's
-  summed negative log marginal likelihood (session 30);
+  summed negative log marginal likelihood;
 - the design's acquisition (``greedy_draws``, 256 draws, 512 candidates, q = 8, 4 pending,
   the loglik criterion): the kept low-rank form against the full covariance matrix with
   rank-1 updates it replaced (:func:`_greedy_full`, kept here as the reference), with the
@@ -119,7 +119,7 @@ def main() -> None:
     from solderpyro.calibration.ridgemap import RidgeMap
 
     lib = _native.library
-    _native.library = lambda: None  # the series against the sums: both in NumPy (session 29)
+    _native.library = lambda: None  # the series against the sums: both in NumPy
     fm = flat_model(observation_model, (inp, sm.priors))
     t_series, lp_series = timed_gradients(fm)
     saved = PCAReduction.__init__

@@ -2,7 +2,7 @@
 
 Usage: python benchmarks/sbc.py [--reps 200] [--models direct field anand] [--chains 1]
        [--warmup 300] [--draws 300] [--bins 10] [--mutate none|half-lik|double-lik|short]
-       [--out benchmarks/results_sbc.json]
+       [--out benchmarks/results/sbc.json]
 
 For r = 1..R: (t, sigma) is drawn from the model's prior and y from the model's own likelihood
 at that draw (the Pyro model run with its observed site un-conditioned, so the simulation is

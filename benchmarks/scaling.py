@@ -1,4 +1,4 @@
-"""Scale-out measurements (issue 22): a 512-run DOE in-process vs on 1 and 2 Dask workers, and
+"""Scale-out measurements: a 512-run DOE in-process vs on 1 and 2 Dask workers, and
 reading a 10,000-run store back.
 
     python benchmarks/scaling.py doe   [--runs 512] [--batch 64] [--repeats 1]
@@ -25,7 +25,7 @@ calibration's field run) in the record format of the store, and times ``RunStore
 reading them all back; the same for 1/5 as many records in the old format (V as lists of
 numbers), for scale.
 
-Results: benchmarks/results_scaling.json (merged per subcommand).
+Results: benchmarks/results/scaling.json (merged per subcommand).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Surrogate accuracy on held-out FE runs: the GP's inputs and kernel (docs/calibration.md).
 
 Usage: python benchmarks/surrogate_inputs.py [--runs 50,100] [--test 120]
-       [--store runs/store] [--out benchmarks/results_surrogate_inputs.json]
+       [--store runs/store] [--out benchmarks/results/surrogate_inputs.json]
 
 The 8 point outputs (V_A, V_B at the four seed times) of the reference case, an LHS of n runs
 over the seed box (seed 0, as the calibration's DOE) and a separate LHS of held-out runs (seed

@@ -165,7 +165,7 @@ def _task(key: str, blob: bytes, P: torch.Tensor, times: list[float], names: lis
 
 #: the fewest members a forked part of a batch gets (:func:`solve_split`): even a 2-run batch
 #: split in two ran 1.25-1.37x faster than whole on two threads, a 4-run one 1.4x, 16-32 runs
-#: 1.6-1.8x (``benchmarks/bench_fe.py --split``, this 2-core machine, session 29)
+#: 1.6-1.8x (``benchmarks/bench_fe.py --split``, the project's 2-core machine)
 MIN_PART = 1
 
 
@@ -269,7 +269,7 @@ class InProcess:
 
     Args:
         processes: processes per batch (1: the whole batch in this process, on torch's
-            threads, as before session 29); None: :func:`local_cores`.
+            threads); None: :func:`local_cores`.
     """
 
     n_workers = 1
@@ -302,12 +302,12 @@ class InProcess:
 _LOCAL = re.compile(r"^local(?::(\d+))?$")
 
 
-#: Dask settings of the workers a ``--cluster local:N`` starts, measured on the FE (a 64-run
-#: batch on one thread; BENCHMARKS.md, issue 22): glibc's memory trimming at 64 kB, which Dask
-#: sets for its workers, made the solver's many medium-sized tensor allocations 12 % slower, and
-#: the statistical profiler (a thread sampling the stack every 10 ms) took a few per cent more.
-#: A cluster started elsewhere (``--scheduler``) keeps its own settings: docs/scaling.md says
-#: which to use.
+#: Dask settings of the workers a ``--cluster local:N`` starts, measured on the FE (a 64-run batch
+#: on one thread; BENCHMARKS.md, "Scaling out on Dask"): glibc's memory trimming at 64 kB, which
+#: Dask sets for its workers, made the solver's many medium-sized tensor allocations 12 % slower,
+#: and the statistical profiler (a thread sampling the stack every 10 ms) took a few per cent more.
+#: A cluster started elsewhere (``--scheduler``) keeps its own settings: docs/scaling.md says which
+#: to use.
 WORKER_CONFIG = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": 1 << 30,
                  "distributed.worker.profile.enabled": False}
 

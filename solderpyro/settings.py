@@ -30,10 +30,10 @@ class SurrogateSettings:
     stresses at ``inputs_T_C`` degC and ``inputs_rate`` 1/s replace s0 and Q/R).
     ``truncation``: a PCA surrogate keeps components until the variance they leave, summed
     over the observed values in noise variances, is at most ``truncation * sqrt(2 n)`` (a
-    chi-square no added FE run could remove; see ``GPSurrogate(resid_chi2=)``). 0.01 since
-    session 23 (0.1 before): on 54 runs of the clean field case, 19 components instead of
-    13, and the surrogate's error at posterior draws ``|FE - surrogate|^2 / sigma^2`` 1.35 ->
-    0.06 (most of it was the FE's part outside the kept components, which no GP learns);
+    chi-square no added FE run could remove; see ``GPSurrogate(resid_chi2=)``). 0.01: on 54
+    runs of the clean field case it keeps 19 components where 0.1 kept 13, and the
+    surrogate's error at posterior draws ``|FE - surrogate|^2 / sigma^2`` falls 1.35 -> 0.06
+    (most of it was the FE's part outside the kept components, which no GP learns);
     docs/design.md."""
 
     kernel: str = "matern52"
@@ -56,16 +56,16 @@ class SamplerSettings:
     (208 s for one round on the full-field case). ``workers``: processes for the chains (0:
     one per core).
 
-    ``draws`` 1500 (1000 until session 22): with 1000 the hidden-effect recalibrations met
-    issue 18's bars (R-hat <= 1.01, bulk ESS >= 400 for every parameter) in only some runs
-    (R-hat up to 1.016, min ESS 377); on the modulus field recalibration, paired on an idle
-    machine, 1500 took min ESS 422 -> 782 and R-hat 1.007 -> 1.004 for 137 s instead of
-    120 s (BENCHMARKS.md issue 18, session 22).
+    ``draws`` 1500: with 1000 the hidden-effect recalibrations met the loop's bars (R-hat
+    <= 1.01, bulk ESS >= 400 for every parameter) in only some runs (R-hat up to 1.016, min
+    ESS 377); on the modulus field recalibration, paired on an idle machine, 1500 took min
+    ESS 422 -> 782 and R-hat 1.007 -> 1.004 for 137 s instead of 120 s (BENCHMARKS.md, "The
+    loop as a user runs it").
 
     ``final_ridge`` (default on): the final posterior in the ridge map's coordinates, as the
     design rounds are (:func:`~solderpyro.calibration.mcmc.ridge_map`; off: the sampler's own
-    coordinates). Measured (``benchmarks/ridge_coords.py``, three seeds each, session 26), it
-    depends on the posterior: on the loop's full-field recalibration the map takes 40 s
+    coordinates). Measured (``benchmarks/ridge_coords.py``, three seeds each), it depends on
+    the posterior: on the loop's full-field recalibration the map takes 40 s
     against 83 s but diverges 52-160 times in 6,000 where the posterior's tail meets the Q/R
     face (own coordinates: 1) with min bulk ESS 409-732 against 775-1022; on the demo's
     8-value posterior the own coordinates diverge 13-68 times (map 7-41) and their min ESS
@@ -82,16 +82,15 @@ class SamplerSettings:
 
     ``min_ess`` (0: off): when the final posterior's smallest bulk ESS falls short of it, the
     chains run on from their last draws for the draws the shortfall asks for (at most twice
-    ``draws``), once, after a ``round_warmup`` warm-up in new ridge coordinates (none in the
-    sampler's own, where the adapted step and metric carry over): the ridge map's min ESS was
-    175-732 over the two posteriors and six seeds above, with 4 x 1500 draws; the loop's
-    recalibration in session 25 reported 358 against issue 18's bar of 400 for every
-    parameter. ``max_rhat`` (1.01, issue 18's bar; 0: off): the chains also run on, for at
-    least half of ``draws``, when the largest R-hat is above it but at most
-    :data:`~solderpyro.pipeline.posterior.RUN_ON_RHAT` (1.5 since session 30, 1.1 before;
-    chains further apart sit in different places, and running on does not join them): the
-    loop's recalibration in session 29 ended at R-hat 1.011-1.012 on Q/R and m with every ESS
-    above 400."""
+    ``draws``), once, with the adapted step and metric in the coordinates they sampled in
+    (where the run kept no ridge map: a map fitted to their draws and a ``round_warmup``
+    warm-up): the ridge map's min ESS was 175-732 over the two posteriors and six seeds above,
+    with 4 x 1500 draws, against the loop's bar of 400 for every parameter (BENCHMARKS.md,
+    "The loop as a user runs it"). ``max_rhat`` (1.01, the loop's bar; 0: off): the chains
+    also run on, for at least half of ``draws``, when the largest R-hat is above it but at
+    most :data:`~solderpyro.pipeline.posterior.RUN_ON_RHAT` (1.5; chains further apart sit in
+    different places, and running on does not join them): without it the loop's
+    recalibration can end at R-hat 1.011-1.012 on Q/R and m with every ESS above 400."""
 
     chains: int = 4
     warmup: int = 500

@@ -6,7 +6,8 @@
  * and n fixed), the reduced likelihood (reduced.c) and every chain rule back. The same
  * formulas in the same order as the Python, which stays the reference and the fallback
  * (tests/unit/test_reduced.py checks the two agree). Why: with the reduced likelihood in C,
- * the Python around it was 55 of the 94 us of a gradient (BENCHMARKS.md issue 18, session 30).
+ * the Python around it was 55 of the 94 us of a gradient (BENCHMARKS.md, "Per-gradient and
+ * per-round costs of the calibration").
  *
  * dims: p (calibrated parameters = GP inputs), sigma_positive (1: LogNormal(mu, sd) on log
  *       sigma; 0: uniform on [lo, lo + w], logit), i_s0, i_qr, i_xi, i_m (positions in theta)

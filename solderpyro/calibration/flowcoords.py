@@ -1,14 +1,14 @@
 """The coordinates NUTS samples the Anand constants in when the surrogate sees flow stresses.
 
-Why (measured, BENCHMARKS.md issue 18, ``benchmarks/posterior_geometry.py``): on full-field
-data the posterior of (s0, Q/R, xi, m) is a thin curved ridge along which the solder's flow
-stress at the cycle's rates stays what the data say. In the logit of the box's unit cube (the
-transform Pyro and NumPyro use for a bounded prior) its Hessian, whitened by the posterior
-covariance, has eigenvalues up to 1e4-5e4: NUTS needs step sizes near 0.01 and hundreds of
-gradients per draw, and no constant mass matrix fits. In the surrogate's own inputs (the log
-flow stresses of :class:`~solderpyro.surrogate.features.FlowStressInputs`, xi and m on the
-unit scale) the same Hessian is 12-52: nearly Gaussian. But those inputs fill a curved region,
-not a box, and hard walls at its faces made NUTS diverge (25-63 divergent transitions per
+Why (measured, BENCHMARKS.md, "Per-gradient and per-round costs of the calibration",
+``benchmarks/posterior_geometry.py``): on full-field data the posterior of (s0, Q/R, xi, m) is a
+thin curved ridge along which the solder's flow stress at the cycle's rates stays what the data say.
+In the logit of the box's unit cube (the transform Pyro and NumPyro use for a bounded prior) its
+Hessian, whitened by the posterior covariance, has eigenvalues up to 1e4-5e4: NUTS needs step sizes
+near 0.01 and hundreds of gradients per draw, and no constant mass matrix fits. In the surrogate's
+own inputs (the log flow stresses of :class:`~solderpyro.surrogate.features.FlowStressInputs`, xi
+and m on the unit scale) the same Hessian is 12-52: nearly Gaussian. But those inputs fill a curved
+region, not a box, and hard walls at its faces made NUTS diverge (25-63 divergent transitions per
 chain where the posterior touches the Q/R face).
 
 :class:`SoftFlowCoords` keeps the flow-stress inputs and makes the walls soft. A triangular

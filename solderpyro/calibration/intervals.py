@@ -54,9 +54,9 @@ MARGIN = 0.05
 _GRID = 101
 #: a window at a face counts as the densest when it is within this share of the narrowest: a
 #: marginal flat at the face ties its first windows, and which of them Monte Carlo noise makes
-#: the narrowest is chance (the copper field case at session 31's HEAD: 15.00-15.66 MPa, the
-#: window at 0.5 % narrower than the face's by 0.07 %, so the central interval missed the
-#: true 15 MPa by 0.008, where session 30's draws of the same posterior started at the face)
+#: the narrowest is chance (the copper field case: 15.00-15.66 MPa, the window at 0.5 %
+#: narrower than the face's by 0.07 %, so without the tie the central interval missed the
+#: true 15 MPa by 0.008, where another set of draws of the same posterior started at the face)
 TIE = 0.02
 #: the summary columns of the reported interval (``interval`` says which kind)
 INTERVAL_COLUMNS = ("lo95", "hi95", "interval")

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
 #: below this many runs the dense Cholesky is as cheap: one gradient, one thread, 1 shared
 #: correlation, 5 observations: 100 runs 0.14 ms dense / 0.20 ms here, 144 runs 0.27 / 0.21,
-#: 400 runs 2.4 / 0.29 (python benchmarks/kron_gradient.py, session 31; the crossover is ~120
+#: 400 runs 2.4 / 0.29 (python benchmarks/kron_gradient.py; the crossover is ~120
 #: runs)
 MIN_RUNS = 128
 

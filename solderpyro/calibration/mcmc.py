@@ -626,7 +626,7 @@ WARM_DRAWS = 1000
 #: ~0.5; with a first form of the map (quadratic terms in every coordinate) the default 0.8
 #: cost 0.5 % of transitions as divergences on the CTE-slope posterior (29-39 of 6,000, a
 #: scratch run), 0.9 one. With the bend test, `benchmarks/ridge_coords.py` on that posterior:
-#: 0.8 -> 7 divergent, min ESS/s 2.78x the plain coordinates; 0.9 -> 4, 1.46x (session 24);
+#: 0.8 -> 7 divergent, min ESS/s 2.78x the plain coordinates; 0.9 -> 4, 1.46x;
 #: not re-chosen since
 MAPPED_ACCEPT = 0.9
 #: the largest R-hat of chains whose draws a next run's ridge map is fitted to

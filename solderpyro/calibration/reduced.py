@@ -257,10 +257,10 @@ def native_loglik(gps: ComponentGPs, red: PCAReduction) -> Any:
     sigma) -> (ll, d ll/du (d',), d ll/dsigma, c (K,), v (K,))``), or None where the native
     kernels are switched off or unavailable (then the NumPy path serves).
 
-    Why: per gradient of the loop's final posterior (K 20, 91 runs, n 2,240) the NumPy
-    component GPs, their vector-Jacobian product and the reduced likelihood took 128 of 239 us,
-    almost all of it call overhead on arrays of 20-91 values (BENCHMARKS.md issue 18, session
-    30); the native call takes ~15 us.
+    Why: per gradient of the loop's final posterior (K 20, 91 runs, n 2,240) the NumPy component
+    GPs, their vector-Jacobian product and the reduced likelihood took 128 of 239 us, almost all of
+    it call overhead on arrays of 20-91 values (BENCHMARKS.md, "Per-gradient and per-round costs of
+    the calibration"); the native call takes ~15 us.
     """
     from solderpyro import _native
 
@@ -389,14 +389,14 @@ def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
     observations, possibly inside an :class:`ObservedEmulator`) as a
     :class:`~.flat.FlatModel` on the reduced likelihood, with an analytic gradient.
 
-    Flat vector: ``t_unit (p,)`` then ``sigma``; the same priors as the Pyro model. The
-    transforms: with ``coords="auto"`` and a surrogate on flow-stress inputs whose box holds
-    s0, QR, xi, m (A, s_hat, n fixed), those four are sampled in the soft-walled flow-stress
-    coordinates of :class:`~.flowcoords.SoftFlowCoords` (the same posterior, a far rounder
-    density; BENCHMARKS.md issue 18); every other coordinate, and all of them with
-    ``coords="logit"``, on Pyro's transforms (the logit of the unit interval). Observation
-    offsets (``ObservedEmulator``) enter through one torch backward pass
-    through the offset function per gradient.
+    Flat vector: ``t_unit (p,)`` then ``sigma``; the same priors as the Pyro model. The transforms:
+    with ``coords="auto"`` and a surrogate on flow-stress inputs whose box holds s0, QR, xi, m (A,
+    s_hat, n fixed), those four are sampled in the soft-walled flow-stress coordinates of
+    :class:`~.flowcoords.SoftFlowCoords` (the same posterior, a far rounder density; BENCHMARKS.md,
+    "Per-gradient and per-round costs of the calibration"); every other coordinate, and all of them
+    with ``coords="logit"``, on Pyro's transforms (the logit of the unit interval). Observation
+    offsets (``ObservedEmulator``) enter through one torch backward pass through the offset function
+    per gradient.
 
     Raises:
         NotImplementedError: another emulator, a discrepancy, a LocalBox prior or custom
@@ -479,7 +479,7 @@ def _native_flow_flat(fused: Any, umap: GPInputMap, flow: Any, sig: Any, mu: flo
     offsets: ``fused`` (:func:`native_loglik`), the input map ``umap`` (FlowStressInputs),
     the coordinates ``flow`` (:class:`~.flowcoords.SoftFlowCoords`), the sigma site ``sig``
     with its LogNormal ``(mu, sd)``. Why: with the reduced likelihood in C the Python around
-    it (sites, flow coordinates, input map) was 55 of 94 us per gradient (session 30)."""
+    it (sites, flow coordinates, input map) was 55 of 94 us per gradient."""
     from solderpyro import _native
 
     feats = umap.feats

@@ -23,10 +23,11 @@ lower-triangular: ``log|det| = 0`` (plus the constant ``sum log sd``), so the de
 ``w`` is the density of ``q`` at ``T(w)``, and NUTS on ``w`` samples exactly the same
 posterior, whatever the fit's quality. A poor fit costs only speed.
 
-Measured paired on two field posteriors (``benchmarks/ridge_coords.py``, BENCHMARKS.md issue
-18, session 24): gradients per iteration 35-49 -> 9-21, min bulk ESS per second 1.07-2.0x,
-the same quantiles to Monte Carlo error, and 2-16 divergent transitions in 6,000 where the
-sampler's own coordinates had none (the quadratic does not straighten the tails).
+Measured paired on two field posteriors (``benchmarks/ridge_coords.py``, BENCHMARKS.md,
+"Per-gradient and per-round costs of the calibration"): gradients per iteration 35-49 -> 9-21, min
+bulk ESS per second 1.07-2.0x, the same quantiles to Monte Carlo error, and 2-16 divergent
+transitions in 6,000 where the sampler's own coordinates had none (the quadratic does not straighten
+the tails).
 
 Written here rather than taken from a library: the normalizing-flow packages (e.g. Pyro's
 ``AffineAutoregressive``, ``flowMC``) train neural flows by stochastic optimization, seconds

@@ -420,7 +420,7 @@ def spaced_rows(cand: np.ndarray, have: np.ndarray, m: int, spacing: float = LOC
 #: FE runs per chain that check the final posterior (:func:`chain_check_indices`). Why: the
 #: rounds' short posteriors (350 iterations per chain) and their four check draws missed an
 #: island that only the surrogate fitted; the final run's longer chains reached it (the
-#: kinematic-hardening field case, session 30: one chain of four at FE chi2 6,800-23,000
+#: kinematic-hardening field case: one chain of four at FE chi2 6,800-23,000
 #: where the surrogate predicted ~2,170, R-hat 1.53), and the FE check of the reported run
 #: looked only at its best draw
 FINAL_CHECK_PER_CHAIN = 2

@@ -1,4 +1,4 @@
-"""Library of optional physical effects (issue 6 section 2), one module per effect.
+"""Library of optional physical effects, one module per effect.
 
 >>> from solderpyro.effects import EFFECTS
 >>> eff = EFFECTS["thermal_lag"]

@@ -229,8 +229,9 @@ def misfit_test(cp: CalibrationProblem, lm_iters: int = 4) -> Any:
     localize`).
 
     Why: on data with a hidden effect the base model's design never converges (its posterior
-    jumps between surrogate islands in box corners, every round), so it ran to its budget and
-    then through the FE-exact step: 517 s of a 759 s loop (benchmarks/loop.py, session 21).
+    jumps between surrogate islands in box corners, every round); without this stop it runs
+    to its budget and then through the FE-exact step (517 s of a 759 s ``benchmarks/loop.py``
+    run).
     """
     from solderpyro.pipeline.fe_check import misfits
     from solderpyro.pipeline.fe_exact import fe_best_fit
@@ -248,7 +249,7 @@ def misfit_test(cp: CalibrationProblem, lm_iters: int = 4) -> Any:
         # the two best checked draws and the literature constants (the other columns at the
         # posterior median), in one batched fit: the draws of a misfitting model's surrogate
         # posterior sit in islands, and diagnose, which starts from this fit, need not scout
-        # from the literature constants again (24 of its 74 s in the loop, session 29)
+        # from the literature constants again (that scouting took 24 of its 74 s in the loop)
         anand = cp.setup.anand
         lit = np.array([anand.get(nm, v) for nm, v in zip(space.names, np.median(full, 0),
                                                           strict=True)], float)

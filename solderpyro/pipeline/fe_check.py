@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 #: the FE check warns when even the best of the checked posterior draws misfits by more than
-#: this many noise sd (the yardstick of issue 6: a fit at the noise level is within 1.5 sd) ...
+#: this many noise sd (the project's yardstick: a fit at the noise level is within 1.5 sd) ...
 FE_CHECK_RMS = 1.5
 #: ... and its chi-square exceeds this quantile of chi2(n) (guards small n against chance)
 FE_CHECK_QUANTILE = 0.999
@@ -132,15 +132,15 @@ def discretization_check(cp: Any, x: np.ndarray, sigma: float,
 
     The FE at ``x`` (a point that fits: ``fit_change`` at a poor one measures the point) on
     the calibration's mesh and time steps, and once refined
-    (:func:`refined`; one FE run each, through the run store): ``shift_chi2 = |V_fine -
-    V|^2 / sigma^2``, the chi-square by which one refinement moves the observed outputs. A
-    posterior moves by one sd along a direction that changes chi-square by one, so
-    ``shift_chi2 >= 1`` (:data:`DISCRETIZATION_CHI2`) says the intervals can be shifted by the
-    discretization error (measured on the clean hidden-effect field data from a mesh twice as
-    fine: 4.27 at the base run's medians; the calibration's Q/R and m then sat at or beyond
-    their interval ends, BENCHMARKS.md issue 19, session 22). ``fit_change``: chi-square of
-    the refined FE minus that of the calibration's (negative: the finer FE fits the data
-    better).
+    (:func:`refined`; one FE run each, through the run store): ``shift_chi2 = |V_fine - V|^2 /
+    sigma^2``, the chi-square by which one refinement moves the observed outputs. A posterior moves
+    by one sd along a direction that changes chi-square by one, so ``shift_chi2 >= 1``
+    (:data:`DISCRETIZATION_CHI2`) says the intervals can be shifted by the discretization error
+    (measured on the clean hidden-effect field data from a mesh twice as fine: 4.27 at the base
+    run's medians; without the discretization correction the calibration's Q/R and m sat at or
+    beyond their interval ends; BENCHMARKS.md, "Hidden effects: diagnose, recalibrate, cover the
+    truths"). ``fit_change``: chi-square of the refined FE minus that of the calibration's
+    (negative: the finer FE fits the data better).
 
     Args:
         cp: the :class:`~.problem.CalibrationProblem`; x: ``(dim,)`` a full parameter row,

@@ -62,11 +62,11 @@ def sample_posterior(cp: CalibrationProblem, gp: GPSurrogate, s: SamplerSettings
 
 #: the largest R-hat at which the final chains run on (:func:`reach_min_ess`). Chains further
 #: apart sit in separate places that running on does not join. Why 1.5, not the ridge map's
-#: 1.1 (:data:`~solderpyro.calibration.mcmc.MAP_RHAT`, the run-on's bound until session 30):
-#: the islands that bound was set for (a misfitting base run, R-hat 2.8-3.1) are no longer
-#: sampled at full length, an island only the surrogate fits is now caught by the design's
-#: FE check in every chain, and slow mixing in one broad posterior reached 1.2-1.25 on point
-#: data (the demo at session 30's HEAD: R-hat 1.227, min ESS 13; run on: 1.024, 194, +3 s)
+#: 1.1 (:data:`~solderpyro.calibration.mcmc.MAP_RHAT`): the islands a tighter bound guards
+#: against (a misfitting base run, R-hat 2.8-3.1) are not sampled at full length, an island
+#: only the surrogate fits is caught by the design's FE check in every chain, and slow mixing
+#: in one broad posterior reaches 1.2-1.25 on point data (the demo: R-hat 1.227, min ESS 13;
+#: run on: 1.024, 194, +3 s)
 RUN_ON_RHAT = 1.5
 
 
@@ -99,9 +99,9 @@ def reach_min_ess(post: Posterior, s: SamplerSettings, run: Any, seed: int) -> P
                        + ([f"largest R-hat {rhat:.3f} > {s.max_rhat:g}"] if split else [])),
              more)
     # the adapted step and metric carry over as they are: in the sampler's own coordinates,
-    # or in the ridge coordinates the chains sampled in (a plain continuation; since session
-    # 29: refitting the map to these draws and a 150-iteration warm-up to find its step took
-    # 18 s of the loop's recalibration, for 750 draws per chain); where the run kept no map,
+    # or in the ridge coordinates the chains sampled in (a plain continuation: refitting the
+    # map to these draws and a 150-iteration warm-up to find its step cost 18 s of the loop's
+    # recalibration, for 750 draws per chain); where the run kept no map,
     # a map fitted to these draws and a short warm-up
     same = s.final_ridge and post.warm is not None and post.warm.mapped is not None
     ridge = "same" if same else "auto" if s.final_ridge else "never"

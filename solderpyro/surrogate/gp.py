@@ -504,17 +504,17 @@ def _result(y: torch.Tensor, mean: torch.Tensor, var: torch.Tensor) -> LooResult
 #: at 5e-6 per GP (1e-4 for the 20) it stops after 108-153, the fit takes ~0.55x the time, the
 #: summed -log likelihood is 0.1 nat higher, and at 200 posterior draws the predictive means
 #: move by <= 0.011 noise sd and the code variance by <= 1.3 % (the loop's recalibration,
-#: round 3; BENCHMARKS.md issue 18, session 25)
+#: round 3)
 LBFGS_TOL_CHANGE = 5e-6
 
 
 def _fit_mll(model: BatchGP, restarts: int) -> None:
     """Maximize the exact marginal likelihood; keep, per GP in the batch, the best restart.
 
-    BLAS runs on one thread here: the closure's products and factorizations are small
-    (``(k, n^2) x (n^2, d)``, ``n``-square Cholesky factors) and two OpenBLAS threads made a
-    fit of 86 runs 4.7x slower on two cores (10.6 s against 2.2 s; BENCHMARKS.md issue 18,
-    session 30)."""
+    BLAS runs on one thread here: the closure's products and factorizations are small (``(k, n^2) x
+    (n^2, d)``, ``n``-square Cholesky factors) and two OpenBLAS threads made a fit of 86 runs 4.7x
+    slower on two cores (10.6 s against 2.2 s; BENCHMARKS.md, "Per-gradient and per-round costs of
+    the calibration")."""
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(1):

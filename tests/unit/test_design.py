@@ -578,7 +578,7 @@ def test_the_final_posteriors_coordinates_and_ess_bar_are_settings():
     ov = _split_overrides(rest)
     s = _settings(a, _setup(ov), ov)
     assert (s.sampler.min_ess, s.sampler.max_rhat, s.sampler.final_ridge) == (0, 1.02, False)
-    assert SamplerSettings().max_rhat == 1.01  # issue 18's bar, the default
+    assert SamplerSettings().max_rhat == 1.01  # the loop benchmark's bar, the default
     with pytest.raises(ValueError, match="sampler.min_ess"):
         CalibrationSettings(sampler=SamplerSettings(min_ess=-1)).validate()
     with pytest.raises(ValueError, match="sampler.max_rhat"):

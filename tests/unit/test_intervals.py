@@ -76,8 +76,8 @@ def test_a_marginal_flat_at_the_face_starts_there_whichever_first_window_noise_m
 ) -> None:
     # 60 % of the draws flat over the first 1 % (log scale) above 15 MPa, the rest falling
     # beyond: the windows holding half the draws that start within the flat part tie, and with
-    # this seed the narrowest starts at the 2.5 % point (the rule before session 31 then kept
-    # the central interval, which excludes the face the density is highest at)
+    # this seed the narrowest starts at the 2.5 % point (without the tie the rule
+    # keeps the central interval, which excludes the face the density is highest at)
     rng = np.random.default_rng(0)
     u = np.concatenate([rng.uniform(0.0, 0.01, 12_000), 0.01 + rng.exponential(0.01, 8_000)])
     y = 15.0 * np.exp(u)

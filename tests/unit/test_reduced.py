@@ -157,7 +157,7 @@ def test_flow_coordinates_are_the_same_posterior(gps, offsets):
         la, ga = fa.logp_and_grad(qa)
         ld = rc.forward(qa[ri])[1]
         diffs.append((la - ld) - (lq - float(np.log(t[ri] * (1 - t[ri])).sum())))
-        # h 1e-5: at 1e-6 the differences' round-off reached 1.6e-4 on session 28's machine
+        # h 1e-5: at 1e-6 the differences' round-off reached 1.6e-4 on the project's machine
         # (AMD EPYC, OpenBLAS's Haswell kernels; 3e-5-7e-5 typical) against 2e-6-8e-6 at 1e-5
         # and 3e-7-4e-6 at 1e-4 (truncation): the analytic gradient is the exact one
         h = 1e-5

@@ -91,7 +91,7 @@ def test_nuts_in_ridge_coordinates_samples_the_banana_where_plain_nuts_diverges(
     draws) gets E and Var of y and z within 4.5 MCSEs of the exact values, with fewer divergent
     transitions and at most half the gradients per iteration of NUTS in the original
     coordinates. (That one under-explores the ridge's arms where it diverges: measured on this
-    project's machine in session 28, mean y 0.30-0.35 against 0.5 over seeds 5-7, 8-14 MCSEs
+    project's machine, mean y 0.30-0.35 against 0.5 over seeds 5-7, 8-14 MCSEs
     off, with 29-38 divergent transitions in 4 x 1500 iterations; on an earlier machine it
     happened to pass. Its bias is the reason for the map, so it is not asserted either way.)"""
     m = RidgeMap(_exact_draws(1000, 3))

@@ -72,7 +72,8 @@ def test_a_correction_taken_at_one_point_of_the_ridge_holds_all_along_it(tmp_pat
     asks for 1 % of it). Not so across the whole box: at the Liu 2008 constants the error
     has another size (chi2 3.1), so the calibration takes it at a checked posterior draw. The
     points: the clean hidden-effect data's truth and two points of its posterior's ridge
-    (BENCHMARKS.md issue 19); the data's layout: the 31 x 18 grid at the seed times."""
+    (BENCHMARKS.md, "Hidden effects: diagnose, recalibrate, cover the truths"); the data's layout:
+    the 31 x 18 grid at the seed times."""
     from solderpyro.fem.loading import SEED_TIMES
     from solderpyro.pipeline.fe_check import discretization_error
 

@@ -1,6 +1,6 @@
-"""Simulation-based calibration of the sampler (Talts et al. 2018), issue 18.
+"""Simulation-based calibration of the sampler (Talts et al. 2018).
 
-The harness is benchmarks/sbc.py (its full study writes benchmarks/results_sbc.json). Slow:
+The harness is benchmarks/sbc.py (its full study writes benchmarks/results/sbc.json). Slow:
 200 replications of the seed math model (direct mode: t, sigma) and of a 60-output field model
 through a PCA GP surrogate (modular mode: a, k, sigma); per replication (t, sigma) is drawn from
 the model's prior, y from the model's own likelihood, NUTS runs one chain (300 warm-up, 300
@@ -15,8 +15,8 @@ coordinates); Bonferroni at a family-wise 1 %: each fails below p = 0.00067, so 
 sampler fails the slow suite with probability <= 1 % (Bonferroni is conservative for the
 dependent ranks of one replication).
 
-Measured (benchmarks/results_sbc.json, same seeds as here): p = 0.50 / 0.44 (direct t, sigma),
-0.34 / 0.80 / 0.047 (field a, k, sigma); (benchmarks/results_sbc_anand.json) 0.86 / 0.95 /
+Measured (benchmarks/results/sbc.json, same seeds as here): p = 0.50 / 0.44 (direct t, sigma),
+0.34 / 0.80 / 0.047 (field a, k, sigma); (benchmarks/results/sbc_anand.json) 0.86 / 0.95 /
 0.45 / 0.33 / 0.30 (Anand s0, QR, xi, m, sigma). The check can fail: calibrating on every
 observation twice (likelihood squared, `--mutate double-lik`) gave p = 2e-7 (t, below the
 0.001 line) and 0.0018 (sigma, below the 0.002 line of the five-test family it was run
