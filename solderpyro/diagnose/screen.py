@@ -96,6 +96,31 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
     cols = fd_design(list(cal.names), list(cal.lower), list(cal.upper), cands, rel)
     n_cal = cal.dim
     off = np.array([v for e in cands.values() for v in e.off], float)
+    rows = _fd_rows(theta, off, cols)
+    ladder, lad_rows = _ladder_rows(np.concatenate([theta[0], off]), cands, cols, n_cal)
+    P = torch.tensor(np.array(rows + lad_rows), dtype=torch.float64)
+    n_lad = sum(len(v) for v in ladder.values())
+    log.info("diagnose: %d FE rows (%d draws x %d Jacobian columns, %d ladder runs, "
+             "candidates: %s)", len(rows) + len(lad_rows), len(theta), len(cols.names), n_lad,
+             ", ".join(candidates) or "none")
+    res = fe.runs(P, times, field, fx_all, progress=progress)
+    V = res.V.numpy()
+    if not bool(res.ok.all()):
+        bad = [r for r in res.reasons if r]
+        raise RuntimeError(f"{len(bad)} FE runs of the diagnosis failed: {bad[:2]}")
+    Vb, J = _fd_jacobians(V[:len(rows)], len(theta), cols)
+    VL, i = {}, len(rows)
+    for ename, vals in ladder.items():
+        VL[ename] = (vals, V[i:i + len(vals)])
+        i += len(vals)
+    return {"V": Vb, "J": J, "cols": cols, "names": list(res.names), "n_cal": n_cal,
+            "fe": fe, "ladder": VL, "n_ladder": n_lad,
+            "times": tuple(float(t) for t in res.times)}
+
+
+def _fd_rows(theta: np.ndarray, off: np.ndarray, cols: Columns) -> list[np.ndarray]:
+    """FE rows per draw of ``theta (K, n_cal)``: the base (candidates at ``off``), then per
+    column the forward step and, where central, the backward one."""
     rows = []
     for th in theta:
         base = np.concatenate([th, off])
@@ -106,10 +131,16 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
             rows.append(base + e)
             if cols.central[c]:
                 rows.append(base - e)
-    # a ladder of finite magnitudes per one-parameter candidate (first draw): the likelihood
-    # ratio sees effects whose first derivative at "off" vanishes (thresholds, e.g. yielding)
+    return rows
+
+
+def _ladder_rows(base0: np.ndarray, cands: dict[str, Any], cols: Columns, n_cal: int
+                 ) -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
+    """A ladder of finite magnitudes per one-parameter candidate, from the first draw's row
+    ``base0``: the likelihood ratio sees effects whose first derivative at "off" vanishes
+    (thresholds, e.g. yielding). Returns ``(effect -> magnitudes, FE rows)``."""
     ladder: dict[str, np.ndarray] = {}
-    base0 = np.concatenate([theta[0], off])
+    rows = []
     for ename, eff in cands.items():
         if eff.n_params != 1:
             continue
@@ -119,17 +150,11 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
             r = base0.copy()
             r[j] = v
             rows.append(r)
-    P = torch.tensor(np.array(rows), dtype=torch.float64)
-    n_lad = sum(len(v) for v in ladder.values())
-    log.info("diagnose: %d FE rows (%d draws x %d Jacobian columns, %d ladder runs, "
-             "candidates: %s)", len(rows), len(theta), len(cols.names), n_lad,
-             ", ".join(candidates) or "none")
-    res = fe.runs(P, times, field, fx_all, progress=progress)
-    V = res.V.numpy()
-    if not bool(res.ok.all()):
-        bad = [r for r in res.reasons if r]
-        raise RuntimeError(f"{len(bad)} FE runs of the diagnosis failed: {bad[:2]}")
-    K = len(theta)
+    return ladder, rows
+
+
+def _fd_jacobians(V: np.ndarray, K: int, cols: Columns) -> tuple[np.ndarray, np.ndarray]:
+    """``(V (K, ...), J (K, ..., n_col))`` from the FE at the rows of :func:`_fd_rows`."""
     Vb = np.empty((K, *V.shape[1:]))
     J = np.empty((K, *V.shape[1:], len(cols.names)))
     i = 0
@@ -144,13 +169,7 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
                 i += 1
             else:
                 J[k, ..., c] = (plus - Vb[k]) / cols.step[c]
-    VL = {}
-    for ename, vals in ladder.items():
-        VL[ename] = (vals, V[i:i + len(vals)])
-        i += len(vals)
-    return {"V": Vb, "J": J, "cols": cols, "names": list(res.names), "n_cal": n_cal,
-            "fe": fe, "ladder": VL, "n_ladder": n_lad,
-            "times": tuple(float(t) for t in res.times)}
+    return Vb, J
 
 
 def ladder_values(eff: Any) -> np.ndarray:
