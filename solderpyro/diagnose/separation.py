@@ -160,32 +160,48 @@ def separation_options(setup: Any, effects: tuple[str, ...], X: np.ndarray,
     options: list[dict[str, Any]] = []
     seen: list[np.ndarray] = []
     for label, ts, cols in opts:
-        mask = np.zeros(V.shape[1:], dtype=bool)
-        for i, t in enumerate(times):
-            if any(abs(t - s) < 1e-6 for s in ts):
-                mask[i] = cols
-        for i, t in enumerate(times):
-            for j, n in enumerate(out_names):
-                if (t, n) in measured:
-                    mask[i, j] = False
+        mask = _new_values(times, out_names, ts, cols, measured)
         if not mask.any() or any(np.array_equal(mask, m) for m in seen):
             continue  # nothing new, or the same values as an option already listed
         seen.append(mask)
-        worst: dict[str, Any] | None = None
-        for a in range(len(X)):
-            for b in range(a + 1, len(X)):
-                dV = np.where(mask, V[a] - V[b], 0.0)
-                c2 = float((dV**2).sum() / sigma**2)
-                if worst is None or c2 < worst["chi2_apart"]:
-                    ti, oj = (int(v) for v in np.unravel_index(int(np.argmax(np.abs(dV))),
-                                                                dV.shape))
-                    worst = {"measurement": label, "n_new": int(mask.sum()),
-                             "pair": [labels[a], labels[b]],
-                             "rms_diff_um": float(np.sqrt((dV[mask] ** 2).mean())),
-                             "max_diff_um": float(np.abs(dV[ti, oj])), "time_s": times[ti],
-                             "point": out_names[oj], "xy_mm": list(xy.get(out_names[oj], ())),
-                             "chi2_apart": c2}
-        if worst is not None:
-            options.append(worst)
+        c2, a, b, dV = _worst_pair(V, mask, sigma)
+        ti, oj = (int(v) for v in np.unravel_index(int(np.argmax(np.abs(dV))), dV.shape))
+        options.append({"measurement": label, "n_new": int(mask.sum()),
+                        "pair": [labels[a], labels[b]],
+                        "rms_diff_um": float(np.sqrt((dV[mask] ** 2).mean())),
+                        "max_diff_um": float(np.abs(dV[ti, oj])), "time_s": times[ti],
+                        "point": out_names[oj], "xy_mm": list(xy.get(out_names[oj], ())),
+                        "chi2_apart": c2})
     options.sort(key=lambda o: -o["chi2_apart"])
     return options, None
+
+
+def _new_values(times: list[float], out_names: list[str], ts: tuple[float, ...],
+                cols: np.ndarray, measured: set[tuple[float, str]]) -> np.ndarray:
+    """``(T, n_out)`` mask of the values a measurement adds: outputs ``cols`` at the times
+    ``ts`` (s), less those already ``measured`` ``(time, output)``."""
+    mask = np.zeros((len(times), len(out_names)), dtype=bool)
+    for i, t in enumerate(times):
+        if any(abs(t - s) < 1e-6 for s in ts):
+            mask[i] = cols
+    for i, t in enumerate(times):
+        for j, n in enumerate(out_names):
+            if (t, n) in measured:
+                mask[i, j] = False
+    return mask
+
+
+def _worst_pair(V: np.ndarray, mask: np.ndarray, sigma: float
+                ) -> tuple[float, int, int, np.ndarray]:
+    """The pair of rows of ``V (g, T, n_out)`` (um) hardest to separate over ``mask``:
+    ``(chi2_apart, a, b, dV (T, n_out))``, chi2_apart ``= sum(dV^2) / sigma^2`` (first pair
+    on ties)."""
+    worst: tuple[float, int, int, np.ndarray] | None = None
+    for a in range(len(V)):
+        for b in range(a + 1, len(V)):
+            dV = np.where(mask, V[a] - V[b], 0.0)
+            c2 = float((dV**2).sum() / sigma**2)
+            if worst is None or c2 < worst[0]:
+                worst = (c2, a, b, dV)
+    assert worst is not None  # at least two rows
+    return worst
