@@ -260,12 +260,17 @@ def starts(setup: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool
 
 
 
-def refit_steps(lay: Any, fe: SpecimenModels, meas: Any, sigma: float, base: dict[str, Any],
-                scores: list[Score], screened: list[Score], floor: Floor, n_cand: int
+def refit_steps(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
+                base: dict[str, Any], scores: list[Score], screened: list[Score], floor: Floor
                 ) -> tuple[dict[str, dict[str, Any]], list[list[Judged]], tuple[str, ...],
                            list[str]]:
     """The refits of the screened candidates from the base point, then the forward steps.
 
+    Args:
+        lay: the row layout; fe: the diagnosis's FE (run store); meas: the data (n values);
+        sigma: noise sd, um; base: the base fit (:func:`base_fit`: ``"x" (n_col,)``,
+        ``"chi2"``); scores: every candidate's screen (a ladder magnitude starts its refit);
+        screened: those to refit; floor: the discretization floor.
     Returns:
         ``(fits, steps, chosen, tie)``: ``fits`` ``{"baseline"|effect: {"chi2", "x"}}`` of the
         first step (for fingerprints and separation); ``steps`` the judged refits per step;
@@ -301,7 +306,8 @@ def refit_steps(lay: Any, fe: SpecimenModels, meas: Any, sigma: float, base: dic
                                      for r in nxt))
         return nxt
 
-    steps, chosen, tie = forward_steps(first, refit_next, n, lay.n_cal, sigma, floor, n_cand)
+    steps, chosen, tie = forward_steps(first, refit_next, n, lay.n_cal, sigma, floor,
+                                       len(lay.candidates))
     return fits, steps, chosen, tie
 
 

@@ -154,7 +154,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     elif base is not None and screened:
         with cost.stage("profile_refits"):
             fits, steps, chosen, tie = refit_steps(lay, fe, meas, sigma, base, scores,
-                                                   screened, floor, n_cand)
+                                                   screened, floor)
     with cost.stage("verdict"):
         diag = verdict(VerdictInputs(mf, pc, scores, per_draw, sigma, steps, chosen, tie,
                                      base_chi2, lay.n_cal, floor))
