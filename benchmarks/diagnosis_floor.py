@@ -29,7 +29,7 @@ from solderpyro.configure import build, compose
 from solderpyro.diagnose.decide import FLOOR_FILE, floor_from_fits
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.diagnose.refits import base_fit, layout, refit_candidates
-from solderpyro.diagnose.run import ladder_values
+from solderpyro.diagnose.screen import ladder_values
 from solderpyro.effects import EFFECTS
 from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import SEED_TIMES

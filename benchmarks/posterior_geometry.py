@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration.reduced import ComponentGPs, GPInputMap, PCAReduction
-from solderpyro.diagnose.run import load_run
+from solderpyro.diagnose.load import load_run
 from solderpyro.pipeline.problem import CalibrationProblem
 from solderpyro.pipeline.surrogate import fit_surrogate
 from solderpyro.settings import CalibrationSettings

@@ -1,5 +1,5 @@
 """Which candidate effects the data ask for: likelihood ratios through the FE, effect sizes, a
-floor calibrated against discretization, and forward steps (issue 20).
+floor calibrated against discretization, and forward steps.
 
 Pure arithmetic on chi-squares of FE refits (:func:`solderpyro.diagnose.run.diagnose` runs the
 refits), so every rule here is checked on toys (tests/unit/test_diagnose_decide.py).
@@ -59,7 +59,6 @@ REFIT_TOL = 1.0
 #: explains of the discretization difference alone (its floor)
 FLOOR_MARGIN = 2.0
 #: the selected effects explain the misfit when they leave an RMS of at most this many noise sd
-#: (the issue's "RMS falling to at most 1.5 noise sd")
 EXPLAINED_SD = 1.5
 #: forward steps at most (effects added one at a time)
 MAX_STEPS = 3

@@ -3,7 +3,7 @@
 The FE with one effect switched on at a known value (and the Anand constants at known values)
 plus N(0, sigma^2) noise; the file's metadata records the truth. The effect's magnitude is the
 smallest of a ladder of values whose change of the noise-free point data (V at A and B at the
-extended times) reaches ``target_rms`` (issue 6: at least 0.3 um).
+extended times) reaches ``target_rms`` (at least 0.3 um).
 
 Units: um, s, and each effect's own parameter units (docs/effects.md).
 """

@@ -1,4 +1,4 @@
-"""The FE fits of a diagnosis: its one base point and the candidates' refits (issue 20).
+"""The FE fits of a diagnosis: its one base point and the candidates' refits.
 
 * :func:`base_fit`: the FE's own best fit. Several starts (the posterior median, and where the
   FE check rejected the posterior also the literature constants and another draw) advance
@@ -6,11 +6,15 @@
   :data:`LM_TOL` in chi-square (at most :data:`BASE_ITERS`); every :data:`SCOUT_ITERS`
   iterations the starts far behind the best stop. Every statistic of the diagnosis is taken
   against the best.
+* :func:`base_starts`: where the base fit starts (the calibration's FE best fit, the posterior
+  median, the literature constants).
 * :func:`refit_candidates`: each candidate (or, in a forward step, the effects already chosen
   plus one more) refitted with the FE from the base point, all models in one batch per step.
   A refit that ends above its base (:attr:`~solderpyro.diagnose.decide.Refit.ok` false) is
   retried once from the base point with the candidate at "off"; if it still ends above, it is
   a failed fit.
+* :func:`refit_steps`: the screened candidates' refits from the base point, then the forward
+  steps (:func:`~solderpyro.diagnose.decide.forward_steps`).
 
 Rows are laid out as :class:`Layout` says: the calibrated parameters (``setup.space``, then the
 run's own effects), then every candidate's parameters bound to the measured times. Every FE
@@ -28,8 +32,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from solderpyro.diagnose.decide import Refit
+from solderpyro.diagnose.decide import Floor, Judged, Refit, forward_step, forward_steps, judge
+from solderpyro.diagnose.stats import Score
 from solderpyro.fit import LMFit, lm_fit
+from solderpyro.specimen import SpecimenModels
 
 log = logging.getLogger("solderpyro")
 
@@ -222,3 +228,129 @@ def refit_candidates(lay: Layout, fe: Any, meas: Any, sigma: float, base_x: np.n
             r = Refit(chosen + (c,), float(f.chi2), len(lay.cols(c)), f.x, base_chi2, starts=2)
             out[c] = r if r.chi2 < out[c].chi2 else dataclasses.replace(out[c], starts=2)
     return [out[c] for c in starts]
+
+
+def pick_draws(theta: np.ndarray, k: int, seed: int) -> np.ndarray:
+    """``(k,)`` row indices of the draws ``theta (N, n_cal)``: the draw nearest the
+    component-wise median (scaled), then ``k - 1`` random ones (``seed``)."""
+    med = np.median(theta, 0)
+    sc = theta.std(0) + 1e-300
+    first = int(np.argmin((((theta - med) / sc) ** 2).sum(1)))
+    rng = np.random.default_rng(seed)
+    rest = rng.choice(np.delete(np.arange(len(theta)), first), size=max(k - 1, 0),
+                      replace=False)
+    return np.concatenate([[first], rest]).astype(int)
+
+
+
+def starts(setup: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool
+           ) -> dict[str, np.ndarray]:
+    """Starts of the base fit: the draw nearest the posterior median; where the FE check
+    rejected the posterior, also the literature constants (the run's own effects at their
+    posterior median) and the posterior draw farthest from the median in scaled units."""
+    out = {"posterior median": theta[idx[0]]}
+    if fe_ok:
+        return out
+    lit = np.median(theta, 0)
+    lit[:setup.space.dim] = [setup.anand[nm] for nm in setup.space.names]
+    out["literature constants"] = lit
+    z = (theta - np.median(theta, 0)) / (theta.std(0) + 1e-300)
+    out["farthest posterior draw"] = theta[int(np.argmax((z**2).sum(1)))]
+    return out
+
+
+
+def refit_steps(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
+                base: dict[str, Any], scores: list[Score], screened: list[Score], floor: Floor
+                ) -> tuple[dict[str, dict[str, Any]], list[list[Judged]], tuple[str, ...],
+                           list[str]]:
+    """The refits of the screened candidates from the base point, then the forward steps.
+
+    Args:
+        lay: the row layout; fe: the diagnosis's FE (run store); meas: the data (n values);
+        sigma: noise sd, um; base: the base fit (:func:`base_fit`: ``"x" (n_col,)``,
+        ``"chi2"``); scores: every candidate's screen (a ladder magnitude starts its refit);
+        screened: those to refit; floor: the discretization floor.
+    Returns:
+        ``(fits, steps, chosen, tie)``: ``fits`` ``{"baseline"|effect: {"chi2", "x"}}`` of the
+        first step (for fingerprints and separation); ``steps`` the judged refits per step;
+        ``chosen`` the effects added; ``tie`` the candidates that could not be told apart where
+        the steps stopped (empty if none).
+    """
+    n = len(meas.value_um)
+    ladder = {sc.effect: sc.lr_value for sc in scores
+              if sc.lr_value is not None and (sc.lr or 0.0) > 0.0}
+    x_b = np.asarray(base["x"], float)
+    starts = {}
+    for sc in screened:
+        x = x_b.copy()
+        if sc.effect in ladder and len(lay.cols(sc.effect)) == 1:
+            x[lay.cols(sc.effect)] = ladder[sc.effect]
+        starts[sc.effect] = x
+    first = refit_candidates(lay, fe, meas, sigma, x_b, base["chi2"], (), starts)
+    log.info("diagnose: refits from the base point (chi2 %.1f): %s", base["chi2"], ", ".join(
+        f"{r.name} {r.chi2:.1f}{'' if r.ok else ' (failed)'}" for r in first))
+    fits: dict[str, dict[str, Any]] = {"baseline": {"chi2": base["chi2"], "x": x_b}}
+    fits.update({r.name: {"chi2": r.chi2, "x": r.x} for r in first})
+    single = {r.name: r for r in first}
+
+    def refit_next(cur: Refit, chosen: tuple[str, ...], others: list[str]) -> list[Refit]:
+        st = {}
+        for c in others:  # from the chosen model's fit, c where its own refit put it
+            x = cur.x.copy()
+            x[lay.cols(c)] = single[c].x[lay.cols(c)]
+            st[c] = x
+        nxt = refit_candidates(lay, fe, meas, sigma, cur.x, cur.chi2, chosen, st)
+        log.info("diagnose: forward step, with %s on (chi2 %.1f): %s", " + ".join(chosen),
+                 cur.chi2, ", ".join(f"+{r.name} {r.chi2:.1f}{'' if r.ok else ' (failed)'}"
+                                     for r in nxt))
+        return nxt
+
+    steps, chosen, tie = forward_steps(first, refit_next, n, lay.n_cal, sigma, floor,
+                                       len(lay.candidates))
+    return fits, steps, chosen, tie
+
+
+def base_starts(setup: Any, info: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool
+                ) -> dict[str, np.ndarray]:
+    """Starts of the base fit, name -> ``(n_cal,)`` row (physical units).
+
+    Args:
+        setup: the run's Setup; info: its :class:`~solderpyro.rundir.RunInfo` (the design's
+            stop reason and FE best fit); theta: ``(N, n_cal)`` posterior draws; idx: the
+            picked draws (:func:`pick_draws`); fe_ok: whether the FE check accepted the
+            posterior.
+    """
+    design = info.design
+    bf = design.best_fit.get("x") or {}
+    names = list(info.parameters)
+    has_bf = (bool(names) and all(nm in bf for nm in names)
+              and len(names) == theta.shape[1])
+    # where the design stopped because the model misfits, the posterior draws sit in
+    # surrogate islands and are no starts (on the modulus-temperature field data they
+    # scouted at chi2 1e5-3e5 against 1.7e4 from the best fit and the literature
+    # constants): the calibration's own FE best fit and the literature constants
+    islands = has_bf and design.reason == "misfit"
+    out = starts(setup, theta, idx, fe_ok and not islands)
+    if islands:
+        # the calibration's best fit already started from the literature constants too (its
+        # misfit test): no second scout from them
+        scouted = "literature constants" in design.best_fit.get("starts", [])
+        out = {} if scouted else {"literature constants": out["literature constants"]}
+    if has_bf:
+        out["the calibration's FE best fit"] = np.array([bf[nm] for nm in names])
+    return out
+
+
+def linearised_steps(scores: list[Score], base_chi2: float, n: int, n_cal: int, sigma: float,
+                     floor: Floor, n_cand: int
+                     ) -> tuple[list[list[Judged]], tuple[str, ...], list[str]]:
+    """Without FE refits: the screen's linearised statistics stand in for them.
+
+    Each score (ladder applied) becomes a refit to its ``chi2_after`` from ``base_chi2`` (the
+    linearised misfit), judged as one step on ``n`` values. Returns ``(steps, chosen, tie)``
+    as :func:`refit_steps`."""
+    steps = [judge([Refit((sc.effect,), sc.chi2_after, max(sc.dof, 1), np.zeros(0), base_chi2)
+                    for sc in scores], n, n_cal, sigma, floor, n_cand)]
+    chosen, tie = forward_step(steps[0], ())
+    return steps, chosen, tie

@@ -8,7 +8,7 @@ fit is then no evidence that the effect is absent, and the reported intervals ho
 is.
 
 For each one-parameter candidate the diagnosis already has the FE with the effect switched on
-at its ladder of magnitudes (:func:`~solderpyro.diagnose.run.fe_jacobians`), the calibrated
+at its ladder of magnitudes (:func:`~solderpyro.diagnose.screen.fe_jacobians`), the calibrated
 constants at the FE's best fit: the effect's signature ``s = V(magnitude) - V(off)``. Per
 magnitude the constants are refitted to the data less the signature, linearised with their
 Jacobian J and held by the prior (the box's uniform prior as a Gaussian of the same variance,

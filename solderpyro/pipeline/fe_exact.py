@@ -204,7 +204,7 @@ def identifiability(setup: Setup, effects: tuple[str, ...], space: Box, rows: li
     prior box and the ridge's volume as by the data, and may miss the truth although the model
     fits. For the weakest one, two importance samples at the ends of its interval that fit as
     well as the posterior's bulk (:func:`ridge_ends`) are run through the FE over the outputs
-    not yet measured (:func:`solderpyro.diagnose.run.separation_options`): where they differ
+    not yet measured (:func:`solderpyro.diagnose.separation.separation_options`): where they differ
     by many noise sd, that measurement would narrow the posterior.
 
     Args:
@@ -215,7 +215,8 @@ def identifiability(setup: Setup, effects: tuple[str, ...], space: Box, rows: li
         ``{"weak": [{"parameter", "share_of_box", "bound_by_prior"}], "ends": {...},
         "options": [...], "advice"}`` (``ends``/``options`` only when a parameter is weak).
     """
-    from solderpyro.diagnose.run import APART_CHI2, separation_options
+    from solderpyro.diagnose.decide import APART_CHI2
+    from solderpyro.diagnose.separation import separation_options
 
     if not sigma > 0:
         raise ValueError(f"identifiability: sigma must be > 0 um, got {sigma}")

@@ -179,7 +179,7 @@ def test_a_version_1_run_directory_still_loads(runs, tmp_path):
     """A run directory written before run.json had a schema (the same keys without it) reads
     as version 1: the diagnosis's loading and compare take it as they take the new one."""
     from solderpyro.diagnose.compare import run_metrics
-    from solderpyro.diagnose.run import load_run
+    from solderpyro.diagnose.load import load_run
     from solderpyro.rundir import SCHEMA, RunDir
 
     old = tmp_path / "lag_v1"
@@ -204,7 +204,8 @@ def test_separation_finds_where_two_fits_differ(tmp_path):
     """Two 'fits' that differ only by a Moire offset c_1 = 0.2 um in the first image: on the
     grid at that time they differ by exactly 0.2 um everywhere, nowhere else; the measured
     values (A, B) are left out of every option; identical fits separate nowhere."""
-    from solderpyro.diagnose.run import APART_CHI2, separation
+    from solderpyro.diagnose.decide import APART_CHI2
+    from solderpyro.diagnose.separation import separation
     from solderpyro.io.measurements import read_measurements
 
     torch.set_num_threads(1)

@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 from solderpyro.configure import build, compose
-from solderpyro.diagnose.run import STAGES, _cost_lines, _Costs
+from solderpyro.diagnose.costs import STAGES, Costs
+from solderpyro.diagnose.write import cost_lines
 from solderpyro.effects import effect_set
 from solderpyro.specimen import SpecimenModels, fe_params
 from solderpyro.store import RunStore, config_hash
@@ -80,7 +81,7 @@ def test_stage_costs(caplog):
     class Counter:
         computed, reused = 0, 0
 
-    cost = _Costs()
+    cost = Costs()
     with caplog.at_level(logging.INFO, logger="solderpyro"):
         with cost.stage("load"):
             pass
@@ -96,5 +97,5 @@ def test_stage_costs(caplog):
     assert (t["total"]["fe_runs"], t["total"]["fe_reused"]) == (10, 9)
     assert t["total"]["seconds"] >= sum(t[k]["seconds"] for k in STAGES if k in t) - 1e-2
     assert sum(STAGES["fe_jacobians"] in r.getMessage() for r in caplog.records) == 1
-    md = "\n".join(_cost_lines(t))
+    md = "\n".join(cost_lines(t))
     assert "| **total** |" in md and STAGES["profile_refits"] in md

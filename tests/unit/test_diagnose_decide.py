@@ -87,7 +87,7 @@ def test_a_failed_refit_is_never_ranked_or_chosen_whatever_its_score():
     """A refit that ended above its base chi-square (a stalled LM) is judged failed: it is left
     out of the ranking and the forward steps, even though its score test is the largest; the
     verdict lists it under 'failed'."""
-    from solderpyro.diagnose.run import _verdict
+    from solderpyro.diagnose.verdict import VerdictInputs, verdict
 
     rng = np.random.default_rng(1)
     sigma = 0.05
@@ -102,8 +102,8 @@ def test_a_failed_refit_is_never_ranked_or_chosen_whatever_its_score():
     scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in ("a", "b")]
     assert scores[1].statistic > scores[0].statistic  # the screen prefers the failed one
     pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
-    dg = _verdict(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen, tie, base, 2,
-                  Floor())
+    dg = verdict(VerdictInputs(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen,
+                               tie, base, 2, Floor()))
     assert [e["effect"] for e in dg.ranking] == ["a"]
     assert [e["effect"] for e in dg.failed] == ["b"] and dg.failed[0]["refit"] == "failed"
     assert "b" not in dg.selected and "Best explanation: b" not in dg.verdict
@@ -148,7 +148,7 @@ def test_a_misfit_no_candidate_describes_is_called_unexplained():
     """A model-form misfit (a kink no candidate has) that candidate a explains a little of:
     a is significant and clears a zero floor, but leaves > EXPLAINED_SD noise sd, so the
     verdict names no effect, flags none, and says so."""
-    from solderpyro.diagnose.run import _verdict
+    from solderpyro.diagnose.verdict import VerdictInputs, verdict
 
     rng = np.random.default_rng(4)
     sigma = 0.05
@@ -160,8 +160,8 @@ def test_a_misfit_no_candidate_describes_is_called_unexplained():
     r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
     scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in ("a", "b")]
     pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
-    dg = _verdict(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen, tie, base, 2,
-                  Floor())
+    dg = verdict(VerdictInputs(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen,
+                               tie, base, 2, Floor()))
     assert dg.misfit and dg.explained is False and dg.selected == []
     assert "none of the candidates" in dg.verdict and "Best explanation" not in dg.verdict
     assert not any(e["flagged"] for e in dg.ranking)

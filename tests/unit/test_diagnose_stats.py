@@ -106,7 +106,7 @@ def test_predictive_check_rejects_bad_shapes():
 def test_likelihood_ratio_ladder_is_bounded_by_the_score_for_a_linear_effect():
     """For a linear effect the chi-square drop at any magnitude is at most the score statistic
     (the drop at the optimal magnitude) and equals it at that magnitude."""
-    from solderpyro.diagnose.run import likelihood_ratio
+    from solderpyro.diagnose.screen import likelihood_ratio
 
     rng = np.random.default_rng(6)
     Jt, Je = _linear(rng, k=1)

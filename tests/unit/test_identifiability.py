@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from solderpyro.configure import build, compose
-from solderpyro.diagnose.run import APART_CHI2
+from solderpyro.diagnose.decide import APART_CHI2
 from solderpyro.effects import effect_set
 from solderpyro.exact import weighted_quantiles
 from solderpyro.fem.problem import reference_grid

@@ -142,7 +142,7 @@ def test_compare_and_the_diagnosis_read_the_run_directory(tmp_path) -> None:
     """compare's metrics and figure, diagnose's loading, the warm start's refit point and
     index.html all read the record through RunDir (a version-1 file as well)."""
     from solderpyro.diagnose.compare import compare, run_metrics
-    from solderpyro.diagnose.run import load_run, run_store
+    from solderpyro.diagnose.load import load_run, run_store
     from solderpyro.index import write_index
     from solderpyro.pipeline.warm import refit_point
 
