@@ -186,10 +186,10 @@ def group(cols: Columns, owner: str) -> np.ndarray:
     return np.array([j for j, o in enumerate(cols.owner) if o == owner], dtype=int)
 
 
-def analyse(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: Columns, sigma: float,
-            ladder: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
-            ) -> tuple[Misfit, list[Score], list[list[Score]]]:
-    """Misfit and score tests at each draw.
+def score_tests(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: Columns, sigma: float
+                ) -> tuple[Misfit, list[Score], list[list[Score]]]:
+    """The misfit at the first draw and the score test of each candidate at each draw (the
+    likelihood-ratio ladder comes after: :func:`apply_ladder`).
 
     Args:
         y: ``(n,)`` data, um; V: ``(K, n)`` FE at the draws; J: ``(K, n, n_col)`` Jacobians;
@@ -198,15 +198,6 @@ def analyse(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: Columns, sigma: f
         ``(misfit at the first draw, scores at the first draw (one per candidate), scores per
         draw)``.
     """
-    mf, scores, per_draw = score_tests(y, V, J, cols, sigma)
-    apply_ladder(mf, scores, y, J[0], cols, sigma, ladder)
-    return mf, scores, per_draw
-
-
-def score_tests(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: Columns, sigma: float
-                ) -> tuple[Misfit, list[Score], list[list[Score]]]:
-    """:func:`analyse` without the likelihood-ratio ladder: the misfit at the first draw and
-    the score tests at each draw."""
     w = np.full(len(y), 1.0 / sigma**2)
     th = group(cols, "theta")
     effects = [o for o in dict.fromkeys(cols.owner) if o != "theta"]
