@@ -45,6 +45,7 @@ from solderpyro.pipeline.fe_exact import (
     SUMMARY,
     WEAK_SHARE,
     BestFitPosterior,
+    ExactRun,
     exact_rows,
     fe_exact,
     identifiability,
@@ -560,10 +561,10 @@ def run_fe_exact(cp: CalibrationProblem, s: CalibrationSettings, post: Any,
     starts = draws[checked.pick][ranked(checked.V, y.numpy())[:2]]
     coords = sampling_coords(cp.space, cp.setup.space.defaults, "auto", sg.inputs_T_C,
                              sg.inputs_rate)
-    return fe_exact(cp.observed, coords, y, pr, draws, starts, ex_s.runs,
-                    ex_s.rounds, ex_s.profile, s.seed, len(draws),
-                    stop_if_misfit=ex_s.mode == "auto",
-                    noise_sd=pr.sigma_known or float(post.flat("sigma").median()))
+    return fe_exact(cp.observed, coords, y, pr, draws, starts, ExactRun(
+        ex_s.runs, ex_s.rounds, ex_s.profile, s.seed, len(draws),
+        stop_if_misfit=ex_s.mode == "auto",
+        noise_sd=pr.sigma_known or float(post.flat("sigma").median())))
 
 
 def save_exact(out: Path, ex: Any, ex_rows: list[dict], names: Any) -> None:
