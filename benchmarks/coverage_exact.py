@@ -34,7 +34,7 @@ from solderpyro.exact import profile_intervals
 from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.io.measurements import read_measurements
-from solderpyro.pipeline.fe_exact import fe_exact
+from solderpyro.pipeline.fe_exact import ExactRun, fe_exact
 from solderpyro.specimen import (
     SpecimenModel,
     StoreUse,
@@ -119,8 +119,8 @@ def _run_seeds(a, seeds, setup, space, coords, model, base, times, out):
         if first:  # a truth-blind start: the middle of the box (a longer fit the first time)
             start = np.array([[(lo + hi) / 2 for lo, hi in zip(space.lower, space.upper,
                                                                   strict=True)]])
-        ex, info = fe_exact(fun, coords, y, Priors(sigma_known=0.05), None, start, a.n,
-                            a.rounds, a.profile, seed, lm_iters=15 if first else 4)
+        ex, info = fe_exact(fun, coords, y, Priors(sigma_known=0.05), None, start, ExactRun(
+            a.n, a.rounds, a.profile, seed, lm_iters=15 if first else 4))
         start = np.array([info["best_fit"]["x"]])  # the next dataset starts from this fit
         prof: dict = {}
         if a.profile_ci:

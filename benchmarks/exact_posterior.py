@@ -32,7 +32,7 @@ from solderpyro.configure import build, compose
 from solderpyro.coords import sampling_coords
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.io.measurements import read_measurements
-from solderpyro.pipeline.fe_exact import fe_exact
+from solderpyro.pipeline.fe_exact import ExactRun, fe_exact
 from solderpyro.specimen import (
     SpecimenModel,
     StoreUse,
@@ -78,8 +78,8 @@ def exact_reference(data: str | Path, effects: list[str], start: np.ndarray, sto
         th = torch.as_tensor(np.asarray(rows, float), dtype=torch.float64)
         return model.observed_runs(th)[0].numpy()
 
-    ex, info = fe_exact(fun, coords, y, Priors(sigma_known=noise), None, start, n, rounds, 9,
-                        seed, lm_iters=lm_iters)
+    ex, info = fe_exact(fun, coords, y, Priors(sigma_known=noise), None, start,
+                        ExactRun(n, rounds, 9, seed, lm_iters=lm_iters))
     return {r["parameter"]: [float(r[q]) for q in QS] for r in ex.rows}, info
 
 

@@ -411,8 +411,6 @@ def _add_cluster(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .settings import SamplerSettings
-
     p = argparse.ArgumentParser(
         prog="solderpyro",
         description="Bayesian identification of Anand solder constants from Moire data. "
@@ -420,6 +418,20 @@ def build_parser() -> argparse.ArgumentParser:
                     "syntax), e.g. mesh=fine specimen.plane=strain solver.device=cuda.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = p.add_subparsers(dest="command", required=True)
+    _add_simulate_command(sub)
+    _add_demo_command(sub)
+    _add_example_command(sub)
+    _add_koh_command(sub)
+    _add_calibrate_command(sub)
+    _add_sweep_command(sub)
+    _add_diagnose_command(sub)
+    _add_sensitivity_command(sub)
+    _add_compare_command(sub)
+    return p
+
+
+def _add_simulate_command(sub: argparse._SubParsersAction) -> None:
+    """The ``simulate`` sub-command's arguments (the FE model for one parameter set)."""
     s = sub.add_parser("simulate", help="run the FE model for one parameter set and write "
                        "the measurement CSV (shared/data-format.md)")
     s.add_argument("--theta", default="", help="Anand constants, e.g. s0=12.9,QR=10586,xi=2.04,"
@@ -433,21 +445,36 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="random seed of the noise")
     s.add_argument("--out", required=True, help="output CSV path")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_demo_command(sub: argparse._SubParsersAction) -> None:
+    """The ``demo`` sub-command's arguments (the reference case and its synthetic-data
+    calibration)."""
+    from .settings import SamplerSettings
+
     d = sub.add_parser("demo", help="simulate the reference case with the Liu 2008 constants, "
                        "write the outputs and a plot of V_A, V_B and temperature")
     d.add_argument("--out", default="runs/demo", help="output directory")
     d.add_argument("--no-calibrate", action="store_true",
                    help="only simulate (skip the synthetic-data calibration)")
     _add_design(d)
-    # the calibration's own sampler defaults (4 x 1500 draws after 500 warm-up): with the 400
-    # draws the demo used while it took 7 min, its report said R-hat 1.02 > 1.01, "not reliable
-    # until a longer run" (session 25); the design's rounds now leave it ~90 s in all
+    # the calibration's own sampler defaults (4 x 1500 draws after 500 warm-up): with 400
+    # draws its report said R-hat 1.02 > 1.01, "not reliable until a longer run"; the
+    # design's rounds leave it ~90 s in all
     _add_nuts(d, draws=SamplerSettings().draws, warmup=SamplerSettings().warmup)
+
+
+def _add_example_command(sub: argparse._SubParsersAction) -> None:
+    """The ``example`` sub-command's arguments (the worked examples)."""
     e = sub.add_parser("example", help="worked examples; 'seed-math' reproduces the seed "
                        "paper's mathematical example (Tables I, II, Figures 1-4)")
     e.add_argument("name", choices=["seed-math"])
     e.add_argument("--out", required=True, help="output directory")
     _add_nuts(e)
+
+
+def _add_koh_command(sub: argparse._SubParsersAction) -> None:
+    """The ``koh`` sub-command's arguments (Kennedy-O'Hagan calibration from CSV tables)."""
     k = sub.add_parser("koh", help="Kennedy-O'Hagan calibration of any simulator from CSV "
                        "tables of its runs and of the observations")
     k.add_argument("--sim", required=True, help="CSV of runs: columns x..., t..., y")
@@ -464,6 +491,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "posterior; each t at every observed x); append their results to --sim and "
                    "call again; sets still pending (OUT/pending.csv) are not proposed twice")
     _add_nuts(k)
+
+
+def _add_calibrate_command(sub: argparse._SubParsersAction) -> None:
+    """The ``calibrate`` sub-command's arguments (the specimen calibration)."""
+    from .settings import SamplerSettings
+
     c = sub.add_parser("calibrate", help="calibrate the Anand constants of the config's box "
                        "(default s0, QR, xi, m) against a measurement CSV: an adaptive design "
                        "of FE runs (run store) that stops when the FE confirms the GP "
@@ -480,6 +513,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_cluster(c)
     _add_design(c)
     _add_nuts(c, draws=SamplerSettings().draws)
+
+
+def _add_sweep_command(sub: argparse._SubParsersAction) -> None:
+    """The ``sweep`` sub-command's arguments (many calibrations on a Dask cluster)."""
     w = sub.add_parser("sweep", help="calibrate many datasets, one job each, in parallel on a "
                        "Dask cluster (--cluster local:N) or one after another; each dataset's "
                        "run directory is OUT/<file stem>, results recorded in OUT/sweep.json "
@@ -491,6 +528,11 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--args", default="", help="extra 'solderpyro calibrate' options for every "
                    "job, e.g. \"--budget 80 --chains 2\"")
     _add_cluster(w)
+
+
+def _add_diagnose_command(sub: argparse._SubParsersAction) -> None:
+    """The ``diagnose`` sub-command's arguments (model checks and candidate effects of a
+    run)."""
     g = sub.add_parser("diagnose", help="does the calibrated model fit the data, and which "
                        "physical effect is missing? Posterior predictive checks, a misfit test "
                        "and a score test per candidate effect through the FE; writes "
@@ -507,6 +549,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "solves)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_cluster(g)
+
+
+def _add_sensitivity_command(sub: argparse._SubParsersAction) -> None:
+    """The ``sensitivity`` sub-command's arguments (the Anand constants ranked by influence)."""
     v = sub.add_parser("sensitivity", help="rank the nine Anand constants by their influence "
                        "on V_A, V_B over a prior box: DGSM through the FE (autograd) and Sobol "
                        "main/total indices through a GP surrogate; writes sensitivity.csv/.json/"
@@ -534,13 +580,16 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--batch", type=int, default=64, help="FE runs per batched DOE solve")
     v.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_cluster(v)
+
+
+def _add_compare_command(sub: argparse._SubParsersAction) -> None:
+    """The ``compare`` sub-command's arguments (before/after of two calibrations)."""
     q = sub.add_parser("compare", help="before/after of two calibrations on the same data "
                        "(e.g. without and with effects=[NAME]): RMS residual, misfit, ELPD, "
                        "posterior shifts; writes comparison.md/.json")
     q.add_argument("before", help="run directory of the first calibration")
     q.add_argument("after", help="run directory of the second calibration")
     q.add_argument("--out", default=None, help="where to write (default: AFTER)")
-    return p
 
 
 def _setup_logging(a: argparse.Namespace) -> None:

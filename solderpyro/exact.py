@@ -498,28 +498,10 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
     ok = np.isfinite(ssr) & np.isfinite(samples).all(1)
     if not ok.any():
         raise ValueError("profile_intervals: no sample with a finite fit")
-    samples, c_s = samples[ok], ssr[ok] / sigma**2
-    lo, hi = np.array(space.lower, float), np.array(space.upper, float)
-    U = space.to_unit(torch.as_tensor(samples)).numpy()
+    sm = _ProfileSamples(space, samples[ok], ssr[ok] / sigma**2)
+    c_s, U = sm.c_s, sm.U
     ks = list(range(d)) if params is None else [int(k) for k in params]
     near = c_s <= c_s.min() + delta + 10.0
-
-    def to_phys(k: int, u: np.ndarray) -> np.ndarray:
-        full = np.repeat(U[np.argmin(c_s)][None], len(u), 0)
-        full[:, k] = u
-        return space.from_unit(torch.as_tensor(full)).numpy()[:, k]
-
-    def starts(k: int, ug: np.ndarray, spacing: float) -> np.ndarray:
-        X0 = np.empty((len(ug), d))
-        xg = to_phys(k, ug)
-        for i, u in enumerate(ug):
-            dist = np.abs(U[:, k] - u)
-            cand = np.nonzero(dist <= spacing)[0]
-            j = int(cand[np.argmin(c_s[cand])]) if len(cand) else int(np.argmin(dist))
-            X0[i] = samples[j]
-            X0[i, k] = xg[i]
-        return np.clip(X0, lo, hi)
-
     grids: dict[int, np.ndarray] = {}
     X0s, owners = [], []
     for k in ks:
@@ -527,65 +509,110 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
         pad = max(0.15 * (b - a), 0.025)
         ug = np.linspace(max(0.0, a - pad), min(1.0, b + pad), n_grid)
         grids[k] = ug
-        X0s.append(starts(k, ug, 0.5 * (ug[1] - ug[0])))
+        X0s.append(sm.starts(k, ug, 0.5 * (ug[1] - ug[0])))
         owners += [k] * n_grid
     X0 = np.vstack(X0s)
-    fits = lm_fit(fun, X0, lo, hi, y, sigma, free=[np.delete(np.arange(d), k) for k in owners],
-                  iters=iters)
+    fits = lm_fit(fun, X0, sm.lo, sm.hi, y, sigma,
+                  free=[np.delete(np.arange(d), k) for k in owners], iters=iters)
     res: dict[int, list[tuple[float, float, np.ndarray]]] = {k: [] for k in ks}
     for k, ug_k, ft in zip(owners, np.concatenate([grids[k] for k in ks]), fits, strict=True):
         res[k].append((float(ug_k), ft.chi2, ft.x))
     for _ in range(max_extend):
         c_min = min(c_s.min(), min(c for k in ks for _, c, _ in res[k]))
-        new, new_own = [], []
-        for k in ks:
-            pts = sorted(res[k], key=lambda t: t[0])
-            ug = np.array([p[0] for p in pts])
-            below = np.nonzero(np.array([p[1] for p in pts]) - c_min <= delta)[0]
-            if not len(below):
-                continue
-            step = ug[1] - ug[0]
-            for end, sgn in ((int(below[0]), -1.0), (int(below[-1]), 1.0)):
-                if end not in (0, len(ug) - 1) or ug[end] in (0.0, 1.0):
-                    continue  # bracketed, or already at the box's bound
-                for m in (1.5, 1.5 + 1.5**2):
-                    un = float(np.clip(ug[end] + sgn * m * step, 0.0, 1.0))
-                    if np.any(np.abs(ug - un) < 1e-12) or (k, un) in new_own:
-                        continue  # clipped onto a value already profiled
-                    x0 = pts[end][2].copy()
-                    x0[k] = to_phys(k, np.array([un]))[0]
-                    new.append(np.clip(x0, lo, hi))
-                    new_own.append((k, un))
+        new, new_own = _extensions(sm, res, float(c_min), delta)
         if not new:
             break
-        fits = lm_fit(fun, np.array(new), lo, hi, y, sigma,
+        fits = lm_fit(fun, np.array(new), sm.lo, sm.hi, y, sigma,
                       free=[np.delete(np.arange(d), k) for k, _ in new_own], iters=iters)
         for (k, un), ft in zip(new_own, fits, strict=True):
             res[k].append((un, ft.chi2, ft.x))
     c_min = float(min(c_s.min(), min(c for k in ks for _, c, _ in res[k])))
-    out = []
-    for k in ks:
-        pts = sorted(res[k], key=lambda t: t[0])
+    return [_interval(sm, k, res[k], c_min, delta) for k in ks]
+
+
+class _ProfileSamples:
+    """The posterior samples a profile starts from: ``samples`` ``(N, dim)`` physical, their
+    chi-squares ``c_s`` ``(N,)`` (finite), and their unit-box coordinates ``U``."""
+
+    def __init__(self, space: Any, samples: np.ndarray, c_s: np.ndarray) -> None:
+        self.space, self.samples, self.c_s = space, samples, c_s
+        self.lo, self.hi = np.array(space.lower, float), np.array(space.upper, float)
+        self.U = space.to_unit(torch.as_tensor(samples)).numpy()
+
+    def to_phys(self, k: int, u: np.ndarray) -> np.ndarray:
+        """``(m,)`` physical values of column ``k`` at unit values ``u`` ``(m,)``."""
+        full = np.repeat(self.U[np.argmin(self.c_s)][None], len(u), 0)
+        full[:, k] = u
+        return self.space.from_unit(torch.as_tensor(full)).numpy()[:, k]
+
+    def starts(self, k: int, ug: np.ndarray, spacing: float) -> np.ndarray:
+        """``(len(ug), dim)`` starts of the fits at unit values ``ug`` of column ``k``: the
+        best-fitting sample within ``spacing`` (unit scale) of each, else the nearest."""
+        U, c_s = self.U, self.c_s
+        X0 = np.empty((len(ug), U.shape[1]))
+        xg = self.to_phys(k, ug)
+        for i, u in enumerate(ug):
+            dist = np.abs(U[:, k] - u)
+            cand = np.nonzero(dist <= spacing)[0]
+            j = int(cand[np.argmin(c_s[cand])]) if len(cand) else int(np.argmin(dist))
+            X0[i] = self.samples[j]
+            X0[i, k] = xg[i]
+        return np.clip(X0, self.lo, self.hi)
+
+
+def _extensions(sm: _ProfileSamples, res: dict[int, list[tuple[float, float, np.ndarray]]],
+                c_min: float, delta: float
+                ) -> tuple[list[np.ndarray], list[tuple[int, float]]]:
+    """Two more points beyond each end of a profile in ``res`` (per column: (unit value,
+    chi2, fit) points) still below ``c_min + delta`` and not at the box's bound. Returns
+    their starts (physical) and (column, unit value)."""
+    new: list[np.ndarray] = []
+    new_own: list[tuple[int, float]] = []
+    for k, pts_k in res.items():
+        pts = sorted(pts_k, key=lambda t: t[0])
         ug = np.array([p[0] for p in pts])
-        c2 = np.array([p[1] if np.isfinite(p[1]) else np.inf for p in pts])
-        xs = np.stack([p[2] for p in pts])
-        g = to_phys(k, ug)
-        exc = c2 - c_min - delta
-        inside = np.nonzero(exc <= 0)[0]
-        if not len(inside):  # the profile never comes down to the threshold: its best point
-            i = int(np.argmin(c2))
-            lower = upper = float(g[i])
-            at_lo = at_hi = trunc = False
-        else:
-            i0, i1 = int(inside[0]), int(inside[-1])
-            at_lo = i0 == 0 and ug[0] <= 0.0
-            at_hi = i1 == len(ug) - 1 and ug[-1] >= 1.0
-            lower = float(g[0]) if i0 == 0 else _crossing(g, exc, i0, i0 - 1)
-            upper = float(g[-1]) if i1 == len(g) - 1 else _crossing(g, exc, i1, i1 + 1)
-            trunc = (i0 == 0 and not at_lo) or (i1 == len(ug) - 1 and not at_hi)
-        out.append(ProfileInterval(space.names[k], k, lower, upper, bool(at_lo), bool(at_hi),
-                                   g, c2, xs, c_min, delta, bool(trunc)))
-    return out
+        below = np.nonzero(np.array([p[1] for p in pts]) - c_min <= delta)[0]
+        if not len(below):
+            continue
+        step = ug[1] - ug[0]
+        for end, sgn in ((int(below[0]), -1.0), (int(below[-1]), 1.0)):
+            if end not in (0, len(ug) - 1) or ug[end] in (0.0, 1.0):
+                continue  # bracketed, or already at the box's bound
+            for m in (1.5, 1.5 + 1.5**2):
+                un = float(np.clip(ug[end] + sgn * m * step, 0.0, 1.0))
+                if np.any(np.abs(ug - un) < 1e-12) or (k, un) in new_own:
+                    continue  # clipped onto a value already profiled
+                x0 = pts[end][2].copy()
+                x0[k] = sm.to_phys(k, np.array([un]))[0]
+                new.append(np.clip(x0, sm.lo, sm.hi))
+                new_own.append((k, un))
+    return new, new_own
+
+
+def _interval(sm: _ProfileSamples, k: int, pts_k: list[tuple[float, float, np.ndarray]],
+              c_min: float, delta: float) -> ProfileInterval:
+    """Column ``k``'s interval from its profile points (unit value, chi2, fit): where
+    ``chi2 - c_min <= delta``, linearly interpolated at the crossings."""
+    pts = sorted(pts_k, key=lambda t: t[0])
+    ug = np.array([p[0] for p in pts])
+    c2 = np.array([p[1] if np.isfinite(p[1]) else np.inf for p in pts])
+    xs = np.stack([p[2] for p in pts])
+    g = sm.to_phys(k, ug)
+    exc = c2 - c_min - delta
+    inside = np.nonzero(exc <= 0)[0]
+    if not len(inside):  # the profile never comes down to the threshold: its best point
+        i = int(np.argmin(c2))
+        lower = upper = float(g[i])
+        at_lo = at_hi = trunc = False
+    else:
+        i0, i1 = int(inside[0]), int(inside[-1])
+        at_lo = i0 == 0 and ug[0] <= 0.0
+        at_hi = i1 == len(ug) - 1 and ug[-1] >= 1.0
+        lower = float(g[0]) if i0 == 0 else _crossing(g, exc, i0, i0 - 1)
+        upper = float(g[-1]) if i1 == len(g) - 1 else _crossing(g, exc, i1, i1 + 1)
+        trunc = (i0 == 0 and not at_lo) or (i1 == len(ug) - 1 and not at_hi)
+    return ProfileInterval(sm.space.names[k], k, lower, upper, bool(at_lo), bool(at_hi),
+                           g, c2, xs, c_min, delta, bool(trunc))
 
 
 def laplace_cov_unit(fit: Any, space: Box, sigma: float) -> np.ndarray:

@@ -15,6 +15,7 @@ final posterior, FE check and report on the corrected data. Every setting is in
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +41,15 @@ from solderpyro.pipeline.fe_check import (
     fe_check,
     ranked,
 )
-from solderpyro.pipeline.fe_exact import SUMMARY, WEAK_SHARE, exact_rows, fe_exact, identifiability
+from solderpyro.pipeline.fe_exact import (
+    SUMMARY,
+    WEAK_SHARE,
+    BestFitPosterior,
+    ExactRun,
+    exact_rows,
+    fe_exact,
+    identifiability,
+)
 from solderpyro.pipeline.outputs import SpecimenCalibration, posterior_draws, save_run
 from solderpyro.pipeline.problem import CalibrationProblem
 from solderpyro.rundir import Checks, DesignSummary, RunDir, RunInfo, SurrogateRecord
@@ -64,13 +73,163 @@ def unprofilable(n_params: int, n_values: int) -> str | None:
     Each profile refits the other ``n_params - 1`` parameters at fixed values of one: when they
     are at least as many as the values they fit the data at every fixed value, the profile is
     flat and its interval is the box, found after thousands of FE runs (point data with the
-    Moire offsets, 12 parameters on 8 values: more than 40 minutes in session 31).
+    Moire offsets, 12 parameters on 8 values: more than 40 minutes).
     """
     if n_params - 1 < n_values:
         return None
     return (f"profile intervals not computed: {n_params} parameters on {n_values} values "
             "cannot be profiled (the other parameters fit the data at every value of each: "
             "flat profiles); measure more values or calibrate fewer parameters")
+
+
+@dataclass
+class Reported:
+    """What a calibration reports at one stage: its summary rows, predictive, problems and
+    trust line.
+
+    Attributes:
+        rows: summary rows (``SUMMARY`` keys; physical units, sigma in um).
+        bands: the predictive (:class:`~solderpyro.calibration.predictive.Bands`, um).
+        problems: the report's warnings.
+        trust: the report's line on which posterior to trust.
+    """
+
+    rows: list[dict]
+    bands: Any
+    problems: list[str]
+    trust: str
+
+
+@dataclass
+class FeChecked:
+    """The FE at a few posterior draws (:func:`~.fe_check.fe_check`).
+
+    Attributes:
+        noise_sd: um, the known noise sd or the posterior's median sigma.
+        draws: ``(N, dim)`` the surrogate posterior's draws, physical units.
+        pick: ``(FE_CHECK_DRAWS,)`` indices into ``draws`` of the checked ones.
+        V: ``(len(pick), n)`` um, the FE's observed outputs at them.
+        result: :func:`~.fe_check.fe_check`'s record (``ok``, ``best``, ``rms_um``, ...).
+    """
+
+    noise_sd: float
+    draws: np.ndarray
+    pick: np.ndarray
+    V: np.ndarray
+    result: dict[str, Any]
+
+
+@dataclass
+class RunOutputs:
+    """Everything a calibration's outputs (summary.csv, draws.npz, run.json, the report) are
+    written from, apart from what each stage reports (:class:`Reported`).
+
+    Attributes:
+        setup, meas, out, settings, record: the calibration's inputs
+            (:func:`calibrate_specimen`).
+        cp: the problem, on the data the final posterior used.
+        loop: the adaptive design's final state (:func:`~.adaptive.final_design_posterior`).
+        loo: the surrogate's leave-one-out check.
+        y_liu: ``(n,)`` um, the literature parameters' outputs.
+        checked: the FE check at posterior draws.
+        disc: the discretization check's record.
+        fit: the FE's own best fit of a model that misfits, else None.
+        clock: the stages' seconds.
+    """
+
+    setup: Setup
+    meas: Measurements
+    out: Path
+    settings: CalibrationSettings
+    record: dict[str, Any] | None
+    cp: CalibrationProblem
+    loop: Any
+    loo: Any
+    y_liu: torch.Tensor
+    checked: FeChecked
+    disc: dict[str, Any]
+    fit: BestFitPosterior | None
+    clock: StageClock
+
+    def run_info(self, trust: str, kind: str, ex_info: dict[str, Any] | None) -> RunInfo:
+        """The run's record with the report's ``trust`` line, the ``kind`` of posterior in
+        summary.csv and the FE-exact step's record ``ex_info`` (None before it)."""
+        s, cp, loop = self.settings, self.cp, self.loop
+        space, sg = cp.space, s.surrogate
+        asked = dict(self.record or {})
+        return RunInfo(
+            list(space.names), list(space.lower), list(space.upper), list(cp.effects),
+            cp.priors.sigma_known, [float(t) for t in self.meas.times()],
+            list(self.meas.points()),
+            overrides=list(asked.pop("overrides", [])), data=asked.pop("data", None),
+            store=s.store, seed=s.seed, settings=s.as_dict(),
+            surrogate=SurrogateRecord(sg.kernel, sg.ard, sg.mean, loop.gp.output, sg.inputs,
+                                      sg.inputs_T_C, sg.inputs_rate),
+            n_runs=int(len(loop.X)), design=DesignSummary(loop.as_dict()),
+            checks=Checks(self.checked.result, self.disc, float(self.loo.rmse_rel),
+                          float(self.loo.coverage95)),
+            timing_s=self.clock.seconds, trust=trust, posterior=kind, exact=ex_info or None,
+            extra=asked)
+
+    def notes(self, trust: str, saved: bool, ex_info: dict[str, Any] | None) -> list[str]:
+        """The report's notes: ``trust``, the design, the FE and discretization checks, and
+        the FE-exact posterior's or best fit's line (``saved``: summary.csv is not the
+        surrogate's)."""
+        s, loop, chk, fit = self.settings, self.loop, self.checked.result, self.fit
+        last = loop.rounds[-1]
+        notes = [f"**trust**: {trust}",
+                 f"adaptive design: {len(loop.X)} FE runs in {len(loop.rounds)} rounds "
+                 f"({loop.reason}): {loop.message} (design.png, design.csv)",
+                 f"last round: code chi2 {last.code_chi2:.3g}, max |FE - surrogate| chi2 "
+                 f"{last.fe_gap:.3g} (varying by {last.fe_spread:.2g} across the checked "
+                 f"draws, tolerance {s.design.fe_spread:g}), tolerance {last.tolerance:.3g}",
+                 f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), "
+                 f"best RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} "
+                 f"noise sd (chi2 {chk['chi2']:.0f} on {chk['n']} values)",
+                 self.disc["message"]]
+        if saved and ex_info:
+            notes.insert(1, f"**posterior: FE-exact** (adaptive importance sampling with the FE "
+                            f"in the likelihood, {ex_info['fe_runs']} FE runs, ESS "
+                            f"{ex_info['ess']:.0f}, Pareto k-hat {ex_info['khat']:.2f}); the "
+                            f"surrogate's is in summary_surrogate.csv")
+        if fit is not None:
+            notes.insert(1, f"**summary: the FE's own best fit** (chi2 {fit.chi2:.0f} on "
+                            f"{self.cp.y.numel()} values), intervals from its Laplace covariance "
+                            f"widened by sqrt(chi2 / (n - dim)) = {fit.scale:.2f}; the "
+                            "surrogate's posterior is in summary_surrogate.csv")
+        ident = (ex_info or {}).get("identifiability") or {}
+        if saved and ident.get("weak"):
+            notes.append("weakly identified by these data (95 % interval over >= "
+                         f"{WEAK_SHARE:.0%} of the prior box): "
+                         + ", ".join(v["parameter"] for v in ident["weak"])
+                         + "; see 'Identifiability' below for the measurement that would "
+                         "narrow them")
+        return notes
+
+    def write(self, rep: Reported, ex: Any = None, ex_info: dict[str, Any] | None = None,
+              ex_rows: list[dict] | None = None) -> None:
+        """summary.csv, draws.npz, the run's record and the report of ``rep`` (the FE-exact
+        posterior ``ex``'s where it is reliable, with its record ``ex_info`` and summary rows
+        ``ex_rows``); written before the FE-exact step and again after it."""
+        from solderpyro import report
+
+        cp, fit, out = self.cp, self.fit, self.out
+        post = self.loop.draws.posterior[0]
+        saved = (ex.theta, ex.sigma) if ex is not None and ex.reliable else None
+        kind = "fe-exact" if saved is not None else "surrogate"
+        if fit is not None:
+            saved, kind = (fit.theta, fit.sigma), "fe-best-fit"
+        write_summary(rep.rows, out / "summary.csv", SUMMARY)
+        run = save_run(out, self.meas, self.run_info(rep.trust, kind, ex_info),
+                       posterior_draws(post, rep.bands, cp.space.names, cp.y, self.y_liu, saved),
+                       post.warm)
+        t = cp.tally  # every FE run of the calibration so far (Liu, design, checks, exact)
+        report.write(report.CalibrationReport(
+            run, self.meas, rep.rows, post, self.loo, rep.bands, self.y_liu.numpy(),
+            report.FeRunCounts(t.n_ok, t.n_failed, t.n_reused, t.n_computed), rep.problems,
+            self.notes(rep.trust, saved is not None, ex_info),
+            None if ex is None or not ex_rows
+            else report.ExactReport(ex, ex_rows, self.checked.draws)))
 
 
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
@@ -99,6 +258,61 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     clock = StageClock(log_each=True)
+    cp, loop, y_liu = design_stage(setup, meas, s, out, warm, clock)
+    post, inp = loop.draws.posterior
+    loo = loop.gp.loo()
+    problems = design_problems(loop, loo)
+    checked = fe_check_stage(cp, post)
+    clock("fe_check")
+    if not checked.result["ok"]:
+        problems = [*problems, fe_misfit_message(checked.result)]
+    rows = summary_rows(post, checked.draws, setup, cp.space)
+    bands = save_posterior(cp, post, inp, s.seed, out)
+    # a model whose own FE best fit misfits (loop.reason "misfit") gets no FE-exact posterior
+    full_exact = s.exact.mode == "on" or (
+        s.exact.mode == "auto" and loop.reason == "budget" and not loop.rounds[-1].fe_ok)
+    fit = None
+    if loop.reason == "misfit":
+        fit, rep = misfit_stage(cp, s, out, loop, Reported(rows, bands, problems, ""),
+                                checked.noise_sd)
+        if fit is not None:
+            clock("best_fit")
+    else:
+        rep = Reported(rows, bands, problems, surrogate_trust(loop.converged, full_exact))
+    disc = discretization_stage(cp, out, fit, checked)
+    if disc["warn"]:
+        rep.problems = [*rep.problems, disc["message"]]
+    clock("discretization")
+    rep.trust += chains_caveat(rep.rows)
+    outputs = RunOutputs(setup, meas, out, s, record, cp, loop, loo, y_liu, checked, disc, fit,
+                         clock)
+    outputs.write(rep)  # the surrogate's results are safe before the FE-exact step
+    clock("report")
+    if full_exact:
+        rep = exact_stage(outputs, rep)
+        clock("exact")
+    print(format_summary(rep.rows))
+    run = RunDir.read(out)
+    run.info.timing_s = clock.seconds
+    run.write()
+    from solderpyro.index import write_index
+
+    write_index(out)
+    n_ok = int(loop.ok.sum())
+    return SpecimenCalibration(out, post, rep.rows, loo, n_ok, int(len(loop.ok)) - n_ok,
+                               loop.as_dict())
+
+
+def design_stage(setup: Setup, meas: Measurements, s: CalibrationSettings, out: Path,
+                 warm: WarmStart | None, clock: StageClock
+                 ) -> tuple[CalibrationProblem, Any, torch.Tensor]:
+    """The problem and the adaptive design to its final posterior (:mod:`.adaptive`), with
+    the discretization correction where ``s`` asks for it.
+
+    Returns:
+        the problem (on the corrected data where corrected), the design's final state and the
+        ``(n,)`` um outputs at the literature parameters; ``clock`` gets "problem" and "design".
+    """
     cp = CalibrationProblem.build(setup, meas, s.store, s.batch, s.progress)
     s.validate(cp.n_fe)
     y_liu = cp.literature()
@@ -112,80 +326,115 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         cp = cp.with_data(correct_discretization(cp, rounds.draws))
     loop = final_design_posterior(cp, s, out, rounds)
     clock("design")
-    post, inp = loop.draws.posterior
-    gp = loop.gp
-    loo = gp.loo()
-    problems = gp.check(loo)
+    return cp, loop, y_liu
+
+
+def design_problems(loop: Any, loo: Any) -> list[str]:
+    """The surrogate's own check against its leave-one-out ``loo`` and, where the design did
+    not converge, its message (logged)."""
+    problems = loop.gp.check(loo)
     log.info(loop.message)
     if not loop.converged:
         log.warning(loop.message)
         problems = [*problems, loop.message]
-    # the FE at a few posterior draws: does the exact model fit where the surrogate says so?
-    pr = cp.priors
-    sig_fe = pr.sigma_known or float(post.flat("sigma").median())
+    return problems
+
+
+def fe_check_stage(cp: CalibrationProblem, post: Any) -> FeChecked:
+    """The FE at ``FE_CHECK_DRAWS`` spread draws of the surrogate posterior ``post`` (one
+    batched solve): does the exact model fit where the surrogate says so?"""
+    sig_fe = cp.priors.sigma_known or float(post.flat("sigma").median())
     draws = post.flat("t").detach().cpu().numpy()
     pick = spread_indices(len(draws), FE_CHECK_DRAWS)
     V_chk = cp.observed(draws[pick])
     chk = fe_check(V_chk, cp.y, sig_fe)
-    clock("fe_check")
     log.info("FE check: best RMS residual of the FE over %d posterior draws %.4g um (%.2f "
              "noise sd)", chk["draws"], chk["rms_um"], chk["rms_over_sigma"])
-    if not chk["ok"]:
-        msg = (f"the FE itself misfits at every one of {chk['draws']} posterior draws: best "
-               f"RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.1f} noise sd "
-               f"(chi2 {chk['chi2']:.0f} on {chk['n']} values): the model misses something "
-               f"the data show (solderpyro diagnose names candidate effects)")
-        log.warning(msg)
-        problems = [*problems, msg]
-    space = cp.space
-    # the reported 95 % interval: central, or from a box face the posterior piles against
+    return FeChecked(sig_fe, draws, pick, V_chk, chk)
+
+
+def fe_misfit_message(chk: dict[str, Any]) -> str:
+    """The report's problem line (logged) for an FE check ``chk`` that misfits at every
+    checked draw."""
+    msg = (f"the FE itself misfits at every one of {chk['draws']} posterior draws: best "
+           f"RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.1f} noise sd "
+           f"(chi2 {chk['chi2']:.0f} on {chk['n']} values): the model misses something "
+           f"the data show (solderpyro diagnose names candidate effects)")
+    log.warning(msg)
+    return msg
+
+
+def summary_rows(post: Any, draws: np.ndarray, setup: Setup, space: Any) -> list[dict]:
+    """The surrogate posterior's summary rows, the 95 % interval central or from a box face
+    the posterior piles against; the setup's parameters first, then sigma, then the
+    effects'. ``draws``: ``(N, dim)`` physical units."""
     rows = with_intervals(post.summary(), draws, space)
     order = list(setup.space.names) + ["sigma"] + list(space.names[setup.space.n_theta:])
     rows.sort(key=lambda r: order.index(r["parameter"]) if r["parameter"] in order else 99)
+    return rows
+
+
+def save_posterior(cp: CalibrationProblem, post: Any, inp: Any, seed: int, out: Path) -> Bands:
+    """posterior.nc: the surrogate posterior with the data, the predictive and the pointwise
+    log-likelihood at the same ``PREDICTIVE_DRAWS`` draws (az.plot_ppc, az.loo, az.compare on
+    the file). Returns the predictive (um)."""
     n_draw = next(iter(post.samples.values())).shape[1]
     pick_pp = torch.as_tensor(thin_index(post.n_chains, n_draw, PREDICTIVE_DRAWS))
-    bands = predict_observation_model(post, inp, None, seed=s.seed, index=pick_pp)
-    # posterior.nc: the surrogate posterior with the data, the predictive and the pointwise
-    # log-likelihood at the same draws (az.plot_ppc, az.loo, az.compare on the file)
+    bands = predict_observation_model(post, inp, None, seed=seed, index=pick_pp)
     post.save(out / "posterior.nc", predictive={
         "y": cp.y.numpy(), "index": pick_pp.numpy(), "observed": bands.obs_draws.numpy(),
         "log_likelihood": bands.log_likelihood(cp.y).numpy()})
-    # a model whose own FE best fit misfits (loop.reason "misfit") gets no FE-exact posterior
-    full_exact = s.exact.mode == "on" or (
-        s.exact.mode == "auto" and loop.reason == "budget" and not loop.rounds[-1].fe_ok)
-    fit = None
-    if loop.reason == "misfit":
-        trust = _misfit_trust((loop.best_fit or {}).get("rms_over_sigma", float("nan")),
-                              "so the design stopped refining its surrogate")
-        if loop.best_fit and loop.best_fit.get("x"):
-            fit, bands = _best_fit_stage(cp, s, loop.best_fit, sig_fe)
-            # the design's record and figure show the fit that is reported (and diagnose
-            # starts there)
-            n_y = int(cp.y.numel())
-            loop.best_fit.update({
-                "x": dict(zip(space.names, map(float, fit.x), strict=True)),
-                "chi2": fit.chi2, "rms_over_sigma": float(np.sqrt(fit.chi2 / n_y))})
-            save_design(loop, cp.gp_box.names, out)
-            write_summary(rows, out / "summary_surrogate.csv", SUMMARY)
-            rows = [{**r, "r_hat": float("nan"), "ess_bulk": float("nan"),
-                     "ess_tail": float("nan")} for r in fit.rows]
-            trust += (f"; summary.csv is the FE's own best fit with its Laplace spread "
-                      f"widened {fit.scale:.1f}x for the misfit (the surrogate's posterior, "
-                      f"in summary_surrogate.csv, sits where only the surrogate fits)")
-            clock("best_fit")
-    elif loop.converged:
-        trust = ("the surrogate posterior: the design converged and the FE confirms the "
-                 "surrogate at posterior draws")
-    else:
-        trust = ("the surrogate posterior, with care: the design's budget ran out before the "
-                 "FE confirmed the surrogate" + (" (the FE-exact posterior follows)"
-                                                 if full_exact else ""))
-    # the FE's own discretization error against what the data resolve (two FE runs)
-    # at the FE's best fit where there is one, else at the best checked posterior draw (the
-    # marginal medians can lie off a curved ridge: there the refined FE fitted the modulus
-    # data 165 chi-square worse, a change of the point, not of the mesh)
-    best_chk = chk["best"]
-    x_disc = fit.x if fit is not None else draws[pick][best_chk]
+    return bands
+
+
+def misfit_stage(cp: CalibrationProblem, s: CalibrationSettings, out: Path, loop: Any,
+                 rep: Reported, noise_sd: float) -> tuple[BestFitPosterior | None, Reported]:
+    """A design stopped because the model misfits: the FE's own best fit (where the design
+    found one) replaces the surrogate's summary and predictive (the surrogate's summary goes
+    to summary_surrogate.csv; the design's record and figure show the reported fit, and
+    diagnose starts there). Returns the fit (or None) and what to report, with its trust line.
+    """
+    trust = _misfit_trust((loop.best_fit or {}).get("rms_over_sigma", float("nan")),
+                          "so the design stopped refining its surrogate")
+    if not (loop.best_fit and loop.best_fit.get("x")):
+        return None, Reported(rep.rows, rep.bands, rep.problems, trust)
+    fit, bands = _best_fit_stage(cp, s, loop.best_fit, noise_sd)
+    n_y = int(cp.y.numel())
+    loop.best_fit.update({
+        "x": dict(zip(cp.space.names, map(float, fit.x), strict=True)),
+        "chi2": fit.chi2, "rms_over_sigma": float(np.sqrt(fit.chi2 / n_y))})
+    save_design(loop, cp.gp_box.names, out)
+    write_summary(rep.rows, out / "summary_surrogate.csv", SUMMARY)
+    rows = [{**r, "r_hat": float("nan"), "ess_bulk": float("nan"),
+             "ess_tail": float("nan")} for r in fit.rows]
+    trust += (f"; summary.csv is the FE's own best fit with its Laplace spread "
+              f"widened {fit.scale:.1f}x for the misfit (the surrogate's posterior, "
+              f"in summary_surrogate.csv, sits where only the surrogate fits)")
+    return fit, Reported(rows, bands, rep.problems, trust)
+
+
+def surrogate_trust(converged: bool, full_exact: bool) -> str:
+    """The report's trust line for the surrogate posterior: the design ``converged``, or
+    not (``full_exact``: the FE-exact posterior follows)."""
+    if converged:
+        return ("the surrogate posterior: the design converged and the FE confirms the "
+                "surrogate at posterior draws")
+    return ("the surrogate posterior, with care: the design's budget ran out before the "
+            "FE confirmed the surrogate" + (" (the FE-exact posterior follows)"
+                                            if full_exact else ""))
+
+
+def discretization_stage(cp: CalibrationProblem, out: Path, fit: BestFitPosterior | None,
+                         checked: FeChecked) -> dict[str, Any]:
+    """The FE's own discretization error against what the data resolve (two FE runs), at the
+    FE's best fit ``fit`` where there is one, else at the best checked posterior draw (the
+    marginal medians can lie off a curved ridge: there the refined FE fitted the modulus data
+    165 chi-square worse, a change of the point, not of the mesh). Advisory: a failure is its
+    message. Keeps the correction the final posterior used in
+    discretization_correction.npz. Returns the check's record (``warn``, ``message``, ...).
+    """
+    best_chk = checked.result["best"]
+    x_disc = fit.x if fit is not None else checked.draws[checked.pick][best_chk]
     data = cp.data
     if data.delta is not None:  # the correction the final posterior used, kept with the run
         # whatever the check below does (compare needs it to see the measured data)
@@ -194,101 +443,27 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     try:
         # a model that misfits: measured against its misfit-widened noise sd (the check's
         # shift is then noise beside the missing effect)
-        disc = discretization_check(cp, x_disc, sig_fe if fit is None else float(fit.sigma[0]),
-                                    V=None if fit is not None else V_chk[best_chk],
-                                    delta=data.delta)
+        disc = discretization_check(
+            cp, x_disc, checked.noise_sd if fit is None else float(fit.sigma[0]),
+            V=None if fit is not None else checked.V[best_chk], delta=data.delta)
     except Exception as err:  # advisory: never lose the run over it
         log.warning("the discretization check failed", exc_info=True)
         disc = {"warn": False, "message": f"discretization check failed: {err!r}"}
     if data.delta is not None:
         disc["correction"] = dict(data.info)
     log.info(disc["message"])
-    if disc["warn"]:
-        problems = [*problems, disc["message"]]
-    clock("discretization")
+    return disc
+
+
+def chains_caveat(rows: list[dict]) -> str:
+    """The trust line's caveat where the chains of the summary ``rows`` disagree (R-hat over
+    ``RHAT_OK``): the surrogate may be right and its posterior still not sampled; else ""."""
     rhat = max((float(r["r_hat"]) for r in rows if np.isfinite(float(r["r_hat"]))),
                default=float("nan"))
-    if rhat > RHAT_OK:  # the surrogate may be right and its posterior still not sampled
-        trust += (f"; but the chains disagree (R-hat up to {rhat:.2f} > {RHAT_OK}): the "
-                  "intervals are not reliable until a longer run (--warmup, --draws) agrees")
-
-    def write_all(rows: list[dict], bands: Any, problems: list[str], ex: Any = None,
-                  ex_info: dict[str, Any] | None = None, ex_rows: list[dict] | None = None,
-                  trust: str = trust) -> None:
-        """summary.csv, draws.npz, the run's record and the report (the FE-exact posterior's where
-        ``ex`` is reliable); written before the FE-exact step and again after it."""
-        from solderpyro import report
-
-        saved = (ex.theta, ex.sigma) if ex is not None and ex.reliable else None
-        kind = "fe-exact" if saved is not None else "surrogate"
-        if fit is not None:
-            saved, kind = (fit.theta, fit.sigma), "fe-best-fit"
-        write_summary(rows, out / "summary.csv", SUMMARY)
-        sg = s.surrogate
-        asked = dict(record or {})
-        info = RunInfo(
-            list(space.names), list(space.lower), list(space.upper), list(cp.effects),
-            pr.sigma_known, [float(t) for t in meas.times()], list(meas.points()),
-            overrides=list(asked.pop("overrides", [])), data=asked.pop("data", None),
-            store=s.store, seed=s.seed, settings=s.as_dict(),
-            surrogate=SurrogateRecord(sg.kernel, sg.ard, sg.mean, gp.output, sg.inputs,
-                                      sg.inputs_T_C, sg.inputs_rate),
-            n_runs=int(len(loop.X)), design=DesignSummary(loop.as_dict()),
-            checks=Checks(chk, disc, float(loo.rmse_rel), float(loo.coverage95)),
-            timing_s=clock.seconds, trust=trust, posterior=kind, exact=ex_info or None,
-            extra=asked)
-        run = save_run(out, meas, info,
-                       posterior_draws(post, bands, space.names, cp.y, y_liu, saved), post.warm)
-        last = loop.rounds[-1]
-        notes = [f"**trust**: {trust}",
-                 f"adaptive design: {len(loop.X)} FE runs in {len(loop.rounds)} rounds "
-                 f"({loop.reason}): {loop.message} (design.png, design.csv)",
-                 f"last round: code chi2 {last.code_chi2:.3g}, max |FE - surrogate| chi2 "
-                 f"{last.fe_gap:.3g} (varying by {last.fe_spread:.2g} across the checked "
-                 f"draws, tolerance {s.design.fe_spread:g}), tolerance {last.tolerance:.3g}",
-                 f"FE check: the FE at {chk['draws']} posterior draws (one batched solve), "
-                 f"best RMS residual {chk['rms_um']:.3g} um = {chk['rms_over_sigma']:.2f} "
-                 f"noise sd (chi2 {chk['chi2']:.0f} on {chk['n']} values)",
-                 disc["message"]]
-        if saved is not None and ex_info:
-            notes.insert(1, f"**posterior: FE-exact** (adaptive importance sampling with the FE "
-                            f"in the likelihood, {ex_info['fe_runs']} FE runs, ESS "
-                            f"{ex_info['ess']:.0f}, Pareto k-hat {ex_info['khat']:.2f}); the "
-                            f"surrogate's is in summary_surrogate.csv")
-        if fit is not None:
-            notes.insert(1, f"**summary: the FE's own best fit** (chi2 {fit.chi2:.0f} on "
-                            f"{cp.y.numel()} values), intervals from its Laplace covariance "
-                            f"widened by sqrt(chi2 / (n - dim)) = {fit.scale:.2f}; the "
-                            "surrogate's posterior is in summary_surrogate.csv")
-        ident = (ex_info or {}).get("identifiability") or {}
-        if saved is not None and ident.get("weak"):
-            notes.append("weakly identified by these data (95 % interval over >= "
-                         f"{WEAK_SHARE:.0%} of the prior box): "
-                         + ", ".join(v["parameter"] for v in ident["weak"])
-                         + "; see 'Identifiability' below for the measurement that would "
-                         "narrow them")
-        t = cp.tally  # every FE run of the calibration so far (Liu, design, checks, exact)
-        report.write(report.CalibrationReport(
-            run, meas, rows, post, loo, bands, y_liu.numpy(),
-            report.FeRunCounts(t.n_ok, t.n_failed, t.n_reused, t.n_computed), problems, notes,
-            None if ex is None or not ex_rows else report.ExactReport(ex, ex_rows, draws)))
-
-    write_all(rows, bands, problems)  # the surrogate's results are safe before the FE-exact step
-    clock("report")
-    if full_exact:
-        rows, bands, problems = _exact_stage(cp, s, out, loop, post, draws, pick, V_chk, rows,
-                                             bands, problems, write_all)
-        clock("exact")
-    print(format_summary(rows))
-    run = RunDir.read(out)
-    run.info.timing_s = clock.seconds
-    run.write()
-    from solderpyro.index import write_index
-
-    write_index(out)
-    n_ok = int(loop.ok.sum())
-    return SpecimenCalibration(out, post, rows, loo, n_ok, int(len(loop.ok)) - n_ok,
-                               loop.as_dict())
+    if rhat > RHAT_OK:
+        return (f"; but the chains disagree (R-hat up to {rhat:.2f} > {RHAT_OK}): the "
+                "intervals are not reliable until a longer run (--warmup, --draws) agrees")
+    return ""
 
 
 def _best_fit_stage(cp: CalibrationProblem, s: CalibrationSettings, best: dict[str, Any],
@@ -326,111 +501,142 @@ def _misfit_trust(rms_sd: float, why: str) -> str:
             f"fit is {rms_sd:.1f} noise sd off), {why}; run solderpyro diagnose")
 
 
-def _exact_stage(cp: CalibrationProblem, s: CalibrationSettings, out: Path, loop: Any, post: Any,
-                 draws: np.ndarray, pick: np.ndarray, V_chk: np.ndarray, rows: list[dict],
-                 bands: Any, problems: list[str], write_all: Any
-                 ) -> tuple[list[dict], Any, list[str]]:
-    """The FE-exact posterior, identifiability and profile intervals; rewrites the outputs.
-    Returns the rows, bands and problems to report."""
+def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
+    """The FE-exact posterior, identifiability and profile intervals after the surrogate's
+    outputs ``rep`` (:func:`~.fe_exact.fe_exact`); rewrites the outputs through ``w``.
+    Returns what is reported at the end."""
+    cp, s = w.cp, w.settings
     ex_s = s.exact
-    pr = cp.priors
-    y = cp.y
-    space = cp.space
     log.info("exact: the FE-exact posterior, %d rounds of %d FE runs after a best fit%s",
              ex_s.rounds, ex_s.runs, f" and a {ex_s.profile}-point profile"
              if ex_s.profile >= 2 else "")
-    starts = draws[pick][ranked(V_chk, y.numpy())[:2]]
-    from solderpyro.coords import sampling_coords
-
-    sg = s.surrogate
-    coords = sampling_coords(space, cp.setup.space.defaults, "auto", sg.inputs_T_C,
-                             sg.inputs_rate)
     try:
-        ex, ex_info = fe_exact(cp.observed, coords, y, pr, draws, starts, ex_s.runs,
-                               ex_s.rounds, ex_s.profile, s.seed, len(draws),
-                               stop_if_misfit=ex_s.mode == "auto",
-                               noise_sd=pr.sigma_known or float(post.flat("sigma").median()))
+        ex, ex_info = run_fe_exact(cp, s, w.loop.draws.posterior[0], w.checked)
     except RuntimeError as err:  # keep the surrogate's results (and the stored runs)
         log.warning("the FE-exact posterior failed: %s", err)
-        problems = [*problems, f"the FE-exact posterior failed: {err}"]
-        write_all(rows, bands, problems)
-        return rows, bands, problems
+        rep = replace(rep, problems=[*rep.problems, f"the FE-exact posterior failed: {err}"])
+        w.write(rep)
+        return rep
     if ex is None:  # stopped at the FE's best fit: this model cannot fit the data
-        problems = [*problems, ex_info["stopped"]]
-        trust = _misfit_trust(ex_info["best_fit"]["rms_over_sigma"], "and the design's "
-                              "budget ran out with the FE disagreeing with the surrogate")
-        write_all(rows, bands, problems, None, ex_info, None, trust)
-        return rows, bands, problems
-    ex_rows = exact_rows(ex, rows)
-    np.savez(out / "exact_samples.npz", w=ex.result.u, theta=ex.samples,
-             log_target=ex.result.log_target, log_q=ex.result.log_q, round=ex.result.round,
-             weights=ex.result.weights(), names=np.array(space.names))
-    write_summary(ex_rows, out / "exact_posterior.csv", tuple(ex_rows[0]))
+        rep = replace(rep, problems=[*rep.problems, ex_info["stopped"]], trust=_misfit_trust(
+            ex_info["best_fit"]["rms_over_sigma"], "and the design's budget ran out with the "
+            "FE disagreeing with the surrogate"))
+        w.write(rep, None, ex_info, None)
+        return rep
+    ex_rows = exact_rows(ex, rep.rows)
+    save_exact(w.out, ex, ex_rows, cp.space.names)
     if ex.reliable:
-        write_summary(rows, out / "summary_surrogate.csv", SUMMARY)
-        by = {r["parameter"]: r for r in ex.rows}
-        rows = [{**by[r["parameter"]], "r_hat": float("nan"), "ess_bulk": ex_info["ess"],
-                 "ess_tail": ex_info["ess"]} for r in rows]
-        try:  # which parameters lie along a ridge, and what would narrow them
-            ex_info["identifiability"] = identifiability(
-                cp.setup, cp.effects, space, rows, ex, cp.meas,
-                float(pr.sigma_known or np.median(ex.sigma)))
-        except Exception as err:  # advisory: never lose the run's files over it
-            log.warning("identifiability not computed", exc_info=True)
-            ex_info["identifiability"] = {"weak": [], "advice": "identifiability not "
-                                          f"computed: {err!r}"}
-        log.info("identifiability: %s", ex_info["identifiability"]["advice"])
-        gen = torch.Generator().manual_seed(s.seed)
-        Vt, st = torch.as_tensor(ex.V), torch.as_tensor(ex.sigma)
-        bands = Bands(Vt, Vt + st[:, None] * torch.randn(Vt.shape, generator=gen,
-                                                         dtype=Vt.dtype), st)
-        trust = (f"the FE-exact posterior (ESS {ex_info['ess']:.0f}, Pareto k-hat "
-                 f"{ex_info['khat']:.2f}): the design's budget ran out before the FE confirmed "
-                 "the surrogate" if not loop.converged else
-                 f"the FE-exact posterior (ESS {ex_info['ess']:.0f})")
-        log.info("exact: reliable: summary.csv, draws.npz and the predictive are the FE-exact "
-                 "posterior's")
+        rep = adopt_exact(w, rep, ex, ex_info)
     else:
         msg = (f"the FE-exact posterior is not reliable (ESS {ex_info['ess']:.0f}, Pareto "
                f"k-hat {ex_info['khat']:.2f}; needs k-hat <= 0.7 and ESS >= 50): summary.csv "
                f"stays the surrogate's; a larger calibration.exact.runs or more rounds")
         log.warning(msg)
-        problems = [*problems, msg]
-        trust = ("neither posterior: the design's budget ran out with the FE "
-                 "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
-                 "--budget; the profile intervals (profile_ci.csv) are the FE's own")
-    write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
-    skip = unprofilable(space.dim, len(y)) if ex_s.profile_ci else None
+        rep = replace(rep, problems=[*rep.problems, msg], trust=(
+            "neither posterior: the design's budget ran out with the FE "
+            "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
+            "--budget; the profile intervals (profile_ci.csv) are the FE's own"))
+    w.write(rep, ex, ex_info, ex_rows)
+    if not ex_s.profile_ci:
+        return rep
+    skip = unprofilable(cp.space.dim, len(cp.y))
     if skip:
         log.warning(skip)
-        problems = [*problems, skip]
-        write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
-    elif ex_s.profile_ci:
-        sig_p = float(pr.sigma_known or np.median(ex.sigma))
-        log.info("profile CI: 95 %% profile-likelihood intervals of %d parameters through the "
-                 "FE (sigma %.4g um)", space.dim, sig_p)
-        from solderpyro.exact import profile_intervals
+        rep = replace(rep, problems=[*rep.problems, skip])
+    else:
+        rep = profile_stage(cp, w.out, rep, ex, ex_info)
+    w.write(rep, ex, ex_info, ex_rows)
+    return rep
 
-        try:
-            pci = profile_intervals(cp.observed, space, y.numpy(), sig_p, ex.samples,
-                                    np.asarray(ex.result.extra["ssr"], float))
-        except (RuntimeError, ValueError) as err:
-            log.warning("the profile-likelihood intervals failed: %s", err)
-            problems = [*problems, f"the profile-likelihood intervals failed: {err}"]
-        else:
-            ex_info["profile_ci"] = [p.as_dict() for p in pci]
-            ex_info["profile_ci_sigma_um"] = sig_p
-            by = {r["parameter"]: r for r in rows}
-            pci_rows = [{"parameter": p.parameter, "lower": p.lower, "upper": p.upper,
-                         "at_lower_bound": str(p.at_lower_bound).lower(),
-                         "at_upper_bound": str(p.at_upper_bound).lower(),
-                         "truncated": str(p.truncated).lower(),
-                         "posterior_q2.5": by[p.parameter]["q2.5"],
-                         "posterior_q97.5": by[p.parameter]["q97.5"]} for p in pci]
-            write_summary(pci_rows, out / "profile_ci.csv", tuple(pci_rows[0]))
-            for p in pci:
-                log.info("profile CI: %s in [%.4g, %.4g]%s", p.parameter, p.lower, p.upper,
-                         " (reaches the box's bound)"
-                         if p.at_lower_bound or p.at_upper_bound else "")
-        write_all(rows, bands, problems, ex, ex_info, ex_rows, trust)
-    return rows, bands, problems
+
+def run_fe_exact(cp: CalibrationProblem, s: CalibrationSettings, post: Any,
+                 checked: FeChecked) -> tuple[Any, dict[str, Any]]:
+    """:func:`~.fe_exact.fe_exact` from the two best checked draws, with the surrogate
+    posterior ``post``'s draws as the first proposal. Returns its posterior (None where it
+    stopped at a best fit that misfits) and record; raises RuntimeError where it fails."""
+    from solderpyro.coords import sampling_coords
+
+    ex_s, pr, y, sg = s.exact, cp.priors, cp.y, s.surrogate
+    draws = checked.draws
+    starts = draws[checked.pick][ranked(checked.V, y.numpy())[:2]]
+    coords = sampling_coords(cp.space, cp.setup.space.defaults, "auto", sg.inputs_T_C,
+                             sg.inputs_rate)
+    return fe_exact(cp.observed, coords, y, pr, draws, starts, ExactRun(
+        ex_s.runs, ex_s.rounds, ex_s.profile, s.seed, len(draws),
+        stop_if_misfit=ex_s.mode == "auto",
+        noise_sd=pr.sigma_known or float(post.flat("sigma").median())))
+
+
+def save_exact(out: Path, ex: Any, ex_rows: list[dict], names: Any) -> None:
+    """exact_samples.npz (the importance samples, their weights and rounds) and
+    exact_posterior.csv (``ex_rows``) of the FE-exact posterior ``ex``."""
+    np.savez(out / "exact_samples.npz", w=ex.result.u, theta=ex.samples,
+             log_target=ex.result.log_target, log_q=ex.result.log_q, round=ex.result.round,
+             weights=ex.result.weights(), names=np.array(names))
+    write_summary(ex_rows, out / "exact_posterior.csv", tuple(ex_rows[0]))
+
+
+def adopt_exact(w: RunOutputs, rep: Reported, ex: Any, ex_info: dict[str, Any]) -> Reported:
+    """A reliable FE-exact posterior ``ex`` replaces the surrogate's summary (kept in
+    summary_surrogate.csv) and predictive; adds its identifiability to ``ex_info``."""
+    cp, s = w.cp, w.settings
+    pr = cp.priors
+    write_summary(rep.rows, w.out / "summary_surrogate.csv", SUMMARY)
+    by = {r["parameter"]: r for r in ex.rows}
+    rows = [{**by[r["parameter"]], "r_hat": float("nan"), "ess_bulk": ex_info["ess"],
+             "ess_tail": ex_info["ess"]} for r in rep.rows]
+    try:  # which parameters lie along a ridge, and what would narrow them
+        ex_info["identifiability"] = identifiability(
+            cp.setup, cp.effects, cp.space, rows, ex, cp.meas,
+            float(pr.sigma_known or np.median(ex.sigma)))
+    except Exception as err:  # advisory: never lose the run's files over it
+        log.warning("identifiability not computed", exc_info=True)
+        ex_info["identifiability"] = {"weak": [], "advice": "identifiability not "
+                                      f"computed: {err!r}"}
+    log.info("identifiability: %s", ex_info["identifiability"]["advice"])
+    gen = torch.Generator().manual_seed(s.seed)
+    Vt, st = torch.as_tensor(ex.V), torch.as_tensor(ex.sigma)
+    bands = Bands(Vt, Vt + st[:, None] * torch.randn(Vt.shape, generator=gen,
+                                                     dtype=Vt.dtype), st)
+    trust = (f"the FE-exact posterior (ESS {ex_info['ess']:.0f}, Pareto k-hat "
+             f"{ex_info['khat']:.2f}): the design's budget ran out before the FE confirmed "
+             "the surrogate" if not w.loop.converged else
+             f"the FE-exact posterior (ESS {ex_info['ess']:.0f})")
+    log.info("exact: reliable: summary.csv, draws.npz and the predictive are the FE-exact "
+             "posterior's")
+    return Reported(rows, bands, rep.problems, trust)
+
+
+def profile_stage(cp: CalibrationProblem, out: Path, rep: Reported, ex: Any,
+                  ex_info: dict[str, Any]) -> Reported:
+    """95 % profile-likelihood intervals of every parameter through the FE
+    (:func:`~solderpyro.exact.profile_intervals`, from the FE-exact posterior ``ex``'s
+    samples): profile_ci.csv and ``ex_info["profile_ci"]``; a failure is a problem."""
+    from solderpyro.exact import profile_intervals
+
+    space, y = cp.space, cp.y
+    sig_p = float(cp.priors.sigma_known or np.median(ex.sigma))
+    log.info("profile CI: 95 %% profile-likelihood intervals of %d parameters through the "
+             "FE (sigma %.4g um)", space.dim, sig_p)
+    try:
+        pci = profile_intervals(cp.observed, space, y.numpy(), sig_p, ex.samples,
+                                np.asarray(ex.result.extra["ssr"], float))
+    except (RuntimeError, ValueError) as err:
+        log.warning("the profile-likelihood intervals failed: %s", err)
+        return replace(rep, problems=[*rep.problems,
+                                      f"the profile-likelihood intervals failed: {err}"])
+    ex_info["profile_ci"] = [p.as_dict() for p in pci]
+    ex_info["profile_ci_sigma_um"] = sig_p
+    by = {r["parameter"]: r for r in rep.rows}
+    pci_rows = [{"parameter": p.parameter, "lower": p.lower, "upper": p.upper,
+                 "at_lower_bound": str(p.at_lower_bound).lower(),
+                 "at_upper_bound": str(p.at_upper_bound).lower(),
+                 "truncated": str(p.truncated).lower(),
+                 "posterior_q2.5": by[p.parameter]["q2.5"],
+                 "posterior_q97.5": by[p.parameter]["q97.5"]} for p in pci]
+    write_summary(pci_rows, out / "profile_ci.csv", tuple(pci_rows[0]))
+    for p in pci:
+        log.info("profile CI: %s in [%.4g, %.4g]%s", p.parameter, p.lower, p.upper,
+                 " (reaches the box's bound)"
+                 if p.at_lower_bound or p.at_upper_bound else "")
+    return rep

@@ -28,18 +28,40 @@ log = logging.getLogger("solderpyro")
 SUMMARY = ("parameter", "q2.5", "median", "mean", "q97.5", *INTERVAL_COLUMNS)
 
 
+@dataclass(frozen=True)
+class ExactRun:
+    """The settings of one FE-exact posterior (:func:`fe_exact`).
+
+    Attributes:
+        n: FE runs per AMIS round; rounds: AMIS rounds.
+        n_profile: grid points of the chi-square profile along the weakest direction (0: no
+            profile).
+        seed: random seed; n_draws: posterior draws kept.
+        lm_iters: Levenberg-Marquardt iterations of the FE's best fit.
+        run: the rounds, runs, profile and stopping rule (:class:`ExactRun`).
+    """
+
+    n: int
+    rounds: int
+    n_profile: int = 9
+    seed: int = 0
+    n_draws: int = 1000
+    lm_iters: int = 4
+    stop_if_misfit: bool = False
+    noise_sd: float | None = None
+
+
 def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
-             draws: np.ndarray | None, starts: np.ndarray, n: int, rounds: int,
-             n_profile: int = 9, seed: int = 0, n_draws: int = 1000, lm_iters: int = 4,
-             stop_if_misfit: bool = False, noise_sd: float | None = None
+             draws: np.ndarray | None, starts: np.ndarray, run: ExactRun
              ) -> tuple[Any, dict[str, Any]]:
     """The FE-exact posterior of a specimen calibration (:mod:`solderpyro.exact`).
 
-    The FE's best fit from ``starts`` (Levenberg-Marquardt, ``lm_iters`` iterations) and its
-    Laplace covariance, the chi-square profiled along the weakest direction's coordinate over
-    ``n_profile`` grid points (0: no profile), a first proposal from those and the surrogate
-    posterior's ``draws``, then ``rounds`` AMIS rounds of ``n`` FE runs each, all in the
-    sampling coordinates ``coords`` (:func:`solderpyro.coords.sampling_coords`).
+    The FE's best fit from ``starts`` (Levenberg-Marquardt, ``run.lm_iters`` iterations) and
+    its Laplace covariance, the chi-square profiled along the weakest direction's coordinate
+    over ``run.n_profile`` grid points (0: no profile), a first proposal from those and the
+    surrogate posterior's ``draws``, then ``run.rounds`` AMIS rounds of ``run.n`` FE runs
+    each, all in the sampling coordinates ``coords``
+    (:func:`solderpyro.coords.sampling_coords`).
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` the FE's observed outputs, um (e.g.
@@ -47,22 +69,18 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         y_obs: ``(n_obs,)`` um; priors: the calibration's (sigma's prior).
         draws: ``(n, dim)`` surrogate posterior draws (or None); starts: ``(k, dim)`` starts of
             the best fit (e.g. the FE check's best draws), physical units.
-        stop_if_misfit: stop after the best fit when the FE's own best fit misfits the data
-            by the FE check's rule (:func:`~.fe_check.misfits`): the model misses something,
-            and the FE-exact posterior of a model that cannot fit the data is not worth its
-            ~200 FE runs (measured: 346 s of a 517 s base calibration on data with a hidden
-            effect, with unreliable weights, ESS 4).
-        noise_sd: the noise sd (um) that rule measures the misfit in (default: the known
-            sigma, else the fits' own, which is the RMS residual at the first start and so
-            would never call a misfit: pass the posterior's noise sd then).
+        run: the rounds, runs, profile and stopping rule (:class:`ExactRun`).
     Returns:
         ``(ExactPosterior, info)``; ``info`` for the run record: ESS, k-hat, reliable, the number of
         FE runs, the coordinates, the best fit, the profile and each round's diagnostics.
-        With ``stop_if_misfit`` and a misfitting best fit: ``(None, info)``, ``info["stopped"]``
+        With ``run.stop_if_misfit`` and a misfitting best fit: ``(None, info)``, ``info["stopped"]``
         saying why.
     """
     from solderpyro.exact import exact_posterior, fe_profile, initial_proposal, laplace_cov_w
 
+    n, rounds, n_profile, seed = run.n, run.rounds, run.n_profile, run.seed
+    n_draws, lm_iters, stop_if_misfit, noise_sd = (run.n_draws, run.lm_iters,
+                                                   run.stop_if_misfit, run.noise_sd)
     space = coords.space
     y = y_obs.detach().cpu().numpy()
     n_fe = [0]

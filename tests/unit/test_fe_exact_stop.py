@@ -8,7 +8,7 @@ from solderpyro.calibration import Priors
 from solderpyro.coords import UnitCoords
 from solderpyro.params import Box
 from solderpyro.pipeline.fe_check import FE_CHECK_RMS, misfits
-from solderpyro.pipeline.fe_exact import fe_exact
+from solderpyro.pipeline.fe_exact import ExactRun, fe_exact
 
 BOX = Box(("a", "b"), (0.0, 0.0), (2.0, 2.0))
 S = np.linspace(0.0, 1.0, 200)
@@ -22,7 +22,7 @@ def _fun(rows: np.ndarray) -> np.ndarray:
 def _run(y: np.ndarray):
     starts = np.array([[1.0, 1.0], [0.8, 1.2]])
     return fe_exact(_fun, UnitCoords(BOX), torch.as_tensor(y), Priors(sigma_known=0.05), None,
-                    starts, 32, 1, 0, seed=0, n_draws=200, stop_if_misfit=True)
+                    starts, ExactRun(32, 1, 0, seed=0, n_draws=200, stop_if_misfit=True))
 
 
 def test_a_model_that_cannot_fit_stops_at_its_best_fit():
@@ -41,8 +41,9 @@ def test_with_sigma_unknown_the_rule_measures_the_misfit_in_the_noise_sd():
     rng = np.random.default_rng(0)
     y = 1.0 + 0.5 * S + 2.0 * S**2 + 0.05 * rng.standard_normal(S.size)
     ex, info = fe_exact(_fun, UnitCoords(BOX), torch.as_tensor(y), Priors(sigma_max=1.0), None,
-                        np.array([[1.0, 1.0], [0.8, 1.2]]), 32, 1, 0, seed=0, n_draws=200,
-                        stop_if_misfit=True, noise_sd=0.05)
+                        np.array([[1.0, 1.0], [0.8, 1.2]]),
+                        ExactRun(32, 1, 0, seed=0, n_draws=200, stop_if_misfit=True,
+                                 noise_sd=0.05))
     assert ex is None and info["best_fit"]["rms_over_sigma"] > FE_CHECK_RMS
 
 
