@@ -1,4 +1,4 @@
-"""Global sensitivity of the observed outputs to the nine Anand constants (issue 5 §2).
+"""Global sensitivity of the observed outputs to the nine Anand constants.
 
 The seed chose s0, Q/R, xi and m "after a sensitivity study". :func:`run_sensitivity` ranks all
 nine constants over a prior box by two independent routes:

@@ -329,8 +329,8 @@ def best_fit_posterior(fun: Any, coords: Any, x_best: np.ndarray, y: np.ndarray,
     """The FE's best fit as the reported posterior of a model that misfits the data.
 
     Why: a surrogate posterior of a model that cannot fit sits where the surrogate's code
-    variance absorbs the misfit (box-corner islands, FE chi-square 1e5-7e6 there; BENCHMARKS.md
-    issue 19), and fits worse, by the FE, than the FE's own best fit. ``lm_iters`` more
+    variance absorbs the misfit (box-corner islands, FE chi-square 1e5-7e6 there; BENCHMARKS.md,
+    "Hidden effects"), and fits worse, by the FE, than the FE's own best fit. ``lm_iters`` more
     Levenberg-Marquardt steps from ``x_best`` (``dim + 6`` FE rows each, through ``fun``; the
     design's misfit test stops after 4: on the plane-strain data one more step still lowered
     chi-square 4 %) give the fit and its Jacobian; the Laplace covariance in the sampling
@@ -341,7 +341,7 @@ def best_fit_posterior(fun: Any, coords: Any, x_best: np.ndarray, y: np.ndarray,
     The steps run until one lowers chi-square by less than ``lm_tol`` (diagnose's refits'
     tolerance, :data:`~solderpyro.diagnose.refits.LM_TOL`), at most ``lm_iters``: with 4 fixed
     steps the loop's base run reported chi2 21,679 where one step more reached 17,245 and the
-    optimum 17,239 (session 29), and diagnose, which starts from this fit, paid for the rest.
+    optimum 17,239, and diagnose, which starts from this fit, paid for the rest.
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` um, the FE (through the run store); coords: the
