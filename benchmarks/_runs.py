@@ -28,12 +28,12 @@ def rebuild(run: Path, store: str | None = None, data: str | None = None) -> Sim
     from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
     from solderpyro.calibration.fastkoh import flat_model
     from solderpyro.calibration.koh import observation_model, prepare_observation
-    from solderpyro.configure import build, compose
+    from solderpyro.config.compose import build, compose
+    from solderpyro.config.rundir import RunDir
+    from solderpyro.config.settings import CalibrationSettings
     from solderpyro.io.measurements import read_measurements
     from solderpyro.pipeline.problem import CalibrationProblem
     from solderpyro.pipeline.surrogate import fit_surrogate
-    from solderpyro.rundir import RunDir
-    from solderpyro.settings import CalibrationSettings
 
     info = RunDir.read(run).info
     setup = build(compose(info.overrides))

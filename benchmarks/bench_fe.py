@@ -5,7 +5,7 @@ Usage: python benchmarks/bench_fe.py [--sizes 1,8,64,256] [--sequential 64] [--l
        [--out benchmarks/results/bench_fe.json]
 
 ``--split``: for each batch size, the same parameter sets solved in one process on torch's
-threads and split over every core's one-thread process (:func:`solderpyro.executor.
+threads and split over every core's one-thread process (:func:`solderpyro.compute.executor.
 solve_split`, the in-process default), paired, with the largest |dV|
 between the two.
 
@@ -113,7 +113,7 @@ def main() -> None:
         print(f"B={S}: batched {wb:.1f} s, {S} sequential single runs {ws:.1f} s, "
               f"speedup {ws / wb:.2f}x", flush=True)
     if a.split:
-        from solderpyro.executor import local_cores, solve_batch, solve_split
+        from solderpyro.compute.executor import local_cores, solve_batch, solve_split
         from solderpyro.params import ANAND_NAMES
 
         res["split"] = []

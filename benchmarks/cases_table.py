@@ -20,7 +20,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from diagnosis_cases import _covered, _truth  # noqa: E402
 
-from solderpyro.rundir import RUN_JSON, RunDir  # noqa: E402
+from solderpyro.config.rundir import RUN_JSON, RunDir  # noqa: E402
 
 
 def _run(d: Path) -> dict:

@@ -27,11 +27,12 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors
-from solderpyro.configure import build, compose
-from solderpyro.coords import sampling_coords
+from solderpyro.compute.executor import executor_from_options
+from solderpyro.compute.store import RunStore
+from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
-from solderpyro.exact import profile_intervals
-from solderpyro.executor import executor_from_options
+from solderpyro.exact.coords import sampling_coords
+from solderpyro.exact.posterior import profile_intervals
 from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_exact import ExactRun, fe_exact
@@ -43,7 +44,6 @@ from solderpyro.specimen import (
     output_points,
     split_effects,
 )
-from solderpyro.store import RunStore
 
 
 def main() -> None:
@@ -57,11 +57,12 @@ def main() -> None:
     ap.add_argument("--profile", type=int, default=9)
     ap.add_argument("--profile-ci", action="store_true",
                     help="also the 95 %% profile-likelihood intervals through the FE "
-                         "(solderpyro.exact.profile_intervals) and whether they hold the truth")
+                         "(solderpyro.exact.posterior.profile_intervals) and whether they hold "
+                         "the truth")
     ap.add_argument("--work", default="runs/coverage_exact")
     ap.add_argument("--cluster", default=None, metavar="local:N",
                     help="run the FE batches (fits, AMIS rounds, profiles) on a Dask "
-                         "LocalCluster of N workers (solderpyro.executor)")
+                         "LocalCluster of N workers (solderpyro.compute.executor)")
     ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                     help="run the FE batches on a running Dask cluster")
     ap.add_argument("--out", default="benchmarks/results/coverage_exact.json")

@@ -20,10 +20,10 @@ import warnings
 import numpy as np
 import torch
 
-from solderpyro.configure import build, compose
+from solderpyro.compute.store import RunStore
+from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs
 from solderpyro.specimen import SpecimenModel, StoreUse
-from solderpyro.store import RunStore
 from solderpyro.surrogate import GPSurrogate
 from solderpyro.surrogate.features import FlowStressInputs
 

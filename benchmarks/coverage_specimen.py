@@ -29,14 +29,14 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors, calibrate_modular
-from solderpyro.configure import build, compose
+from solderpyro.compute.executor import executor_from_options
+from solderpyro.compute.store import RunStore
+from solderpyro.compute.sweep import sweep
+from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs
-from solderpyro.executor import executor_from_options
 from solderpyro.specimen import SpecimenModel, StoreUse
-from solderpyro.store import RunStore
 from solderpyro.surrogate import GPSurrogate
 from solderpyro.surrogate.features import input_map
-from solderpyro.sweep import sweep
 
 
 def _workflow(setup, tv, y, i, a):
@@ -46,14 +46,14 @@ def _workflow(setup, tv, y, i, a):
     import csv
     from pathlib import Path
 
-    from solderpyro.io.measurements import from_arrays
-    from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
-    from solderpyro.settings import (
+    from solderpyro.config.settings import (
         DesignSettings,
         ExactSettings,
         SamplerSettings,
         SurrogateSettings,
     )
+    from solderpyro.io.measurements import from_arrays
+    from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
 
     times, names = tv.times, list(tv.names)
     pts = [setup.problem.points[n] for n in names]
@@ -157,7 +157,7 @@ def main() -> None:
                 "hi": np.asarray(hi).tolist(), "covered": hit.tolist()}
 
     t0 = time.perf_counter()
-    # one sweep job per dataset (solderpyro.sweep), each kept in OUT.sweep.json as it ends:
+    # one sweep job per dataset (solderpyro.compute.sweep), each kept in OUT.sweep.json as it ends:
     # in turn, or in parallel with --cluster
     with executor_from_options(a.cluster, a.scheduler) as ex:
         done = sweep([str(i) for i in sorted(only)], job, a.out + ".sweep.json", ex)

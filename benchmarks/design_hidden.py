@@ -15,7 +15,7 @@ Usage: python benchmarks/design_hidden.py [--cases modulus_temperature,none,...]
        [--work runs/design_hidden] [--out benchmarks/results/design_hidden.json]
        [--cluster local:2 | --scheduler tcp://HOST:PORT]
 
-The cases run as one sweep (:mod:`solderpyro.sweep`): one after another by default, in
+The cases run as one sweep (:mod:`solderpyro.compute.sweep`): one after another by default, in
 parallel on a Dask cluster with ``--cluster``/``--scheduler``; each finished case is kept in
 WORK/sweep.json as it ends, so a rerun resumes.
 """
@@ -33,12 +33,12 @@ import time
 from pathlib import Path
 
 from solderpyro.calibration.intervals import reported_interval
-from solderpyro.configure import build, compose
+from solderpyro.compute.executor import executor_from_options
+from solderpyro.compute.sweep import sweep
+from solderpyro.config.compose import build, compose
+from solderpyro.config.rundir import RunDir
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
-from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import SEED_TIMES
-from solderpyro.rundir import RunDir
-from solderpyro.sweep import sweep
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
 
@@ -82,7 +82,8 @@ def main() -> None:
     ap.add_argument("--out", default="benchmarks/results/design_hidden.json")
     ap.add_argument("--seed", type=int, default=0, help="noise seed of the data")
     ap.add_argument("--cluster", default=None, metavar="local:N",
-                    help="run the cases in parallel on a Dask LocalCluster (solderpyro.sweep)")
+                    help="run the cases in parallel on a Dask LocalCluster "
+                         "(solderpyro.compute.sweep)")
     ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                     help="run the cases on a running Dask cluster")
     ap.add_argument("--record", default="", metavar="CASE:DATA:RUN_DIR:WALL_S",
@@ -106,7 +107,7 @@ def main() -> None:
     todo = [c for c in cases if c not in have]
     for c in set(cases) - set(todo):
         print(f"{c}: done already")
-    # one sweep job per case (solderpyro.sweep): in turn, or in parallel with --cluster
+    # one sweep job per case (solderpyro.compute.sweep): in turn, or in parallel with --cluster
     with executor_from_options(a.cluster, a.scheduler) as ex:
         jobs = sweep(todo, functools.partial(run_case, work=str(work.resolve()), seed=a.seed),
                      work / "sweep.json", ex)

@@ -42,11 +42,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from solderpyro.configure import build, compose
-from solderpyro.executor import executor_from_options
+from solderpyro.compute.executor import executor_from_options
+from solderpyro.compute.sweep import sweep
+from solderpyro.config.compose import build, compose
+from solderpyro.config.rundir import RunDir
 from solderpyro.fem.loading import SEED_TIMES
-from solderpyro.rundir import RunDir
-from solderpyro.sweep import sweep
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
 NOISE = 0.05
@@ -209,7 +209,8 @@ def main() -> None:
     ap.add_argument("--work", default="runs/design_vs_lhs")
     ap.add_argument("--out", default="benchmarks/results/design_vs_lhs.json")
     ap.add_argument("--cluster", default=None, metavar="local:N",
-                    help="run the jobs in parallel on a Dask LocalCluster (solderpyro.sweep)")
+                    help="run the jobs in parallel on a Dask LocalCluster "
+                         "(solderpyro.compute.sweep)")
     ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT")
     a = ap.parse_args()
     work = Path(a.work).resolve()

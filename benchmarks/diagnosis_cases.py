@@ -36,11 +36,11 @@ import time
 from pathlib import Path
 
 from solderpyro.calibration.intervals import reported_interval
+from solderpyro.compute.executor import executor_from_options
+from solderpyro.compute.sweep import sweep
+from solderpyro.config.rundir import RunDir
 from solderpyro.diagnose.hidden import TRUTH
-from solderpyro.executor import executor_from_options
 from solderpyro.io.measurements import read_measurements
-from solderpyro.rundir import RunDir
-from solderpyro.sweep import sweep
 
 
 def _cli(args: list[str], log: Path) -> float:

@@ -25,17 +25,17 @@ from pathlib import Path
 
 import numpy as np
 
-from solderpyro.configure import build, compose
+from solderpyro.compute.executor import executor_from_options
+from solderpyro.compute.store import RunStore
+from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.decide import FLOOR_FILE, floor_from_fits
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.diagnose.refits import base_fit, layout, refit_candidates
 from solderpyro.diagnose.screen import ladder_values
 from solderpyro.effects import EFFECTS
-from solderpyro.executor import executor_from_options
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.io.measurements import read_measurements
 from solderpyro.specimen import SpecimenModels, output_points
-from solderpyro.store import RunStore
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
 #: fit weights: chi2 = SS / SIGMA^2 (any value gives the same fits; small keeps the LM's

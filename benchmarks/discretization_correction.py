@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_check import discretization_error
 from solderpyro.pipeline.fe_exact import fe_best_fit

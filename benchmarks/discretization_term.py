@@ -21,8 +21,8 @@ import dataclasses
 
 import numpy as np
 
-from solderpyro.configure import build, compose
-from solderpyro.fit import lm_fit
+from solderpyro.config.compose import build, compose
+from solderpyro.exact.fit import lm_fit
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_check import refined
 from solderpyro.pipeline.problem import CalibrationProblem

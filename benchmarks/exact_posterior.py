@@ -28,8 +28,9 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors
-from solderpyro.configure import build, compose
-from solderpyro.coords import sampling_coords
+from solderpyro.compute.store import RunStore
+from solderpyro.config.compose import build, compose
+from solderpyro.exact.coords import sampling_coords
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_exact import ExactRun, fe_exact
@@ -41,7 +42,6 @@ from solderpyro.specimen import (
     output_points,
     split_effects,
 )
-from solderpyro.store import RunStore
 
 QS = ("q2.5", "median", "q97.5")
 

@@ -30,10 +30,10 @@ import numpy as np
 import torch
 from scipy.special import logsumexp
 
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
+from solderpyro.exact.fit import lm_fit
 from solderpyro.fem.loading import SEED_TIMES
-from solderpyro.fit import lm_fit
 from solderpyro.io.measurements import read_measurements
 from solderpyro.specimen import (
     SpecimenModel,

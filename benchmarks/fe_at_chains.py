@@ -23,10 +23,10 @@ import torch
 def main() -> None:
     import arviz as az
 
-    from solderpyro.configure import build, compose
+    from solderpyro.config.compose import build, compose
+    from solderpyro.config.rundir import RunDir
     from solderpyro.io.measurements import read_measurements
     from solderpyro.pipeline.problem import CalibrationProblem
-    from solderpyro.rundir import RunDir
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")

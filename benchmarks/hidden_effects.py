@@ -11,7 +11,7 @@ adaptive design up to ``--budget`` FE runs, then NUTS); the FE-exact posterior a
 intervals (``--exact``) apply to the 'add it' calibrations only: the base one misfits by
 design (the hidden effect), so it runs with ``exact.mode=off``.
 
-The cases run as one sweep (solderpyro.sweep): one after another, or in parallel on a Dask
+The cases run as one sweep (solderpyro.compute.sweep): one after another, or in parallel on a Dask
 cluster with ``--cluster``/``--scheduler``. Each case's result is kept in WORK/sweep.json as
 soon as it is done (a rerun skips finished cases; FE runs are reused from the run store), and
 the JSON file gets every case at the end. Full-field data: the 31 x 18 grid (+ A, B) at
@@ -31,24 +31,24 @@ from pathlib import Path
 
 import torch
 
-from solderpyro.configure import build, compose
-from solderpyro.diagnose import diagnose
-from solderpyro.diagnose.compare import compare
-from solderpyro.diagnose.hidden import TRUTH, make_dataset
-from solderpyro.effects import EFFECTS
-from solderpyro.executor import executor_from_options
-from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
-from solderpyro.io.measurements import read_measurements
-from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
-from solderpyro.rundir import RunDir
-from solderpyro.settings import (
+from solderpyro.compute.executor import executor_from_options
+from solderpyro.compute.sweep import sweep
+from solderpyro.config.compose import build, compose
+from solderpyro.config.rundir import RunDir
+from solderpyro.config.settings import (
     DesignSettings,
     ExactSettings,
     SamplerSettings,
     SurrogateSettings,
 )
+from solderpyro.diagnose import diagnose
+from solderpyro.diagnose.compare import compare
+from solderpyro.diagnose.hidden import TRUTH, make_dataset
+from solderpyro.effects import EFFECTS
+from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES
+from solderpyro.io.measurements import read_measurements
+from solderpyro.pipeline import CalibrationSettings, calibrate_specimen
 from solderpyro.specimen import output_points
-from solderpyro.sweep import sweep
 
 
 def _settings(setup, a, refit: bool) -> CalibrationSettings:
@@ -115,7 +115,8 @@ def main() -> None:
                     help="skip the profile-likelihood intervals after the FE-exact step "
                          "(else: whether they hold the truth is recorded)")
     ap.add_argument("--cluster", default=None, metavar="local:N",
-                    help="run the cases in parallel on a Dask LocalCluster (solderpyro.sweep)")
+                    help="run the cases in parallel on a Dask LocalCluster "
+                         "(solderpyro.compute.sweep)")
     ap.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                     help="run the cases on a running Dask cluster")
     ap.add_argument("--with-dir", default="with_{e}",
@@ -129,7 +130,7 @@ def main() -> None:
     kinds = ("field", "point") if a.kind == "both" else (a.kind,)
     hidden = [h.strip() for h in a.effects.split(",") if h.strip()] or ["none", *EFFECTS]
     jobs = [f"{kind}/{h}" for kind in kinds for h in hidden if (kind, h) not in seen]
-    # one sweep job per case (solderpyro.sweep): in turn, or in parallel with --cluster
+    # one sweep job per case (solderpyro.compute.sweep): in turn, or in parallel with --cluster
     with executor_from_options(a.cluster, a.scheduler) as ex:
         res = sweep(jobs, functools.partial(run_case, a=a), Path(a.work) / "sweep.json", ex)
     for j in jobs:

@@ -45,7 +45,7 @@ def _summary(run: Path) -> dict:
         warnings.simplefilter("ignore")
         import arviz as az
 
-    from solderpyro.rundir import RunDir
+    from solderpyro.config.rundir import RunDir
 
     with (run / "summary.csv").open() as f:
         rows = list(csv.DictReader(f))
@@ -73,7 +73,7 @@ def main() -> None:
     exe = [sys.executable, "-m", "solderpyro.cli"]
     data = out / "data.csv"
     if not data.is_file():
-        code = ("import sys; from solderpyro.configure import build, compose; "
+        code = ("import sys; from solderpyro.config.compose import build, compose; "
                 "from solderpyro.diagnose.hidden import make_dataset; "
                 "from solderpyro.fem.loading import SEED_TIMES; "
                 f"s = build(compose({FINE!r})); "

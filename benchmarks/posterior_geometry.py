@@ -28,10 +28,10 @@ import numpy as np
 import torch
 
 from solderpyro.calibration.reduced import ComponentGPs, GPInputMap, PCAReduction
+from solderpyro.config.settings import CalibrationSettings
 from solderpyro.diagnose.load import load_run
 from solderpyro.pipeline.problem import CalibrationProblem
 from solderpyro.pipeline.surrogate import fit_surrogate
-from solderpyro.settings import CalibrationSettings
 
 
 def rebuild(run: Path) -> tuple[CalibrationProblem, object, dict]:

@@ -22,9 +22,9 @@ import time
 
 import numpy as np
 
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.hidden import TRUTH
-from solderpyro.fit import lm_fit
+from solderpyro.exact.fit import lm_fit
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.problem import CalibrationProblem
 

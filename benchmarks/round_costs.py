@@ -167,8 +167,8 @@ def main() -> None:
     import gpytorch
 
     import solderpyro.surrogate.gp as gpmod
+    from solderpyro.config.settings import CalibrationSettings
     from solderpyro.pipeline.surrogate import fit_surrogate
-    from solderpyro.settings import CalibrationSettings
 
     X = torch.as_tensor(gp.x_train)
     Y = torch.as_tensor(gp.y_train)

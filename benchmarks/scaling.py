@@ -44,11 +44,11 @@ OUT = Path(__file__).parent / "results" / "scaling.json"
 DOE_CHILD = """
 import json, sys, time, torch
 from pathlib import Path
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs
-from solderpyro.executor import DaskExecutor, InProcess
+from solderpyro.compute.executor import DaskExecutor, InProcess
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.store import RunStore, run_doe
+from solderpyro.compute.store import RunStore, run_doe
 
 mode, n, batch, root = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
 s = build(compose([]))
@@ -124,8 +124,8 @@ def _records(root: Path, n: int, legacy: bool) -> float:
     """Write ``n`` synthetic field records under ``root``; returns write seconds."""
     import numpy as np
 
+    from solderpyro.compute.runstore import RunRecord, RunStore, write_atomic
     from solderpyro.params import ANAND_NAMES
-    from solderpyro.runstore import RunRecord, RunStore, write_atomic
 
     store = RunStore(root)
     names = tuple(["A", "B"] + [f"g_{i:02d}_{j:02d}" for i in range(31) for j in range(18)])
@@ -143,7 +143,7 @@ def _records(root: Path, n: int, legacy: bool) -> float:
 
 
 def bench_store(a: argparse.Namespace) -> dict:
-    from solderpyro.store import RunStore
+    from solderpyro.compute.store import RunStore
 
     out = {}
     for label, n, legacy in (("base64", a.runs, False), ("lists", a.runs // 5, True)):

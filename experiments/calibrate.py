@@ -17,8 +17,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from solderpyro.configure import build, calibration_settings, task_overrides
-from solderpyro.executor import executor_from_options
+from solderpyro.compute.executor import executor_from_options
+from solderpyro.config.compose import build, calibration_settings, task_overrides
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline import calibrate_specimen
 from solderpyro.specimen import output_points

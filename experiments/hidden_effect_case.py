@@ -21,7 +21,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from solderpyro.configure import build, calibration_settings, compose, task_overrides
+from solderpyro.config.compose import build, calibration_settings, compose, task_overrides
 from solderpyro.diagnose import diagnose
 from solderpyro.diagnose.compare import compare
 from solderpyro.diagnose.hidden import make_dataset

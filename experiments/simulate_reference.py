@@ -17,9 +17,9 @@ import numpy as np
 from omegaconf import DictConfig
 
 from solderpyro.cli import simulate_table
-from solderpyro.configure import build
+from solderpyro.config.compose import build
 from solderpyro.io.measurements import from_arrays, write_measurements
-from solderpyro.plots import plot_cycle
+from solderpyro.reporting.plots import plot_cycle
 
 log = logging.getLogger(__name__)
 

@@ -7,13 +7,19 @@ Public API:
     ParameterSpace      names, bounds, log-scale and unit-cube maps of calibrated constants
 """
 
-from .fem.loading import EXTENDED_TIMES, REFERENCE_CYCLE, SEED_TIMES, ThermalCycle, TimeStepping
-from .fem.mesh import Layer, MeshSpec
-from .fem.problem import AnandSolder, Elastic, Problem
-from .fem.solver import SolveResult, SpecimenSolver
-from .params import ANAND_NAMES, LIU2008, ParameterSpace
-from .specimen.model import SpecimenModel
-from .version import __version__
+from solderpyro.fem.loading import (
+    EXTENDED_TIMES,
+    REFERENCE_CYCLE,
+    SEED_TIMES,
+    ThermalCycle,
+    TimeStepping,
+)
+from solderpyro.fem.mesh import Layer, MeshSpec
+from solderpyro.fem.problem import AnandSolder, Elastic, Problem
+from solderpyro.fem.solver import SolveResult, SpecimenSolver
+from solderpyro.params import ANAND_NAMES, LIU2008, ParameterSpace
+from solderpyro.specimen.model import SpecimenModel
+from solderpyro.version import __version__
 
 __all__ = [
     "ANAND_NAMES", "AnandSolder", "Elastic", "EXTENDED_TIMES", "LIU2008", "Layer", "MeshSpec",

@@ -24,7 +24,7 @@ def _split_overrides(rest: list[str]) -> list[str]:
 
 
 def _setup(overrides):
-    from .configure import build, compose
+    from solderpyro.config.compose import build, compose
 
     return build(compose(overrides))
 
@@ -36,9 +36,9 @@ def simulate_table(setup, anand: dict, times, field: bool, progress: bool = True
     Returns:
         ``(times (n_time,) s, names (n_out,), coords (n_out, 2) mm, V (n_time, n_out) um)``.
     """
-    from .params import anand_tensor
-    from .sensitivity import sensitivity_box
-    from .specimen import SpecimenModel
+    from solderpyro.analysis.sensitivity import sensitivity_box
+    from solderpyro.params import anand_tensor
+    from solderpyro.specimen import SpecimenModel
 
     model = SpecimenModel(setup.problem, sensitivity_box(defaults=setup.anand), times, field,
                           dtype=setup.dtype, device=setup.device)
@@ -51,9 +51,9 @@ def simulate_table(setup, anand: dict, times, field: bool, progress: bool = True
 
 
 def cmd_simulate(a, overrides) -> int:
-    from .configure import parse_times
-    from .io.measurements import from_arrays, write_measurements
-    from .params import parse_theta
+    from solderpyro.config.compose import parse_times
+    from solderpyro.io.measurements import from_arrays, write_measurements
+    from solderpyro.params import parse_theta
 
     theta = parse_theta(a.theta) if a.theta else {}
     if a.noise is not None and not a.noise > 0:
@@ -80,8 +80,8 @@ def cmd_simulate(a, overrides) -> int:
 
 
 def cmd_demo(a, overrides) -> int:
-    from .fem.loading import EXTENDED_TIMES
-    from .io.measurements import from_arrays, write_measurements
+    from solderpyro.fem.loading import EXTENDED_TIMES
+    from solderpyro.io.measurements import from_arrays, write_measurements
 
     setup = _setup(overrides)
     out = Path(a.out)
@@ -97,7 +97,7 @@ def cmd_demo(a, overrides) -> int:
                        from_arrays(t, names, pts, V, temperature_C=temps,
                                    meta={"generator": "solderpyro demo",
                                          "anand": "Liu 2008 (seed Table IV)"}))
-    from .plots import plot_cycle
+    from solderpyro.reporting.plots import plot_cycle
 
     fig = plot_cycle(t, V, names, temps, cyc, marks=marks)
     fig.savefig(out / "cycle.png", dpi=130)
@@ -119,8 +119,8 @@ DEMO_NOISE_UM = 0.05
 
 def _demo_calibration(a, setup, out: Path, overrides=()) -> int:
     """Synthetic measurements at DEMO_TRUTH (+ N(0, 0.05^2) um) -> calibrate -> report."""
-    from .io.measurements import from_arrays, write_measurements
-    from .pipeline import calibrate_specimen
+    from solderpyro.io.measurements import from_arrays, write_measurements
+    from solderpyro.pipeline import calibrate_specimen
 
     log.info("demo calibration: synthetic data at %s with noise %.2g um", DEMO_TRUTH,
              DEMO_NOISE_UM)
@@ -134,12 +134,12 @@ def _demo_calibration(a, setup, out: Path, overrides=()) -> int:
     data = out / "data.csv"
     write_measurements(data, from_arrays(t, names, pts, V, temperature_C=temps,
                                          sigma_um=np.full(V.shape, DEMO_NOISE_UM), meta=meta))
-    from .io.measurements import read_measurements
+    from solderpyro.io.measurements import read_measurements
 
     a.store = out / "store"
     res = calibrate_specimen(setup, read_measurements(data), out / "calibration",
                              _settings(a, setup, overrides))
-    from .calibration.intervals import reported_interval
+    from solderpyro.calibration.intervals import reported_interval
 
     inside = {}
     for r in res.summary:
@@ -162,7 +162,7 @@ def _nuts_args(a) -> dict:
 def cmd_example(a, overrides) -> int:
     if overrides:
         raise ValueError(f"'example' takes no config overrides, got {overrides}")
-    from .examples import seed_math
+    from solderpyro.examples import seed_math
 
     res = seed_math.run(a.out, **_nuts_args(a))
     print(seed_math.report(res))
@@ -173,7 +173,7 @@ def cmd_example(a, overrides) -> int:
 def cmd_koh(a, overrides) -> int:
     if overrides:
         raise ValueError(f"'koh' takes no config overrides, got {overrides}")
-    from .calibration.tables import koh_from_tables
+    from solderpyro.calibration.tables import koh_from_tables
 
     koh_from_tables(a.sim, a.obs, _names(a.x), _names(a.t), a.y, a.out, mode=a.mode,
                     discrepancy=a.discrepancy, propose=a.propose, **_nuts_args(a))
@@ -188,8 +188,8 @@ def _settings(a, setup, overrides=()):
     default (a flag given at its default leaves the config's value)."""
     import dataclasses
 
-    from .configure import calibration_settings, compose
-    from .settings import CalibrationSettings, SurrogateSettings
+    from solderpyro.config.compose import calibration_settings, compose
+    from solderpyro.config.settings import CalibrationSettings, SurrogateSettings
 
     s = calibration_settings(compose(list(overrides)))
     s.surrogate = SurrogateSettings(**setup.surrogate)
@@ -224,9 +224,9 @@ def _settings(a, setup, overrides=()):
 
 
 def cmd_calibrate(a, overrides) -> int:
-    from .io.measurements import read_measurements
-    from .pipeline import calibrate_specimen
-    from .specimen import output_points
+    from solderpyro.io.measurements import read_measurements
+    from solderpyro.pipeline import calibrate_specimen
+    from solderpyro.specimen import output_points
 
     setup = _setup(overrides)
     meas = read_measurements(a.data, valid_points=output_points(setup.problem))
@@ -234,7 +234,7 @@ def cmd_calibrate(a, overrides) -> int:
     s.validate(setup.space.dim)
     warm = None
     if a.warm_from:
-        from .pipeline.warm import warm_start
+        from solderpyro.pipeline.warm import warm_start
 
         warm = warm_start(a.warm_from, setup.effects)
     res = calibrate_specimen(setup, meas, a.out, s,
@@ -249,8 +249,8 @@ def cmd_calibrate(a, overrides) -> int:
 def cmd_sweep(a, overrides) -> int:
     import glob
 
-    from .executor import current_executor
-    from .sweep import calibrate_job, sweep
+    from solderpyro.compute.executor import current_executor
+    from solderpyro.compute.sweep import calibrate_job, sweep
 
     files = sorted({f for pat in a.data for f in (glob.glob(pat) or [pat])})
     missing = [f for f in files if not Path(f).is_file()]
@@ -286,8 +286,8 @@ def cmd_diagnose(a, overrides) -> int:
                          f"got {overrides}")
     if a.draws < 1:
         raise ValueError(f"--draws must be >= 1, got {a.draws}")
-    from .diagnose import diagnose
-    from .diagnose.decide import share_text
+    from solderpyro.diagnose import diagnose
+    from solderpyro.diagnose.decide import share_text
 
     cands = tuple(_names(a.effects)) if a.effects else None
     dg = diagnose(a.run_dir, candidates=cands, n_draws=a.draws, seed=a.seed,
@@ -308,8 +308,8 @@ def cmd_diagnose(a, overrides) -> int:
 
 
 def cmd_sensitivity(a, overrides) -> int:
-    from .configure import parse_times
-    from .sensitivity import parse_bounds, run_sensitivity
+    from solderpyro.analysis.sensitivity import parse_bounds, run_sensitivity
+    from solderpyro.config.compose import parse_times
 
     bounds = parse_bounds(a.box)
     setup = _setup(overrides)
@@ -334,7 +334,7 @@ def cmd_sensitivity(a, overrides) -> int:
 def cmd_compare(a, overrides) -> int:
     if overrides:
         raise ValueError(f"'compare' takes no config overrides, got {overrides}")
-    from .diagnose.compare import compare
+    from solderpyro.diagnose.compare import compare
 
     r = compare(a.before, a.after, a.out)
     print(f"RMS residual {r['before']['rms_um']:.4g} -> {r['after']['rms_um']:.4g} um; "
@@ -363,7 +363,7 @@ def _add_nuts(p: argparse.ArgumentParser, chains: int = 4, draws: int = 1000,
 
 def _add_design(p: argparse.ArgumentParser) -> None:
     """The adaptive design's and the FE-exact fallback's options (calibrate, demo)."""
-    from .settings import DesignSettings, ExactSettings
+    from solderpyro.config.settings import DesignSettings, ExactSettings
 
     ds, es = DesignSettings(), ExactSettings()
     p.add_argument("--budget", type=int, default=None, metavar="N",
@@ -450,7 +450,7 @@ def _add_simulate_command(sub: argparse._SubParsersAction) -> None:
 def _add_demo_command(sub: argparse._SubParsersAction) -> None:
     """The ``demo`` sub-command's arguments (the reference case and its synthetic-data
     calibration)."""
-    from .settings import SamplerSettings
+    from solderpyro.config.settings import SamplerSettings
 
     d = sub.add_parser("demo", help="simulate the reference case with the Liu 2008 constants, "
                        "write the outputs and a plot of V_A, V_B and temperature")
@@ -495,7 +495,7 @@ def _add_koh_command(sub: argparse._SubParsersAction) -> None:
 
 def _add_calibrate_command(sub: argparse._SubParsersAction) -> None:
     """The ``calibrate`` sub-command's arguments (the specimen calibration)."""
-    from .settings import SamplerSettings
+    from solderpyro.config.settings import SamplerSettings
 
     c = sub.add_parser("calibrate", help="calibrate the Anand constants of the config's box "
                        "(default s0, QR, xi, m) against a measurement CSV: an adaptive design "
@@ -615,7 +615,7 @@ def main(argv: list[str] | None = None) -> int:
         cmds = {"simulate": cmd_simulate, "demo": cmd_demo, "example": cmd_example,
                 "koh": cmd_koh, "calibrate": cmd_calibrate, "diagnose": cmd_diagnose,
                 "sensitivity": cmd_sensitivity, "compare": cmd_compare, "sweep": cmd_sweep}
-        from .executor import executor_from_options
+        from solderpyro.compute.executor import executor_from_options
 
         with executor_from_options(getattr(a, "cluster", None), getattr(a, "scheduler", None)):
             return cmds[a.command](a, overrides)

@@ -87,7 +87,7 @@ def koh_from_tables(sim: str | Path, obs: str | Path, x: Sequence[str], t: Seque
     rows = post.summary()
     write_summary(rows, outd / "summary.csv", ("parameter", "q2.5", "median", "mean", "q97.5"))
     post.save(outd / "posterior.nc")
-    from solderpyro.plots import plot_traces
+    from solderpyro.reporting.plots import plot_traces
 
     plot_traces(post).savefig(outd / "traces.png", dpi=110)
     print(format_summary(rows))
@@ -134,7 +134,7 @@ def _modular(data: CalibrationData, discrepancy: bool, outd: Path, nuts: dict
              ) -> tuple[Posterior, GPSurrogate]:
     gp = _scalar_gp(data)
     res = gp.loo()
-    from solderpyro.plots import plot_validation
+    from solderpyro.reporting.plots import plot_validation
 
     plot_validation(res, "surrogate leave-one-out").savefig(outd / "surrogate_loo.png", dpi=110)
     gp.check(res)

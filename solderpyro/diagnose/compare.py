@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from solderpyro.config.rundir import POSTERIOR_NC, RUN_FILES, RunDir
 from solderpyro.diagnose.stats import predictive_check
-from solderpyro.rundir import POSTERIOR_NC, RUN_FILES, RunDir
 
 
 def _logpdf(y: np.ndarray, mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -186,7 +186,7 @@ def compare(before: str | Path, after: str | Path, out: str | Path | None = None
     if "figure" in res:
         lines += ["", f"![before / after: residuals and marginals]({res['figure']})"]
     (o / "comparison.md").write_text("\n".join(lines) + "\n")
-    from solderpyro.index import write_index
+    from solderpyro.reporting.index import write_index
 
     write_index(o)
     return res
@@ -224,7 +224,7 @@ def plot_comparison(before: str | Path, after: str | Path, path: Path) -> str:
     """
     from solderpyro.diagnose.denoise import denoise
     from solderpyro.diagnose.plots import draw_maps, is_field, map_size
-    from solderpyro.plots import plt
+    from solderpyro.reporting.plots import plt
 
     runs = [RunDir.read(d, RUN_FILES) for d in (before, after)]
     d0, d1 = runs[0].path, runs[1].path

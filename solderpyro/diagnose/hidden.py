@@ -55,7 +55,7 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     """The effect's hidden parameter values and their RMS change of the point data.
 
     Args:
-        setup: typed problem (:func:`solderpyro.configure.build`).
+        setup: typed problem (:func:`solderpyro.config.compose.build`).
         effect: registry name.
         target_rms: the RMS change (um) of V_A, V_B at the extended times to reach (at the
             configured output times when the cycle is shorter than the reference one).
@@ -102,10 +102,10 @@ def make_dataset(setup: Any, effect: str | tuple[str, ...] | None, path: str | P
         the path; metadata lines name the truth (``hidden_effect``, ``hidden_values``;
         several effects joined by ``+``).
     """
+    from solderpyro.analysis.sensitivity import sensitivity_box
     from solderpyro.effects import effect_set
     from solderpyro.io.measurements import from_arrays, write_measurements
     from solderpyro.params import anand_tensor
-    from solderpyro.sensitivity import sensitivity_box
     from solderpyro.specimen import SpecimenModel
 
     names = () if effect is None else ((effect,) if isinstance(effect, str) else tuple(effect))

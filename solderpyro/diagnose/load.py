@@ -7,13 +7,13 @@ from pathlib import Path
 from typing import Any
 
 from solderpyro.calibration.intervals import reported_interval
-from solderpyro.rundir import RunInfo
+from solderpyro.config.rundir import RunInfo
 
 
 def run_store(info: RunInfo, run_dir: Path) -> Any:
     """The run store of the calibration (its record's ``store``; a relative path is taken
     from the working directory, as ``calibrate`` took it), else ``run_dir/fe_store``."""
-    from solderpyro.store import RunStore
+    from solderpyro.compute.store import RunStore
 
     root = info.store
     return RunStore(Path(root) if root else run_dir / "fe_store")
@@ -23,15 +23,16 @@ def load_run(run_dir: str | Path) -> dict[str, Any]:
     """Read what ``solderpyro calibrate`` left in ``run_dir`` for a diagnosis.
 
     Returns:
-        dict with ``run`` (:class:`~solderpyro.rundir.RunDir`), ``info`` (its
-        :class:`~solderpyro.rundir.RunInfo`), ``setup`` (:class:`~solderpyro.configure.Setup`),
-        ``meas`` (measurements), ``draws`` (:meth:`~solderpyro.rundir.Draws.arrays`).
+        dict with ``run`` (:class:`~solderpyro.config.rundir.RunDir`), ``info`` (its
+        :class:`~solderpyro.config.rundir.RunInfo`), ``setup``
+        (:class:`~solderpyro.config.compose.Setup`), ``meas`` (measurements), ``draws``
+        (:meth:`~solderpyro.config.rundir.Draws.arrays`).
     Raises:
         FileNotFoundError naming the missing file; RunDirError naming the file and the key
         of a record this version cannot read.
     """
-    from solderpyro.configure import build, compose
-    from solderpyro.rundir import RUN_FILES, RunDir
+    from solderpyro.config.compose import build, compose
+    from solderpyro.config.rundir import RUN_FILES, RunDir
     from solderpyro.specimen import output_points
 
     run = RunDir.read(run_dir, RUN_FILES)

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from solderpyro.plots import plt
+from solderpyro.reporting.plots import plt
 
 #: a map row: (label, values (n,) um row for row with the data, z (n,) or None); where z is
 #: given, the cells inside the band (|z| <= 2: noise could have made them) are dotted

@@ -34,7 +34,7 @@ import torch
 
 from solderpyro.diagnose.decide import Floor, Judged, Refit, forward_step, forward_steps, judge
 from solderpyro.diagnose.stats import Score
-from solderpyro.fit import LMFit, lm_fit
+from solderpyro.exact.fit import LMFit, lm_fit
 from solderpyro.specimen import SpecimenModels
 
 log = logging.getLogger("solderpyro")
@@ -134,9 +134,9 @@ def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,
             meas: the data; sigma: noise sd, um.
         models: name -> (the candidates it fits beside the calibrated parameters, its start
             row ``(n_col,)``, physical units).
-        iters, tol, rel: of :func:`~solderpyro.fit.lm_fit`.
+        iters, tol, rel: of :func:`~solderpyro.exact.fit.lm_fit`.
     Returns:
-        name -> :class:`~solderpyro.fit.LMFit` (``x`` a full row).
+        name -> :class:`~solderpyro.exact.fit.LMFit` (``x`` a full row).
     """
     from solderpyro.specimen import observation_index
 
@@ -316,7 +316,7 @@ def base_starts(setup: Any, info: Any, theta: np.ndarray, idx: np.ndarray, fe_ok
     """Starts of the base fit, name -> ``(n_cal,)`` row (physical units).
 
     Args:
-        setup: the run's Setup; info: its :class:`~solderpyro.rundir.RunInfo` (the design's
+        setup: the run's Setup; info: its :class:`~solderpyro.config.rundir.RunInfo` (the design's
             stop reason and FE best fit); theta: ``(N, n_cal)`` posterior draws; idx: the
             picked draws (:func:`pick_draws`); fe_ok: whether the FE check accepted the
             posterior.

@@ -134,6 +134,6 @@ def write(d: Path, diag: Diagnosis, pc: PredictiveCheck, sigma: float,
               f"![fingerprints of the best candidates beside the residual]({f2})", "",
               f"![evidence per candidate]({f3})", ""]
     (d / "diagnosis.md").write_text("\n".join(lines) + "\n")
-    from solderpyro.report import write_html
+    from solderpyro.reporting.report import write_html
 
     write_html(lines, d / "diagnosis.html", "solderpyro diagnosis")

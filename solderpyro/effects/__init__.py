@@ -23,9 +23,9 @@ from typing import Any
 
 import torch
 
-from ..fem.loading import ThermalCycle
-from ..params import Box
-from .base import Effect, PlasticBand
+from solderpyro.effects.base import Effect, PlasticBand
+from solderpyro.fem.loading import ThermalCycle
+from solderpyro.params import Box
 
 
 def _discover() -> dict[str, Effect]:

@@ -35,8 +35,8 @@ from typing import Any, ClassVar
 
 import torch
 
-from ..fem.loading import ThermalCycle
-from ..params import Box
+from solderpyro.fem.loading import ThermalCycle
+from solderpyro.params import Box
 
 
 @dataclass(frozen=True)

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..params import Box
-from .base import Effect, PlasticBand
+from solderpyro.effects.base import Effect, PlasticBand
+from solderpyro.params import Box
 
 
 @dataclass(frozen=True)

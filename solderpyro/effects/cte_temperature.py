@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..params import Box
-from .base import Effect
+from solderpyro.effects.base import Effect
+from solderpyro.params import Box
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..params import Box
-from .base import Effect
+from solderpyro.effects.base import Effect
+from solderpyro.params import Box
 
 #: top of the default box: E(125 degC) = E25 / 10
 K_MAX = math.log(10.0) / 100.0

@@ -25,9 +25,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..fem.loading import SEED_TIMES
-from ..params import Box
-from .base import Effect, box_pair
+from solderpyro.effects.base import Effect, box_pair
+from solderpyro.fem.loading import SEED_TIMES
+from solderpyro.params import Box
 
 
 @dataclass(frozen=True)

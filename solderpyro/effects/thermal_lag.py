@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ..fem.loading import ThermalCycle
-from ..params import Box
-from .base import Effect
+from solderpyro.effects.base import Effect
+from solderpyro.fem.loading import ThermalCycle
+from solderpyro.params import Box
 
 
 def lag(cycle: ThermalCycle, t: float, tau: torch.Tensor) -> torch.Tensor:

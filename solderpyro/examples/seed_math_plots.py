@@ -8,7 +8,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
-from solderpyro.plots import plot_bands, plot_traces
+from solderpyro.reporting.plots import plot_bands, plot_traces
 
 
 def _save(fig, path: Path) -> None:

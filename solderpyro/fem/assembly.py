@@ -18,8 +18,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from ..materials.elastic import plane_elastic
-from .elements import edofs, q4_kinematics, qm6_stiffness
+from solderpyro.fem.elements import edofs, q4_kinematics, qm6_stiffness
+from solderpyro.materials.elastic import plane_elastic
 
 
 @dataclass

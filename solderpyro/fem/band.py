@@ -26,10 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..materials.elastic import IP, ZZ, condense_zz
-from ..materials.integrate import PointState, ezz_predictor, full_strain
-from ..materials.j2 import j2_update
-from .elements import q4_kinematics, qm6_modes
+from solderpyro.fem.elements import q4_kinematics, qm6_modes
+from solderpyro.materials.elastic import IP, ZZ, condense_zz
+from solderpyro.materials.integrate import PointState, ezz_predictor, full_strain
+from solderpyro.materials.j2 import j2_update
 
 LOCAL_ITERS = 30
 LOCAL_RTOL = 1e-12

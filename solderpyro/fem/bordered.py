@@ -28,7 +28,7 @@ import scipy.sparse as sp
 import torch
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from .. import _native
+from solderpyro import _native
 
 
 class BorderedBand:

@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .loading import REFERENCE_CYCLE, ThermalCycle, TimeStepping
-from .mesh import Layer, MeshSpec
+from solderpyro.fem.loading import REFERENCE_CYCLE, ThermalCycle, TimeStepping
+from solderpyro.fem.mesh import Layer, MeshSpec
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,7 @@ class AnandSolder(Elastic):
             C_k: optional Prager modulus of a back stress (MPa), float or ``(b, 1, 1)``; the
                 state then carries the back stress ``X`` (:mod:`solderpyro.materials.kinematic`).
         """
-        from ..materials.integrate import return_map_3d
+        from solderpyro.materials.integrate import return_map_3d
 
         if eps_th is None:
             eps_th = self.thermal_strain(T_C, T_ref_C)

@@ -45,20 +45,11 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .. import _native
-from ..effects import Effect, EffectSet
-from ..effects.base import PlasticBand
-from ..materials.elastic import IP, ZZ, condense_zz, plane_elastic
-from ..materials.integrate import (
-    PointState,
-    Tangent3D,
-    ezz_predictor,
-    initial_state,
-)
-from ..materials.integrate import full_strain as _full_strain
-from ..params import ANAND_NAMES
-from .assembly import condense, linear_system
-from .band import (
+from solderpyro import _native
+from solderpyro.effects import Effect, EffectSet
+from solderpyro.effects.base import PlasticBand
+from solderpyro.fem.assembly import condense, linear_system
+from solderpyro.fem.band import (
     BandData,
     adjacent_elements,
     band_elements,
@@ -66,11 +57,15 @@ from .band import (
     elastic_stress_operator,
     mode_correction,
 )
-from .bordered import BorderedBand
-from .elements import bbar, edofs, q4_kinematics, qm6_modes
-from .loading import ThermalCycle, time_grid
-from .mesh import build_mesh, locate
-from .problem import AnandSolder, Problem
+from solderpyro.fem.bordered import BorderedBand
+from solderpyro.fem.elements import bbar, edofs, q4_kinematics, qm6_modes
+from solderpyro.fem.loading import ThermalCycle, time_grid
+from solderpyro.fem.mesh import build_mesh, locate
+from solderpyro.fem.problem import AnandSolder, Problem
+from solderpyro.materials.elastic import IP, ZZ, condense_zz, plane_elastic
+from solderpyro.materials.integrate import PointState, Tangent3D, ezz_predictor, initial_state
+from solderpyro.materials.integrate import full_strain as _full_strain
+from solderpyro.params import ANAND_NAMES
 
 SDIRK_GAMMA = 1.0 - 0.5 ** 0.5
 N_ANAND = len(ANAND_NAMES)

@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .. import _native
-from .anand import hardening_residual, unpack
-from .elastic import ZZ, condense_zz
+from solderpyro import _native
+from solderpyro.materials.anand import hardening_residual, unpack
+from solderpyro.materials.elastic import ZZ, condense_zz
 
 ZETA_MAX = 700.0
 

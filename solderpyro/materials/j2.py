@@ -35,8 +35,8 @@ import math
 
 import torch
 
-from .elastic import ZZ, bulk_shear
-from .integrate import PointState, Tangent3D
+from solderpyro.materials.elastic import ZZ, bulk_shear
+from solderpyro.materials.integrate import PointState, Tangent3D
 
 SQRT32 = math.sqrt(1.5)
 

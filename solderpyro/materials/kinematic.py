@@ -68,7 +68,7 @@ import math
 
 import torch
 
-from .anand import s_closed_form, saturation
+from solderpyro.materials.anand import s_closed_form, saturation
 
 
 def equivalent(a: torch.Tensor) -> torch.Tensor:

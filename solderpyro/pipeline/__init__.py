@@ -10,13 +10,13 @@
 5. :mod:`.fe_check` -- the FE at posterior draws: does the model itself fit?
 6. :mod:`.fe_exact` -- the FE-exact posterior and profile intervals, when the design's budget
    ran out with the FE disagreeing.
-7. :mod:`.outputs` -- the run directory (and :mod:`solderpyro.report` for the report).
+7. :mod:`.outputs` -- the run directory (and :mod:`solderpyro.reporting.report` for the report).
 
 :mod:`.warm` says where a recalibration (``--warm-from``) starts: the related run's sampler
 state, with the chains at the diagnosis's FE refit of the new model where there is one.
 
 :func:`calibrate_specimen` (:mod:`.calibrate`) runs them; :class:`CalibrationSettings`
-(:mod:`solderpyro.settings`, also the Hydra schema of the ``calibration`` group) holds every
+(:mod:`solderpyro.config.settings`, also the Hydra schema of the ``calibration`` group) holds every
 setting. A new stage is a module here and a line in
 :mod:`.calibrate`; a new acquisition function goes to :mod:`solderpyro.design.acquisition`.
 
@@ -38,7 +38,7 @@ def __getattr__(name: str) -> Any:
 
         return SpecimenCalibration
     if name == "CalibrationSettings":
-        from solderpyro.settings import CalibrationSettings
+        from solderpyro.config.settings import CalibrationSettings
 
         return CalibrationSettings
     raise AttributeError(f"module 'solderpyro.pipeline' has no attribute {name!r}")

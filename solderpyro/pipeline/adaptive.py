@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from solderpyro.config.settings import CalibrationSettings
 from solderpyro.design import lhs
 from solderpyro.design.loop import (
     Draws,
@@ -37,7 +38,6 @@ from solderpyro.design.loop import (
 from solderpyro.pipeline.posterior import as_draws, sample_posterior
 from solderpyro.pipeline.problem import CalibrationProblem, ObservedData
 from solderpyro.pipeline.surrogate import fit_surrogate
-from solderpyro.settings import CalibrationSettings
 from solderpyro.surrogate import GPSurrogate
 
 log = logging.getLogger("solderpyro")

@@ -26,7 +26,9 @@ from solderpyro.calibration import predict_observation_model
 from solderpyro.calibration.intervals import with_intervals
 from solderpyro.calibration.mcmc import WarmStart, format_summary, thin_index, write_summary
 from solderpyro.calibration.predictive import Bands
-from solderpyro.configure import Setup
+from solderpyro.config.compose import Setup
+from solderpyro.config.rundir import Checks, DesignSummary, RunDir, RunInfo, SurrogateRecord
+from solderpyro.config.settings import CalibrationSettings
 from solderpyro.design.loop import StageClock, spread_indices
 from solderpyro.io.measurements import Measurements
 from solderpyro.pipeline.adaptive import (
@@ -52,8 +54,6 @@ from solderpyro.pipeline.fe_exact import (
 )
 from solderpyro.pipeline.outputs import SpecimenCalibration, posterior_draws, save_run
 from solderpyro.pipeline.problem import CalibrationProblem
-from solderpyro.rundir import Checks, DesignSummary, RunDir, RunInfo, SurrogateRecord
-from solderpyro.settings import CalibrationSettings
 
 log = logging.getLogger("solderpyro")
 #: chains that agree to this R-hat are taken as converged (the report warns above it)
@@ -211,7 +211,7 @@ class RunOutputs:
         """summary.csv, draws.npz, the run's record and the report of ``rep`` (the FE-exact
         posterior ``ex``'s where it is reliable, with its record ``ex_info`` and summary rows
         ``ex_rows``); written before the FE-exact step and again after it."""
-        from solderpyro import report
+        from solderpyro.reporting import report
 
         cp, fit, out = self.cp, self.fit, self.out
         post = self.loop.draws.posterior[0]
@@ -240,13 +240,13 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     effects) against ``meas``.
 
     Args:
-        setup: the typed problem, parameter box and defaults (:mod:`solderpyro.configure`).
+        setup: the typed problem, parameter box and defaults (:mod:`solderpyro.config.compose`).
         meas: measurements; times and points must be model outputs (A, B, grid labels).
         out: the run directory (created).
         settings: every setting (:class:`CalibrationSettings`; default: the adaptive design
             with its default budget).
         record: how the run was asked for (e.g. ``{"overrides": [...], "data": path}``), kept in
-            the run's record (:class:`~solderpyro.rundir.RunInfo`) so that ``solderpyro
+            the run's record (:class:`~solderpyro.config.rundir.RunInfo`) so that ``solderpyro
             diagnose`` can rebuild the model.
         warm: a related run's sampler state (``--warm-from``) for the first posterior.
 
@@ -295,7 +295,7 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     run = RunDir.read(out)
     run.info.timing_s = clock.seconds
     run.write()
-    from solderpyro.index import write_index
+    from solderpyro.reporting.index import write_index
 
     write_index(out)
     n_ok = int(loop.ok.sum())
@@ -471,7 +471,7 @@ def _best_fit_stage(cp: CalibrationProblem, s: CalibrationSettings, best: dict[s
     """A model whose own FE best fit misfits: that best fit, with its misfit-scaled Laplace
     spread (:func:`~.fe_exact.best_fit_posterior`), and the FE's predictive at
     ``BEST_FIT_BAND_RUNS`` of its draws (one batched solve through the store)."""
-    from solderpyro.coords import sampling_coords
+    from solderpyro.exact.coords import sampling_coords
     from solderpyro.pipeline.fe_exact import best_fit_posterior
 
     sg = s.surrogate
@@ -554,7 +554,7 @@ def run_fe_exact(cp: CalibrationProblem, s: CalibrationSettings, post: Any,
     """:func:`~.fe_exact.fe_exact` from the two best checked draws, with the surrogate
     posterior ``post``'s draws as the first proposal. Returns its posterior (None where it
     stopped at a best fit that misfits) and record; raises RuntimeError where it fails."""
-    from solderpyro.coords import sampling_coords
+    from solderpyro.exact.coords import sampling_coords
 
     ex_s, pr, y, sg = s.exact, cp.priors, cp.y, s.surrogate
     draws = checked.draws
@@ -610,9 +610,9 @@ def adopt_exact(w: RunOutputs, rep: Reported, ex: Any, ex_info: dict[str, Any]) 
 def profile_stage(cp: CalibrationProblem, out: Path, rep: Reported, ex: Any,
                   ex_info: dict[str, Any]) -> Reported:
     """95 % profile-likelihood intervals of every parameter through the FE
-    (:func:`~solderpyro.exact.profile_intervals`, from the FE-exact posterior ``ex``'s
+    (:func:`~solderpyro.exact.posterior.profile_intervals`, from the FE-exact posterior ``ex``'s
     samples): profile_ci.csv and ``ex_info["profile_ci"]``; a failure is a problem."""
-    from solderpyro.exact import profile_intervals
+    from solderpyro.exact.posterior import profile_intervals
 
     space, y = cp.space, cp.y
     sig_p = float(cp.priors.sigma_known or np.median(ex.sigma))

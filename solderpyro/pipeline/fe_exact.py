@@ -1,8 +1,8 @@
 """Stage 6 (when needed), the FE-exact posterior: the FE itself in the likelihood.
 
-Adaptive importance sampling (:mod:`solderpyro.exact`) from a proposal built on the surrogate
-posterior, the FE's best fit and a chi-square profile along the ridge; then, for parameters the
-data leave weakly identified, which measurement would narrow them; and the 95 %
+Adaptive importance sampling (:mod:`solderpyro.exact.posterior`) from a proposal built on the
+surrogate posterior, the FE's best fit and a chi-square profile along the ridge; then, for
+parameters the data leave weakly identified, which measurement would narrow them; and the 95 %
 profile-likelihood intervals through the FE.
 """
 
@@ -17,7 +17,7 @@ import torch
 
 from solderpyro.calibration import Priors
 from solderpyro.calibration.intervals import INTERVAL_COLUMNS, with_intervals
-from solderpyro.configure import Setup
+from solderpyro.config.compose import Setup
 from solderpyro.io.measurements import Measurements
 from solderpyro.params import Box
 from solderpyro.pipeline.fe_check import misfits
@@ -54,14 +54,14 @@ class ExactRun:
 def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
              draws: np.ndarray | None, starts: np.ndarray, run: ExactRun
              ) -> tuple[Any, dict[str, Any]]:
-    """The FE-exact posterior of a specimen calibration (:mod:`solderpyro.exact`).
+    """The FE-exact posterior of a specimen calibration (:mod:`solderpyro.exact.posterior`).
 
     The FE's best fit from ``starts`` (Levenberg-Marquardt, ``run.lm_iters`` iterations) and
     its Laplace covariance, the chi-square profiled along the weakest direction's coordinate
     over ``run.n_profile`` grid points (0: no profile), a first proposal from those and the
     surrogate posterior's ``draws``, then ``run.rounds`` AMIS rounds of ``run.n`` FE runs
     each, all in the sampling coordinates ``coords``
-    (:func:`solderpyro.coords.sampling_coords`).
+    (:func:`solderpyro.exact.coords.sampling_coords`).
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` the FE's observed outputs, um (e.g.
@@ -76,7 +76,12 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         With ``run.stop_if_misfit`` and a misfitting best fit: ``(None, info)``, ``info["stopped"]``
         saying why.
     """
-    from solderpyro.exact import exact_posterior, fe_profile, initial_proposal, laplace_cov_w
+    from solderpyro.exact.posterior import (
+        exact_posterior,
+        fe_profile,
+        initial_proposal,
+        laplace_cov_w,
+    )
 
     n, rounds, n_profile, seed = run.n, run.rounds, run.n_profile, run.seed
     n_draws, lm_iters, stop_if_misfit, noise_sd = (run.n_draws, run.lm_iters,
@@ -139,18 +144,18 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
 
 def fe_best_fit(fun: Any, starts: np.ndarray, space: Box, y: np.ndarray, sigma: float,
                 iters: int = 4, tol: float | None = None) -> Any:
-    """The FE's best fit: Levenberg-Marquardt (:func:`solderpyro.fit.lm_fit`, ``iters``
+    """The FE's best fit: Levenberg-Marquardt (:func:`solderpyro.exact.fit.lm_fit`, ``iters``
     iterations) from every start at once, the lowest chi-square kept.
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` the FE's observed outputs, um (through the run
             store); starts: ``(k, dim)`` physical units; space: the calibrated box;
         y: ``(n_obs,)`` um; sigma: the fits' noise sd, um; iters, tol: of
-        :func:`~solderpyro.fit.lm_fit` (None: all ``iters``).
+        :func:`~solderpyro.exact.fit.lm_fit` (None: all ``iters``).
     Returns:
-        the best :class:`~solderpyro.fit.LMFit` (``x (dim,)``, ``chi2`` in ``sigma`` units).
+        the best :class:`~solderpyro.exact.fit.LMFit` (``x (dim,)``, ``chi2`` in ``sigma`` units).
     """
-    from solderpyro.fit import lm_fit
+    from solderpyro.exact.fit import lm_fit
 
     fits = lm_fit(fun, starts, space.lower, space.upper, y, sigma, iters=iters, tol=tol)
     return min(fits, key=lambda f: f.chi2)
@@ -195,7 +200,7 @@ def ridge_ends(x: np.ndarray, weights: np.ndarray, ssr: np.ndarray, k: int
         ValueError: when no sample qualifies (all weights zero or all fits failed), or the
             qualifying samples do not spread along ``k``.
     """
-    from solderpyro.exact import weighted_quantiles
+    from solderpyro.exact.posterior import weighted_quantiles
 
     x, w, ssr = np.asarray(x, float), np.asarray(weights, float), np.asarray(ssr, float)
     ok = np.isfinite(ssr) & (w > 0)
@@ -228,7 +233,8 @@ def identifiability(setup: Setup, effects: tuple[str, ...], space: Box, rows: li
     Args:
         effects: the switched-on effects in the order of their parameters in ``space``.
         space: the calibrated box; rows: the FE-exact summary rows (parameter, q2.5, q97.5).
-        ex: the :class:`~solderpyro.exact.ExactPosterior`; meas: the data; sigma: noise sd, um.
+        ex: the :class:`~solderpyro.exact.posterior.ExactPosterior`; meas: the data; sigma: noise
+        sd, um.
     Returns:
         ``{"weak": [{"parameter", "share_of_box", "bound_by_prior"}], "ends": {...},
         "options": [...], "advice"}`` (``ends``/``options`` only when a parameter is weak).
@@ -345,12 +351,12 @@ def best_fit_posterior(fun: Any, coords: Any, x_best: np.ndarray, y: np.ndarray,
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` um, the FE (through the run store); coords: the
-            sampling coordinates (:func:`solderpyro.coords.sampling_coords`); x_best:
+            sampling coordinates (:func:`solderpyro.exact.coords.sampling_coords`); x_best:
             ``(dim,)`` physical; y: ``(n_obs,)`` um; noise_sd: um.
     Returns:
         :class:`BestFitPosterior`.
     """
-    from solderpyro.exact import laplace_cov_w
+    from solderpyro.exact.posterior import laplace_cov_w
 
     space = coords.space
     best = fe_best_fit(fun, np.asarray(x_best, float)[None], space, y, noise_sd, lm_iters,

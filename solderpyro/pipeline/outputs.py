@@ -1,7 +1,7 @@
 """Stage 7, the outputs: what a calibration leaves in its run directory.
 
 ``summary.csv``, ``draws.npz``, ``data.csv``, the run's record (what ``solderpyro diagnose``
-needs to rebuild the model; :class:`~solderpyro.rundir.RunDir`), ``posterior.nc``, the
+needs to rebuild the model; :class:`~solderpyro.config.rundir.RunDir`), ``posterior.nc``, the
 sampler's state, the figures and ``report.md``/``report.html``. Written after the surrogate
 posterior, and again after the FE-exact step, so that nothing computed is lost if a later
 step fails.
@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from solderpyro.calibration.mcmc import Posterior, WarmStart
+from solderpyro.config.rundir import Draws, RunDir, RunInfo
 from solderpyro.io.measurements import Measurements
-from solderpyro.rundir import Draws, RunDir, RunInfo
 from solderpyro.surrogate import LooResult
 
 
@@ -46,7 +46,7 @@ class SpecimenCalibration:
 def posterior_draws(post: Posterior, bands: Any, names: Sequence[str], y_obs: torch.Tensor,
                     y_liu: torch.Tensor,
                     draws: tuple[np.ndarray, np.ndarray] | None = None) -> Draws:
-    """``draws.npz`` of a run (:class:`~solderpyro.rundir.Draws`): flat posterior draws
+    """``draws.npz`` of a run (:class:`~solderpyro.config.rundir.Draws`): flat posterior draws
     ``theta (n, dim)`` in physical units with ``names``, ``sigma (n,)`` in um, the predictive
     ``process (n_pred, n_obs)`` and ``observed (n_pred, n_obs)`` draws with their noise
     ``sigma_pred (n_pred,)``, ``y_obs (n_obs,)`` and the Liu-constants model ``y_liu
@@ -72,11 +72,11 @@ def save_run(out: Path, meas: Measurements, info: RunInfo, draws: Draws,
              warm: WarmStart | None = None) -> RunDir:
     """Keep what a later ``solderpyro diagnose`` needs in the run directory ``out``:
     ``data.csv`` (the measurements, exact round trip), ``draws.npz`` (``draws``) and the
-    run's record ``info`` (:class:`~solderpyro.rundir.RunDir`), and the sampler's state
+    run's record ``info`` (:class:`~solderpyro.config.rundir.RunDir`), and the sampler's state
     ``warm`` where there is one (a recalibration can start from it, ``--warm-from``).
 
     Returns:
-        the written :class:`~solderpyro.rundir.RunDir`.
+        the written :class:`~solderpyro.config.rundir.RunDir`.
     """
     run = RunDir(out, info).write(meas, draws)
     if warm is not None:

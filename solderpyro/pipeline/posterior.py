@@ -9,9 +9,9 @@ from typing import Any
 from solderpyro.calibration import calibrate_emulator
 from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
 from solderpyro.calibration.mcmc import Posterior, WarmStart
+from solderpyro.config.settings import SamplerSettings
 from solderpyro.design.loop import Draws
 from solderpyro.pipeline.problem import CalibrationProblem
-from solderpyro.settings import SamplerSettings
 from solderpyro.surrogate import GPSurrogate
 
 log = logging.getLogger("solderpyro")
@@ -73,7 +73,7 @@ RUN_ON_RHAT = 1.5
 def reach_min_ess(post: Posterior, s: SamplerSettings, run: Any, seed: int) -> Posterior:
     """``post``, or its chains run on once when its smallest bulk ESS is under
     ``s.min_ess`` or its largest R-hat over ``s.max_rhat``, and they are not apart (largest
-    R-hat at most :data:`RUN_ON_RHAT`; see :class:`~solderpyro.settings.SamplerSettings`).
+    R-hat at most :data:`RUN_ON_RHAT`; see :class:`~solderpyro.config.settings.SamplerSettings`).
 
     Args:
         run: ``run(warm=, draws=, warmup=, ridge=, seed=) -> Posterior``, the same sampler

@@ -23,7 +23,8 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors
-from solderpyro.configure import Setup
+from solderpyro.compute.store import RunStore
+from solderpyro.config.compose import Setup
 from solderpyro.effects import EffectSet
 from solderpyro.io.measurements import Measurements
 from solderpyro.params import LIU2008, Box, anand_tensor
@@ -35,7 +36,6 @@ from solderpyro.specimen import (
     observation_index,
     split_effects,
 )
-from solderpyro.store import RunStore
 
 log = logging.getLogger("solderpyro")
 

@@ -7,8 +7,8 @@ import math
 
 import torch
 
+from solderpyro.config.settings import SurrogateSettings
 from solderpyro.pipeline.problem import CalibrationProblem
-from solderpyro.settings import SurrogateSettings
 from solderpyro.surrogate import GPSurrogate
 
 log = logging.getLogger("solderpyro")

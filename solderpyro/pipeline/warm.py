@@ -4,7 +4,7 @@ From the related run's sampler state (its chains' last positions and adapted met
 coordinate name), and, where ``solderpyro diagnose`` refitted exactly the effects the new run
 switches on, with every chain started at the end of that FE refit: the FE's own best fit of
 the new model, where the new posterior is (:meth:`~solderpyro.calibration.mcmc.WarmStart.
-placed`). The diagnosis is read from its file (:meth:`~solderpyro.rundir.RunDir.diagnosis`);
+placed`). The diagnosis is read from its file (:meth:`~solderpyro.config.rundir.RunDir.diagnosis`);
 nothing here imports it.
 """
 
@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from solderpyro.calibration.mcmc import WarmStart
-from solderpyro.rundir import RunDir
+from solderpyro.config.rundir import RunDir
 
 log = logging.getLogger("solderpyro")
 
@@ -24,7 +24,7 @@ def refit_point(run_dir: str | Path, effects: Sequence[str]) -> dict[str, float]
     """The end of the diagnosis's FE refit of ``effects`` (beyond the run's own), or None.
 
     Args:
-        run_dir: a calibrated, diagnosed run directory (:class:`~solderpyro.rundir.RunDir`,
+        run_dir: a calibrated, diagnosed run directory (:class:`~solderpyro.config.rundir.RunDir`,
             its diagnosis).
         effects: the new run's switched-on effects (registry names).
     Returns:
@@ -60,7 +60,7 @@ def warm_start(run_dir: str | Path, effects: Sequence[str]) -> WarmStart:
     Raises:
         FileNotFoundError naming the missing sampler state.
     """
-    from solderpyro.rundir import WARM_FILE
+    from solderpyro.config.rundir import WARM_FILE
 
     ws = WarmStart.load(Path(run_dir) / WARM_FILE)
     ws.point = refit_point(run_dir, effects)

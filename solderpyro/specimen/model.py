@@ -23,8 +23,8 @@ Two ways to evaluate it:
   solver).
 * :meth:`SpecimenModel.runs` and the other ``*_runs`` methods: no gradient, each distinct row
   solved once; with a run store attached (:meth:`SpecimenModel.use_store`) every batch is stored
-  as soon as it finishes (:func:`~solderpyro.store.run_doe`, through the current executor) and
-  stored runs are read back. :attr:`SpecimenModel.tally` counts the runs.
+  as soon as it finishes (:func:`~solderpyro.compute.store.run_doe`, through the current executor)
+  and stored runs are read back. :attr:`SpecimenModel.tally` counts the runs.
 """
 
 from __future__ import annotations
@@ -39,16 +39,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from solderpyro.compute.store import RunStore, param_hash, run_doe
 from solderpyro.effects import Effect, EffectSet
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.problem import Problem, reference_grid
 from solderpyro.fem.solver import SolveResult, SpecimenSolver
 from solderpyro.params import ANAND_NAMES, LIU2008, Box, ParameterSpace, check_anand_values
 from solderpyro.specimen.observed import OBSERVATION_SEAM, observation_offset
-from solderpyro.store import RunStore, param_hash, run_doe
 
 if TYPE_CHECKING:
-    from solderpyro.configure import Setup
+    from solderpyro.config.compose import Setup
 
 log = logging.getLogger(__name__)
 
@@ -510,7 +510,7 @@ class SpecimenModels:
     (None: solved directly) and count their runs.
 
     Attributes:
-        setup: the :class:`~solderpyro.configure.Setup` (problem, calibrated space, dtype,
+        setup: the :class:`~solderpyro.config.compose.Setup` (problem, calibrated space, dtype,
             device). store: the run store or None. batch_size: members per batched FE solve
             (the rows not yet stored split into equal batches of at most this many).
     """

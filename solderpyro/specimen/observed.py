@@ -19,7 +19,7 @@ from solderpyro.fem.problem import reference_grid
 from solderpyro.params import Box
 
 if TYPE_CHECKING:
-    from solderpyro.configure import Setup
+    from solderpyro.config.compose import Setup
     from solderpyro.io.measurements import Measurements
 
 

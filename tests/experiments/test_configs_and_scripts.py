@@ -12,7 +12,7 @@ import torch
 from scipy.stats import chi2
 
 from solderpyro.cli import main
-from solderpyro.configure import CONFIG_DIR, build, compose
+from solderpyro.config.compose import CONFIG_DIR, build, compose
 from solderpyro.io.measurements import read_measurements
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -134,8 +134,8 @@ def test_demo_command_runs_tiny(tmp_path):
     the profile intervals, whose FE runs are kept in the store too."""
     import csv
 
+    from solderpyro.compute.store import param_hash
     from solderpyro.specimen import fe_params
-    from solderpyro.store import param_hash
 
     assert main(["demo", "--out", str(tmp_path), *DEMO_TINY, "--exact", "off", *TINY]) == 0
     assert (tmp_path / "cycle.png").exists() and len(read_measurements(

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from solderpyro.cli import main
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.hidden import make_dataset
 
 TINY = ["experiment=quick", "loading.times_s=[0,600,900,1500]",
@@ -178,9 +178,9 @@ def test_compare_takes_a_best_fit_runs_elpd_from_its_reported_predictive(runs, t
 def test_a_version_1_run_directory_still_loads(runs, tmp_path):
     """A run directory written before run.json had a schema (the same keys without it) reads
     as version 1: the diagnosis's loading and compare take it as they take the new one."""
+    from solderpyro.config.rundir import SCHEMA, RunDir
     from solderpyro.diagnose.compare import run_metrics
     from solderpyro.diagnose.load import load_run
-    from solderpyro.rundir import SCHEMA, RunDir
 
     old = tmp_path / "lag_v1"
     shutil.copytree(runs / "lag", old)

@@ -49,10 +49,10 @@ def test_sensitivity_command_contract(tmp_path, capsys):
     assert "the seed chose" in capsys.readouterr().out
     # the DOE is in the store and its design is reproducible: the same LHS is served entirely
     # from the store (a solver that must not be called)
-    from solderpyro.configure import build, compose
+    from solderpyro.analysis.sensitivity import sensitivity_box
+    from solderpyro.compute.store import RunStore, run_doe
+    from solderpyro.config.compose import build, compose
     from solderpyro.design import lhs
-    from solderpyro.sensitivity import sensitivity_box
-    from solderpyro.store import RunStore, run_doe
 
     setup = build(compose(TINY))
     box = sensitivity_box(setup.space)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
-from solderpyro.calibration.amis import (
+from solderpyro.exact.amis import (
     TMixture,
     amis,
     kish_ess,

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from solderpyro.calibration.amis import TMixture, amis
-from solderpyro.coords import FlowStressCoords, UnitCoords, sampling_coords
+from solderpyro.exact.amis import TMixture, amis
+from solderpyro.exact.coords import FlowStressCoords, UnitCoords, sampling_coords
 from solderpyro.params import LIU2008, Box
 
 BOX = Box(("s0", "QR", "xi", "m", "T_sf"), (5.0, 7000.0, 1.0, 0.05, 25.0),

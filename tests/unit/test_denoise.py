@@ -113,7 +113,7 @@ def test_maps_say_in_words_when_a_row_has_no_structure():
     from solderpyro.diagnose.plots import draw_maps
     from solderpyro.fem.problem import reference_grid
     from solderpyro.io.measurements import Measurements
-    from solderpyro.plots import plt
+    from solderpyro.reporting.plots import plt
 
     g = reference_grid()[1]
     t = np.repeat([600.0, 4800.0], len(g))

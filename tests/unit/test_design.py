@@ -533,7 +533,7 @@ def test_cli_config_overrides_reach_the_settings():
     """``solderpyro calibrate ... calibration.design.code_tol=X`` used to be accepted by the
     config and dropped by the command (the settings were built from the flags alone)."""
     from solderpyro.cli import _settings, _setup, _split_overrides, build_parser
-    from solderpyro.settings import CalibrationSettings
+    from solderpyro.config.settings import CalibrationSettings
 
     p = build_parser()
     argv = ["calibrate", "--data", "d.csv", "--out", "o", "--chains", "2",
@@ -562,8 +562,8 @@ def test_the_final_posteriors_coordinates_and_ess_bar_are_settings():
     rounds) unless ``sampler.final_ridge`` is off; both settings reach the calibration from
     the config; so does the discretization correction's mode; bad values are named."""
     from solderpyro.cli import _settings, _setup, _split_overrides, build_parser
+    from solderpyro.config.settings import CalibrationSettings, SamplerSettings
     from solderpyro.pipeline.posterior import nuts_options
-    from solderpyro.settings import CalibrationSettings, SamplerSettings
 
     assert nuts_options(SamplerSettings(final_ridge=False), 0, False, True)["ridge"] == "never"
     final = nuts_options(SamplerSettings(), 0, False, final=True)

@@ -8,12 +8,12 @@ import logging
 import numpy as np
 import torch
 
-from solderpyro.configure import build, compose
+from solderpyro.compute.store import RunStore, config_hash
+from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.costs import STAGES, Costs
 from solderpyro.diagnose.write import cost_lines
 from solderpyro.effects import effect_set
 from solderpyro.specimen import SpecimenModels, fe_params
-from solderpyro.store import RunStore, config_hash
 
 TINY = ["experiment=quick", "loading.times_s=[0,600,900,1500]",
         "loading.temps_C=[25,75,75,25]", "loading.output_times=[600,900,1500]"]

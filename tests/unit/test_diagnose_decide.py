@@ -174,7 +174,7 @@ def test_a_refit_above_its_base_is_retried_from_the_base_point_then_reported_fai
     from types import SimpleNamespace
 
     import solderpyro.diagnose.refits as R
-    from solderpyro.fit import LMFit
+    from solderpyro.exact.fit import LMFit
 
     base_x, base_chi2 = np.zeros(3), 100.0
     calls = []

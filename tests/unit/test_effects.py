@@ -8,16 +8,16 @@ import json
 import pytest
 import torch
 
-from solderpyro.configure import build, compose
+from solderpyro.compute.executor import InProcess
+from solderpyro.compute.store import RunRecord, RunStore, config_hash, param_hash, run_doe
+from solderpyro.config.compose import build, compose
 from solderpyro.effects import EFFECTS, Effect, EffectSet, effect_box, effect_set, get_effect
-from solderpyro.executor import InProcess
 from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import Problem
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.params import ANAND_NAMES, ParameterSpace, anand_tensor
 from solderpyro.specimen import SpecimenModel
-from solderpyro.store import RunRecord, RunStore, config_hash, param_hash, run_doe
 
 CONTRACT = ("modulus_temperature", "stress_free_temperature", "thermal_lag", "cte_temperature",
             "moire_rigid_motion", "kinematic_hardening", "copper_plasticity")

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from solderpyro.calibration.amis import log_marginal_sigma
 from solderpyro.calibration.intervals import weighted_quantiles
-from solderpyro.coords import UnitCoords
-from solderpyro.exact import (
+from solderpyro.exact.amis import log_marginal_sigma
+from solderpyro.exact.coords import UnitCoords
+from solderpyro.exact.fit import lm_fit
+from solderpyro.exact.posterior import (
     exact_posterior,
     fe_profile,
     initial_proposal,
@@ -20,7 +21,6 @@ from solderpyro.exact import (
     profile_coordinate,
     ridge_mixture,
 )
-from solderpyro.fit import lm_fit
 from solderpyro.params import Box
 
 BOX = Box(("a", "b", "c"), (0.2, 0.2, 0.0), (5.0, 5.0, 2.0), (True, False, False))

@@ -18,7 +18,7 @@ import pytest
 import torch
 from test_store import cheap_problem  # tests/unit is on sys.path under pytest
 
-from solderpyro.executor import (
+from solderpyro.compute.executor import (
     DaskExecutor,
     InProcess,
     current_executor,
@@ -26,10 +26,10 @@ from solderpyro.executor import (
     parse_cluster,
     use_executor,
 )
+from solderpyro.compute.store import RunStore, param_hash, run_doe
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.params import ANAND_NAMES, ParameterSpace
-from solderpyro.store import RunStore, param_hash, run_doe
 
 # the stand-in solvers below travel to the workers by value (the workers cannot import tests)
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -86,8 +86,8 @@ def test_default_executor_is_in_process_without_dask_import(tmp_path):
     import subprocess
 
     code = ("import sys, torch\n"
-            "from solderpyro.store import RunStore, run_doe\n"
-            "from solderpyro.executor import current_executor\n"
+            "from solderpyro.compute.store import RunStore, run_doe\n"
+            "from solderpyro.compute.executor import current_executor\n"
             "from types import SimpleNamespace\n"
             "def solver(p, t):\n"
             "    tt = torch.tensor(t, dtype=torch.float64)\n"
@@ -219,7 +219,7 @@ def test_store_written_by_two_processes_at_once_stays_consistent(tmp_path):
     import subprocess
 
     code = ("import sys, numpy as np\n"
-            "from solderpyro.store import RunStore, RunRecord\n"
+            "from solderpyro.compute.store import RunStore, RunRecord\n"
             "from solderpyro.params import ANAND_NAMES\n"
             "lo, hi = int(sys.argv[2]), int(sys.argv[3])\n"
             "s = RunStore(sys.argv[1])\n"
@@ -243,10 +243,10 @@ def test_store_written_by_two_processes_at_once_stays_consistent(tmp_path):
 
 CLIENT_SCRIPT = """
 import sys, torch
-from solderpyro.executor import DaskExecutor
+from solderpyro.compute.executor import DaskExecutor
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.store import RunStore, run_doe
+from solderpyro.compute.store import RunStore, run_doe
 sys.path.insert(0, sys.argv[2])
 from test_executor import _params, cheap_problem
 
@@ -300,7 +300,7 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
     member's iterations do not depend on its batch, so the parts differ from the whole by
     rounding, ~1 ulp of max|V|), and a forked part that dies is solved in this process, with
     a warning, nothing lost."""
-    import solderpyro.executor as exe
+    import solderpyro.compute.executor as exe
 
     if not exe._can_fork():
         pytest.skip("no fork on this platform")
@@ -339,7 +339,7 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
         os._exit(3)
 
     monkeypatch.setattr(exe, "_child_solve", dies)
-    with caplog.at_level("WARNING", logger="solderpyro.executor"):
+    with caplog.at_level("WARNING", logger="solderpyro.compute.executor"):
         again = exe.solve_split(solver, P, SEED_TIMES, names, 2)
     assert "failed" in caplog.text and "solved here" in caplog.text
     for a, b in zip(whole, again, strict=True):
@@ -364,7 +364,7 @@ def test_a_split_batch_whose_own_part_raises_stops_its_forked_parts():
     part running (a part blocked on a full pipe would otherwise outlive the error)."""
     import multiprocessing as mp
 
-    import solderpyro.executor as exe
+    import solderpyro.compute.executor as exe
 
     if not exe._can_fork():
         pytest.skip("no fork on this platform")

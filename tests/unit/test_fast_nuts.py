@@ -387,8 +387,8 @@ def test_chains_run_on_until_the_ess_asked_for_and_stay_on_the_grid_posterior(ca
     first run, their divergence flags add up, and the joined draws reach the grid posterior's
     quantiles within 4 MCSEs. A run already above the bar, or whose chains disagree, comes
     back unchanged."""
+    from solderpyro.config.settings import SamplerSettings
     from solderpyro.pipeline.posterior import reach_min_ess
-    from solderpyro.settings import SamplerSettings
 
     stats = _stats_module()
     x, y = make_data(0)

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors
-from solderpyro.coords import UnitCoords
+from solderpyro.exact.coords import UnitCoords
 from solderpyro.params import Box
 from solderpyro.pipeline.fe_check import FE_CHECK_RMS, misfits
 from solderpyro.pipeline.fe_exact import ExactRun, fe_exact

@@ -1,9 +1,9 @@
-"""The batched Levenberg-Marquardt of solderpyro.fit: exact answers on small problems."""
+"""The batched Levenberg-Marquardt of solderpyro.exact.fit: exact answers on small problems."""
 
 import numpy as np
 import pytest
 
-from solderpyro.fit import lm_fit
+from solderpyro.exact.fit import lm_fit
 
 X = np.linspace(0.0, 3.0, 11)
 

@@ -4,7 +4,7 @@ the way from "off" to the far edge of the box, on the box's own unit-cube scale.
 import numpy as np
 import pytest
 
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.hidden import FRACTIONS, _ladder
 from solderpyro.effects import effect_set
 from solderpyro.fem.loading import EXTENDED_TIMES

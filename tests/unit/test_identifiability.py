@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.decide import APART_CHI2
 from solderpyro.effects import effect_set
-from solderpyro.exact import weighted_quantiles
+from solderpyro.exact.posterior import weighted_quantiles
 from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.io.measurements import from_arrays

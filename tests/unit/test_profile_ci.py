@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from solderpyro.exact import PROFILE_CHI2_95, profile_intervals
+from solderpyro.exact.posterior import PROFILE_CHI2_95, profile_intervals
 from solderpyro.params import Box
 
 SIGMA = 0.1

@@ -1,5 +1,5 @@
-"""The typed run directory (solderpyro.rundir): round trip, version-1 files, clear errors, and
-the commands reading it (compare, diagnose's load, the warm start, index.html)."""
+"""The typed run directory (solderpyro.config.rundir): round trip, version-1 files, clear
+errors, and the commands reading it (compare, diagnose's load, the warm start, index.html)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from solderpyro.io.measurements import from_arrays
-from solderpyro.rundir import (
+from solderpyro.config.rundir import (
     RUN_JSON,
     SCHEMA,
     Checks,
@@ -20,6 +19,7 @@ from solderpyro.rundir import (
     RunInfo,
     SurrogateRecord,
 )
+from solderpyro.io.measurements import from_arrays
 
 TIMES = [600.0, 900.0, 1500.0]
 #: the problem's points A and B (configs/problem), as the measurements name them
@@ -143,8 +143,8 @@ def test_compare_and_the_diagnosis_read_the_run_directory(tmp_path) -> None:
     index.html all read the record through RunDir (a version-1 file as well)."""
     from solderpyro.diagnose.compare import compare, run_metrics
     from solderpyro.diagnose.load import load_run, run_store
-    from solderpyro.index import write_index
     from solderpyro.pipeline.warm import refit_point
+    from solderpyro.reporting.index import write_index
 
     a = _run_dir(tmp_path / "a")
     b = _run_dir(tmp_path / "b", _info(effects=["thermal_lag"], sigma_known=0.05,

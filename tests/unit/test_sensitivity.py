@@ -1,13 +1,12 @@
 """Sensitivity estimators against analytic answers, and the FE Jacobian against finite
-differences (solderpyro/sensitivity.py)."""
+differences (solderpyro/analysis/sensitivity.py)."""
 
 import math
 
 import pytest
 import torch
 
-from solderpyro.params import ANAND_NAMES, LIU2008
-from solderpyro.sensitivity import (
+from solderpyro.analysis.sensitivity import (
     SEED_CHOICE,
     dgsm,
     fe_jacobian,
@@ -17,6 +16,7 @@ from solderpyro.sensitivity import (
     sobol_indices,
     verdict,
 )
+from solderpyro.params import ANAND_NAMES, LIU2008
 
 A_ISH, B_ISH = 7.0, 0.1
 #: 25 -> 75 C in 600 s, dwell to 1500 s (Hydra overrides): the FE checks' short cycle
@@ -113,7 +113,7 @@ def test_fe_jacobian_matches_central_differences():
     (measured: 6e-7 for A and for h0 at this du); rtol 1e-4 of the largest derivative leaves
     margin yet catches a wrong chain factor (ln(A_hi/A_lo) = 4.6) or a missing implicit
     correction."""
-    from solderpyro.configure import build, compose
+    from solderpyro.config.compose import build, compose
     from solderpyro.specimen import SpecimenModel
 
     setup = build(compose(["experiment=quick", *SHORT_CYCLE]))
@@ -167,7 +167,7 @@ def test_box_and_verdict():
 
 def test_jackknife_se_of_a_mean_is_the_standard_error():
     """Leave-one-out means of x: the jackknife SE equals s / sqrt(n) exactly."""
-    from solderpyro.sensitivity import _jackknife_se
+    from solderpyro.analysis.sensitivity import _jackknife_se
 
     x = torch.randn(20, generator=torch.Generator().manual_seed(2))
     loo = (x.sum() - x) / (len(x) - 1)

@@ -3,7 +3,7 @@
 import numpy as np
 import torch
 
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.effects import effect_set
 from solderpyro.specimen import observation_offset
 

@@ -6,12 +6,12 @@ import pytest
 import torch
 
 from solderpyro import SpecimenModel
+from solderpyro.compute.store import RunStore
 from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import Problem
 from solderpyro.params import LIU2008, ParameterSpace
 from solderpyro.specimen import StoreUse
-from solderpyro.store import RunStore
 
 F64 = torch.float64
 LAYERS = (Layer("copper", "copper", -4.0, 0.0, 4, 0.25, "top"),

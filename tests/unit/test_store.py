@@ -18,20 +18,20 @@ import numpy as np
 import pytest
 import torch
 
-from solderpyro.design import lhs
-from solderpyro.executor import InProcess
-from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
-from solderpyro.fem.mesh import MeshSpec
-from solderpyro.fem.problem import AnandSolder, Problem
-from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.params import ANAND_NAMES, LIU2008, ParameterSpace
-from solderpyro.store import (
+from solderpyro.compute.executor import InProcess
+from solderpyro.compute.store import (
     RunRecord,
     RunStore,
     config_hash,
     param_hash,
     run_doe,
 )
+from solderpyro.design import lhs
+from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
+from solderpyro.fem.mesh import MeshSpec
+from solderpyro.fem.problem import AnandSolder, Problem
+from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.params import ANAND_NAMES, LIU2008, ParameterSpace
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -69,7 +69,7 @@ def test_config_hash_is_stable_within_and_across_processes():
     assert h == config_hash(Problem(), SEED_TIMES, False, torch.float64)
     assert h == config_hash(Problem(), tuple(reversed(SEED_TIMES)), False, torch.float64)
     code = ("import torch; from solderpyro.fem.problem import Problem; "
-            "from solderpyro.fem.loading import SEED_TIMES; from solderpyro.store import "
+            "from solderpyro.fem.loading import SEED_TIMES; from solderpyro.compute.store import "
             "config_hash; print(config_hash(Problem(), SEED_TIMES, False, torch.float64))")
     env = dict(os.environ, PYTHONHASHSEED="123")  # a different str-hash seed than ours
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -277,7 +277,7 @@ DOE_SCRIPT = CHEAP_SRC + """
 import sys, torch
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.store import RunStore, run_doe
+from solderpyro.compute.store import RunStore, run_doe
 
 params = torch.tensor({params}, dtype=torch.float64)
 problem = cheap_problem()
@@ -333,6 +333,6 @@ def test_records_are_readable_by_the_other_users_of_a_shared_store(tmp_path):
         p = RunStore(tmp_path).put("cfg", _record(list(LIU2008.values())))
     finally:
         os.umask(old)
-    import solderpyro.runstore as rs
+    import solderpyro.compute.runstore as rs
 
     assert p.stat().st_mode & 0o777 == 0o666 & ~rs._UMASK

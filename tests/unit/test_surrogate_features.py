@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs
 from solderpyro.materials.anand import saturation
 from solderpyro.params import LIU2008, Box, ParameterSpace, anand_tensor

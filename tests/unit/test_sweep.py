@@ -11,8 +11,8 @@ import cloudpickle
 import pytest
 
 from solderpyro.cli import main
-from solderpyro.executor import DaskExecutor, InProcess
-from solderpyro.sweep import sweep
+from solderpyro.compute.executor import DaskExecutor, InProcess
+from solderpyro.compute.sweep import sweep
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 # keep_environment: Dask's nanny writes its workers' settings into os.environ

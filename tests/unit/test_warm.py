@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from solderpyro.calibration.mcmc import WarmStart
+from solderpyro.config.rundir import WARM_FILE, RunDir, RunInfo
 from solderpyro.params import Box
 from solderpyro.pipeline.warm import refit_point, warm_start
-from solderpyro.rundir import WARM_FILE, RunDir, RunInfo
 
 
 def _state(chains: int = 4) -> WarmStart:

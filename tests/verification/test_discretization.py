@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 
 from solderpyro.cli import simulate_table
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.io.measurements import from_arrays
 from solderpyro.params import LIU2008
 from solderpyro.pipeline.fe_check import DISCRETIZATION_CHI2, discretization_check, refined

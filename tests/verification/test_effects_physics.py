@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from solderpyro.configure import build, compose
+from solderpyro.config.compose import build, compose
 from solderpyro.effects import EFFECTS, EffectSet
 from solderpyro.effects.thermal_lag import lag
 from solderpyro.fem.loading import EXTENDED_TIMES, REFERENCE_CYCLE, ThermalCycle, TimeStepping

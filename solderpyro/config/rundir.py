@@ -131,7 +131,7 @@ class RunInfo:
         overrides: the model's config overrides (``solderpyro diagnose`` rebuilds the model
             from them). data: the measurement file as given. store: the FE run store (a
             relative path is from the working directory of the calibration). seed: RNG seed.
-        settings: :meth:`~solderpyro.settings.CalibrationSettings.as_dict`.
+        settings: :meth:`~solderpyro.config.settings.CalibrationSettings.as_dict`.
         surrogate: :class:`SurrogateRecord` or None. n_runs: FE runs of the design.
         design: :class:`DesignSummary`. checks: :class:`Checks`.
         timing_s: seconds per stage. trust: the trust line. posterior: the reported
@@ -413,7 +413,7 @@ def read_json(path: Path) -> dict[str, Any] | None:
 
 def try_read(path: str | Path) -> RunDir | None:
     """:meth:`RunDir.read`, or None where ``path`` holds no readable ``run.json`` (for pages
-    that show whatever a directory holds, :mod:`solderpyro.index`)."""
+    that show whatever a directory holds, :mod:`solderpyro.reporting.index`)."""
     try:
         return RunDir.read(path)
     except (OSError, RunDirError):

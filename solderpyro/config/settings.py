@@ -199,7 +199,7 @@ class CalibrationSettings:
         return self
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain nested dict (for the run record, :class:`~solderpyro.rundir.RunInfo`)."""
+        """Plain nested dict (for the run record, :class:`~solderpyro.config.rundir.RunInfo`)."""
         return asdict(self)
 
     @classmethod

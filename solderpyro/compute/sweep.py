@@ -2,7 +2,7 @@
 executor as the FE campaigns.
 
 Why Dask and not Hydra's multirun launchers: the FE campaigns already run on a Dask cluster
-(:mod:`solderpyro.executor`), so one cluster, one address and one set of HPC settings
+(:mod:`solderpyro.compute.executor`), so one cluster, one address and one set of HPC settings
 (``dask_jobqueue``) serve both; a sweep's results come back to one process that records each
 job as it completes (crash-safe, and a rerun skips finished jobs), where a Hydra multirun
 leaves one output directory per job to be gathered afterwards. Hydra still composes each
@@ -37,7 +37,7 @@ def _load(record: Path) -> dict[str, dict]:
 
 
 def _save(record: Path, jobs: dict[str, dict]) -> None:
-    from solderpyro.runstore import write_atomic
+    from solderpyro.compute.runstore import write_atomic
 
     write_atomic(record, {"jobs": jobs})
 
@@ -45,7 +45,7 @@ def _save(record: Path, jobs: dict[str, dict]) -> None:
 def _outcomes(fn: Callable[[str], dict], names: list[str], executor: Any
               ) -> Iterator[tuple[str, dict]]:
     """``(name, result)`` as each job finishes: in order in-process, as completed on Dask."""
-    from solderpyro.executor import DaskExecutor
+    from solderpyro.compute.executor import DaskExecutor
 
     if not isinstance(executor, DaskExecutor):
         for n in names:
@@ -87,9 +87,9 @@ def sweep(names: Sequence[str], fn: Callable[[str], dict], record: str | Path,
             defined in a script, which cloudpickle sends by value).
         record: JSON file of finished jobs, rewritten atomically as each job completes; a
             rerun skips the jobs it holds (and those that failed, unless ``rerun_failed``).
-        executor: :class:`~solderpyro.executor.DaskExecutor` to run jobs as parallel tasks;
-            None: :func:`~solderpyro.executor.current_executor` (in-process: one after another).
-        rerun_failed: run again the jobs recorded with ``ok: False``.
+        executor: :class:`~solderpyro.compute.executor.DaskExecutor` to run jobs as parallel tasks;
+            None: :func:`~solderpyro.compute.executor.current_executor` (in-process: one after
+        another). rerun_failed: run again the jobs recorded with ``ok: False``.
 
     Returns:
         ``{name: result}`` for every job (recorded ones included), each result with ``ok``
@@ -97,7 +97,7 @@ def sweep(names: Sequence[str], fn: Callable[[str], dict], record: str | Path,
     """
     from tqdm.auto import tqdm
 
-    from solderpyro.executor import current_executor
+    from solderpyro.compute.executor import current_executor
 
     if len(set(names)) != len(names):
         raise ValueError(f"sweep job names must be distinct, got {list(names)}")
@@ -122,7 +122,8 @@ def sweep(names: Sequence[str], fn: Callable[[str], dict], record: str | Path,
 def calibrate_job(data: str, out: str, store: str, args: Sequence[str] = ()) -> dict:
     """One sweep job: ``solderpyro calibrate --data DATA --out OUT --store STORE --quiet ARGS``
     in a subprocess (its own logs go to ``OUT/log.txt``); returns the run's headline numbers
-    (the FE check, the design's stop) from its record (:class:`~solderpyro.rundir.RunDir`)."""
+    (the FE check, the design's stop) from its record
+    (:class:`~solderpyro.config.rundir.RunDir`)."""
     Path(out).mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "solderpyro.cli", "calibrate", "--data", data, "--out", out,
            "--store", store, "--quiet", *args]
@@ -131,7 +132,7 @@ def calibrate_job(data: str, out: str, store: str, args: Sequence[str] = ()) -> 
     if rc != 0:
         tail = (Path(out) / "log.txt").read_text().splitlines()[-3:]
         raise RuntimeError(f"calibrate exited {rc}: {' | '.join(tail)}")
-    from solderpyro.rundir import RunDir
+    from solderpyro.config.rundir import RunDir
 
     info = RunDir.read(out).info
     chk = info.checks.fe_check

@@ -2,8 +2,8 @@
 
 Every FE campaign of the package (the calibration's start design and acquisition batches, the
 FE check, the FE-exact step and the profiles, ``diagnose``'s Jacobians and refits, the
-sensitivity DOE) reaches the solver through :func:`solderpyro.store.run_doe`, and ``run_doe``
-hands its batches to the *current executor*:
+sensitivity DOE) reaches the solver through :func:`solderpyro.compute.store.run_doe`, and
+``run_doe`` hands its batches to the *current executor*:
 
 * :class:`InProcess` (default): one batch after another on this machine, each split over
   one-thread forked copies of this process, one per core (:func:`solve_split`; Linux); Dask
@@ -21,7 +21,7 @@ hands its batches to the *current executor*:
 Choose the executor for a block of code with :func:`use_executor` (a context variable, so
 threads and nested calls see the right one)::
 
-    from solderpyro.executor import DaskExecutor, use_executor
+    from solderpyro.compute.executor import DaskExecutor, use_executor
     with DaskExecutor.start("local:2") as ex, use_executor(ex):
         calibrate_specimen(...)            # every FE batch goes to the two workers
 
@@ -30,8 +30,8 @@ one batch agree with the same members solved alone to ~1e-15 um), and ``run_doe`
 rows in their input order.
 
 Imports run one way: this module turns a solved batch into run records itself
-(:func:`solve_batch`) and builds on the run store (:mod:`solderpyro.runstore`: the records, and
-the store a worker writes); :mod:`solderpyro.store`'s ``run_doe`` builds on this module.
+(:func:`solve_batch`) and builds on the run store (:mod:`solderpyro.compute.runstore`: the records,
+and the store a worker writes); :mod:`solderpyro.compute.store`'s ``run_doe`` builds on this module.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from solderpyro.runstore import RunRecord, RunStore
+from solderpyro.compute.runstore import RunRecord, RunStore
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ class BatchOutcome:
     """What one FE batch gave back.
 
     Attributes:
-        records: one :class:`~solderpyro.runstore.RunRecord` per member, in row order.
+        records: one :class:`~solderpyro.compute.runstore.RunRecord` per member, in row order.
         stored: whether the records are already in the store (written where they were solved).
         seconds: FE wall time of the batch where it ran, s (NaN when unknown).
         lost: the batch was never solved (its workers died): failed records that must not be
@@ -79,7 +79,7 @@ class BatchOutcome:
 def solve_batch(solver: Any, P: torch.Tensor, times: Sequence[float],
                 names: Sequence[str]) -> list[RunRecord]:
     """Solve one batch ``P (b, 9 + n_eff)`` over ``times`` (s, sorted): one
-    :class:`~solderpyro.runstore.RunRecord` per member (``names``: the columns of ``P``).
+    :class:`~solderpyro.compute.runstore.RunRecord` per member (``names``: the columns of ``P``).
 
     ``solver``: anything with ``.solve(P, times, progress=False)``, or a callable
     ``(P, times)``, returning a ``SolveResult``-like (``V (b, n_time, n_out)`` um, ``ok (b,)``,
@@ -287,7 +287,7 @@ class InProcess:
     def run(self, solver: Any, batches: Sequence[torch.Tensor], times: Sequence[float],
             names: Sequence[str], store: RunStore, cfg_hash: str) -> Iterator[BatchOutcome]:
         """Solve each batch ``(b_i, 9 + n_eff)`` in turn and yield its outcome (not yet
-        stored: :func:`~solderpyro.store.run_doe` stores it)."""
+        stored: :func:`~solderpyro.compute.store.run_doe` stores it)."""
         procs = self.processes or local_cores()
         for P in batches:
             t0 = time.perf_counter()

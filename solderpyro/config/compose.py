@@ -18,14 +18,14 @@ from typing import Any
 
 import torch
 
-from .effects import EFFECTS, EffectSet, effect_set
-from .fem.loading import EXTENDED_TIMES, SEED_TIMES, ThermalCycle, TimeStepping
-from .fem.mesh import Layer, MeshSpec
-from .fem.problem import LAWS, Problem
-from .params import ANAND_NAMES, Box, ParameterSpace, check_anand_values
-from .settings import SurrogateSettings, register_configs
+from solderpyro.config.settings import SurrogateSettings, register_configs
+from solderpyro.effects import EFFECTS, EffectSet, effect_set
+from solderpyro.fem.loading import EXTENDED_TIMES, SEED_TIMES, ThermalCycle, TimeStepping
+from solderpyro.fem.mesh import Layer, MeshSpec
+from solderpyro.fem.problem import LAWS, Problem
+from solderpyro.params import ANAND_NAMES, Box, ParameterSpace, check_anand_values
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 register_configs()  # the calibration group's schema, also for @hydra.main scripts
 
 
@@ -58,11 +58,11 @@ def compose(overrides: list[str] | None = None, config_name: str = "config"):
 
 def calibration_settings(cfg: Any, surrogate: Mapping[str, Any] | None = None) -> Any:
     """The composed config's ``calibration`` group as a
-    :class:`~solderpyro.settings.CalibrationSettings` (its ``surrogate`` from the
+    :class:`~solderpyro.config.settings.CalibrationSettings` (its ``surrogate`` from the
     ``surrogate`` group, i.e. ``Setup.surrogate``, when given)."""
     from omegaconf import OmegaConf
 
-    from .settings import CalibrationSettings, SurrogateSettings
+    from solderpyro.config.settings import CalibrationSettings, SurrogateSettings
 
     d = OmegaConf.to_container(cfg.calibration, resolve=True) if "calibration" in cfg else {}
     s = CalibrationSettings.from_dict(dict(d))  # type: ignore[arg-type]

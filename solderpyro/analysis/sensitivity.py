@@ -8,7 +8,7 @@ nine constants over a prior box by two independent routes:
   unit-cube coordinates u comes from autograd through the solver; ``nu_i = E[(dy/du_i)^2]``,
   and for inputs uniform on [0, 1] the total Sobol index obeys ``S_T,i <= nu_i / (pi^2 Var y)``.
 - **Sobol main and total indices** through a GP surrogate fitted to an LHS of FE runs (kept in
-  the crash-safe :class:`~solderpyro.store.RunStore`): Saltelli (2010) main-effect and
+  the crash-safe :class:`~solderpyro.compute.store.RunStore`): Saltelli (2010) main-effect and
   Jansen (1999) total-effect estimators on the GP mean, scrambled-Sobol base samples,
   bootstrap intervals over the sample rows.
 
@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from scipy.stats import qmc
 
-from .params import ANAND_NAMES, LIU2008, SEED_BOX, ParameterSpace, check_anand_values
+from solderpyro.params import ANAND_NAMES, LIU2008, SEED_BOX, ParameterSpace, check_anand_values
 
 log = logging.getLogger("solderpyro")
 
@@ -397,7 +397,7 @@ def gp_sobol(box: ParameterSpace, theta: torch.Tensor, y: torch.Tensor,
     Returns:
         the fitted :class:`~solderpyro.surrogate.GPSurrogate` and the :class:`SobolResult`.
     """
-    from .surrogate import GPSurrogate
+    from solderpyro.surrogate import GPSurrogate
 
     # one GP per output: the Sobol indices are per output (the config's "output" layout, for
     # the calibration's code covariance, does not apply here)
@@ -459,8 +459,8 @@ def run_sensitivity(setup: Any, out: str | Path, n_runs: int = 100, grad_points:
     """Rank the nine Anand constants by their influence on V_A, V_B at ``times``.
 
     Args:
-        setup: a :class:`~solderpyro.configure.Setup` (problem, calibrated box, defaults, dtype,
-            device, surrogate settings).
+        setup: a :class:`~solderpyro.config.compose.Setup` (problem, calibrated box, defaults,
+            dtype, device, surrogate settings).
         out: output directory (created): sensitivity.csv / .json / .png / .md.
         n_runs: LHS FE runs for the GP (>= 10; stored in ``store_root``, reused on rerun).
         grad_points: LHS points of the DGSM (>= 2); grad_batch: members per autograd solve.
@@ -475,9 +475,9 @@ def run_sensitivity(setup: Any, out: str | Path, n_runs: int = 100, grad_points:
     Returns:
         :class:`SensitivityResult`.
     """
-    from .design import lhs
-    from .specimen import SpecimenModel, StoreUse
-    from .store import RunStore
+    from solderpyro.compute.store import RunStore
+    from solderpyro.design import lhs
+    from solderpyro.specimen import SpecimenModel, StoreUse
 
     _check_options(n_runs, grad_points, grad_batch, n_sobol, n_boot, refits)
     times = tuple(sorted(float(t) for t in (times or setup.times)))
@@ -630,7 +630,7 @@ def _markdown(res: SensitivityResult, command: str) -> str:
 def plot_sensitivity(res: SensitivityResult) -> Any:
     """Two panels: S_T and S1 bars with intervals per constant; DGSM bound (log scale) with
     S_T marked. Returns the matplotlib Figure."""
-    from .plots import plt
+    from solderpyro.reporting.plots import plt
 
     names = list(res.box.names)
     sb, dg = res.sobol, res.dgsm

@@ -1,15 +1,15 @@
 """The DOE runner over the crash-safe run store: :func:`run_doe`.
 
 :func:`run_doe` reads back the rows of a design already in the run store
-(:mod:`solderpyro.runstore`: the layout on disk, the records and their hashes), hands the
-others to the current executor (:mod:`solderpyro.executor`) in batches, and stores each member
-of a batch as soon as the batch finishes: a kill loses at most the batch in flight, and a
+(:mod:`solderpyro.compute.runstore`: the layout on disk, the records and their hashes), hands the
+others to the current executor (:mod:`solderpyro.compute.executor`) in batches, and stores each
+member of a batch as soon as the batch finishes: a kill loses at most the batch in flight, and a
 rerun computes only what is missing. Failed members are stored (``ok=False`` with the reason)
 and are not recomputed on rerun.
 
-The run store's public names (:class:`~solderpyro.runstore.RunStore`,
-:class:`~solderpyro.runstore.RunRecord`, :func:`~solderpyro.runstore.config_hash`,
-:func:`~solderpyro.runstore.param_hash`, ...) are importable from here too, so that a
+The run store's public names (:class:`~solderpyro.compute.runstore.RunStore`,
+:class:`~solderpyro.compute.runstore.RunRecord`, :func:`~solderpyro.compute.runstore.config_hash`,
+:func:`~solderpyro.compute.runstore.param_hash`, ...) are importable from here too, so that a
 campaign needs one import. Imports run one way: runstore <- executor <- store.
 """
 
@@ -25,9 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .executor import current_executor
-from .params import ANAND_NAMES
-from .runstore import (
+from solderpyro.compute.executor import current_executor
+from solderpyro.compute.runstore import (
     STORE_SCHEMA,
     RunRecord,
     RunStore,
@@ -38,6 +37,7 @@ from .runstore import (
     param_hash,
     write_atomic,
 )
+from solderpyro.params import ANAND_NAMES
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,7 @@ def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
 
     Rows already stored under ``cfg_hash`` (converged or failed) are read back; the others are
     solved in batches of at most ``batch_size`` by the executor (``executor``, default
-    :func:`~solderpyro.executor.current_executor`: in this process unless a Dask cluster was
+    :func:`~solderpyro.compute.executor.current_executor`: in this process unless a Dask cluster was
     chosen), and every member of a batch is stored as soon as that batch finishes. Duplicate
     rows are solved once.
 
@@ -117,7 +117,7 @@ def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
         times: output times, s. batch_size: members per FE solve. progress: tqdm over batches.
         param_names: names of the ``params`` columns; default ``solver.param_names(times)``
             when the solver has it, else ANAND_NAMES.
-        executor: where the batches run (:mod:`solderpyro.executor`); None: the current one.
+        executor: where the batches run (:mod:`solderpyro.compute.executor`); None: the current one.
 
     Returns:
         :class:`DoeResult`; V is NaN for failed members, whose reasons are logged.

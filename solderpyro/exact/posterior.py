@@ -7,7 +7,7 @@ stress traded against s0, Q/R and xi) that is enough to put the surrogate poster
 wrong piece of the ridge, with intervals that miss the truth although the model fits. This
 module samples the posterior of the FE itself, with no surrogate in the likelihood:
 
-1. **Sampling coordinates** (:mod:`solderpyro.coords`) in which the posterior is close to
+1. **Sampling coordinates** (:mod:`solderpyro.exact.coords`) in which the posterior is close to
    Gaussian: flow stresses instead of s0 and Q/R where the box allows it.
 2. **A proposal that covers the posterior** (:func:`initial_proposal`), a mixture of
    - the surrogate posterior's draws (a Gaussian mixture fitted to them, widened),
@@ -17,12 +17,12 @@ module samples the posterior of the FE itself, with no surrogate in the likeliho
      (extended while the chi-square stays low) and the others refitted by one batched
      Levenberg-Marquardt; a spline through the fits carries components that follow the
      ridge (:func:`ridge_mixture`), weighted by their Laplace mass.
-3. **AMIS rounds** (:func:`solderpyro.calibration.amis.amis`) with the exact likelihood, the
+3. **AMIS rounds** (:func:`solderpyro.exact.amis.amis`) with the exact likelihood, the
    noise sd integrated out under the calibration's own prior
-   (:func:`~solderpyro.calibration.amis.log_marginal_sigma`). ``fun`` evaluates the FE (one
+   (:func:`~solderpyro.exact.amis.log_marginal_sigma`). ``fun`` evaluates the FE (one
    batched solve per round; the specimen calibration routes it through the run store).
 4. **Reliability**: the Kish ESS and the Pareto k-hat of the weights
-   (:attr:`~solderpyro.calibration.amis.AMISResult.reliable`).
+   (:attr:`~solderpyro.exact.amis.AMISResult.reliable`).
 
 Everything here is generic over ``fun: rows (b, dim) -> (b, n_obs)`` (physical parameters in,
 model outputs in um out, NaN rows where the model failed) and a box with a flat prior on its
@@ -38,15 +38,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from solderpyro.calibration.amis import (
+from solderpyro.calibration.intervals import weighted_quantiles, with_intervals
+from solderpyro.exact.amis import (
     AMISResult,
     TMixture,
     amis,
     log_marginal_sigma,
     weighted_em,
 )
-from solderpyro.calibration.intervals import weighted_quantiles, with_intervals
-from solderpyro.coords import UnitCoords
+from solderpyro.exact.coords import UnitCoords
 from solderpyro.params import Box
 
 Fun = Callable[[np.ndarray], np.ndarray]
@@ -112,7 +112,7 @@ def fe_profile(fun: Fun, coords: UnitCoords, x_best: np.ndarray, cov_w: np.ndarr
 
     The grid first spans ``+-n_sd`` Laplace sd of that coordinate around the best fit (inside
     the box); each grid point starts from the Laplace conditional mean of the others, and one
-    batched Levenberg-Marquardt (:func:`solderpyro.fit.lm_fit`) refits them all. A ridge can
+    batched Levenberg-Marquardt (:func:`solderpyro.exact.fit.lm_fit`) refits them all. A ridge can
     reach much farther than the Laplace sd says (a curved ridge, a flat one), so while an end
     of the profile is within ``extend_chi2`` of its minimum and not at the box's bound, two
     more points are added beyond it (each step 1.5x the last spacing), started by
@@ -121,7 +121,7 @@ def fe_profile(fun: Fun, coords: UnitCoords, x_best: np.ndarray, cov_w: np.ndarr
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` model outputs, um.
-        coords: sampling coordinates (:mod:`solderpyro.coords`) of the box.
+        coords: sampling coordinates (:mod:`solderpyro.exact.coords`) of the box.
         x_best: ``(dim,)`` the best fit, physical; cov_w: ``(dim, dim)`` its Laplace
             covariance in sampling coordinates (:func:`laplace_cov_w`).
         y: ``(n_obs,)`` data, um; sigma: noise sd, um.
@@ -132,7 +132,7 @@ def fe_profile(fun: Fun, coords: UnitCoords, x_best: np.ndarray, cov_w: np.ndarr
     Returns:
         :class:`Profile`, sorted by the profiled value.
     """
-    from solderpyro.fit import lm_fit
+    from solderpyro.exact.fit import lm_fit
 
     space, d = coords.space, coords.dim
     if n_grid < 2:
@@ -326,7 +326,7 @@ class ExactPosterior:
     @property
     def reliable(self) -> bool:
         """Whether the AMIS weights pass their checks (Kish ESS and Pareto k-hat;
-        :attr:`~solderpyro.calibration.amis.AMISResult.reliable`)."""
+        :attr:`~solderpyro.exact.amis.AMISResult.reliable`)."""
         return self.result.reliable
 
 
@@ -462,8 +462,8 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
 
     For each parameter ``k`` its value is held at a grid and the others are refitted by one
     batched Levenberg-Marquardt for all parameters and grid points together
-    (:func:`solderpyro.fit.lm_fit`); the interval is where ``chi2_k(value) - chi2_min <= delta``
-    (Wilks: the profile likelihood ratio at the true value is asymptotically chi2(1), so
+    (:func:`solderpyro.exact.fit.lm_fit`); the interval is where ``chi2_k(value) - chi2_min <=
+    delta`` (Wilks: the profile likelihood ratio at the true value is asymptotically chi2(1), so
     ``delta = 3.84`` gives 95 % coverage whatever the prior box and however wide the ridge of
     the other parameters, unlike a flat-prior posterior's interval). The grid spans the unit-scale
     range of the samples within ``delta + 10`` of the best one, widened by 15 %; each grid point
@@ -484,7 +484,7 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
     Raises:
         ValueError: bad sizes, ``sigma <= 0``, ``n_grid < 3`` or no finite sample.
     """
-    from solderpyro.fit import lm_fit
+    from solderpyro.exact.fit import lm_fit
 
     samples = np.atleast_2d(np.asarray(samples, float))
     ssr = np.asarray(ssr, float)
@@ -616,7 +616,7 @@ def _interval(sm: _ProfileSamples, k: int, pts_k: list[tuple[float, float, np.nd
 
 
 def laplace_cov_unit(fit: Any, space: Box, sigma: float) -> np.ndarray:
-    """Laplace covariance ``(space.dim, space.dim)`` of an :class:`~solderpyro.fit.LMFit` on
+    """Laplace covariance ``(space.dim, space.dim)`` of an :class:`~solderpyro.exact.fit.LMFit` on
     ``space``'s unit scale (log where flagged): ``(J_u' J_u / sigma^2 + 4 I)^-1``, the ``4 I``
     a prior sd of half the box so that a direction the data do not constrain spans the box.
 

@@ -16,7 +16,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from solderpyro.rundir import (
+from solderpyro.config.rundir import (
     COMPARISON_JSON,
     DIAGNOSIS_JSON,
     RUN_JSON,

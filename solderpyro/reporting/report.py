@@ -12,9 +12,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from solderpyro.calibration.intervals import CENTRAL, LOWER_FACE, UPPER_FACE
+from solderpyro.config.rundir import RunDir
 from solderpyro.io.measurements import Measurements
-from solderpyro.plots import plot_traces, plot_validation
-from solderpyro.rundir import RunDir
+from solderpyro.reporting.plots import plot_traces, plot_validation
 
 
 def _by_point(meas: Measurements) -> dict[str, np.ndarray]:
@@ -236,7 +236,7 @@ def _exact_section(exact: ExactReport, info: dict[str, Any], names: list[str], s
     """The report's lines on the FE-exact posterior (``info``: the run's FE-exact record;
     ``names``: the parameters), and its figure (``save(fig, name)``); ``truth``: true values
     drawn in the figure (synthetic data)."""
-    from solderpyro.plots import plot_exact
+    from solderpyro.reporting.plots import plot_exact
 
     ex, rows = exact.posterior, exact.rows
     prof = info.get("profile")

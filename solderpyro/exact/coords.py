@@ -1,8 +1,8 @@
 """Coordinates to sample a posterior in: the prior box's unit cube, or flow stresses.
 
-The FE-exact posterior (:mod:`solderpyro.exact`) is sampled with Gaussian-mixture proposals,
-which work as well as the posterior is close to Gaussian in the coordinates they live in. On
-the specimen's data the Anand constants trade off along curved ridges: s0, Q/R and xi move
+The FE-exact posterior (:mod:`solderpyro.exact.posterior`) is sampled with Gaussian-mixture
+proposals, which work as well as the posterior is close to Gaussian in the coordinates they live
+in. On the specimen's data the Anand constants trade off along curved ridges: s0, Q/R and xi move
 together so that the solder's flow stress at the cycle's rates stays what the data say. In the
 coordinates of :class:`~solderpyro.surrogate.features.FlowStressInputs` (s0 and Q/R replaced
 by the log flow stresses at s0 and at saturation at a reference temperature and rate) much of

@@ -17,9 +17,9 @@ members are stored (``ok=False`` with the reason) and are not recomputed on reru
 The solver's code is not part of the hash: after changing the solver (not the problem), use a
 new ``root``. Each record names the solderpyro version that computed it.
 
-This module imports nothing that runs FE batches: :mod:`solderpyro.executor` (where batches
-run, and where workers write their runs) and :mod:`solderpyro.store` (the DOE runner
-:func:`~solderpyro.store.run_doe`, which re-exports this module's public names) build on it.
+This module imports nothing that runs FE batches: :mod:`solderpyro.compute.executor` (where batches
+run, and where workers write their runs) and :mod:`solderpyro.compute.store` (the DOE runner
+:func:`~solderpyro.compute.store.run_doe`, which re-exports this module's public names) build on it.
 """
 
 from __future__ import annotations
@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .params import ANAND_NAMES
-from .version import __version__
+from solderpyro.params import ANAND_NAMES
+from solderpyro.version import __version__
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,7 @@ def config_inputs(problem: Any, times: Sequence[float], field: bool,
 
 
 def _effect_settings(effects: Any, times: Sequence[float]) -> list[dict]:
-    from .effects import EffectSet
+    from solderpyro.effects import EffectSet
 
     if effects is None or len(effects) == 0:
         return []

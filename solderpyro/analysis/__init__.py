@@ -1,0 +1,1 @@
+"""Studies of the model itself: the sensitivity of the outputs to the constants."""

@@ -1,0 +1,1 @@
+"""Configuration: the typed settings, composing the YAML configs, the run directory."""
