@@ -64,8 +64,8 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
         ``(values (n_p,), rms_um)``; the largest ladder value when none reaches the target.
     """
     from solderpyro.effects import effect_set
-    from solderpyro.fem.solver import SpecimenSolver
     from solderpyro.params import anand_tensor
+    from solderpyro.specimen import SpecimenModel
 
     times = _ladder_times(setup)
     fx = effect_set((effect,), times, setup.effect_bounds)
@@ -74,8 +74,8 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     rows = np.vstack([np.asarray(eff.off, float)[None], lad])
     a = anand_tensor(anand or TRUTH, base=setup.anand, dtype=torch.float64)
     P = torch.cat([a.expand(len(rows), -1), torch.tensor(rows)], 1)
-    solver = SpecimenSolver(setup.problem, dtype=setup.dtype, effects=fx)
-    V = solver.solve(P, times).V.detach().numpy()
+    model = SpecimenModel(setup.problem, times=times, dtype=setup.dtype, effects=fx)
+    V = model.solve_rows(P).V.numpy()
     rms = np.sqrt(((V[1:] - V[:1]) ** 2).mean((1, 2)))
     ok = np.flatnonzero(rms >= target_rms)
     k = int(ok[0]) if len(ok) else len(rms) - 1
