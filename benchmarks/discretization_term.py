@@ -22,7 +22,7 @@ import dataclasses
 import numpy as np
 
 from solderpyro.config.compose import build, compose
-from solderpyro.exact.fit import lm_fit
+from solderpyro.exact.fit import LMOptions, lm_fit
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.fe_check import refined
 from solderpyro.pipeline.problem import CalibrationProblem
@@ -64,7 +64,7 @@ def main() -> None:
             return W(sm.observed(X))
 
         fits = lm_fit(f, np.array([truth, ref]), sm.space.lower, sm.space.upper, W(y), sig,
-                      iters=10)
+                      options=LMOptions(iters=10))
         b = min(fits, key=lambda t: t.chi2)
         c2t = float(np.sum((W(y) - f(truth[None])[0]) ** 2) / sig**2)
         print(f"amplitude sd {s:g}: best fit chi2 {b.chi2:.2f} at {np.round(b.x, 4)}; truth "

@@ -32,7 +32,7 @@ from scipy.special import logsumexp
 
 from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
-from solderpyro.exact.fit import lm_fit
+from solderpyro.exact.fit import LMOptions, lm_fit
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.io.measurements import read_measurements
 from solderpyro.specimen import (
@@ -99,7 +99,8 @@ def main() -> None:
                 x[0] = g
                 X0.append(x)
         fits = lm_fit(fun, np.array(X0), lo, hi, y, sigma,
-                      free=[np.arange(1, space.dim)] * len(X0), iters=a.iters)
+                      free=[np.arange(1, space.dim)] * len(X0),
+                      options=LMOptions(iters=a.iters))
         rows, lp = [], []
         for i, ft in enumerate(fits):
             J = ft.jacobian_unit(lo, hi, space.log_scale)

@@ -24,7 +24,7 @@ import numpy as np
 
 from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.hidden import TRUTH
-from solderpyro.exact.fit import lm_fit
+from solderpyro.exact.fit import LMOptions, lm_fit
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.problem import CalibrationProblem
 
@@ -56,7 +56,7 @@ def main() -> None:
     y, sig = np.array(meas.value_um), float(np.median(meas.sigma_um))
     t0 = time.perf_counter()
     fits = lm_fit(sm.observed, np.array(starts), sm.space.lower, sm.space.upper, y, sig,
-                  free=free, iters=12, tol=0.05)
+                  free=free, options=LMOptions(iters=12, tol=0.05))
     best = min(f.chi2 for f in fits)
     c2t = float((((y - sm.observed(truth[None])[0]) / sig) ** 2).sum())
     print(f"{time.perf_counter() - t0:.0f} s; best fit chi2 {fits[0].chi2:.2f} at "

@@ -34,7 +34,7 @@ import torch
 
 from solderpyro.diagnose.decide import Floor, Judged, Refit, forward_step, forward_steps, judge
 from solderpyro.diagnose.stats import Score
-from solderpyro.exact.fit import LMFit, lm_fit
+from solderpyro.exact.fit import LMFit, LMOptions, lm_fit
 from solderpyro.specimen import SpecimenModels
 
 log = logging.getLogger("solderpyro")
@@ -134,7 +134,7 @@ def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,
             meas: the data; sigma: noise sd, um.
         models: name -> (the candidates it fits beside the calibrated parameters, its start
             row ``(n_col,)``, physical units).
-        iters, tol, rel: of :func:`~solderpyro.exact.fit.lm_fit`.
+        iters, tol, rel: of :class:`~solderpyro.exact.fit.LMOptions`.
     Returns:
         name -> :class:`~solderpyro.exact.fit.LMFit` (``x`` a full row).
     """
@@ -155,7 +155,7 @@ def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,
     names = list(models)
     X0 = np.array([np.clip(models[m][1], lay.lo, lay.hi) for m in names])
     out = lm_fit(run, X0, lay.lo, lay.hi, y, sigma, [lay.free(models[m][0]) for m in names],
-                 iters, rel, tol=tol)
+                 LMOptions(iters=iters, rel=rel, tol=tol))
     return dict(zip(names, out, strict=True))
 
 

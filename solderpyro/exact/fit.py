@@ -28,7 +28,7 @@ class LMFit:
             parameters scaled to the unit box (``df / du``, um), at the last point where it was
             evaluated (the last accepted step's start; None if never).
         iters: accepted steps; history: chi-square at each evaluation.
-        converged: the stopping rule of :func:`lm_fit`'s ``tol`` was met (always False
+        converged: the stopping rule of :attr:`LMOptions.tol` was met (always False
             without ``tol``).
     """
 
@@ -104,11 +104,31 @@ def _truncate(x: np.ndarray, step: np.ndarray, lo: np.ndarray, hi: np.ndarray
     return np.clip(x + max(alpha, 0.0) * step, lo, hi)
 
 
+@dataclass(frozen=True)
+class LMOptions:
+    """The tuning of :func:`lm_fit`.
+
+    Attributes:
+        iters: iterations (the most, with ``tol``).
+        rel: difference step as a share of the box width.
+        lam0: the first iteration's damping.
+        tol: stop a start once an iteration lowers its chi-square by less than ``tol``
+            (absolute; the chi-square's own sampling sd is ``sqrt(2 n)``, so 0.1 is far below
+            anything a test could see), or once two iterations in a row accept no step (the
+            second one's trials damped 1e3 x more: a bound or a kink holds it); stopped starts
+            cost no more FE rows. None: run all ``iters``.
+    """
+
+    iters: int = 5
+    rel: float = 1e-3
+    lam0: float = 1e-2
+    tol: float | None = None
+
+
 def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
            lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray, y: np.ndarray,
-           sigma: float,
-           free: Sequence[np.ndarray] | None = None, iters: int = 5, rel: float = 1e-3,
-           lam0: float = 1e-2, tol: float | None = None) -> list[LMFit]:
+           sigma: float, free: Sequence[np.ndarray] | None = None,
+           options: LMOptions = LMOptions()) -> list[LMFit]:
     """Bounded Levenberg-Marquardt from ``S`` starts at once, forward differences.
 
     Each iteration makes two calls of ``fun``: the points and their difference steps (``S``
@@ -129,13 +149,8 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
         lo, hi: ``(p,)`` box.
         y: ``(n,)`` data, um; sigma: noise sd, um.
         free: per start, the indices it fits (default: all ``p``).
-        iters: iterations (the most, with ``tol``); rel: difference step as a share of the
-            box width.
-        tol: stop a start once an iteration lowers its chi-square by less than ``tol``
-            (absolute; the chi-square's own sampling sd is ``sqrt(2 n)``, so 0.1 is far below
-            anything a test could see), or once two iterations in a row accept no step (the
-            second one's trials damped 1e3 x more: a bound or a kink holds it); stopped starts
-            cost no more FE rows. None: run all ``iters``.
+        options: iterations, difference step, first damping and stopping rule
+            (:class:`LMOptions`).
     Returns:
         ``S`` :class:`LMFit`, in the order of ``x0``.
     """
@@ -146,6 +161,7 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
                          f"{hi_a.shape}")
     if not sigma > 0:
         raise ValueError(f"lm_fit: sigma must be > 0, got {sigma}")
+    iters, rel, lam0, tol = options.iters, options.rel, options.lam0, options.tol
     y = np.asarray(y, float)
     S = x0.shape[0]
     frees = [np.arange(x0.shape[1])] * S if free is None else [np.asarray(f, int) for f in free]

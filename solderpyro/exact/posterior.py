@@ -132,7 +132,7 @@ def fe_profile(fun: Fun, coords: UnitCoords, x_best: np.ndarray, cov_w: np.ndarr
     Returns:
         :class:`Profile`, sorted by the profiled value.
     """
-    from solderpyro.exact.fit import lm_fit
+    from solderpyro.exact.fit import LMOptions, lm_fit
 
     space, d = coords.space, coords.dim
     if n_grid < 2:
@@ -158,7 +158,8 @@ def fe_profile(fun: Fun, coords: UnitCoords, x_best: np.ndarray, cov_w: np.ndarr
         return np.clip(X, lo, hi)
 
     def refit(X0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        fits = lm_fit(fun, X0, lo, hi, y, sigma, free=[rest] * len(X0), iters=iters)
+        fits = lm_fit(fun, X0, lo, hi, y, sigma, free=[rest] * len(X0),
+                      options=LMOptions(iters=iters))
         covs = np.full((len(X0), d - 1, d - 1), np.nan)
         for g, ft in enumerate(fits):
             J = ft.jacobian_unit(lo, hi, space.log_scale)
@@ -484,7 +485,7 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
     Raises:
         ValueError: bad sizes, ``sigma <= 0``, ``n_grid < 3`` or no finite sample.
     """
-    from solderpyro.exact.fit import lm_fit
+    from solderpyro.exact.fit import LMOptions, lm_fit
 
     samples = np.atleast_2d(np.asarray(samples, float))
     ssr = np.asarray(ssr, float)
@@ -513,7 +514,7 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
         owners += [k] * n_grid
     X0 = np.vstack(X0s)
     fits = lm_fit(fun, X0, sm.lo, sm.hi, y, sigma,
-                  free=[np.delete(np.arange(d), k) for k in owners], iters=iters)
+                  free=[np.delete(np.arange(d), k) for k in owners], options=LMOptions(iters=iters))
     res: dict[int, list[tuple[float, float, np.ndarray]]] = {k: [] for k in ks}
     for k, ug_k, ft in zip(owners, np.concatenate([grids[k] for k in ks]), fits, strict=True):
         res[k].append((float(ug_k), ft.chi2, ft.x))
@@ -523,7 +524,8 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
         if not new:
             break
         fits = lm_fit(fun, np.array(new), sm.lo, sm.hi, y, sigma,
-                      free=[np.delete(np.arange(d), k) for k, _ in new_own], iters=iters)
+                      free=[np.delete(np.arange(d), k) for k, _ in new_own],
+                      options=LMOptions(iters=iters))
         for (k, un), ft in zip(new_own, fits, strict=True):
             res[k].append((un, ft.chi2, ft.x))
     c_min = float(min(c_s.min(), min(c for k in ks for _, c, _ in res[k])))

@@ -151,13 +151,14 @@ def fe_best_fit(fun: Any, starts: np.ndarray, space: Box, y: np.ndarray, sigma: 
         fun: ``rows (b, dim) -> (b, n_obs)`` the FE's observed outputs, um (through the run
             store); starts: ``(k, dim)`` physical units; space: the calibrated box;
         y: ``(n_obs,)`` um; sigma: the fits' noise sd, um; iters, tol: of
-        :func:`~solderpyro.exact.fit.lm_fit` (None: all ``iters``).
+        :class:`~solderpyro.exact.fit.LMOptions` (None: all ``iters``).
     Returns:
         the best :class:`~solderpyro.exact.fit.LMFit` (``x (dim,)``, ``chi2`` in ``sigma`` units).
     """
-    from solderpyro.exact.fit import lm_fit
+    from solderpyro.exact.fit import LMOptions, lm_fit
 
-    fits = lm_fit(fun, starts, space.lower, space.upper, y, sigma, iters=iters, tol=tol)
+    fits = lm_fit(fun, starts, space.lower, space.upper, y, sigma,
+                  options=LMOptions(iters=iters, tol=tol))
     return min(fits, key=lambda f: f.chi2)
 
 

@@ -11,7 +11,7 @@ import torch
 from solderpyro.calibration.intervals import weighted_quantiles
 from solderpyro.exact.amis import log_marginal_sigma
 from solderpyro.exact.coords import UnitCoords
-from solderpyro.exact.fit import lm_fit
+from solderpyro.exact.fit import LMOptions, lm_fit
 from solderpyro.exact.posterior import (
     exact_posterior,
     fe_profile,
@@ -58,7 +58,8 @@ def grid_posterior(y, n=161):
 
 def test_profile_follows_the_ridge_and_its_mixture_covers_it():
     y = data()
-    fit = lm_fit(model, np.array([[2.0, 0.8, 0.5]]), BOX.lower, BOX.upper, y, SIGMA, iters=20)[0]
+    fit = lm_fit(model, np.array([[2.0, 0.8, 0.5]]), BOX.lower, BOX.upper, y, SIGMA,
+                 options=LMOptions(iters=20))[0]
     cov = laplace_cov_unit(fit, BOX, SIGMA)
     assert profile_coordinate(cov) in (0, 1)  # the ridge moves a and b, not c
     J = fit.jacobian_unit(BOX.lower, BOX.upper, BOX.log_scale)
@@ -101,7 +102,7 @@ def test_exact_posterior_matches_the_grid_from_a_misplaced_start(seed):
     a = rng.uniform(3.0, 3.5, 300)
     draws = np.column_stack([a, 1.5 / a + 0.01 * rng.standard_normal(300),
                              0.7 + 0.02 * rng.standard_normal(300)])
-    fit = lm_fit(model, draws[:2], BOX.lower, BOX.upper, y, SIGMA, iters=8)
+    fit = lm_fit(model, draws[:2], BOX.lower, BOX.upper, y, SIGMA, options=LMOptions(iters=8))
     best = min(fit, key=lambda f: f.chi2)
     cov = laplace_cov_unit(best, BOX, SIGMA)
     prof = fe_profile(model, UC, best.x, cov, y, SIGMA, n_grid=9, iters=6)

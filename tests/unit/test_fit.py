@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from solderpyro.exact.fit import lm_fit
+from solderpyro.exact.fit import LMOptions, lm_fit
 
 X = np.linspace(0.0, 3.0, 11)
 
@@ -18,7 +18,8 @@ def test_lm_recovers_a_nonlinear_fit_from_several_starts_at_once():
     y = 5.0 * np.exp(-0.7 * X)
     x0 = np.array([[2.0, 0.2], [8.0, 1.5], [3.0, 1.0]])
     fits = lm_fit(_exp, x0, [0.1, 0.01], [10.0, 3.0], y, 0.1,
-                  free=[np.array([0, 1]), np.array([0, 1]), np.array([0])], iters=40)
+                  free=[np.array([0, 1]), np.array([0, 1]), np.array([0])],
+                  options=LMOptions(iters=40))
     for f in fits[:2]:
         assert f.x == pytest.approx([5.0, 0.7], abs=1e-5) and f.chi2 < 1e-8
     assert fits[2].x[1] == 1.0  # b held
@@ -36,13 +37,13 @@ def test_lm_stays_in_the_box_and_laplace_sd_matches_linear_regression():
         return rows[:, :1] + rows[:, 1:2] * X[None]
 
     lo, hi = np.array([-5.0, -5.0]), np.array([5.0, 5.0])
-    f = lm_fit(lin, np.array([[0.0, 0.0]]), lo, hi, y, 0.1, iters=30)[0]
+    f = lm_fit(lin, np.array([[0.0, 0.0]]), lo, hi, y, 0.1, options=LMOptions(iters=30))[0]
     A = np.column_stack([np.ones_like(X), X])
     beta = np.linalg.lstsq(A, y, rcond=None)[0]
     se = 0.1 * np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
     assert f.x == pytest.approx(beta, abs=1e-6)
     assert f.laplace_sd(lo, hi, 0.1) == pytest.approx(se, rel=1e-4)
-    g = lm_fit(lin, np.array([[0.0, 0.0]]), lo, [5.0, 1.5], y, 0.1, iters=30)[0]
+    g = lm_fit(lin, np.array([[0.0, 0.0]]), lo, [5.0, 1.5], y, 0.1, options=LMOptions(iters=30))[0]
     assert g.x[1] == 1.5 and g.chi2 > f.chi2
     # on the bound the rest is the constrained optimum (c0 refitted with c1 held at 1.5)
     assert g.x[0] == pytest.approx(float(np.mean(y - 1.5 * X)), abs=1e-6)
@@ -69,8 +70,9 @@ def test_lm_tol_stops_each_start_when_converged_and_spends_no_more_rows_on_it():
         return f
 
     x0 = np.array([[2.0, 0.2], [5.0, 0.7]])
-    fits = lm_fit(counted("tol"), x0, [0.1, 0.01], [10.0, 3.0], y, 0.1, iters=40, tol=1e-6)
-    lm_fit(counted("fixed"), x0, [0.1, 0.01], [10.0, 3.0], y, 0.1, iters=40)
+    fits = lm_fit(counted("tol"), x0, [0.1, 0.01], [10.0, 3.0], y, 0.1,
+                  options=LMOptions(iters=40, tol=1e-6))
+    lm_fit(counted("fixed"), x0, [0.1, 0.01], [10.0, 3.0], y, 0.1, options=LMOptions(iters=40))
     assert fits[0].x == pytest.approx([5.0, 0.7], abs=1e-5) and fits[0].converged
     assert fits[1].converged and fits[1].iters == 0 and fits[1].chi2 < 1e-20
     assert n_rows["tol"] < n_rows["fixed"] / 2
