@@ -104,20 +104,38 @@ def profile_coordinate(cov: np.ndarray, candidates: tuple[int, ...] | None = Non
     return int(cand[int(np.argmax(np.abs(V[cand, -1])))])
 
 
+@dataclass(frozen=True)
+class ProfileOptions:
+    """The tuning of :func:`fe_profile`.
+
+    Attributes:
+        n_grid: the first grid's points (at least 2).
+        iters: Levenberg-Marquardt iterations per fit (2 batched calls each).
+        n_sd: the first grid's half-width, Laplace sd of the profiled coordinate.
+        extend_chi2: an end of the profile within this chi-square of its minimum is extended.
+        max_extend: the most extensions.
+    """
+
+    n_grid: int = 9
+    iters: int = 5
+    n_sd: float = 4.0
+    extend_chi2: float = 20.0
+    max_extend: int = 4
+
+
 def fe_profile(fun: Fun, coords: UnitCoords, x_best: np.ndarray, cov_w: np.ndarray,
-               y: np.ndarray, sigma: float, n_grid: int = 9, iters: int = 5,
-               n_sd: float = 4.0, coord: int | None = None, extend_chi2: float = 20.0,
-               max_extend: int = 4) -> Profile:
+               y: np.ndarray, sigma: float, options: ProfileOptions = ProfileOptions(),
+               coord: int | None = None) -> Profile:
     """Profile the chi-square along the weakest direction's coordinate.
 
-    The grid first spans ``+-n_sd`` Laplace sd of that coordinate around the best fit (inside
-    the box); each grid point starts from the Laplace conditional mean of the others, and one
-    batched Levenberg-Marquardt (:func:`solderpyro.exact.fit.lm_fit`) refits them all. A ridge can
-    reach much farther than the Laplace sd says (a curved ridge, a flat one), so while an end
-    of the profile is within ``extend_chi2`` of its minimum and not at the box's bound, two
-    more points are added beyond it (each step 1.5x the last spacing), started by
-    extrapolating the ridge, and refitted in one more batched fit (at most ``max_extend``
-    times).
+    The grid first spans ``+-options.n_sd`` Laplace sd of that coordinate around the best fit
+    (inside the box); each grid point starts from the Laplace conditional mean of the others,
+    and one batched Levenberg-Marquardt (:func:`solderpyro.exact.fit.lm_fit`) refits them all.
+    A ridge can reach much farther than the Laplace sd says (a curved ridge, a flat one), so
+    while an end of the profile is within ``options.extend_chi2`` of its minimum and not at
+    the box's bound, two more points are added beyond it (each step 1.5x the last spacing),
+    started by extrapolating the ridge, and refitted in one more batched fit (at most
+    ``options.max_extend`` times).
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` model outputs, um.
@@ -125,8 +143,7 @@ def fe_profile(fun: Fun, coords: UnitCoords, x_best: np.ndarray, cov_w: np.ndarr
         x_best: ``(dim,)`` the best fit, physical; cov_w: ``(dim, dim)`` its Laplace
             covariance in sampling coordinates (:func:`laplace_cov_w`).
         y: ``(n_obs,)`` data, um; sigma: noise sd, um.
-        n_grid: first grid's points; iters: Levenberg-Marquardt iterations per fit (2 batched
-            calls each).
+        options: grid, fits and extensions (:class:`ProfileOptions`).
         coord: the coordinate to profile (default :func:`profile_coordinate` among the
             pass-through ones).
     Returns:
@@ -134,6 +151,8 @@ def fe_profile(fun: Fun, coords: UnitCoords, x_best: np.ndarray, cov_w: np.ndarr
     """
     from solderpyro.exact.fit import LMOptions, lm_fit
 
+    n_grid, iters, n_sd = options.n_grid, options.iters, options.n_sd
+    extend_chi2, max_extend = options.extend_chi2, options.max_extend
     space, d = coords.space, coords.dim
     if n_grid < 2:
         raise ValueError(f"fe_profile: n_grid must be >= 2, got {n_grid}")
@@ -331,11 +350,29 @@ class ExactPosterior:
         return self.result.reliable
 
 
-def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture, n: int,
-                    rounds: int, sigma_known: float | None = None,
-                    sigma_max: float | None = None, seed: int = 0, n_draws: int = 1000,
-                    profile: Profile | None = None,
-                    on_round: Callable[[AMISResult], None] | None = None) -> ExactPosterior:
+@dataclass(frozen=True)
+class AMISOptions:
+    """The run of :func:`exact_posterior`.
+
+    Attributes:
+        n: samples per AMIS round (one ``fun`` call each); rounds: AMIS rounds.
+        seed: random seed (AMIS and the resampling).
+        n_draws: resampled draws returned (systematic resampling of the weights).
+        on_round: called with the :class:`~solderpyro.exact.amis.AMISResult` so far after
+            every round (e.g. to log progress), or None.
+    """
+
+    n: int
+    rounds: int
+    seed: int = 0
+    n_draws: int = 1000
+    on_round: Callable[[AMISResult], None] | None = None
+
+
+def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
+                    options: AMISOptions, sigma_known: float | None = None,
+                    sigma_max: float | None = None, profile: Profile | None = None
+                    ) -> ExactPosterior:
     """Sample the posterior of ``coords.space`` and the noise sd with ``fun`` in the likelihood.
 
     ``p(theta, sigma | y) ∝ prod_i N(y_i; fun(theta)_i, sigma^2) p(sigma)``, flat on the box's
@@ -347,14 +384,15 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture, n
         fun: ``rows (b, dim) -> (b, n_obs)`` um, NaN rows where the model failed.
         coords: sampling coordinates of the box. y: ``(n_obs,)`` data, um.
         q0: first proposal (sampling coordinates).
-        n, rounds: samples per AMIS round (one ``fun`` call each) and rounds.
-        n_draws: resampled draws returned (systematic resampling of the weights).
-        on_round: called after every round (e.g. to log progress).
+        options: samples, rounds, seed, draws and progress hook (:class:`AMISOptions`).
+        sigma_known, sigma_max: sigma's prior, um (see above; one of them must be given).
+        profile: the ridge profile used in ``q0``, kept in the result (or None).
     Returns:
         :class:`ExactPosterior`.
     Raises:
         RuntimeError: when the model failed at every sample.
     """
+    n, rounds, seed, n_draws = options.n, options.rounds, options.seed, options.n_draws
     y = np.asarray(y, float)
     n_obs = y.shape[0]
 
@@ -366,7 +404,7 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture, n
         return ll - coords.log_det(X), {"V": V, "ssr": ssr}
 
     res = amis(log_target, q0, n, rounds, seed=seed, in_support=coords.inside,
-               on_round=on_round)
+               on_round=options.on_round)
     if not np.isfinite(res.log_w).any():
         raise RuntimeError(f"exact_posterior: the model failed at all {len(res.u)} samples")
     w = res.weights()
@@ -454,23 +492,40 @@ def _crossing(g: np.ndarray, d: np.ndarray, i_in: int, i_out: int) -> float:
     return float(g[i_in] + t * (g[i_out] - g[i_in]))
 
 
+@dataclass(frozen=True)
+class IntervalOptions:
+    """The tuning of :func:`profile_intervals`.
+
+    Attributes:
+        n_grid: grid points per parameter (at least 3).
+        iters: Levenberg-Marquardt iterations per fit.
+        delta: the chi-square threshold above the minimum (3.84: 95 %, one degree of freedom).
+        max_extend: the most extensions of a profile whose end is still below the threshold.
+    """
+
+    n_grid: int = 9
+    iters: int = 6
+    delta: float = PROFILE_CHI2_95
+    max_extend: int = 2
+
+
 def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.ndarray,
-                      ssr: np.ndarray, params: list[int] | None = None, n_grid: int = 9,
-                      iters: int = 6, delta: float = PROFILE_CHI2_95, max_extend: int = 2
-                      ) -> list[ProfileInterval]:
+                      ssr: np.ndarray, params: list[int] | None = None,
+                      options: IntervalOptions = IntervalOptions()) -> list[ProfileInterval]:
     """Profile-likelihood confidence intervals through the model, started from posterior
     samples.
 
     For each parameter ``k`` its value is held at a grid and the others are refitted by one
     batched Levenberg-Marquardt for all parameters and grid points together
     (:func:`solderpyro.exact.fit.lm_fit`); the interval is where ``chi2_k(value) - chi2_min <=
-    delta`` (Wilks: the profile likelihood ratio at the true value is asymptotically chi2(1), so
-    ``delta = 3.84`` gives 95 % coverage whatever the prior box and however wide the ridge of
-    the other parameters, unlike a flat-prior posterior's interval). The grid spans the unit-scale
-    range of the samples within ``delta + 10`` of the best one, widened by 15 %; each grid point
-    starts from the best-fitting sample near it (so the fits follow the branch of the ridge the
-    posterior found there); while an end of the profile is still below the threshold and not at
-    the box's bound, two more points are added beyond it (``max_extend`` times).
+    delta`` (``options.delta``; Wilks: the profile likelihood ratio at the true value is
+    asymptotically chi2(1), so ``delta = 3.84`` gives 95 % coverage whatever the prior box and
+    however wide the ridge of the other parameters, unlike a flat-prior posterior's interval).
+    The grid spans the unit-scale range of the samples within ``delta + 10`` of the best one,
+    widened by 15 %; each grid point starts from the best-fitting sample near it (so the fits
+    follow the branch of the ridge the posterior found there); while an end of the profile is
+    still below the threshold and not at the box's bound, two more points are added beyond it
+    (``options.max_extend`` times).
 
     Args:
         fun: ``rows (b, dim) -> (b, n_obs)`` model outputs, um (NaN rows where it failed).
@@ -479,7 +534,7 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
         samples: ``(N, dim)`` posterior samples, physical (e.g. the AMIS samples), and ssr
             ``(N,)`` their sums of squared residuals, um^2 (inf/NaN where the model failed).
         params: columns to profile (default all).
-        n_grid: grid points per parameter; iters: Levenberg-Marquardt iterations.
+        options: grid, fits, threshold and extensions (:class:`IntervalOptions`).
     Returns:
         one :class:`ProfileInterval` per profiled parameter, in ``params`` order.
     Raises:
@@ -487,6 +542,7 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
     """
     from solderpyro.exact.fit import LMOptions, lm_fit
 
+    n_grid, iters, delta = options.n_grid, options.iters, options.delta
     samples = np.atleast_2d(np.asarray(samples, float))
     ssr = np.asarray(ssr, float)
     d = space.dim
@@ -518,7 +574,7 @@ def profile_intervals(fun: Fun, space, y: np.ndarray, sigma: float, samples: np.
     res: dict[int, list[tuple[float, float, np.ndarray]]] = {k: [] for k in ks}
     for k, ug_k, ft in zip(owners, np.concatenate([grids[k] for k in ks]), fits, strict=True):
         res[k].append((float(ug_k), ft.chi2, ft.x))
-    for _ in range(max_extend):
+    for _ in range(options.max_extend):
         c_min = min(c_s.min(), min(c for k in ks for _, c, _ in res[k]))
         new, new_own = _extensions(sm, res, float(c_min), delta)
         if not new:

@@ -77,6 +77,8 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         saying why.
     """
     from solderpyro.exact.posterior import (
+        AMISOptions,
+        ProfileOptions,
         exact_posterior,
         fe_profile,
         initial_proposal,
@@ -118,7 +120,8 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
            else np.eye(space.dim) * 0.25)
     prof = None
     if n_profile >= 2:
-        prof = fe_profile(counted, coords, best.x, cov, y, sig, n_grid=n_profile, iters=4)
+        prof = fe_profile(counted, coords, best.x, cov, y, sig,
+                          ProfileOptions(n_grid=n_profile, iters=4))
         log.info("exact: chi2 profile along %s: %s (%d FE runs so far)", space.names[prof.coord],
                  ", ".join(f"{v:.4g}: {c:.1f}" for v, c in zip(prof.x[:, prof.coord],
                                                                  prof.chi2, strict=True)),
@@ -130,8 +133,9 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         log.info("exact: AMIS round %d: %d samples, ESS %.1f, Pareto k-hat %.2f (%d FE runs "
                  "so far)", len(r.history), h["n"], h["ess"], h["khat"], n_fe[0])
 
-    ex = exact_posterior(counted, coords, y, q0, n, rounds, priors.sigma_known,
-                         priors.sigma_max, seed, n_draws, prof, on_round)
+    amis_run = AMISOptions(n, rounds, seed=seed, n_draws=n_draws, on_round=on_round)
+    ex = exact_posterior(counted, coords, y, q0, amis_run, priors.sigma_known, priors.sigma_max,
+                         prof)
     r = ex.result
     info = {"ess": r.ess, "khat": r.khat, "reliable": r.reliable, "fe_runs": n_fe[0],
             "samples": int(len(r.u)), "coordinates": coords.name, "rounds": r.history,

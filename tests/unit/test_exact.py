@@ -13,6 +13,8 @@ from solderpyro.exact.amis import log_marginal_sigma
 from solderpyro.exact.coords import UnitCoords
 from solderpyro.exact.fit import LMOptions, lm_fit
 from solderpyro.exact.posterior import (
+    AMISOptions,
+    ProfileOptions,
     exact_posterior,
     fe_profile,
     initial_proposal,
@@ -64,7 +66,7 @@ def test_profile_follows_the_ridge_and_its_mixture_covers_it():
     assert profile_coordinate(cov) in (0, 1)  # the ridge moves a and b, not c
     J = fit.jacobian_unit(BOX.lower, BOX.upper, BOX.log_scale)
     np.testing.assert_allclose(laplace_cov_w(J, UC, fit.x, SIGMA), cov, rtol=1e-12)
-    prof = fe_profile(model, UC, fit.x, cov, y, SIGMA, n_grid=9, iters=8)
+    prof = fe_profile(model, UC, fit.x, cov, y, SIGMA, ProfileOptions(n_grid=9, iters=8))
     # the model is linear in the other two parameters once the profiled one is fixed, so each
     # profile point's chi2 must equal the exact least-squares minimum (where it is in the box)
     j = prof.coord
@@ -105,9 +107,9 @@ def test_exact_posterior_matches_the_grid_from_a_misplaced_start(seed):
     fit = lm_fit(model, draws[:2], BOX.lower, BOX.upper, y, SIGMA, options=LMOptions(iters=8))
     best = min(fit, key=lambda f: f.chi2)
     cov = laplace_cov_unit(best, BOX, SIGMA)
-    prof = fe_profile(model, UC, best.x, cov, y, SIGMA, n_grid=9, iters=6)
+    prof = fe_profile(model, UC, best.x, cov, y, SIGMA, ProfileOptions(n_grid=9, iters=6))
     q0 = initial_proposal(UC, draws, (best.x, cov), prof, seed=seed)
-    ex = exact_posterior(model, UC, y, q0, 400, 4, sigma_known=SIGMA, seed=seed)
+    ex = exact_posterior(model, UC, y, q0, AMISOptions(400, 4, seed=seed), sigma_known=SIGMA)
     assert ex.reliable, ex.result.history
     g, marg = grid_posterior(y)
     U = ex.result.u  # unit cube, the grid's coordinates
@@ -130,6 +132,6 @@ def test_exact_posterior_matches_the_grid_from_a_misplaced_start(seed):
 
 def test_exact_inputs_are_checked():
     with pytest.raises(ValueError, match="n_grid"):
-        fe_profile(model, UC, TRUTH, np.eye(3) * 0.01, data(), SIGMA, n_grid=1)
+        fe_profile(model, UC, TRUTH, np.eye(3) * 0.01, data(), SIGMA, ProfileOptions(n_grid=1))
     with pytest.raises(ValueError, match="draws, an FE best fit or a profile"):
         initial_proposal(UC)

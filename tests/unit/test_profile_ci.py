@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from solderpyro.exact.posterior import PROFILE_CHI2_95, profile_intervals
+from solderpyro.exact.posterior import PROFILE_CHI2_95, IntervalOptions, profile_intervals
 from solderpyro.params import Box
 
 SIGMA = 0.1
@@ -36,7 +36,7 @@ def test_linear_model_gives_the_closed_form_interval():
     cov = np.linalg.inv(H)
     th = cov @ (A.T @ y) / SIGMA**2
     S, ssr = _posterior_samples(rng, th, cov, fun, y)
-    out = profile_intervals(fun, box, y, SIGMA, S, ssr, n_grid=7, iters=6)
+    out = profile_intervals(fun, box, y, SIGMA, S, ssr, options=IntervalOptions(n_grid=7, iters=6))
     assert [p.parameter for p in out] == ["a", "b", "c"]
     chi2_min = float(((fun(th[None])[0] - y) ** 2).sum() / SIGMA**2)
     for p in out:
@@ -66,7 +66,7 @@ def test_a_parameter_the_data_do_not_see_spans_the_box():
     assert c.at_lower_bound and c.at_upper_bound and not c.truncated
     assert not (a.at_lower_bound or a.at_upper_bound)
     with pytest.raises(ValueError, match="n_grid"):
-        profile_intervals(fun, box, y, SIGMA, S, ssr, n_grid=2)
+        profile_intervals(fun, box, y, SIGMA, S, ssr, options=IntervalOptions(n_grid=2))
     with pytest.raises(ValueError, match="do not match"):
         profile_intervals(fun, box, y, SIGMA, S[:, :1], ssr)
     with pytest.raises(ValueError, match="finite"):
@@ -93,7 +93,8 @@ def test_wilks_coverage_on_a_nonlinear_ridge():
         u = rng.uniform(0, 1, (400, 2))
         S = box.from_unit(torch.as_tensor(u)).numpy()
         ssr = ((fun(S) - y) ** 2).sum(1)
-        out = profile_intervals(fun, box, y, SIGMA, S, ssr, n_grid=9, iters=8)
+        out = profile_intervals(fun, box, y, SIGMA, S, ssr,
+                                options=IntervalOptions(n_grid=9, iters=8))
         hits += [p.lower <= truth[p.k] <= p.upper for p in out]
     cov = hits / n_rep
     assert np.all(np.abs(cov - 0.95) <= 3.5 * np.sqrt(0.05 * 0.95 / n_rep)), cov
