@@ -40,6 +40,7 @@ import torch
 
 from solderpyro.calibration.intervals import weighted_quantiles, with_intervals
 from solderpyro.exact.amis import (
+    AmisOptions,
     AMISResult,
     TMixture,
     amis,
@@ -364,7 +365,7 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture, n
         ll, _ = log_marginal_sigma(ssr, n_obs, sigma_known, sigma_max)
         return ll - coords.log_det(X), {"V": V, "ssr": ssr}
 
-    res = amis(log_target, q0, n, rounds, seed=seed, in_support=coords.inside,
+    res = amis(log_target, q0, n, rounds, AmisOptions(seed=seed), in_support=coords.inside,
                on_round=on_round)
     if not np.isfinite(res.log_w).any():
         raise RuntimeError(f"exact_posterior: the model failed at all {len(res.u)} samples")
