@@ -44,7 +44,7 @@ def main() -> None:
 
     from solderpyro.calibration.koh import SITE_SIGMA, SITE_T
     from solderpyro.calibration.mcmc import MAPPED_ACCEPT
-    from solderpyro.calibration.nuts import sample_nuts
+    from solderpyro.calibration.nuts import NutsSettings, sample_nuts
     from solderpyro.calibration.ridgemap import RidgeMap
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -89,9 +89,9 @@ def main() -> None:
         else:
             f, W = m.wrap(fm.logp_and_grad), m.inverse(Q)
         t0 = time.perf_counter()
-        res = sample_nuts(f, fm.dim, 4, warmup, 1500, a.seed, W[starts], ta, 10,
-                          dense_mass=True,
-                          inv_metric=np.cov(W.T), workers=2)
+        ns = NutsSettings(chains=4, warmup=warmup, draws=1500, seed=a.seed, target_accept=ta,
+                          max_tree_depth=10, dense_mass=True, workers=2)
+        res = sample_nuts(f, fm.dim, ns, W[starts], inv_metric=np.cov(W.T))
         wall = time.perf_counter() - t0
         D = res.draws if mode.startswith("plain") else m.forward(res.draws)[0]
         ess = float(np.min(az.ess(az.convert_to_dataset({"q": D}), method="bulk")["q"].values))

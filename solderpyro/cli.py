@@ -308,7 +308,11 @@ def cmd_diagnose(a, overrides) -> int:
 
 
 def cmd_sensitivity(a, overrides) -> int:
-    from solderpyro.analysis.sensitivity import parse_bounds, run_sensitivity
+    from solderpyro.analysis.sensitivity import (
+        SensitivitySettings,
+        parse_bounds,
+        run_sensitivity,
+    )
     from solderpyro.config.compose import parse_times
 
     bounds = parse_bounds(a.box)
@@ -318,11 +322,12 @@ def cmd_sensitivity(a, overrides) -> int:
                     "--grad-points", str(a.grad_points), "--seed", str(a.seed),
                     *(["--times", a.times] if a.times else []),
                     *(["--box", a.box] if a.box else []), *overrides])
-    res = run_sensitivity(setup, a.out, n_runs=a.runs, grad_points=a.grad_points,
-                          grad_batch=a.grad_batch, times=times, store_root=a.store,
-                          seed=a.seed, n_sobol=a.sobol_samples, n_boot=a.bootstrap,
-                          bounds=bounds, batch_size=a.batch, refits=a.refits,
-                          progress=not a.quiet, command=cmd)
+    settings = SensitivitySettings(n_runs=a.runs, grad_points=a.grad_points,
+                                   grad_batch=a.grad_batch, times=times, store_root=a.store,
+                                   seed=a.seed, n_sobol=a.sobol_samples, n_boot=a.bootstrap,
+                                   bounds=bounds, batch_size=a.batch, refits=a.refits,
+                                   progress=not a.quiet)
+    res = run_sensitivity(setup, a.out, settings, command=cmd)
     print(f"\n{'parameter':>9} {'DGSM':>9} {'S1':>7} {'ST':>7} {'ST 95 %':>15} rank")
     for r in sorted(res.rows, key=lambda r: r["rank"]):
         print(f"{r['parameter']:>9} {r['dgsm']:9.3g} {r['S1']:7.3f} {r['ST']:7.3f} "

@@ -432,44 +432,68 @@ def jackknife_st(box: ParameterSpace, theta: torch.Tensor, y: torch.Tensor,
     return torch.stack(out)
 
 
-def _check_options(n_runs: int, grad_points: int, grad_batch: int, n_sobol: int, n_boot: int,
-                   refits: int) -> None:
+@dataclass(frozen=True)
+class SensitivitySettings:
+    """The knobs of :func:`run_sensitivity` (the CLI's defaults).
+
+    Attributes:
+        n_runs: LHS FE runs for the GP (>= 10; stored in ``store_root``, reused on rerun).
+        grad_points: LHS points of the DGSM (>= 2).
+        grad_batch: members per autograd FE solve of the DGSM (>= 1).
+        times: output times, s (None: ``setup.times``).
+        store_root: directory of the :class:`~solderpyro.compute.store.RunStore`.
+        seed: LHS seed of the DOE (the DGSM design uses ``seed + 1``), Sobol scrambling and
+            bootstrap seed.
+        n_sobol: Sobol base sample (a power of two >= 16).
+        n_boot: bootstrap resamples (>= 10).
+        bounds: name -> (lower, upper) overrides of the box in physical units (see
+            :func:`sensitivity_box`).
+        batch_size: FE runs per DOE solve.
+        refits: GP refits without 1/refits of the runs each, for the surrogate's standard
+            error of S_T (0 or 1: none; at most ``n_runs``).
+        progress: tqdm progress bars.
+    """
+
+    n_runs: int = 100
+    grad_points: int = 32
+    grad_batch: int = 16
+    times: Sequence[float] | None = None
+    store_root: str | Path = "runs/store"
+    seed: int = 0
+    n_sobol: int = 8192
+    n_boot: int = 200
+    bounds: Mapping[str, tuple[float, float]] | None = None
+    batch_size: int = 64
+    refits: int = 5
+    progress: bool = True
+
+
+def _check_options(st: SensitivitySettings) -> None:
     """Raise ``ValueError`` naming the first bad option (before any FE work)."""
-    if n_runs < 10:
-        raise ValueError(f"--runs must be at least 10 (a 9-input GP), got {n_runs}")
-    if grad_points < 2:
-        raise ValueError(f"--grad-points must be at least 2, got {grad_points}")
-    if grad_batch < 1:
-        raise ValueError(f"--grad-batch must be at least 1, got {grad_batch}")
-    if n_sobol < 16 or n_sobol & (n_sobol - 1):
-        raise ValueError(f"--sobol-samples must be a power of two >= 16, got {n_sobol}")
-    if n_boot < 10:
-        raise ValueError(f"--bootstrap must be at least 10, got {n_boot}")
-    if refits < 0 or refits > n_runs:
-        raise ValueError(f"--refits must be in [0, --runs], got {refits}")
+    if st.n_runs < 10:
+        raise ValueError(f"--runs must be at least 10 (a 9-input GP), got {st.n_runs}")
+    if st.grad_points < 2:
+        raise ValueError(f"--grad-points must be at least 2, got {st.grad_points}")
+    if st.grad_batch < 1:
+        raise ValueError(f"--grad-batch must be at least 1, got {st.grad_batch}")
+    if st.n_sobol < 16 or st.n_sobol & (st.n_sobol - 1):
+        raise ValueError(f"--sobol-samples must be a power of two >= 16, got {st.n_sobol}")
+    if st.n_boot < 10:
+        raise ValueError(f"--bootstrap must be at least 10, got {st.n_boot}")
+    if st.refits < 0 or st.refits > st.n_runs:
+        raise ValueError(f"--refits must be in [0, --runs], got {st.refits}")
 
 
-def run_sensitivity(setup: Any, out: str | Path, n_runs: int = 100, grad_points: int = 32,
-                    grad_batch: int = 16, times: Sequence[float] | None = None,
-                    store_root: str | Path = "runs/store", seed: int = 0,
-                    n_sobol: int = 8192, n_boot: int = 200,
-                    bounds: Mapping[str, tuple[float, float]] | None = None,
-                    batch_size: int = 64, refits: int = 5, progress: bool = True,
+def run_sensitivity(setup: Any, out: str | Path,
+                    settings: SensitivitySettings = SensitivitySettings(),
                     command: str = "") -> SensitivityResult:
-    """Rank the nine Anand constants by their influence on V_A, V_B at ``times``.
+    """Rank the nine Anand constants by their influence on V_A, V_B at ``settings.times``.
 
     Args:
         setup: a :class:`~solderpyro.config.compose.Setup` (problem, calibrated box, defaults,
             dtype, device, surrogate settings).
         out: output directory (created): sensitivity.csv / .json / .png / .md.
-        n_runs: LHS FE runs for the GP (>= 10; stored in ``store_root``, reused on rerun).
-        grad_points: LHS points of the DGSM (>= 2); grad_batch: members per autograd solve.
-        times: output times, s (default ``setup.times``).
-        seed: LHS seed of the DOE (the DGSM design uses ``seed + 1``), Sobol scrambling and
-            bootstrap seed. n_sobol: Sobol base sample (power of two); n_boot: resamples.
-        bounds: name -> (lower, upper) overrides of the box (see :func:`sensitivity_box`).
-        batch_size: FE runs per DOE solve. refits: GP refits without 1/refits of the runs
-            each, for the surrogate's standard error of S_T (0 or 1: none).
+        settings: run sizes, seed, box overrides and store (:class:`SensitivitySettings`).
         command: the command line, for the report.
 
     Returns:
@@ -479,51 +503,54 @@ def run_sensitivity(setup: Any, out: str | Path, n_runs: int = 100, grad_points:
     from solderpyro.design import lhs
     from solderpyro.specimen import SpecimenModel, StoreUse
 
-    _check_options(n_runs, grad_points, grad_batch, n_sobol, n_boot, refits)
-    times = tuple(sorted(float(t) for t in (times or setup.times)))
+    st = settings
+    _check_options(st)
+    times = tuple(sorted(float(t) for t in (st.times or setup.times)))
     end = setup.problem.cycle.end
     if not times or not all(0.0 < t <= end for t in times):
         raise ValueError(f"--times must lie in (0, {end:g}] s, got {times}")
-    box = sensitivity_box(setup.space, bounds, setup.anand)
+    box = sensitivity_box(setup.space, st.bounds, setup.anand)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = SpecimenModel(setup.problem, box, times, dtype=setup.dtype, device=setup.device)
     labels = [f"V_{p}@{t:g}s" for t in times for p in model.output_names]
     tm: dict[str, float] = {}
     t0 = time.perf_counter()
-    store = RunStore(store_root)
-    model.use_store(StoreUse(store, batch_size, progress))
+    store = RunStore(st.store_root)
+    model.use_store(StoreUse(store, st.batch_size, st.progress))
     h = model.cfg_hash
     assert h is not None
-    theta = lhs(box, n_runs, seed)  # (n_runs, 9)
-    log.info("sensitivity DOE: %d LHS runs over the nine-constant box (store %s)", n_runs,
+    theta = lhs(box, st.n_runs, st.seed)  # (n_runs, 9)
+    log.info("sensitivity DOE: %d LHS runs over the nine-constant box (store %s)", st.n_runs,
              store.config_dir(h))
     doe = model.runs(theta)
     tm["doe_s"] = time.perf_counter() - t0
     ok = doe.ok
     if int(ok.sum()) < 10:
-        raise RuntimeError(f"only {int(ok.sum())} of {n_runs} FE runs converged")
-    y = doe.V.reshape(n_runs, -1)[ok]  # (n_ok, n_y), time-major as labels
+        raise RuntimeError(f"only {int(ok.sum())} of {st.n_runs} FE runs converged")
+    y = doe.V.reshape(st.n_runs, -1)[ok]  # (n_ok, n_y), time-major as labels
     var = y.var(0)
 
     t0 = time.perf_counter()
-    u = box.to_unit(lhs(box, grad_points, seed + 1))  # (N, 9)
-    log.info("DGSM: %d points, autograd through the FE in solves of %d", grad_points,
-             grad_batch)
-    _, J = fe_jacobian(model, box, u, grad_batch, progress)
-    dg = dgsm(J, var, n_boot, seed=seed)
+    u = box.to_unit(lhs(box, st.grad_points, st.seed + 1))  # (N, 9)
+    log.info("DGSM: %d points, autograd through the FE in solves of %d", st.grad_points,
+             st.grad_batch)
+    _, J = fe_jacobian(model, box, u, st.grad_batch, st.progress)
+    dg = dgsm(J, var, st.n_boot, seed=st.seed)
     tm["dgsm_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    gp, sb = gp_sobol(box, theta[ok], y, setup.surrogate, n_sobol, seed, n_boot)
+    gp, sb = gp_sobol(box, theta[ok], y, setup.surrogate, st.n_sobol, st.seed, st.n_boot)
     loo = gp.loo()
     problems = gp.check(loo)
     tm["gp_sobol_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     jk = None
-    if refits > 1:
-        log.info("surrogate error: %d GP refits, each without 1/%d of the runs", refits, refits)
-        jk = jackknife_st(box, theta[ok], y, setup.surrogate, refits, min(n_sobol, 2048), seed)
+    if st.refits > 1:
+        log.info("surrogate error: %d GP refits, each without 1/%d of the runs", st.refits,
+                 st.refits)
+        jk = jackknife_st(box, theta[ok], y, setup.surrogate, st.refits, min(st.n_sobol, 2048),
+                          st.seed)
     tm["refits_s"] = time.perf_counter() - t0
     rows = table_rows(box.names, dg, sb)
     res = SensitivityResult(out, box, labels, dg, sb, rows,

@@ -490,7 +490,7 @@ def run_nuts(model: Callable[..., None], args: tuple = (),
         :class:`NutsRun`: samples ``site -> (chains, draws, ...)`` in the model's units.
     """
     from solderpyro.calibration.fastkoh import flat_model
-    from solderpyro.calibration.nuts import sample_nuts
+    from solderpyro.calibration.nuts import NutsSettings, sample_nuts
 
     o = options or NutsOptions()
     t0 = time.perf_counter()
@@ -499,10 +499,11 @@ def run_nuts(model: Callable[..., None], args: tuple = (),
         fm = flat_model(model, args)
         names = coord_names(fm, args)
         st = _in_ridge_coords(_chain_starts(model, args, fm, names, o), names, o, lvl)
-        res = sample_nuts(st.f, fm.dim, o.chains, o.warmup, o.draws, o.seed, st.q0,
-                          _target_accept(o, st.rmap), o.max_tree_depth,
-                          dense_mass=o.full_mass, inv_metric=st.inv0, step_size=st.step0,
-                          workers=o.workers or default_workers(o.chains),
+        ns = NutsSettings(chains=o.chains, warmup=o.warmup, draws=o.draws, seed=o.seed,
+                          target_accept=_target_accept(o, st.rmap),
+                          max_tree_depth=o.max_tree_depth, dense_mass=o.full_mass,
+                          workers=o.workers or default_workers(o.chains))
+        res = sample_nuts(st.f, fm.dim, ns, st.q0, inv_metric=st.inv0, step_size=st.step0,
                           on_chain=_chain_logger(o, lvl))
     return _nuts_run(res, fm, st.rmap, names, args, o, t0)
 

@@ -288,35 +288,56 @@ def _check_logp(f: LogpGrad, q: np.ndarray, name: str) -> tuple[float, np.ndarra
     return lp, g
 
 
-def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int = 500,
-                draws: int = 1000, seed: int = 0, init: np.ndarray | None = None,
-                target_accept: float = 0.8, max_tree_depth: int = 10,
-                dense_mass: bool = False, max_energy_error: float = 1000.0,
-                init_radius: float = 2.0, init_tries: int = 100,
-                inv_metric: np.ndarray | None = None, step_size: float | None = None,
-                workers: int = 1, on_chain: Callable[[int, dict], None] | None = None
-                ) -> NutsResult:
-    """Run NUTS chains, chain ``c`` seeded with ``seed + c`` (so the draws do not depend on
-    ``workers``: chains in parallel give exactly the serial result).
+@dataclass(frozen=True)
+class NutsSettings:
+    """The knobs of :func:`sample_nuts`.
+
+    Attributes:
+        chains, warmup, draws: chain count, warm-up iterations and kept draws per chain.
+        seed: chain ``c`` is seeded with ``seed + c``.
+        target_accept: the dual-averaging target of the mean acceptance statistic, in (0, 1).
+        max_tree_depth: at most ``2**max_tree_depth - 1`` leapfrog steps per iteration.
+        dense_mass: adapt a dense inverse mass matrix (else diagonal).
+        max_energy_error: an energy error above this is a divergence.
+        init_radius, init_tries: without ``init``, starting points are uniform in
+            ``(-init_radius, init_radius)`` per coordinate (Pyro's default), redrawn up to
+            ``init_tries`` times until the log density and its gradient are finite.
+        workers: processes running chains at once (fork; 1: in this process). Each chain's
+            random stream is its own, so results are identical for any ``workers``.
+    """
+
+    chains: int = 4
+    warmup: int = 500
+    draws: int = 1000
+    seed: int = 0
+    target_accept: float = 0.8
+    max_tree_depth: int = 10
+    dense_mass: bool = False
+    max_energy_error: float = 1000.0
+    init_radius: float = 2.0
+    init_tries: int = 100
+    workers: int = 1
+
+
+def sample_nuts(logp_and_grad: LogpGrad, dim: int, settings: NutsSettings = NutsSettings(),
+                init: np.ndarray | None = None, inv_metric: np.ndarray | None = None,
+                step_size: float | None = None,
+                on_chain: Callable[[int, dict], None] | None = None) -> NutsResult:
+    """Run NUTS chains, chain ``c`` seeded with ``settings.seed + c`` (so the draws do not
+    depend on ``settings.workers``: chains in parallel give exactly the serial result).
 
     Args:
         logp_and_grad: ``q (dim,)`` -> (log density up to a constant (float), its gradient
             ``(dim,)``), on the unconstrained scale (log-Jacobians included).
         dim: the dimension ``d`` of the unconstrained vector.
-        chains, warmup, draws: chain count, warm-up iterations and kept draws per chain.
-        init: starting points ``(dim,)`` (all chains) or ``(chains, dim)``; None: uniform in
-            ``(-init_radius, init_radius)`` per coordinate (Pyro's default), redrawn up to
-            ``init_tries`` times until the log density and its gradient are finite.
-        target_accept: the dual-averaging target of the mean acceptance statistic.
-        max_tree_depth: at most ``2**max_tree_depth - 1`` leapfrog steps per iteration.
-        dense_mass: adapt a dense inverse mass matrix (else diagonal).
-        max_energy_error: an energy error above this is a divergence.
+        settings: chain counts and lengths, seed, adaptation and workers
+            (:class:`NutsSettings`).
+        init: starting points ``(dim,)`` (all chains) or ``(chains, dim)``; None: random
+            (``settings.init_radius``, ``settings.init_tries``).
         inv_metric: a warm start's inverse mass matrix ``(dim,)`` or ``(dim, dim)`` (e.g. the
             previous posterior's), used from the first iteration; the windows still adapt it.
         step_size: a warm start's step size (the step-size search starts there; with
             ``warmup=0`` it is used as it is: the continuation of adapted chains).
-        workers: processes running chains at once (fork; 1: in this process). Each chain's
-            random stream is its own, so results are identical for any ``workers``.
         on_chain: called as ``on_chain(c, stats)`` when chain ``c`` ends (seconds,
             divergences, step size, leapfrog steps), e.g. to log a line per chain.
 
@@ -326,13 +347,16 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
     Raises:
         ValueError: bad sizes or a given ``init`` where the log density is not finite.
     """
-    for nm, v, lo in (("dim", dim, 1), ("chains", chains, 1), ("warmup", warmup, 0),
-                      ("draws", draws, 1), ("max_tree_depth", max_tree_depth, 1),
-                      ("workers", workers, 1)):
+    st = settings
+    chains = st.chains
+    for nm, v, lo in (("dim", dim, 1), ("chains", chains, 1), ("warmup", st.warmup, 0),
+                      ("draws", st.draws, 1), ("max_tree_depth", st.max_tree_depth, 1),
+                      ("workers", st.workers, 1)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
             raise ValueError(f"sample_nuts {nm} must be an integer >= {lo}, got {v!r}")
-    if not 0.0 < target_accept < 1.0:
-        raise ValueError(f"sample_nuts target_accept must be in (0, 1), got {target_accept}")
+    if not 0.0 < st.target_accept < 1.0:
+        raise ValueError(f"sample_nuts target_accept must be in (0, 1), got "
+                         f"{st.target_accept}")
     inits: np.ndarray | None = None
     if init is not None:
         inits = np.asarray(init, dtype=float)
@@ -341,14 +365,13 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, chains: int = 4, warmup: int 
         if inits.shape != (chains, dim):
             raise ValueError(f"sample_nuts init must have shape ({dim},) or ({chains}, {dim}), "
                              f"got {np.shape(init)}")
-    metric0 = _initial_metric(inv_metric, dim, dense_mass)
+    metric0 = _initial_metric(inv_metric, dim, st.dense_mass)
     if step_size is not None and not (math.isfinite(step_size) and step_size > 0):
         raise ValueError(f"sample_nuts step_size must be positive, got {step_size}")
     t0 = time.perf_counter()
-    job = _ChainJob(logp_and_grad, dim, inits, seed, warmup, draws, target_accept,
-                    max_tree_depth, dense_mass, max_energy_error, init_radius, init_tries,
-                    metric0, step_size or 1.0, warmup == 0 and step_size is not None)
-    outs = _map_chains(job, chains, workers, on_chain)
+    job = _ChainJob(logp_and_grad, dim, inits, st, metric0, step_size or 1.0,
+                    st.warmup == 0 and step_size is not None)
+    outs = _map_chains(job, chains, st.workers, on_chain)
     res = NutsResult(np.stack([o["draws"] for o in outs]),
                      tree_depth=np.stack([o["depth"] for o in outs]),
                      diverging=np.stack([o["diverging"] for o in outs]))
@@ -386,15 +409,7 @@ class _ChainJob:
     f: LogpGrad
     dim: int
     inits: np.ndarray | None
-    seed: int
-    warmup: int
-    draws: int
-    target_accept: float
-    max_depth: int
-    dense: bool
-    max_de: float
-    init_radius: float
-    init_tries: int
+    s: NutsSettings
     metric0: np.ndarray
     step0: float
     keep_step: bool = False
@@ -408,21 +423,21 @@ class _ChainJob:
 
     def _chain(self, c: int) -> dict:
         t0 = time.perf_counter()
-        rng = np.random.default_rng(self.seed + c)
+        rng = np.random.default_rng(self.s.seed + c)
         f = self.f
         if self.inits is not None:
             q = self.inits[c].copy()
             lp, g = _check_logp(f, q, f"init[{c}]")
         else:
-            for k in range(self.init_tries):
-                q = rng.uniform(-self.init_radius, self.init_radius, self.dim)
+            for k in range(self.s.init_tries):
+                q = rng.uniform(-self.s.init_radius, self.s.init_radius, self.dim)
                 try:
                     lp, g = _check_logp(f, q, "init")
                     break
                 except (ValueError, FloatingPointError, np.linalg.LinAlgError):
-                    if k == self.init_tries - 1:
-                        raise ValueError(f"no finite log density at {self.init_tries} random "
-                                         "initial points: give init") from None
+                    if k == self.s.init_tries - 1:
+                        raise ValueError(f"no finite log density at {self.s.init_tries} "
+                                         "random initial points: give init") from None
         out = _run_chain(self, q, lp, g, rng)
         out["seconds"] = time.perf_counter() - t0
         return out
@@ -470,12 +485,13 @@ def _map_chains(job: _ChainJob, chains: int, workers: int,
 def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
                rng: np.random.Generator) -> dict:
     d = q.shape[0]
-    dense, warmup = job.dense, job.warmup
+    dense, warmup = job.s.dense_mass, job.s.warmup
     metric = _Metric(job.metric0)
-    ch = _Chain(job.f, q, lp, g, rng, metric, job.step0, job.max_depth, job.max_de)
+    ch = _Chain(job.f, q, lp, g, rng, metric, job.step0, job.s.max_tree_depth,
+                job.s.max_energy_error)
     if not job.keep_step:
         ch.init_step()
-    da = _DualAveraging(ch.step, job.target_accept)
+    da = _DualAveraging(ch.step, job.s.target_accept)
     win = _Windows(warmup)
     window: list[np.ndarray] = []
     for _ in range(warmup):
@@ -500,10 +516,10 @@ def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
     if warmup > 0:
         ch.step = da.final()
     acc_sum = 0.0
-    out = np.empty((job.draws, d))
-    depth_out = np.empty(job.draws, dtype=np.int64)
-    div_out = np.zeros(job.draws, dtype=bool)
-    for i in range(job.draws):
+    out = np.empty((job.s.draws, d))
+    depth_out = np.empty(job.s.draws, dtype=np.int64)
+    div_out = np.zeros(job.s.draws, dtype=bool)
+    for i in range(job.s.draws):
         acc, depth, div, _ = ch.transition()
         out[i] = ch.q
         depth_out[i] = depth
@@ -511,5 +527,5 @@ def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
         acc_sum += acc
     return {"draws": out, "depth": depth_out, "diverging": div_out,
             "divergences": int(div_out.sum()), "step_size": ch.step,
-            "inv_metric": ch.metric.inv, "accept_prob": acc_sum / job.draws,
+            "inv_metric": ch.metric.inv, "accept_prob": acc_sum / job.s.draws,
             "n_leapfrog": ch.n_grad}

@@ -525,6 +525,196 @@ def acquire(gp: GPSurrogate, draws: Draws, box: Box, s: LoopSettings, y: torch.T
     return th, val
 
 
+@dataclass
+class _Rounds:
+    """What the rounds carry from one to the next.
+
+    Attributes:
+        X, V, ok: every FE run so far: ``(n, d)`` physical, ``(n, n_y)`` um, ``(n,)`` bool.
+        kind, round: per run, what it is (``"start"``, ``"check"``, ``"fe_fit"``,
+            ``"acquired"``) and the round that made it (0: the start design).
+        rounds: the round records. gp, draws: the last surrogate and its posterior.
+        best_fit: the problem's ``misfit`` verdict once one was made.
+    """
+
+    X: torch.Tensor
+    V: torch.Tensor
+    ok: torch.Tensor
+    kind: list[str]
+    round: list[int]
+    rounds: list[Round] = field(default_factory=list)
+    gp: GPSurrogate | None = None
+    draws: Draws | None = None
+    best_fit: dict[str, Any] | None = None
+
+    @property
+    def misfits(self) -> bool:
+        """The verdict says the model misfits the data."""
+        return bool(self.best_fit and self.best_fit.get("misfits"))
+
+    def add(self, X: torch.Tensor, V: torch.Tensor, ok: torch.Tensor, kind: str, r: int
+            ) -> None:
+        """Append FE runs ``X (m, d)``, ``V (m, n_y)``, ``ok (m,)`` of one kind, round ``r``."""
+        self.X = torch.cat([self.X, X])
+        self.V = torch.cat([self.V, V])
+        self.ok = torch.cat([self.ok, ok])
+        self.kind += [kind] * len(X)
+        self.round += [r] * len(X)
+
+    def result(self, reason: str, message: str) -> LoopResult:
+        assert self.gp is not None and self.draws is not None
+        return LoopResult(self.gp, self.draws, self.X, self.V, self.ok, self.kind, self.round,
+                          self.rounds, reason, message, self.best_fit)
+
+
+def _start_runs(p: LoopProblem, s: LoopSettings, seed: int, X0: torch.Tensor | None,
+                kinds: list[str] | None) -> _Rounds:
+    """The start design (``X0`` or a Latin hypercube of ``s.start``) and its FE runs."""
+    from solderpyro.design import lhs
+
+    X = lhs(p.box, s.start, seed) if X0 is None else X0.to(torch.float64)
+    if kinds is not None and len(kinds) != len(X):
+        raise ValueError(f"run_loop: kinds has {len(kinds)} entries for {len(X)} start rows")
+    V, ok = p.fe(X)
+    return _Rounds(X, V, ok, list(kinds) if kinds is not None else ["start"] * len(X),
+                   [0] * len(X))
+
+
+def _fit_and_check(p: LoopProblem, s: LoopSettings, st: _Rounds, y: torch.Tensor, r: int,
+                   names: list[str], lap: StageClock) -> tuple[Round, np.ndarray, np.ndarray]:
+    """Round ``r``'s surrogate, its posterior and the FE check at ``s.check`` of its draws
+    (those runs join ``st``); ``y (n_y,)`` the data.
+
+    Returns:
+        the round's record (stopping rule applied), the checked draws' indices ``(k,)`` and
+        their FE chi-squares ``(k,)``.
+    """
+    gp = st.gp = p.fit(st.X[st.ok], st.V[st.ok])
+    lap("fit")
+    draws = st.draws = p.sample(gp, st.draws, False)
+    lap("posterior")
+    chk = check_indices(p.box.to_unit(draws.theta).numpy(), s.check, s.check_ends)
+    Vc, okc, fe_c2, sur_c2, code = fe_at_draws(p, gp, draws, y, chk)
+    lap("check")
+    code_ok, fe_ok, tol = stop_rule(code, fe_c2, sur_c2, int(y.numel()), s)
+    st.add(draws.theta[chk], Vc, okc, "check", r)
+    rec = Round(r, len(st.X), code, fe_c2.tolist(), sur_c2.tolist(), tol, code_ok, fe_ok,
+                quantiles=_quantiles(draws.theta, names), spread_tolerance=s.fe_spread)
+    return rec, chk, fe_c2
+
+
+def _misfit_test(p: LoopProblem, s: LoopSettings, st: _Rounds, rec: Round, chk: np.ndarray,
+                 fe_c2: np.ndarray, lap: StageClock) -> Any:
+    """The problem's misfit test, once, from round ``s.misfit_check`` on while the rule does
+    not hold; its verdict goes to ``st.best_fit``.
+
+    Returns:
+        the ``(m, d)`` FE parameter sets the test ran (best first) where it ran, else None.
+    """
+    if (rec.code_ok and rec.fe_ok or p.misfit is None or st.best_fit is not None
+            or not s.misfit_check or rec.round < s.misfit_check):
+        return None
+    assert st.draws is not None
+    far = max(rec.code_chi2, rec.fe_gap) > s.far_tol * rec.tolerance  # nan (no check): not far
+    st.best_fit = p.misfit(st.draws, chk, fe_c2, far)
+    runs = st.best_fit.pop("runs", None) if st.best_fit else None
+    lap("misfit")
+    return runs
+
+
+def _localize(p: LoopProblem, s: LoopSettings, st: _Rounds, fe_runs: Any, rec: Round,
+              lap: StageClock) -> bool:
+    """Where the FE's own best fit fits the data: up to ``s.localize`` of the misfit test's
+    runs ``fe_runs`` join the design (spaced, within the budget) and the next posterior
+    starts at the best fit. Returns whether it localized."""
+    if not (st.best_fit and s.localize and fe_runs is not None):
+        return False
+    assert st.draws is not None
+    box = p.box
+    room = s.budget - len(st.X) - s.check  # keep room for the next round's check
+    cand = torch.as_tensor(np.asarray(fe_runs, float), dtype=torch.float64)
+    keep = spaced_rows(box.to_unit(cand).numpy(), box.to_unit(st.X).numpy(),
+                       max(0, min(s.localize, room)))
+    if len(keep):
+        th_new = cand[torch.as_tensor(keep)]
+        Vn, okn = p.fe(th_new)
+        st.add(th_new, Vn, okn, "fe_fit", rec.round)
+        rec.acquired = len(keep)
+    st.draws.start = dict(st.best_fit["x"])
+    log.info("design: the FE's own best fit fits the data: %d of its runs join the "
+             "design and the next posterior starts there", len(keep))
+    lap("localize")
+    return True
+
+
+def _acquire_runs(p: LoopProblem, s: LoopSettings, st: _Rounds, y: torch.Tensor,
+                  chk: np.ndarray, rec: Round, seed: int, lap: StageClock) -> None:
+    """Acquire up to ``s.batch`` runs (within the budget, room kept for the next check) with
+    the round's checked draws ``chk`` pending, and run the FE there; ``seed``: the
+    optimizer's."""
+    room = s.budget - len(st.X) - s.check  # keep room for the next round's check
+    if room < 1:
+        return
+    assert st.gp is not None and st.draws is not None
+    qn = min(s.batch, room)
+    th_new, val = acquire(st.gp, st.draws, p.box, s, y, st.draws.theta[chk], qn, seed)
+    lap("acquire")
+    Vn, okn = p.fe(th_new)
+    lap("fe")
+    st.add(th_new, Vn, okn, "acquired", rec.round)
+    rec.acquired, rec.acquisition = qn, val
+
+
+def _one_round(p: LoopProblem, s: LoopSettings, st: _Rounds, y: torch.Tensor, r: int,
+               seed: int, names: list[str]) -> Round:
+    """Round ``r``: fit, posterior, FE check, then (unless the rule holds or the model
+    misfits) localize at the FE's best fit or acquire. Returns its record (kept in ``st``)."""
+    t0 = time.perf_counter()
+    if int(st.ok.sum()) < p.box.dim + 2:
+        raise RuntimeError(f"design: only {int(st.ok.sum())} of {len(st.X)} FE runs converged")
+    lap = StageClock()
+    rec, chk, fe_c2 = _fit_and_check(p, s, st, y, r, names, lap)
+    fe_runs = _misfit_test(p, s, st, rec, chk, fe_c2, lap)
+    go_on = not (rec.code_ok and rec.fe_ok) and not st.misfits
+    if go_on and not _localize(p, s, st, fe_runs, rec, lap):
+        _acquire_runs(p, s, st, y, chk, rec, seed + r, lap)
+    rec.seconds = time.perf_counter() - t0
+    rec.timing = lap.seconds
+    st.rounds.append(rec)
+    log.info(rec.line())
+    return rec
+
+
+def _outcome(st: _Rounds, s: LoopSettings, n: int) -> tuple[str, str]:
+    """``(reason, message)`` of the rounds' stop; ``n`` observed values."""
+    last, r, runs = st.rounds[-1], len(st.rounds), len(st.X)
+    tol = last.tolerance
+    if last.code_ok and last.fe_ok:
+        return "converged", (
+            f"the design converged after {r} rounds and {runs} FE runs: the code chi2 at the "
+            f"posterior draws ({last.code_chi2:.3g}) and the FE-vs-surrogate chi2 at "
+            f"{len(last.fe_chi2)} of them are within sqrt(2n) = {tol:.3g}, and the "
+            f"FE-vs-surrogate gap varies by {last.fe_spread:.2g} <= {s.fe_spread:g} "
+            "across them")
+    if st.misfits:
+        assert st.best_fit is not None
+        return "misfit", (
+            f"the design stopped after {r} rounds and {runs} FE runs: the FE's own best fit "
+            f"misfits the data (chi2 {st.best_fit['chi2']:.0f} on {n} values, RMS "
+            f"{st.best_fit['rms_over_sigma']:.2f} noise sd): the model misses something the "
+            "data show, and more FE runs for its surrogate cannot fix that (solderpyro "
+            "diagnose names candidate effects)")
+    why = [] if last.code_ok else [f"code chi2 {last.code_chi2:.3g}"]
+    if not last.fe_ok:
+        why.append("the FE disagrees with the surrogate at posterior draws (max |d chi2| "
+                   f"{last.fe_gap:.3g} against sqrt(2n) = {tol:.3g}, varying by "
+                   f"{last.fe_spread:.2g} against {s.fe_spread:g})")
+    return "budget", (
+        f"the FE budget ran out ({runs} of {s.budget} runs, {r} rounds) before the "
+        f"surrogate was confirmed: {'; '.join(why)}" + (
+            "" if last.code_ok else f" (code chi2 tolerance sqrt(2n) = {tol:.3g})"))
+
+
 def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
                   X0: torch.Tensor | None = None, names: list[str] | None = None,
                   on_round: Callable[[LoopResult], None] | None = None,
@@ -537,118 +727,19 @@ def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
         round's posterior (``draws.checked``: that round's FE check), not yet the final one
         (:func:`final_posterior`). ``on_round`` is not called with it.
     """
-    from solderpyro.design import lhs
-
-    box = p.box
-    s.validate(box.dim)
+    s.validate(p.box.dim)
     y = p.y.to(torch.float64)
-    n = int(y.numel())
-    names = names or list(box.names)
-    X = lhs(box, s.start, seed) if X0 is None else X0.to(torch.float64)
-    if kinds is not None and len(kinds) != len(X):
-        raise ValueError(f"run_loop: kinds has {len(kinds)} entries for {len(X)} start rows")
-    V, ok = p.fe(X)
-    kind, rnd_of = list(kinds) if kinds is not None else ["start"] * len(X), [0] * len(X)
-    rounds: list[Round] = []
-    draws: Draws | None = None
-    best_fit: dict[str, Any] | None = None
+    names = names or list(p.box.names)
+    st = _start_runs(p, s, seed, X0, kinds)
     r = 0
     while True:
         r += 1
-        t0 = time.perf_counter()
-        if int(ok.sum()) < box.dim + 2:
-            raise RuntimeError(f"design: only {int(ok.sum())} of {len(X)} FE runs converged")
-        lap = StageClock()
-
-        gp = p.fit(X[ok], V[ok])
-        lap("fit")
-        draws = p.sample(gp, draws, False)
-        lap("posterior")
-        chk = check_indices(box.to_unit(draws.theta).numpy(), s.check, s.check_ends)
-        th_chk = draws.theta[chk]
-        Vc, okc, fe_c2, sur_c2, code = fe_at_draws(p, gp, draws, y, chk)
-        lap("check")
-        code_ok, fe_ok, tol = stop_rule(code, fe_c2, sur_c2, n, s)
-        X, V = torch.cat([X, th_chk]), torch.cat([V, Vc])
-        ok = torch.cat([ok, okc])
-        kind += ["check"] * len(chk)
-        rnd_of += [r] * len(chk)
-        rec = Round(r, len(X), code, fe_c2.tolist(), sur_c2.tolist(), tol, code_ok, fe_ok,
-                    quantiles=_quantiles(draws.theta, names), spread_tolerance=s.fe_spread)
-        stop = code_ok and fe_ok
-        runs = None  # the misfit test's FE runs (kept in the run store, not in the record)
-        if (not stop and p.misfit is not None and best_fit is None and s.misfit_check
-                and r >= s.misfit_check):
-            far = max(code, rec.fe_gap) > s.far_tol * tol  # nan (no check) counts as not far
-            best_fit = p.misfit(draws, chk, fe_c2, far)
-            runs = best_fit.pop("runs", None) if best_fit else None
-            lap("misfit")
-        misfit = bool(best_fit and best_fit.get("misfits"))
-        room = s.budget - len(X) - s.check  # keep room for the next round's check
-        localized = False
-        if best_fit and not misfit and not stop and s.localize and runs is not None:
-            # the model can fit: the FE's own best fit is where the posterior is
-            cand = torch.as_tensor(np.asarray(runs, float), dtype=torch.float64)
-            keep = spaced_rows(box.to_unit(cand).numpy(), box.to_unit(X).numpy(),
-                               max(0, min(s.localize, room)))
-            if len(keep):
-                th_new = cand[torch.as_tensor(keep)]
-                Vn, okn = p.fe(th_new)
-                X, V, ok = torch.cat([X, th_new]), torch.cat([V, Vn]), torch.cat([ok, okn])
-                kind += ["fe_fit"] * len(keep)
-                rnd_of += [r] * len(keep)
-                rec.acquired = len(keep)
-            draws.start = dict(best_fit["x"])
-            localized = True
-            log.info("design: the FE's own best fit fits the data: %d of its runs join the "
-                     "design and the next posterior starts there", len(keep))
-            lap("localize")
-        if not stop and not misfit and not localized and room >= 1:
-            qn = min(s.batch, room)
-            th_new, val = acquire(gp, draws, box, s, y, th_chk, qn, seed + r)
-            lap("acquire")
-            Vn, okn = p.fe(th_new)
-            lap("fe")
-            X, V, ok = torch.cat([X, th_new]), torch.cat([V, Vn]), torch.cat([ok, okn])
-            kind += ["acquired"] * qn
-            rnd_of += [r] * qn
-            rec.acquired, rec.acquisition = qn, val
-        rec.seconds = time.perf_counter() - t0
-        rec.timing = lap.seconds
-        rounds.append(rec)
-        log.info(rec.line())
-        if stop or misfit or len(X) + s.check > s.budget:  # the next check would exceed it
-            break
+        rec = _one_round(p, s, st, y, r, seed, names)
+        if rec.code_ok and rec.fe_ok or st.misfits or len(st.X) + s.check > s.budget:
+            break  # converged, misfits, or the next round's check would exceed the budget
         if on_round is not None:
-            on_round(LoopResult(gp, draws, X, V, ok, kind, rnd_of, rounds, "running", "",
-                                best_fit))
-    if stop:
-        reason, msg = "converged", (
-            f"the design converged after {r} rounds and {len(X)} FE runs: the code chi2 at the "
-            f"posterior draws ({rounds[-1].code_chi2:.3g}) and the FE-vs-surrogate chi2 at "
-            f"{len(rounds[-1].fe_chi2)} of them are within sqrt(2n) = {tol:.3g}, and the "
-            f"FE-vs-surrogate gap varies by {rounds[-1].fe_spread:.2g} <= {s.fe_spread:g} "
-            "across them")
-    elif misfit:
-        assert best_fit is not None
-        reason, msg = "misfit", (
-            f"the design stopped after {r} rounds and {len(X)} FE runs: the FE's own best fit "
-            f"misfits the data (chi2 {best_fit['chi2']:.0f} on {n} values, RMS "
-            f"{best_fit['rms_over_sigma']:.2f} noise sd): the model misses something the data "
-            "show, and more FE runs for its surrogate cannot fix that (solderpyro diagnose "
-            "names candidate effects)")
-    else:
-        why = [] if code_ok else [f"code chi2 {rounds[-1].code_chi2:.3g}"]
-        if not fe_ok:
-            why.append("the FE disagrees with the surrogate at posterior draws (max |d chi2| "
-                       f"{rounds[-1].fe_gap:.3g} against sqrt(2n) = {tol:.3g}, varying by "
-                       f"{rounds[-1].fe_spread:.2g} against {s.fe_spread:g})")
-        reason, msg = "budget", (
-            f"the FE budget ran out ({len(X)} of {s.budget} runs, {r} rounds) before the "
-            f"surrogate was confirmed: {'; '.join(why)}" + (
-                "" if code_ok else f" (code chi2 tolerance sqrt(2n) = {tol:.3g})"))
-    assert draws is not None
-    return LoopResult(gp, draws, X, V, ok, kind, rnd_of, rounds, reason, msg, best_fit)
+            on_round(st.result("running", ""))
+    return st.result(*_outcome(st, s, int(y.numel())))
 
 
 def final_posterior(p: LoopProblem, res: LoopResult, s: LoopSettings,

@@ -344,9 +344,34 @@ def _sample_inside(q: TMixture, n: int, rng: np.random.Generator, support: Calla
     return np.concatenate(out)[:n], math.log(z)
 
 
+@dataclass(frozen=True)
+class AmisOptions:
+    """How :func:`amis` draws and adapts its proposals.
+
+    Attributes:
+        seed: seed of the random stream (samples and the weighted EM's starts).
+        defensive: share of ``q0`` kept in every later proposal, in [0, 1).
+        inflate: factor on the adapted components' spread (sd), see :func:`adapt_mixture`.
+        max_new: after each round, besides adapting its components, the proposal gains up to
+            this many new Student-t components (``df``) fitted by weighted EM to all samples
+            so far (one per ``2 (d + 2)`` effective samples), sharing half of its mass: the
+            freedom to take a shape the first proposal's components cannot.
+        df: degrees of freedom of those new components.
+    """
+
+    seed: int = 0
+    defensive: float = 0.1
+    inflate: float = 1.2
+    max_new: int = 4
+    df: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.defensive < 1:
+            raise ValueError(f"amis: defensive must lie in [0, 1), got {self.defensive}")
+
+
 def amis(log_target: Callable[[np.ndarray], tuple[np.ndarray, dict]], q0: TMixture, n: int,
-         rounds: int, seed: int = 0, defensive: float = 0.1, inflate: float = 1.2,
-         max_new: int = 4, df: float = 5.0, in_support: Callable | None = None,
+         rounds: int, options: AmisOptions = AmisOptions(), in_support: Callable | None = None,
          on_round: Callable[[AMISResult], None] | None = None) -> AMISResult:
     """Adaptive multiple importance sampling.
 
@@ -360,12 +385,7 @@ def amis(log_target: Callable[[np.ndarray], tuple[np.ndarray, dict]], q0: TMixtu
         q0: the first proposal (e.g. fitted to a surrogate's posterior draws, widened).
         n: samples per round (one call of ``log_target`` per round).
         rounds: number of rounds (``rounds * n`` target evaluations at most).
-        defensive: share of ``q0`` kept in every later proposal.
-        inflate: factor on the adapted components' spread (sd), see :func:`adapt_mixture`.
-        max_new: after each round, besides adapting its components, the proposal gains up to
-            this many new Student-t components (``df``) fitted by weighted EM to all samples
-            so far (one per ``2 (d + 2)`` effective samples), sharing half of its mass: the
-            freedom to take a shape the first proposal's components cannot.
+        options: seed, defensive share and adaptation (:class:`AmisOptions`).
         in_support: ``u (m, d) -> (m,) bool``; default the unit cube.
         on_round: called with the result so far after every round (e.g. to save it).
     Returns:
@@ -373,9 +393,8 @@ def amis(log_target: Callable[[np.ndarray], tuple[np.ndarray, dict]], q0: TMixtu
     """
     if n < 2 or rounds < 1:
         raise ValueError(f"amis: need n >= 2 and rounds >= 1, got n={n}, rounds={rounds}")
-    if not 0 <= defensive < 1:
-        raise ValueError(f"amis: defensive must lie in [0, 1), got {defensive}")
-    rng = np.random.default_rng(seed)
+    opt = options
+    rng = np.random.default_rng(opt.seed)
     d = q0.dim
     support = in_support or (lambda x: ((x >= 0.0) & (x <= 1.0)).all(1))
     us: list[np.ndarray] = []
@@ -417,17 +436,17 @@ def amis(log_target: Callable[[np.ndarray], tuple[np.ndarray, dict]], q0: TMixtu
         else:
             w = np.exp(lw_s - np.max(lw_s[np.isfinite(lw_s)]))
             w[~np.isfinite(lw_s)] = 0.0
-            adapted = adapt_mixture(adapted, U, w, inflate)
+            adapted = adapt_mixture(adapted, U, w, opt.inflate)
             n_eff = kish_ess(lw_s)
-            k_new = int(min(max_new, n_eff // (2 * (d + 2))))
+            k_new = int(min(opt.max_new, n_eff // (2 * (d + 2))))
             if k_new >= 1:  # new components where the weighted samples are (shape freedom)
                 fit = weighted_em(U, w, k_new, rng)
-                fresh = TMixture(fit.weights, fit.means, fit.covs * inflate**2,
-                                 np.full(len(fit.weights), df))
+                fresh = TMixture(fit.weights, fit.means, fit.covs * opt.inflate**2,
+                                 np.full(len(fit.weights), opt.df))
                 adapted = TMixture.combine([(0.5, adapted), (0.5, fresh)])
             adapted = _cap(adapted)
-        q = TMixture.combine([(1.0 - defensive, adapted), (defensive, q0)]) \
-            if defensive > 0 else adapted
+        q = TMixture.combine([(1.0 - opt.defensive, adapted), (opt.defensive, q0)]) \
+            if opt.defensive > 0 else adapted
     assert res is not None
     return res
 

@@ -40,6 +40,7 @@ import torch
 
 from solderpyro.calibration.intervals import weighted_quantiles, with_intervals
 from solderpyro.exact.amis import (
+    AmisOptions,
     AMISResult,
     TMixture,
     amis,
@@ -351,7 +352,7 @@ class ExactPosterior:
 
 
 @dataclass(frozen=True)
-class AMISOptions:
+class ExactSampling:
     """The run of :func:`exact_posterior`.
 
     Attributes:
@@ -370,7 +371,7 @@ class AMISOptions:
 
 
 def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
-                    options: AMISOptions, sigma_known: float | None = None,
+                    options: ExactSampling, sigma_known: float | None = None,
                     sigma_max: float | None = None, profile: Profile | None = None
                     ) -> ExactPosterior:
     """Sample the posterior of ``coords.space`` and the noise sd with ``fun`` in the likelihood.
@@ -384,7 +385,7 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
         fun: ``rows (b, dim) -> (b, n_obs)`` um, NaN rows where the model failed.
         coords: sampling coordinates of the box. y: ``(n_obs,)`` data, um.
         q0: first proposal (sampling coordinates).
-        options: samples, rounds, seed, draws and progress hook (:class:`AMISOptions`).
+        options: samples, rounds, seed, draws and progress hook (:class:`ExactSampling`).
         sigma_known, sigma_max: sigma's prior, um (see above; one of them must be given).
         profile: the ridge profile used in ``q0``, kept in the result (or None).
     Returns:
@@ -403,7 +404,7 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
         ll, _ = log_marginal_sigma(ssr, n_obs, sigma_known, sigma_max)
         return ll - coords.log_det(X), {"V": V, "ssr": ssr}
 
-    res = amis(log_target, q0, n, rounds, seed=seed, in_support=coords.inside,
+    res = amis(log_target, q0, n, rounds, AmisOptions(seed=seed), in_support=coords.inside,
                on_round=options.on_round)
     if not np.isfinite(res.log_w).any():
         raise RuntimeError(f"exact_posterior: the model failed at all {len(res.u)} samples")

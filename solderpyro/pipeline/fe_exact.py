@@ -77,7 +77,7 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         saying why.
     """
     from solderpyro.exact.posterior import (
-        AMISOptions,
+        ExactSampling,
         ProfileOptions,
         exact_posterior,
         fe_profile,
@@ -133,7 +133,7 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         log.info("exact: AMIS round %d: %d samples, ESS %.1f, Pareto k-hat %.2f (%d FE runs "
                  "so far)", len(r.history), h["n"], h["ess"], h["khat"], n_fe[0])
 
-    amis_run = AMISOptions(n, rounds, seed=seed, n_draws=n_draws, on_round=on_round)
+    amis_run = ExactSampling(n, rounds, seed=seed, n_draws=n_draws, on_round=on_round)
     ex = exact_posterior(counted, coords, y, q0, amis_run, priors.sigma_known, priors.sigma_max,
                          prof)
     r = ex.result

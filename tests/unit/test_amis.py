@@ -8,6 +8,7 @@ import pytest
 from scipy import integrate, stats
 
 from solderpyro.exact.amis import (
+    AmisOptions,
     TMixture,
     amis,
     kish_ess,
@@ -50,6 +51,8 @@ def test_bad_mixture_inputs_are_named():
         TMixture(np.ones(1), np.zeros((1, 2)), np.eye(2)[None], 0.0)
     with pytest.raises(ValueError, match="rounds"):
         amis(lambda u: (np.zeros(len(u)), {}), TMixture.single(np.zeros(2), np.eye(2)), 10, 0)
+    with pytest.raises(ValueError, match="defensive"):
+        AmisOptions(defensive=1.0)
 
 
 def test_weighted_em_recovers_two_components():
@@ -135,7 +138,7 @@ def test_amis_matches_the_grid_posterior_from_a_poor_start():
     p0 = p.sum(1) / p.sum()
     p1 = p.sum(0) / p.sum()
     q0 = TMixture.single(np.array([0.75, 0.35]), np.diag([0.05, 0.01]) ** 2, df=5.0)
-    res = amis(lambda u: (_banana_logp(u), {}), q0, 400, 6, seed=7)
+    res = amis(lambda u: (_banana_logp(u), {}), q0, 400, 6, AmisOptions(seed=7))
     assert res.reliable, res.history
     assert res.history[-1]["ess"] > 5 * res.history[0]["ess"]
     w = res.weights()

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from solderpyro.exact.amis import TMixture, amis
+from solderpyro.exact.amis import AmisOptions, TMixture, amis
 from solderpyro.exact.coords import FlowStressCoords, UnitCoords, sampling_coords
 from solderpyro.params import LIU2008, Box
 
@@ -69,7 +69,7 @@ def test_a_flat_prior_sampled_in_flow_stress_coordinates_comes_back_flat():
     u0 = np.random.default_rng(3).uniform(0.0, 1.0, (4000, 4))
     w0 = fc.to_w(box.from_unit(torch.as_tensor(u0)).numpy())
     q0 = TMixture.single(w0.mean(0), 1.5 * np.cov(w0.T), df=5.0)
-    res = amis(lambda w: (-fc.log_det(fc.from_w(w)), {}), q0, 2000, 3, seed=4,
+    res = amis(lambda w: (-fc.log_det(fc.from_w(w)), {}), q0, 2000, 3, AmisOptions(seed=4),
                in_support=fc.inside)
     assert res.reliable, res.history
     u = box.to_unit(torch.as_tensor(fc.from_w(res.u))).numpy()

@@ -13,7 +13,7 @@ from solderpyro.exact.amis import log_marginal_sigma
 from solderpyro.exact.coords import UnitCoords
 from solderpyro.exact.fit import LMOptions, lm_fit
 from solderpyro.exact.posterior import (
-    AMISOptions,
+    ExactSampling,
     ProfileOptions,
     exact_posterior,
     fe_profile,
@@ -109,7 +109,7 @@ def test_exact_posterior_matches_the_grid_from_a_misplaced_start(seed):
     cov = laplace_cov_unit(best, BOX, SIGMA)
     prof = fe_profile(model, UC, best.x, cov, y, SIGMA, ProfileOptions(n_grid=9, iters=6))
     q0 = initial_proposal(UC, draws, (best.x, cov), prof, seed=seed)
-    ex = exact_posterior(model, UC, y, q0, AMISOptions(400, 4, seed=seed), sigma_known=SIGMA)
+    ex = exact_posterior(model, UC, y, q0, ExactSampling(400, 4, seed=seed), sigma_known=SIGMA)
     assert ex.reliable, ex.result.history
     g, marg = grid_posterior(y)
     U = ex.result.u  # unit cube, the grid's coordinates

@@ -30,7 +30,7 @@ from solderpyro.calibration.koh import (
     prepare_observation,
 )
 from solderpyro.calibration.mcmc import NutsRun, Posterior, WarmStart
-from solderpyro.calibration.nuts import sample_nuts
+from solderpyro.calibration.nuts import NutsSettings, sample_nuts
 from solderpyro.examples.seed_math import LHS_T, SIGMA_MAX, X_BOX, code, lhs_runs, make_data
 from solderpyro.params import Box
 
@@ -102,7 +102,8 @@ def test_gaussian_mean_and_covariance_within_mcse(d, dense):
     """Mean and every covariance entry of a correlated Gaussian (correlations up to ~0.9)
     within 4.5 Monte Carlo standard errors; no divergences; R-hat near 1."""
     f, mu, cov = _gaussian(d, seed=d)
-    res = sample_nuts(f, d, chains=4, warmup=500, draws=1000, seed=11, dense_mass=dense)
+    res = sample_nuts(f, d, NutsSettings(chains=4, warmup=500, draws=1000, seed=11,
+                                          dense_mass=dense))
     x = res.draws  # (chain, draw, d)
     assert res.draws.shape == (4, 1000, d)
     assert sum(res.divergences) == 0
@@ -132,7 +133,7 @@ def test_non_gaussian_moments_within_mcse():
     keeps a Gaussian whatever point of the orbit is taken); these are not."""
     from scipy.special import digamma, polygamma
 
-    res = sample_nuts(_banana_loggamma, 3, chains=4, warmup=500, draws=1500, seed=3)
+    res = sample_nuts(_banana_loggamma, 3, NutsSettings(chains=4, warmup=500, draws=1500, seed=3))
     x, y, z = (res.draws[..., i] for i in range(3))
     mz, vz = float(digamma(2.0)), float(polygamma(1, 2.0))
     for nm, a, ref in (("E y", y, 0.5), ("Var y", (y - 0.5) ** 2, 0.75),
@@ -142,11 +143,12 @@ def test_non_gaussian_moments_within_mcse():
 
 def test_sampler_is_reproducible_and_chains_differ():
     f, _, _ = _gaussian(2, seed=2)
-    a = sample_nuts(f, 2, chains=2, warmup=50, draws=20, seed=5)
-    b = sample_nuts(f, 2, chains=2, warmup=50, draws=20, seed=5)
+    a = sample_nuts(f, 2, NutsSettings(chains=2, warmup=50, draws=20, seed=5))
+    b = sample_nuts(f, 2, NutsSettings(chains=2, warmup=50, draws=20, seed=5))
     np.testing.assert_array_equal(a.draws, b.draws)
     assert not np.allclose(a.draws[0], a.draws[1])
-    c = sample_nuts(f, 2, chains=1, warmup=50, draws=20, seed=6)  # chain 1 = seed 5 + 1
+    # chain 1 = seed 5 + 1
+    c = sample_nuts(f, 2, NutsSettings(chains=1, warmup=50, draws=20, seed=6))
     np.testing.assert_array_equal(a.draws[1], c.draws[0])
 
 
@@ -252,13 +254,12 @@ def test_bad_input_raises_naming_the_argument():
     with pytest.raises(ValueError, match="init"):
         sample_nuts(lambda q: (-math.inf, -q), 2, init=np.zeros(2))
     with pytest.raises(ValueError, match="init"):
-        sample_nuts(lambda q: (float("nan"), -q), 2, chains=1, warmup=5, draws=5)
+        sample_nuts(lambda q: (float("nan"), -q), 2, NutsSettings(chains=1, warmup=5, draws=5))
     with pytest.raises(ValueError, match="gradient"):
         sample_nuts(lambda q: (0.0, np.zeros(3)), 2, init=np.zeros(2))
-    for kw in ({"chains": 0}, {"draws": 0}, {"warmup": -1}, {"dim": 0}):
-        args = {"dim": 2, **kw}
-        with pytest.raises(ValueError, match=next(iter(kw))):
-            sample_nuts(f, **args)
+    for dim, kw in ((2, {"chains": 0}), (2, {"draws": 0}), (2, {"warmup": -1}), (0, {})):
+        with pytest.raises(ValueError, match=next(iter(kw), "dim")):
+            sample_nuts(f, dim, NutsSettings(**kw))
     x, y = make_data(0)
     with pytest.raises(ValueError, match="workers"):
         calibrate_direct(code, x, y, T_BOX, workers=0, chains=1, warmup=1, draws=1)
@@ -316,8 +317,8 @@ def test_generic_path_matches_pyro_nuts():
 def test_parallel_chains_equal_serial_chains():
     """Chains in forked processes give bit-identical draws to the same chains run serially."""
     f, _, _ = _gaussian(3, seed=1)
-    a = sample_nuts(f, 3, chains=3, warmup=60, draws=40, seed=7, workers=1)
-    b = sample_nuts(f, 3, chains=3, warmup=60, draws=40, seed=7, workers=2)
+    a = sample_nuts(f, 3, NutsSettings(chains=3, warmup=60, draws=40, seed=7, workers=1))
+    b = sample_nuts(f, 3, NutsSettings(chains=3, warmup=60, draws=40, seed=7, workers=2))
     np.testing.assert_array_equal(a.draws, b.draws)
     assert a.step_size == b.step_size and a.divergences == b.divergences
     x, y = make_data(0)
@@ -339,7 +340,7 @@ def test_divergences_are_kept_where_they_happen_in_a_funnels_neck():
         lp = -v * v / 18.0 - 0.5 * x * x * math.exp(-v) - 0.5 * v
         return lp, np.array([-v / 9.0 + 0.5 * x * x * math.exp(-v) - 0.5, -x * math.exp(-v)])
 
-    res = sample_nuts(f, 2, chains=2, warmup=300, draws=1500, seed=2, workers=1)
+    res = sample_nuts(f, 2, NutsSettings(chains=2, warmup=300, draws=1500, seed=2, workers=1))
     div = res.diverging
     assert div is not None and div.shape == (2, 1500) and div.dtype == bool
     assert div.sum(1).tolist() == res.divergences

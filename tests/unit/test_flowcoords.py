@@ -8,7 +8,7 @@ import pytest
 from scipy import stats
 
 from solderpyro.calibration.flowcoords import SoftFlowCoords, soft, soft_inverse
-from solderpyro.calibration.nuts import sample_nuts
+from solderpyro.calibration.nuts import NutsSettings, sample_nuts
 from solderpyro.params import Box
 
 BOX = Box(("s0", "QR", "xi", "m"), (5.0, 7000.0, 1.0, 0.05), (25.0, 13000.0, 5.0, 0.5))
@@ -78,7 +78,7 @@ def test_prior_density_is_uniform_on_the_box():
         return ld, vjp(np.zeros(4))
     init = np.array([c.inverse(t) for t in ((0.3, 0.4, 0.5, 0.6), (0.6, 0.5, 0.4, 0.3),
                                             (0.5, 0.5, 0.5, 0.5), (0.2, 0.7, 0.3, 0.8))])
-    res = sample_nuts(f, 4, chains=4, warmup=300, draws=1600, seed=3, init=init)
+    res = sample_nuts(f, 4, NutsSettings(chains=4, warmup=300, draws=1600, seed=3), init=init)
     t = np.array([c.forward(q)[0] for q in res.draws[:, ::16].reshape(-1, 4)])
     for k in range(4):
         assert stats.kstest(t[:, k], "uniform").pvalue > 1e-3, k

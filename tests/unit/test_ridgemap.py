@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from solderpyro.calibration.mcmc import WarmStart, chains_agree, ridge_map
-from solderpyro.calibration.nuts import sample_nuts
+from solderpyro.calibration.nuts import NutsSettings, sample_nuts
 from solderpyro.calibration.ridgemap import MIN_DRAWS, RidgeMap
 
 TOL = 4.5  # Monte Carlo standard errors
@@ -96,9 +96,9 @@ def test_nuts_in_ridge_coordinates_samples_the_banana_where_plain_nuts_diverges(
     happened to pass. Its bias is the reason for the map, so it is not asserted either way.)"""
     m = RidgeMap(_exact_draws(1000, 3))
     W = m.inverse(_exact_draws(1000, 4))
-    plain = sample_nuts(_banana, 3, chains=4, warmup=500, draws=1000, seed=5, dense_mass=True)
-    mapped = sample_nuts(m.wrap(_banana), 3, chains=4, warmup=500, draws=1000, seed=5,
-                         dense_mass=True, init=W[:4], inv_metric=np.cov(W.T))
+    ns = NutsSettings(chains=4, warmup=500, draws=1000, seed=5, dense_mass=True)
+    plain = sample_nuts(_banana, 3, ns)
+    mapped = sample_nuts(m.wrap(_banana), 3, ns, init=W[:4], inv_metric=np.cov(W.T))
     Q = m.forward(mapped.draws)[0]
     y, z = Q[..., 1], Q[..., 2]
     for a, ref in ((y, 0.5), ((y - 0.5) ** 2, 0.5025), (z, 0.0), (z * z, 2.0)):

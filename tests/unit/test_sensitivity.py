@@ -172,3 +172,22 @@ def test_jackknife_se_of_a_mean_is_the_standard_error():
     x = torch.randn(20, generator=torch.Generator().manual_seed(2))
     loo = (x.sum() - x) / (len(x) - 1)
     assert torch.allclose(_jackknife_se(loo), x.std() / math.sqrt(len(x)), rtol=1e-12)
+
+
+def test_sensitivity_settings_match_the_cli_and_are_checked_first():
+    """The settings record's defaults are the CLI's; a bad one is refused before the setup is
+    read (here: no setup at all)."""
+    import dataclasses
+
+    from solderpyro.analysis.sensitivity import SensitivitySettings, run_sensitivity
+    from solderpyro.cli import build_parser
+
+    a = build_parser().parse_args(["sensitivity", "--out", "o"])
+    d = SensitivitySettings()
+    assert (d.n_runs, d.grad_points, d.grad_batch, d.seed, d.n_sobol, d.n_boot, d.batch_size,
+            d.refits) == (a.runs, a.grad_points, a.grad_batch, a.seed, a.sobol_samples,
+                          a.bootstrap, a.batch, a.refits)
+    for bad, needle in (({"n_runs": 5}, "--runs"), ({"n_sobol": 1000}, "--sobol-samples"),
+                        ({"refits": 200}, "--refits"), ({"grad_batch": 0}, "--grad-batch")):
+        with pytest.raises(ValueError, match=needle):
+            run_sensitivity(None, "unused", dataclasses.replace(d, **bad))
