@@ -63,6 +63,7 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     Returns:
         ``(values (n_p,), rms_um)``; the largest ladder value when none reaches the target.
     """
+    from solderpyro.analysis.sensitivity import sensitivity_box
     from solderpyro.effects import effect_set
     from solderpyro.params import anand_tensor
     from solderpyro.specimen import SpecimenModel
@@ -74,8 +75,9 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     rows = np.vstack([np.asarray(eff.off, float)[None], lad])
     a = anand_tensor(anand or TRUTH, base=setup.anand, dtype=torch.float64)
     P = torch.cat([a.expand(len(rows), -1), torch.tensor(rows)], 1)
-    model = SpecimenModel(setup.problem, times=times, dtype=setup.dtype, effects=fx)
-    V = model.solve_rows(P).V.numpy()
+    model = SpecimenModel(setup.problem, sensitivity_box(defaults=setup.anand), times,
+                          dtype=setup.dtype, effects=fx)
+    V = model.run(P).V.detach().numpy()
     rms = np.sqrt(((V[1:] - V[:1]) ** 2).mean((1, 2)))
     ok = np.flatnonzero(rms >= target_rms)
     k = int(ok[0]) if len(ok) else len(rms) - 1
