@@ -283,6 +283,27 @@ def remains(chi2_after: float, n: int, n_params: int) -> bool:
     return bool(_chi2.sf(chi2_after, max(n - n_params, 1)) < ALPHA)
 
 
+def settled(steps: list[list[Judged]], chosen: tuple[str, ...], tie: list[str], n: int,
+            sigma: float, floor: Floor) -> bool:
+    """Whether the forward steps' outcome explains the data: the chosen effects' last refit, or
+    the best of the tied candidates, leaves at most :data:`EXPLAINED_SD` noise sd
+    (:func:`explained`). False when nothing was chosen or tied."""
+    if not steps or not (chosen or tie):
+        return False
+    names = set(tie) if tie else {chosen[-1]}
+    chi = [j.refit.chi2 for j in steps[-1] if j.refit.ok and j.refit.name in names]
+    return bool(chi) and explained(min(chi), n, sigma, floor)
+
+
+def needs_global(faces: bool, base_chi2: float, n: int, n_params: int, settled_: bool) -> bool:
+    """Whether every candidate must be refitted from several starts
+    (:func:`~solderpyro.diagnose.refits.global_refits`): when the base fit presses constants
+    against the box's faces (``faces``), or a misfit remains at the base fit that the forward
+    steps did not explain (``settled_`` False). The screen, linearised at the base fit, never
+    excludes a candidate from such a misfit."""
+    return bool(faces or (remains(base_chi2, n, n_params) and not settled_))
+
+
 def forward_step(judged: list[Judged], chosen: tuple[str, ...]
                  ) -> tuple[tuple[str, ...], list[str]]:
     """One forward step's decision: add the best flagged candidate to ``chosen``, unless another

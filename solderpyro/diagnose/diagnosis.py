@@ -39,6 +39,9 @@ class Diagnosis:
     #: where the model fits: candidates the data do not reject that would move a constant
     #: outside its reported interval (:func:`~solderpyro.diagnose.ruleout.cannot_rule_out`)
     cannot_rule_out: list[dict] = dataclasses.field(default_factory=list)
+    #: the Anand constants the FE's best fit presses against the prior box's faces
+    #: (:class:`~solderpyro.diagnose.faces.Face` records)
+    faces: list[dict] = dataclasses.field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         """The record as ``diagnosis.json`` holds it (every field, ``timing`` last)."""
@@ -47,5 +50,5 @@ class Diagnosis:
                 "check": self.check, "base": self.base, "floor": self.floor,
                 "steps": self.steps, "indistinguishable": self.indistinguishable,
                 "suggestions": self.suggestions, "separation": self.separation,
-                "cannot_rule_out": self.cannot_rule_out,
+                "cannot_rule_out": self.cannot_rule_out, "faces": self.faces,
                 "denoise": self.denoise, "timing": self.timing}

@@ -13,8 +13,12 @@
   A refit that ends above its base (:attr:`~solderpyro.diagnose.decide.Refit.ok` false) is
   retried once from the base point with the candidate at "off"; if it still ends above, it is
   a failed fit.
-* :func:`refit_steps`: the screened candidates' refits from the base point, then the forward
-  steps (:func:`~solderpyro.diagnose.decide.forward_steps`).
+* :func:`first_refits`: the screened candidates' refits from the base point; :func:`forward`:
+  the forward steps from them (:func:`~solderpyro.diagnose.decide.forward_steps`).
+* :func:`global_refits`: where the base fit presses constants against the box's faces or no
+  refit explains the misfit, every candidate (and the base model) refitted from several starts
+  across the box (:func:`spread_starts`): the screen orders that work and never excludes a
+  candidate from it.
 
 Rows are laid out as :class:`Layout` says: the calibrated parameters (``setup.space``, then the
 run's own effects), then every candidate's parameters bound to the measured times. Every FE
@@ -32,7 +36,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from solderpyro.diagnose.decide import Floor, Judged, Refit, forward_step, forward_steps, judge
+from solderpyro.diagnose.decide import (
+    REFIT_TOL,
+    Floor,
+    Judged,
+    Refit,
+    forward_step,
+    forward_steps,
+    judge,
+    saturates,
+)
 from solderpyro.diagnose.stats import Score
 from solderpyro.exact.fit import LMFit, LMOptions, lm_fit
 from solderpyro.specimen import SpecimenModels
@@ -52,6 +65,8 @@ BASE_ITERS = 30
 SCOUT_ITERS = 3
 #: refits run per step at most (the screen's strongest candidates)
 MAX_REFITS = 4
+#: Latin-hypercube starts of the global refits, beside the literature constants
+SPREAD_STARTS = 2
 
 
 @dataclass
@@ -260,26 +275,20 @@ def starts(setup: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool
 
 
 
-def refit_steps(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
-                base: dict[str, Any], scores: list[Score], screened: list[Score], floor: Floor
-                ) -> tuple[dict[str, dict[str, Any]], list[list[Judged]], tuple[str, ...],
-                           list[str]]:
-    """The refits of the screened candidates from the base point, then the forward steps.
+def first_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
+                 base: dict[str, Any], scores: list[Score], screened: list[Score]
+                 ) -> list[Refit]:
+    """The screened candidates' refits from the base point (the first step).
 
     Args:
         lay: the row layout; fe: the diagnosis's FE (run store); meas: the data (n values);
         sigma: noise sd, um; base: the base fit (:func:`base_fit`: ``"x" (n_col,)``,
         ``"chi2"``); scores: every candidate's screen (a ladder magnitude starts its refit);
-        screened: those to refit; floor: the discretization floor.
+        screened: those to refit.
     Returns:
-        ``(fits, steps, chosen, tie)``: ``fits`` ``{"baseline"|effect: {"chi2", "x"}}`` of the
-        first step (for fingerprints and separation); ``steps`` the judged refits per step;
-        ``chosen`` the effects added; ``tie`` the candidates that could not be told apart where
-        the steps stopped (empty if none).
+        one :class:`~solderpyro.diagnose.decide.Refit` per screened candidate.
     """
-    n = len(meas.value_um)
-    ladder = {sc.effect: sc.lr_value for sc in scores
-              if sc.lr_value is not None and (sc.lr or 0.0) > 0.0}
+    ladder = ladder_values(scores)
     x_b = np.asarray(base["x"], float)
     starts = {}
     for sc in screened:
@@ -290,13 +299,32 @@ def refit_steps(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
     first = refit_candidates(lay, fe, meas, sigma, x_b, base["chi2"], (), starts)
     log.info("diagnose: refits from the base point (chi2 %.1f): %s", base["chi2"], ", ".join(
         f"{r.name} {r.chi2:.1f}{'' if r.ok else ' (failed)'}" for r in first))
-    fits: dict[str, dict[str, Any]] = {"baseline": {"chi2": base["chi2"], "x": x_b}}
-    fits.update({r.name: {"chi2": r.chi2, "x": r.x} for r in first})
+    return first
+
+
+def ladder_values(scores: list[Score]) -> dict[str, float]:
+    """Candidate -> the screen's best ladder magnitude, where the ladder found one."""
+    return {sc.effect: sc.lr_value for sc in scores
+            if sc.lr_value is not None and (sc.lr or 0.0) > 0.0}
+
+
+def forward(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float, first: list[Refit],
+            floor: Floor) -> tuple[list[list[Judged]], tuple[str, ...], list[str]]:
+    """The forward steps from the first step's refits
+    (:func:`~solderpyro.diagnose.decide.forward_steps`): each next candidate refitted with the
+    chosen ones on, from the chosen model's fit with the candidate where its own refit put it.
+
+    Returns:
+        ``(steps, chosen, tie)``: the judged refits per step; the effects added; the candidates
+        that could not be told apart where the steps stopped (empty if none).
+    """
+    if not first:
+        return [], (), []
     single = {r.name: r for r in first}
 
     def refit_next(cur: Refit, chosen: tuple[str, ...], others: list[str]) -> list[Refit]:
         st = {}
-        for c in others:  # from the chosen model's fit, c where its own refit put it
+        for c in others:
             x = cur.x.copy()
             x[lay.cols(c)] = single[c].x[lay.cols(c)]
             st[c] = x
@@ -306,9 +334,145 @@ def refit_steps(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
                                      for r in nxt))
         return nxt
 
-    steps, chosen, tie = forward_steps(first, refit_next, n, lay.n_cal, sigma, floor,
-                                       len(lay.candidates))
-    return fits, steps, chosen, tie
+    return forward_steps(first, refit_next, len(meas.value_um), lay.n_cal, sigma, floor,
+                         len(lay.candidates))
+
+
+def first_fits(base: dict[str, Any], first: list[Refit]) -> dict[str, dict[str, Any]]:
+    """``{"baseline"|effect: {"chi2", "x"}}`` of the base and the first step's refits (for the
+    fingerprints and the separation)."""
+    fits: dict[str, dict[str, Any]] = {"baseline": {"chi2": base["chi2"],
+                                                    "x": np.asarray(base["x"], float)}}
+    fits.update({r.name: {"chi2": r.chi2, "x": r.x} for r in first})
+    return fits
+
+
+def spread_starts(lay: Layout, base_x: np.ndarray, k: int = SPREAD_STARTS, seed: int = 0
+                  ) -> dict[str, np.ndarray]:
+    """Starts of the global refits across the calibrated box, label -> ``(n_cal,)`` row.
+
+    The literature constants (``setup.anand``), then ``k`` points of a Latin hypercube over
+    the inner 70 % of the Anand constants' box (unit-cube scale, so log-scale constants
+    spread in log); the run's own effects' parameters stay at ``base_x``'s.
+
+    Args:
+        lay: the layout (``lay.setup.space`` is the Anand constants' box).
+        base_x: ``(n_col,)`` the base fit's row, physical units.
+        k: Latin-hypercube starts; seed: their seed.
+    """
+    from scipy.stats import qmc
+
+    space = lay.setup.space
+    d = space.dim
+    out: dict[str, np.ndarray] = {}
+    lit = np.asarray(base_x[:lay.n_cal], float).copy()
+    lit[:d] = [lay.setup.anand[nm] for nm in space.names]
+    out["literature constants"] = lit
+    if k > 0:
+        u = 0.15 + 0.7 * qmc.LatinHypercube(d=d, seed=seed).random(k)
+        phys = space.from_unit(torch.as_tensor(u, dtype=torch.float64)).numpy()
+        for i in range(k):
+            x = np.asarray(base_x[:lay.n_cal], float).copy()
+            x[:d] = phys[i]
+            out[f"spread start {i + 1}"] = x
+    return out
+
+
+def effect_start(lay: Layout, effect: str, ladder: dict[str, float]) -> np.ndarray:
+    """A candidate's parameters at a global start: its ladder magnitude where the screen found
+    one (one-parameter effects), else the middle of its box."""
+    cols = lay.cols(effect)
+    if effect in ladder and len(cols) == 1:
+        return np.array([ladder[effect]])
+    return 0.5 * (lay.lo[cols] + lay.hi[cols])
+
+
+def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
+                  base: dict[str, Any], scores: list[Score], local: list[Refit]
+                  ) -> tuple[dict[str, Any], list[Refit]]:
+    """Every candidate, and the base model itself, refitted from several starts.
+
+    For the base model and each candidate that does not saturate the data: the starts of
+    :func:`spread_starts` (and, for a candidate the screen left out, the base point), all
+    models advancing together for :data:`SCOUT_ITERS` Levenberg-Marquardt iterations; the best
+    start of each model (its local refit from the base point, ``local``, counts as one) goes on
+    to convergence. A base model that ends lower than ``base`` replaces it, and every
+    candidate's likelihood ratio is taken against the better base.
+
+    Args:
+        lay, fe, meas, sigma: as :func:`first_refits`.
+        base: the base fit (``"x" (n_col,)``, ``"chi2"``, ...).
+        scores: the screen (orders the work; its ladder magnitudes start the effects).
+        local: the first step's refits from the base point (may be empty).
+    Returns:
+        ``(base, first)``: the base fit (``base`` itself, or the better one with ``"start"``
+        naming where it came from and ``"global": True``) and one
+        :class:`~solderpyro.diagnose.decide.Refit` per candidate refitted, screen order.
+    """
+    ladder = ladder_values(scores)
+    x_b = np.asarray(base["x"], float)
+    free_dof = len(meas.value_um) - lay.n_cal
+    order = [sc.effect for sc in sorted(scores, key=lambda s: -s.statistic)
+             if not saturates(sc.dof, free_dof)]
+    done = {r.name: r for r in local if r.ok}
+    starts = spread_starts(lay, x_b)
+    models: dict[str, tuple[tuple[str, ...], np.ndarray]] = {}
+    for label, th in starts.items():
+        models[f"baseline|{label}"] = ((), lay.row(th))
+        for c in order:
+            x = lay.row(th)
+            x[lay.cols(c)] = effect_start(lay, c, ladder)
+            models[f"{c}|{label}"] = ((c,), x)
+    for c in order:
+        if c not in done:  # never refitted from the base point: that start too
+            x = x_b.copy()
+            x[lay.cols(c)] = effect_start(lay, c, ladder)
+            models[f"{c}|the base point"] = ((c,), x)
+    log.info("diagnose: global refits: the base model and %d candidates from %d starts each "
+             "(%d fits, %d iterations each before the best start of each goes on)",
+             len(order), len(starts), len(models), SCOUT_ITERS)
+    scout = fit_models(lay, fe, meas, sigma, models, iters=SCOUT_ITERS)
+    best: dict[str, tuple[str, LMFit]] = {}
+    for key, f in scout.items():
+        name, label = key.split("|", 1)
+        if name not in best or f.chi2 < best[name][1].chi2:
+            best[name] = (label, f)
+    go_on = {}
+    for name, (_, f) in best.items():
+        held = done.get(name)
+        if held is not None and held.chi2 <= f.chi2:
+            continue  # the local refit is already better than any scout
+        if name == "baseline" and f.chi2 >= base["chi2"]:
+            continue
+        if not f.converged:
+            go_on[name] = (() if name == "baseline" else (name,), f.x)
+    more = fit_models(lay, fe, meas, sigma, go_on) if go_on else {}
+    fin = {name: (label, more.get(name, f)) for name, (label, f) in best.items()}
+    nb = dict(base)
+    lb, fb = fin["baseline"]
+    if fb.chi2 < base["chi2"] - REFIT_TOL:
+        log.info("diagnose: the base model refitted from %s: chi2 %.1f -> %.1f", lb,
+                 base["chi2"], fb.chi2)
+        nb.update({"x": fb.x, "chi2": float(fb.chi2), "start": f"{lb} (global refit)",
+                   "history": [*base["history"], float(fb.chi2)], "global": True})
+    n_starts = len(starts)
+    first = []
+    for c in order:
+        label, f = fin[c]
+        r = Refit((c,), float(f.chi2), len(lay.cols(c)), f.x, float(nb["chi2"]),
+                  starts=n_starts + (0 if c in done else 1))
+        held = done.get(c)
+        if held is not None and held.chi2 <= r.chi2:
+            r = dataclasses.replace(held, base_chi2=float(nb["chi2"]),
+                                    starts=held.starts + n_starts)
+        if not r.ok and nb.get("global"):
+            # nested in the better base: with the effect off it is that base (LR 0)
+            r = Refit((c,), float(nb["chi2"]), r.dof, lay.row(nb["x"][:lay.n_cal]),
+                      float(nb["chi2"]), starts=r.starts)
+        first.append(r)
+    log.info("diagnose: global refits (base chi2 %.1f): %s", nb["chi2"], ", ".join(
+        f"{r.name} {r.chi2:.1f}{'' if r.ok else ' (failed)'}" for r in first))
+    return nb, first
 
 
 def base_starts(setup: Any, info: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool

@@ -35,8 +35,17 @@ from typing import Any
 import numpy as np
 
 from solderpyro.diagnose.costs import Costs
-from solderpyro.diagnose.decide import REFIT_TOL, Judged, load_floor, remains, to_refit
+from solderpyro.diagnose.decide import (
+    REFIT_TOL,
+    Judged,
+    load_floor,
+    needs_global,
+    remains,
+    settled,
+    to_refit,
+)
 from solderpyro.diagnose.diagnosis import Diagnosis
+from solderpyro.diagnose.faces import Face, freeing, on_faces
 from solderpyro.diagnose.fingerprint import Fingerprints, fingerprints
 from solderpyro.diagnose.load import (
     candidate_effects,
@@ -49,10 +58,13 @@ from solderpyro.diagnose.refits import (
     MAX_REFITS,
     base_fit,
     base_starts,
+    first_fits,
+    first_refits,
+    forward,
+    global_refits,
     layout,
     linearised_steps,
     pick_draws,
-    refit_steps,
 )
 from solderpyro.diagnose.ruleout import cannot_rule_out
 from solderpyro.diagnose.screen import (
@@ -146,18 +158,31 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     steps: list[list[Judged]] = []
     chosen: tuple[str, ...] = ()
     tie: list[str] = []
+    faces: list[Face] = []
+    freed: list[str] = []
     screened = to_refit(scores, n_cand, remains(base_chi2, n, lay.n_cal), MAX_REFITS,
                         MIN_IDENTIFIABLE, n - lay.n_cal)
     if not refit:  # the linearised statistics stand in for the refits
         steps, chosen, tie = linearised_steps(scores, mf.chi2, n, lay.n_cal, sigma, floor,
                                               n_cand)
-    elif base is not None and screened:
+    elif base is not None:
         with cost.stage("profile_refits"):
-            fits, steps, chosen, tie = refit_steps(lay, fe, meas, sigma, base, scores,
-                                                   screened, floor)
+            first = (first_refits(lay, fe, meas, sigma, base, scores, screened)
+                     if screened else [])
+            steps, chosen, tie = forward(lay, fe, meas, sigma, first, floor)
+        faces = on_faces(base["x"][:setup.space.dim], setup.space)
+        if needs_global(bool(faces), base["chi2"], n, lay.n_cal,
+                        settled(steps, chosen, tie, n, sigma, floor)):
+            with cost.stage("global_refits"):
+                base, first = global_refits(lay, fe, meas, sigma, base, scores, first)
+                base_chi2 = base["chi2"]
+                steps, chosen, tie = forward(lay, fe, meas, sigma, first, floor)
+            freed = freeing(first, base_chi2, setup.space, len(faces)) if faces else []
+        fits = first_fits(base, first)
     with cost.stage("verdict"):
         diag = verdict(VerdictInputs(mf, pc, scores, per_draw, sigma, steps, chosen, tie,
-                                     base_chi2, lay.n_cal, floor))
+                                     base_chi2, lay.n_cal, floor, tuple(faces),
+                                     tuple(freed)))
         record_fits(diag, steps, lay, base, fe_ok, fej["cols"].names)
     if not diag.misfit and not diag.selected and lad:
         with cost.stage("cannot_rule_out"):

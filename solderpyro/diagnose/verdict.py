@@ -26,6 +26,7 @@ from solderpyro.diagnose.decide import (
     saturates,
 )
 from solderpyro.diagnose.diagnosis import Diagnosis
+from solderpyro.diagnose.faces import Face, faces_text
 from solderpyro.diagnose.fingerprint import Fingerprints
 from solderpyro.diagnose.ruleout import describe
 from solderpyro.diagnose.screen import MIN_IDENTIFIABLE
@@ -49,6 +50,7 @@ class VerdictInputs:
             told apart where the steps stopped.
         base_chi2: chi-square at the FE's best fit (or the linearised misfit without refits).
         n_cal: calibrated parameters; floor: the discretization floor.
+        faces, freeing: see the attributes' comments (empty without refits).
     """
 
     mf: Misfit
@@ -62,6 +64,11 @@ class VerdictInputs:
     base_chi2: float
     n_cal: int
     floor: Floor
+    #: the Anand constants the base fit presses against the box's faces
+    faces: tuple[Face, ...] = ()
+    #: candidates that, refitted, fit as well with fewer constants on faces
+    #: (:func:`~solderpyro.diagnose.faces.freeing`)
+    freeing: tuple[str, ...] = ()
 
     @property
     def n(self) -> int:
@@ -175,8 +182,11 @@ def tie_text(v: VerdictInputs, head: str) -> tuple[str, list[str]]:
 
 def unexplained_text(v: VerdictInputs, head: str) -> str:
     """Verdict where no candidate explains the misfit."""
-    if v.chosen or v.tie:
-        best = np.sqrt(min(j.refit.chi2 for st in v.steps for j in st if j.refit.ok) / v.n)
+    # a refit with as many parameters as the data leave fits anything: it is no "best refit"
+    testable = [j.refit.chi2 for st in v.steps for j in st
+                if j.refit.ok and not saturates(j.refit.dof, v.n - v.n_cal)]
+    if (v.chosen or v.tie) and testable:
+        best = np.sqrt(min(testable) / v.n)
         part = (f"; the candidates' best refit leaves {best:.2f} noise sd, above the "
                 f"{EXPLAINED_SD} that would explain it")
     else:
@@ -245,7 +255,19 @@ def verdict(v: VerdictInputs) -> Diagnosis:
     if failed:
         suggestions.append("refits that ended above the base fit after a retry (failed, not "
                            "ranked): " + ", ".join(e["effect"] for e in failed))
+    if v.faces:  # the finding comes first: the fit's quality hides it
+        text = (faces_text(list(v.faces), not remains(v.base_chi2, v.n, v.n_cal)) + "; "
+                + text)
+        if v.freeing:
+            text += ("; refitted with " + " or ".join(v.freeing) + ", the constants leave the "
+                     "faces at a fit as good or better")
+            suggestions += [f"recalibrate with effects=[{c}] to see the constants if it is "
+                            "present" for c in v.freeing if c not in v.chosen]
+        else:
+            suggestions.append("no candidate frees the constants: widen the prior box where "
+                               "the physics allows, or suspect physics outside the library")
     diag = Diagnosis(bad, text, ranking, check(v), [v.tie] if v.tie else [], suggestions)
+    diag.faces = [f.to_json() for f in v.faces]
     diag.failed = failed
     diag.selected = list(v.chosen) if ok_expl else []  # an unexplained misfit names nothing
     diag.explained = flag

@@ -1,0 +1,120 @@
+"""The global refits on a toy where the screen cannot see the right candidate.
+
+The toy: calibrated constants ``(a, b)`` on a box, data ``y = a x + b x^2 + q (b_max - b)
+x^2.5`` with a hidden effect ``q = 1`` ("right") and ``b_max`` the box's upper face of ``b``.
+Without the effect, ``b`` absorbs what it can and the best fit presses it against that face;
+there the effect's signature ``(b_max - b) x^2.5`` vanishes, so its score (and its refit from
+the base point) sees nothing, just as at the corner of the Anand box where the solder barely
+creeps the stress-free temperature's signature is small. A decoy ("decoy", a cosine) scores
+better at the face. Every fit below is the real Levenberg-Marquardt of the diagnosis
+(:func:`solderpyro.diagnose.refits.fit_models`) through a stand-in for the FE.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from solderpyro.diagnose.decide import Floor, explained, needs_global, settled
+from solderpyro.diagnose.faces import on_faces
+from solderpyro.diagnose.refits import (
+    Layout,
+    base_fit,
+    first_refits,
+    forward,
+    global_refits,
+    ladder_values,
+)
+from solderpyro.params import Box
+
+B_MAX = 1.6
+X = np.linspace(0.05, 1.0, 40)
+SIGMA = 0.002
+
+
+def toy_model(rows: np.ndarray) -> np.ndarray:
+    """``rows (N, 4)`` = (a, b, decoy r, right q) -> ``(N, 40)`` predictions."""
+    a, b, r, q = (rows[:, k, None] for k in range(4))
+    return a * X + b * X**2 + q * (B_MAX - b) * X**2.5 + r * 0.05 * np.cos(4.0 * X)
+
+
+class ToyFE:
+    """Stands in for :class:`~solderpyro.specimen.SpecimenModels`: ``runs`` returns the toy's
+    predictions as one output time with 40 named points."""
+
+    names = tuple(f"p{i}" for i in range(len(X)))
+
+    def runs(self, P: torch.Tensor, times, field, fx) -> SimpleNamespace:
+        V = torch.as_tensor(toy_model(P.numpy()))[:, None, :]
+        return SimpleNamespace(V=V, ok=torch.ones(len(P), dtype=torch.bool), times=(0.0,),
+                               names=self.names)
+
+
+class ToyData:
+    """The measurement as the diagnosis reads it: values, times and point labels."""
+
+    def __init__(self, y: np.ndarray) -> None:
+        self.value_um = y
+        self.time_s = np.zeros(len(y))
+        self.point = np.array(ToyFE.names)
+
+    def __len__(self) -> int:
+        return len(self.value_um)
+
+
+@pytest.fixture(scope="module")
+def toy():
+    space = Box(("a", "b"), (0.5, 0.5), (2.0, B_MAX))
+    setup = SimpleNamespace(space=space, anand={"a": 1.2, "b": 1.2})
+    lay = Layout(setup, (), ("decoy", "right"), (0.0,), False, None, 2,
+                 np.array([0.5, 0.5, 0.0, 0.0]), np.array([2.0, B_MAX, 1.0, 2.0]),
+                 np.zeros(2), np.array(["decoy", "right"], dtype=object), ("a", "b", "r", "q"))
+    truth = np.array([[1.0, 1.0, 0.0, 1.0]])
+    y = toy_model(truth)[0] + SIGMA * np.random.default_rng(3).standard_normal(len(X))
+    meas, fe = ToyData(y), ToyFE()
+    base = base_fit(lay, fe, meas, SIGMA, {"posterior median": np.array([1.2, 1.2])})
+    # the screen at the face: the decoy scores, the right effect's signature is zero there
+    scores = [SimpleNamespace(effect="decoy", statistic=50.0, dof=1, lr=None, lr_value=None),
+              SimpleNamespace(effect="right", statistic=0.0, dof=1, lr=None, lr_value=None)]
+    return lay, fe, meas, base, scores
+
+
+def test_the_base_fit_presses_the_constant_against_the_face_and_misfits(toy):
+    lay, _, meas, base, _ = toy
+    faces = on_faces(base["x"][:2], lay.setup.space)
+    assert [(f.name, f.side) for f in faces] == [("b", "upper")]
+    n = len(meas)
+    assert not explained(base["chi2"], n, SIGMA, Floor())  # far above the noise
+    assert needs_global(True, base["chi2"], n, 2, False)
+
+
+def test_the_local_refit_misses_the_right_effect_and_the_global_one_finds_it(toy):
+    lay, fe, meas, base, scores = toy
+    n = len(meas)
+    local = first_refits(lay, fe, meas, SIGMA, base, scores, scores)
+    by = {r.name: r for r in local}
+    # from the base point the right effect's column is zero: it stays where the base is
+    assert by["right"].chi2 > base["chi2"] - 1.0
+    steps, chosen, tie = forward(lay, fe, meas, SIGMA, local, Floor())
+    assert not settled(steps, chosen, tie, n, SIGMA, Floor())
+
+    nb, first = global_refits(lay, fe, meas, SIGMA, base, scores, local)
+    g = {r.name: r for r in first}
+    # at the noise level: chi2 within 4 sd of its expectation n - 3 (sd sqrt(2 (n - 3)))
+    assert g["right"].chi2 < (n - 3) + 4 * np.sqrt(2 * (n - 3))
+    assert np.allclose(g["right"].x[[0, 1, 3]], [1.0, 1.0, 1.0], atol=0.15)
+    assert g["decoy"].chi2 > 10 * g["right"].chi2
+    steps, chosen, tie = forward(lay, fe, meas, SIGMA, first, Floor())
+    assert chosen == ("right",) and tie == []
+    assert settled(steps, chosen, tie, n, SIGMA, Floor())
+    assert nb["chi2"] <= base["chi2"]  # the base model can only improve from more starts
+
+
+def test_ladder_values_keep_only_magnitudes_that_lowered_chi2():
+    sc = [SimpleNamespace(effect="x", lr=3.0, lr_value=0.4),
+          SimpleNamespace(effect="y", lr=0.0, lr_value=0.9),
+          SimpleNamespace(effect="z", lr=None, lr_value=None)]
+    assert ladder_values(sc) == {"x": 0.4}
