@@ -57,7 +57,7 @@ def _cli(args: list[str], log: Path) -> float:
 def _truth(data: Path) -> tuple[str, dict[str, float]]:
     """The hidden effects' names and every true value, from the data file's metadata."""
     meta = read_measurements(data).meta
-    truth = dict(TRUTH)
+    truth = ast.literal_eval(meta["truth"]) if meta.get("truth") else dict(TRUTH)
     if meta.get("hidden_values"):
         truth.update(ast.literal_eval(meta["hidden_values"]))
     return meta.get("hidden_effect", "none"), truth

@@ -84,7 +84,7 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     return lad[k], float(rms[k])
 
 
-def make_dataset(setup: Any, effect: str | tuple[str, ...] | None, path: str | Path,
+def make_dataset(setup: Any, effect: Any, path: str | Path,
                  field: bool, times: tuple[float, ...], noise: float = 0.05, seed: int = 0,
                  values: np.ndarray | None = None, anand: dict[str, float] | None = None
                  ) -> Path:
@@ -93,8 +93,10 @@ def make_dataset(setup: Any, effect: str | tuple[str, ...] | None, path: str | P
     Args:
         setup: typed problem (its FE makes the data: e.g. ``mesh=fine``, or
             ``experiment=plane_strain`` for a misfit no candidate describes).
-        effect: registry name, a tuple of names (several hidden effects, each at its own
-            :func:`hidden_values` size), or None.
+        effect: a registry name or an :class:`~solderpyro.effects.Effect` instance (e.g. a
+            form of the physics other than the library's: benchmarks/forms.py), a tuple of
+            them (several hidden effects, each at its own :func:`hidden_values` size), or
+            None.
         path: the CSV to write. field: the 31 x 18 grid (plus A, B) instead of A and B only.
         times: observation times, s. noise: sd of the added Gaussian noise, um.
         values: the effects' parameters, concatenated in the order of ``effect`` (default
@@ -110,11 +112,16 @@ def make_dataset(setup: Any, effect: str | tuple[str, ...] | None, path: str | P
     from solderpyro.params import anand_tensor
     from solderpyro.specimen import SpecimenModel
 
-    names = () if effect is None else ((effect,) if isinstance(effect, str) else tuple(effect))
+    names = () if effect is None else (
+        tuple(effect) if isinstance(effect, (tuple, list)) else (effect,))
+    label = "+".join(nm if isinstance(nm, str) else nm.name for nm in names)
     truth = dict(anand or TRUTH)
     a = anand_tensor(truth, base=setup.anand, dtype=torch.float64)[None]
     meta = {"generator": "solderpyro hidden-effect dataset", "truth": str(truth),
-            "noise_sigma_um": str(noise), "hidden_effect": "+".join(names) or "none"}
+            "noise_sigma_um": str(noise), "hidden_effect": label or "none"}
+    forms = [nm.settings() for nm in names if not isinstance(nm, str)]
+    if forms:  # a form other than the library's: what it is, for the record
+        meta["hidden_form"] = str(forms)
     fx: Any = None
     if names:
         fx = effect_set(names, times, setup.effect_bounds)

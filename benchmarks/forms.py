@@ -1,0 +1,136 @@
+"""Effects in forms other than the library's: the hidden physics of the diagnosis benchmarks.
+
+Real physics never has exactly the library's form. Each form here keeps the name of the
+library effect it resembles (so "the hidden effect was selected" means the diagnosis named that
+effect) but computes the physics another way; they live in benchmarks/, never in the package,
+so the library is not tested against itself.
+
+========================  ===================================================================
+form                      differs from the library's effect by
+========================  ===================================================================
+``modulus_linear``        E(T) = E25 (1 - k (T - 25)), floored at 5 % of E25 (the library:
+                          E25 exp(-k (T - 25)))
+``lag_second_order``      two first-order lags in series, each tau/2 (the library: one lag tau)
+``cte_quadratic``         alpha(T) = alpha25 (1 + c (T - 25) + (c (T - 25))^2 / 2) (the
+                          library: linear in T)
+``stress_free_slow``      the stress-free temperature, cooled at 1 K/min before the cycle (the
+                          library's pre-history cools over 1,800 s)
+``stress_free_moderate``  cooled at 2 K/min
+========================  ===================================================================
+
+:func:`form` returns the :class:`~solderpyro.effects.Effect` instance; ``FORMS`` lists them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+
+from solderpyro.effects import EFFECTS
+from solderpyro.effects.cte_temperature import CteTemperature
+from solderpyro.effects.modulus_temperature import ModulusTemperature
+from solderpyro.effects.thermal_lag import ThermalLag
+from solderpyro.fem.loading import ThermalCycle
+
+
+@dataclass(frozen=True)
+class ModulusLinear(ModulusTemperature):
+    """Linear softening ``E25 (1 - k_E (T - T0))``, floored at :attr:`floor` of E25."""
+
+    floor: float = 0.05
+    form: str = "linear"  # in the run-store hash: never mistaken for the library's runs
+
+    def modulus(self, E: torch.Tensor, T: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """``(b,)`` MPa."""
+        return E * torch.clamp(1.0 - q[:, 0] * (T - self.T0_C), min=self.floor)
+
+
+def second_order_lag(cycle: ThermalCycle, t: float, tau: torch.Tensor) -> torch.Tensor:
+    """How far ``(b,)`` K two first-order lags in series, each of time constant ``tau / 2``
+    (s), leave the temperature below the program ``cycle`` at ``t`` s (closed form per linear
+    segment of the program; 0 where ``tau`` is 0).
+
+    On a segment of rate ``r`` the first stage's lag ``e1`` and the stages' difference ``d``
+    (``e2 = e1 + d``) evolve, with ``s = tau / 2`` and ``a = exp(-dt / s)``, as
+    ``e1 = r s + (e1_0 - r s) a`` and ``d = r s (1 - a) + (e1_0 - r s) (dt / s) a + d_0 a``.
+    """
+    s = tau / 2.0
+    pos = s > 0
+    safe = torch.where(pos, s, torch.ones_like(s))
+    e1 = torch.zeros_like(tau)
+    d = torch.zeros_like(tau)
+    kn = cycle.breakpoints
+    for ta, tb in zip(kn[:-1], kn[1:], strict=False):
+        if ta >= t:
+            break
+        r = (cycle(tb) - cycle(ta)) / (tb - ta)
+        dt = min(t, tb) - ta
+        a = torch.where(pos, torch.exp(-dt / safe), torch.zeros_like(s))
+        rs = r * s
+        e1, d = (rs + (e1 - rs) * a,
+                 rs * (1.0 - a) + (e1 - rs) * (dt / safe) * a + d * a)
+    return torch.where(pos, e1 + d, torch.zeros_like(tau))
+
+
+@dataclass(frozen=True)
+class LagSecondOrder(ThermalLag):
+    """The specimen two first-order lags (each ``tau / 2``) behind the program."""
+
+    form: str = "second order"
+
+    def temperature(self, T: torch.Tensor, t: float, cycle: ThermalCycle,
+                    q: torch.Tensor) -> torch.Tensor:
+        """``(b,)`` degC."""
+        return T - second_order_lag(cycle, t, q[:, 0])
+
+
+@dataclass(frozen=True)
+class CteQuadratic(CteTemperature):
+    """``alpha(T) = alpha25 (1 + c u + (c u)^2 / 2)``, ``u = T - T0``: the thermal strain is
+    its integral from the stress-free temperature."""
+
+    form: str = "quadratic"
+
+    def thermal_strain(self, eps: torch.Tensor, alpha: float, T: torch.Tensor,
+                       T_ref: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """``(b,)``: the baseline ``eps`` plus ``alpha`` times the integral of
+        ``c u + (c u)^2 / 2`` from ``T_ref`` to ``T``."""
+        c = q[:, 0]
+        T0 = self.T0_C
+
+        def F(x: torch.Tensor) -> torch.Tensor:
+            u = x - T0
+            return c * u**2 / 2.0 + c**2 * u**3 / 6.0
+
+        return eps + alpha * (F(T) - F(T_ref))
+
+
+def _stress_free(rate_K_per_min: float, T_sf: float) -> object:
+    """The library's stress-free temperature with the cool-down that ``rate`` gives from
+    ``T_sf`` to 25 degC."""
+    return dataclasses.replace(EFFECTS["stress_free_temperature"],
+                               cooldown_s=(T_sf - 25.0) / rate_K_per_min * 60.0)
+
+
+#: form name -> (the effect instance, the library effect it stands for, the hidden values to
+#: use (None: sized by :func:`~solderpyro.diagnose.hidden.hidden_values`))
+FORMS = {
+    "modulus_linear": (ModulusLinear(), "modulus_temperature", None),
+    "lag_second_order": (LagSecondOrder(), "thermal_lag", None),
+    "cte_quadratic": (CteQuadratic(), "cte_temperature", None),
+    "stress_free_slow": (_stress_free(1.0, 150.0), "stress_free_temperature", (150.0,)),
+    "stress_free_moderate": (_stress_free(2.0, 100.0), "stress_free_temperature", (100.0,)),
+}
+
+
+def form(name: str) -> tuple[object, str, tuple[float, ...] | None]:
+    """``(effect, library name, hidden values or None)`` of form ``name``.
+
+    Raises:
+        SystemExit: naming the valid forms for an unknown one.
+    """
+    if name not in FORMS:
+        raise SystemExit(f"unknown form {name!r}; valid: {', '.join(FORMS)}")
+    return FORMS[name]
