@@ -9,7 +9,7 @@ PIN_SPEC ?= gpytorch==1.15.2 linear-operator==0.6.1 pyro-ppl==1.9.2 botorch==0.1
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-all lint bench bench-koh seed-math clean
+.PHONY: install demo test test-all lint bench bench-koh docs seed-math clean
 
 $(STAMP): pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -42,6 +42,10 @@ bench: $(STAMP)
 bench-koh: $(STAMP)
 	$(BIN)/python -m pip install -q -e ".[bench]"
 	$(BIN)/python benchmarks/bench_koh.py
+
+docs: $(STAMP)
+	$(BIN)/python -m pip install -q -e ".[docs]"
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict
 
 seed-math: $(STAMP)
 	$(BIN)/solderpyro example seed-math --out runs/seed-math

@@ -40,7 +40,9 @@ with a dense mass matrix (``--numpyro-mass``), and the ratio is taken against th
 2.5/50/97.5 % quantiles of every site are compared between the two sides: they agree when
 |q_a - q_b| < 4 sqrt(mcse_a^2 + mcse_b^2) (ArviZ's quantile MCSE); ``agree`` is the median
 check, ``agree_tails`` all three; ``converged`` (R-hat < 1.01 on both sides) says whether
-the MCSEs, hence the check, can be trusted.
+the MCSEs, hence the check, can be trusted. The speed ratio is recorded only for a converged
+pair: both sides' largest R-hat at most 1.01 and smallest bulk ESS at least 100 per chain
+(:func:`speed_ratio`); otherwise the case records ``null`` and says "not converged: no ratio".
 NumPyro is the optional `bench` extra (pip install -e .[bench]).
 """
 
@@ -423,6 +425,37 @@ def _run_numpyro(model, chains, warmup, draws, seed, dense=False, init_params=No
 
 
 # ----------------------------------------------------------------------------- cases
+#: a side's chains count as converged at R-hat <= this (rank-normalized, largest over sites)
+MAX_RHAT = 1.01
+#: and at least this bulk ESS per chain (smallest over sites): 4 chains need 400
+MIN_ESS_PER_CHAIN = 100
+
+
+def converged(row: dict, chains: int) -> bool:
+    """Whether one side's run (a :func:`_row`: ``max_rhat``, ``min_ess``) converged: largest
+    R-hat <= :data:`MAX_RHAT` and smallest bulk ESS >= :data:`MIN_ESS_PER_CHAIN` x chains."""
+    return bool(row["max_rhat"] <= MAX_RHAT and row["min_ess"] >= MIN_ESS_PER_CHAIN * chains)
+
+
+def speed_ratio(ours: dict, theirs: dict, chains: int) -> tuple[float | None, str]:
+    """solderpyro's ESS per second over NumPyro's, only when both sides converged.
+
+    Args:
+        ours, theirs: :func:`_row` of each side (``ess_per_s``, ``max_rhat``, ``min_ess``).
+        chains: chains per side.
+    Returns:
+        ``(ratio, text)``: the ratio and e.g. ``"4.40x"``, or ``(None, "not converged: no ratio
+        (...)")`` naming each side's R-hat and ESS.
+    """
+    if converged(ours, chains) and converged(theirs, chains):
+        r = ours["ess_per_s"] / theirs["ess_per_s"]
+        return r, f"{r:.2f}x"
+    return None, ("not converged: no ratio (R-hat {:.4g} ours, {:.4g} NumPyro's; min bulk ESS "
+                  "{:.0f} ours, {:.0f} NumPyro's; needed R-hat <= {} and ESS >= {})").format(
+        ours["max_rhat"], theirs["max_rhat"], ours["min_ess"], theirs["min_ess"], MAX_RHAT,
+        MIN_ESS_PER_CHAIN * chains)
+
+
 def _row(cols: dict[str, np.ndarray], seconds: float, divergences: int) -> dict:
     mn, eps = ess_per_s(cols, seconds)
     return dict(min_ess=mn, ess_per_s=eps, seconds=seconds, divergences=divergences,
@@ -494,7 +527,7 @@ def run_case(case: str, a: argparse.Namespace, nuts: dict) -> dict[str, Any]:
     if a.no_numpyro:
         return res
     masses = {"both": (False, True), "diag": (False,), "dense": (True,)}[a.numpyro_mass]
-    best = None
+    best = None  # the faster NumPyro run, a converged one where there is one
     for dense in masses:
         tag = "dense" if dense else "diag"
         cols_n, sec_n, div_n = c["numpyro"](dense)
@@ -506,16 +539,19 @@ def run_case(case: str, a: argparse.Namespace, nuts: dict) -> dict[str, Any]:
         res[f"{case}_agree_tails_numpyro_{tag}"] = all(v["agree_tails"] for v in cmp.values())
         print(json.dumps({f"{case}_numpyro_{tag}": row,
                           "agree": res[f"{case}_agree_numpyro_{tag}"]}), flush=True)
-        if best is None or row["ess_per_s"] > best[1]["ess_per_s"]:
+        key = (converged(row, a.chains), row["ess_per_s"])
+        if best is None or key > (converged(best[1], a.chains), best[1]["ess_per_s"]):
             best = (tag, row)
     assert best is not None
+    ours = res[f"{case}_solderpyro"]
     res[f"{case}_numpyro"] = dict(best[1], mass=best[0])
-    res[f"{case}_ratio_solderpyro_over_numpyro"] = (
-        res[f"{case}_solderpyro"]["ess_per_s"] / best[1]["ess_per_s"])
+    ratio, text = speed_ratio(ours, best[1], a.chains)
+    res[f"{case}_ratio_solderpyro_over_numpyro"] = ratio
+    res[f"{case}_ratio"] = text
     res[f"{case}_agree"] = res[f"{case}_agree_numpyro_{best[0]}"]
     # MCSEs (hence the agreement check) mean something only for converged chains
-    res[f"{case}_converged"] = bool(max(res[f"{case}_solderpyro"]["max_rhat"],
-                                        best[1]["max_rhat"]) < 1.01)
+    res[f"{case}_converged"] = converged(ours, a.chains) and converged(best[1], a.chains)
+    print(f"{case}: solderpyro over NumPyro in ESS per second: {text}", flush=True)
     return res
 
 
@@ -569,8 +605,7 @@ def main() -> None:
         res.update(run_case(case, a, nuts))
         with open(a.out, "w") as f:  # after every case: a long run keeps what it measured
             json.dump(res, f, indent=2)
-    summary = {c: {k: res.get(f"{c}_{k}") for k in ("ratio_solderpyro_over_numpyro", "agree",
-                                                     "converged")}
+    summary = {c: {k: res.get(f"{c}_{k}") for k in ("ratio", "agree", "converged")}
                for c in cases}
     print(json.dumps(summary, indent=2))
 

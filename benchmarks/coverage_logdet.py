@@ -1,7 +1,7 @@
 """Why the coverage study's intervals miss: the modular likelihood's two terms at each truth.
 
 Usage: python benchmarks/coverage_logdet.py
-       [--results benchmarks/results/coverage_specimen_uniform_starts.json]
+       [--results benchmarks/results/coverage_specimen.json]
        [--store runs/store]
 
 Rebuilds the default surrogate of benchmarks/coverage_specimen.py (50-run LHS, PCA, Matern 5/2 on
@@ -30,7 +30,7 @@ from solderpyro.surrogate.features import FlowStressInputs
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--results", default="benchmarks/results/coverage_specimen_uniform_starts.json")
+    ap.add_argument("--results", default="benchmarks/results/coverage_specimen.json")
     ap.add_argument("--store", default="runs/store")
     ap.add_argument("--noise", type=float, default=0.05)
     a = ap.parse_args()

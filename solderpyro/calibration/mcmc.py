@@ -352,7 +352,7 @@ class WarmStart:
         """Read what :meth:`save` wrote.
 
         Raises:
-            FileNotFoundError naming the file.
+            FileNotFoundError: naming the file.
         """
         p = Path(path)
         if not p.is_file():
@@ -432,7 +432,7 @@ class NutsOptions:
             None: :data:`MAPPED_ACCEPT`).
 
     Raises:
-        ValueError naming the setting (as ``run_nuts <name> ...``) when one is out of range.
+        ValueError: naming the setting (as ``run_nuts <name> ...``) when one is out of range.
     """
 
     chains: int = 4

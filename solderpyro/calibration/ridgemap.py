@@ -66,7 +66,7 @@ class RidgeMap:
         mean, sd: ``(d,)`` the draws' standardization; span: ``(d,)`` their largest
         ``|z|``. curved: per coordinate, whether its quadratic terms are kept
         (:data:`QUAD_GAIN`; else only the linear ones). coef: per coordinate ``k >= 1`` the
-        regression coefficients on ``[1, h(z_<k), h(z_i) h(z_j) (i <= j < k)]``.
+            regression coefficients on ``[1, h(z_<k), h(z_i) h(z_j) (i <= j < k)]``.
     """
 
     def __init__(self, Q: np.ndarray) -> None:

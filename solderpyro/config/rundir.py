@@ -281,7 +281,8 @@ class Draws:
         """Read ``draws.npz``.
 
         Raises:
-            FileNotFoundError naming the file; RunDirError naming it and a missing array.
+            FileNotFoundError: naming the file.
+            RunDirError: naming it and a missing array.
         """
         p = Path(path)
         if not p.is_file():
@@ -342,8 +343,9 @@ class RunDir:
         (:data:`RUN_FILES` for a diagnosis).
 
         Raises:
-            FileNotFoundError naming the first missing file; RunDirError naming ``run.json``
-            and the key (not JSON, an unknown schema, a required key missing).
+            FileNotFoundError: naming the first missing file.
+            RunDirError: naming ``run.json`` and the key (not JSON, an unknown schema, a
+                required key missing).
         """
         d = Path(path)
         for f in files:
@@ -381,7 +383,7 @@ class RunDir:
         """``summary.csv``: parameter -> its row (numbers as floats, ``interval`` the word).
 
         Raises:
-            FileNotFoundError naming the file.
+            FileNotFoundError: naming the file.
         """
         p = self.path / SUMMARY_CSV
         if not p.is_file():

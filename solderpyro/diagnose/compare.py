@@ -132,7 +132,7 @@ def compare(before: str | Path, after: str | Path, out: str | Path | None = None
     ``out`` (default: ``after``).
 
     Raises:
-        ValueError when the two runs were calibrated on different data.
+        ValueError: when the two runs were calibrated on different data.
     """
     a, b = run_metrics(before), run_metrics(after)
     ya, yb = measured(before), measured(after)

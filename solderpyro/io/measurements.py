@@ -1,4 +1,4 @@
-"""Read and write measured displacement data (the long-form CSV of shared/data-format.md).
+"""Read and write measured displacement data (the long-form CSV of docs/data-format.md).
 
 File format (one row per measured value, header required, any column order)::
 

@@ -239,7 +239,7 @@ def identifiability(setup: Setup, effects: tuple[str, ...], space: Box, rows: li
         effects: the switched-on effects in the order of their parameters in ``space``.
         space: the calibrated box; rows: the FE-exact summary rows (parameter, q2.5, q97.5).
         ex: the :class:`~solderpyro.exact.posterior.ExactPosterior`; meas: the data; sigma: noise
-        sd, um.
+            sd, um.
     Returns:
         ``{"weak": [{"parameter", "share_of_box", "bound_by_prior"}], "ends": {...},
         "options": [...], "advice"}`` (``ends``/``options`` only when a parameter is weak).

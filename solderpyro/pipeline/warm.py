@@ -58,7 +58,7 @@ def warm_start(run_dir: str | Path, effects: Sequence[str]) -> WarmStart:
     :attr:`~solderpyro.calibration.mcmc.WarmStart.point` set from :func:`refit_point`.
 
     Raises:
-        FileNotFoundError naming the missing sampler state.
+        FileNotFoundError: naming the missing sampler state.
     """
     from solderpyro.config.rundir import WARM_FILE
 

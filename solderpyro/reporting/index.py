@@ -1,11 +1,12 @@
-"""``index.html``: the one page of a run directory that a person opens in a browser.
+"""``index.html``: the entry page of a run directory, the one page to open in a browser.
 
 Verdict first (the diagnosis's, the comparison's, the calibration's trust line), then the
-figures that show where the model misses the data, the tables, the warnings, and links to the
-full reports (``report.html``, ``diagnosis.html``, ``comparison.md``) and files. It is
-rebuilt from whatever the directory holds by ``calibrate``, ``diagnose`` and ``compare``, so it
-is always the latest state. Self-contained: inline style, images beside it as relative links,
-nothing fetched from a network.
+figures that show where the model misses the data, the tables, the warnings, and links to
+everything else the directory holds: the full reports (``report.html`` and ``report.md``,
+``diagnosis.html``, ``comparison.md``), the CSVs, ``posterior.nc``, the JSON records and any
+other file. It is rebuilt from whatever the directory holds by ``calibrate``, ``diagnose``
+and ``compare``, so it is always the latest state. Self-contained: inline style, images
+beside it as relative links, nothing fetched from a network.
 """
 
 from __future__ import annotations
@@ -41,11 +42,24 @@ FIGURES = (
     ("fig8_literature.png", "Literature constants against the data"),
     ("surrogate_loo.png", "Surrogate leave-one-out check"),
 )
-LINKS = (("report.html", "calibration report"), ("diagnosis.html", "diagnosis"),
-         ("comparison.md", "comparison (Markdown)"), ("summary.csv", "posterior summary (CSV)"),
+#: the files a run directory may hold, each with what it is, in the order the page lists them
+LINKS = (("report.html", "calibration report"), ("report.md", "calibration report (Markdown)"),
+         ("diagnosis.html", "diagnosis"), ("diagnosis.md", "diagnosis (Markdown)"),
+         ("comparison.md", "comparison (Markdown)"),
+         ("summary.csv", "posterior summary, the reported posterior (CSV)"),
+         ("summary_surrogate.csv", "the surrogate posterior's summary (CSV)"),
+         ("exact_posterior.csv", "FE-exact posterior beside the surrogate's (CSV)"),
+         ("profile_ci.csv", "profile-likelihood intervals (CSV)"),
+         ("design.csv", "the adaptive design's FE runs (CSV)"),
+         ("data.csv", "the measurements (CSV)"),
          ("posterior.nc", "posterior, predictive and log-likelihood (ArviZ NetCDF)"),
+         ("draws.npz", "the reported posterior's draws and predictive (NumPy)"),
+         ("exact_samples.npz", "FE-exact importance samples (NumPy)"),
          ("diagnosis.json", "diagnosis (JSON)"), ("comparison.json", "comparison (JSON)"),
-         (RUN_JSON, "run settings (JSON)"))
+         ("design_rounds.json", "the adaptive design's rounds (JSON)"),
+         (RUN_JSON, "run settings and record (JSON)"),
+         ("sampler_state.npz", "the sampler's adapted state, for --warm-from (NumPy)"),
+         ("discretization_correction.npz", "the discretization correction used (NumPy)"))
 STYLE = ("body{font-family:sans-serif;max-width:100em;margin:1.5em auto;padding:0 1em;"
          "color:#222}.verdict{border-left:.5em solid #888;padding:.6em 1em;margin:1em 0;"
          "background:#f4f4f4;font-size:1.1em}.bad{border-color:#c0392b;background:#fdecea}"
@@ -188,6 +202,10 @@ def write_index(run_dir: str | Path) -> Path:
     body.append("<ul>" + "".join(f"<li>{_e(w)}</li>" for w in warn) + "</ul>" if warn
                 else "<p>none</p>")
     links = [(f, lab) for f, lab in LINKS if (d / f).is_file()]
+    known = {f for f, _ in LINKS} | {f for f, _ in FIGURES} | {"index.html"}
+    links += [(p.name, "figure" if p.suffix == ".png" else "file")
+              for p in sorted(d.iterdir())
+              if p.is_file() and p.name not in known and not p.name.startswith((".", "_"))]
     if cmp is not None and cmp.get("before_dir"):
         rel = os.path.relpath(Path(cmp["before_dir"]) / "index.html", d)
         links.append((rel, "the run before (its index)"))

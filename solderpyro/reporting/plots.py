@@ -15,7 +15,7 @@ def plot_cycle(times, V, names, temps_C, cycle=None, marks=()):
     Args:
         times: ``(n_time,)`` s; V: ``(n_time, n_out)`` um; names: ``n_out`` labels;
         temps_C: ``(n_time,)`` degC; cycle: optional program drawn as a line; marks: times to
-        mark (e.g. the seed points).
+            mark (e.g. the seed points).
     Returns:
         the matplotlib Figure.
     """

@@ -1,4 +1,8 @@
-"""The run directory's figures and ``report.md`` (what a user opens first)."""
+"""The calibration's figures, ``report.md`` and ``report.html`` (the same report as HTML).
+
+Both are the calibration's detail; the run directory's entry page is ``index.html``
+(:mod:`solderpyro.reporting.index`), which links them.
+"""
 
 from __future__ import annotations
 
@@ -156,12 +160,14 @@ def write(rep: CalibrationReport) -> Path:
     inside = float(np.mean((bands.obs_lo.numpy() <= meas.value_um)
                            & (meas.value_um <= bands.obs_hi.numpy())))
     lines = ["# solderpyro calibration report", "",
+             "The run directory's entry page is `index.html` (verdicts, figures, diagnosis, "
+             "comparison, every file); this is the calibration's detail.", "",
              f"- data: {len(meas)} values at {len(meas.points())} point(s) x "
              f"{len(meas.times())} time(s)",
              f"- FE runs: {doe.ok} converged, {doe.failed} failed "
              f"({doe.reused} reused from the run store, {doe.computed} computed)",
-             f"- NUTS: {nuts['chains']} chains x {nuts['draws']} draws after {nuts['warmup']} "
-             f"warm-up; divergences per chain {post.divergences}; {post.seconds:.0f} s",
+             f"- NUTS: {sampled_text(post, nuts)}; divergences per chain {post.divergences}; "
+             f"{post.seconds:.0f} s",
              f"- RMSE model vs data: Liu 2008 constants {rmse_liu:.3g} um -> posterior "
              f"median {rmse_post:.3g} um; {inside:.0%} of the measurements inside the 95 % "
              "predictive band", *[f"- {n}" for n in rep.notes], "",
@@ -210,6 +216,29 @@ def write(rep: CalibrationReport) -> Path:
     p.write_text("\n".join(lines) + "\n")
     write_html(lines, out / "report.html", "solderpyro calibration report")
     return p
+
+
+def sampled_text(post: Any, settings: dict[str, int]) -> str:
+    """What the final NUTS run kept, read from its draws: ``"4 chains x 2250 draws kept after
+    500 warm-up (1500 asked; the chains ran on for 750 more)"``.
+
+    Args:
+        post: the posterior; ``post.samples``: site -> ``(chain, draw, ...)``.
+        settings: the run's ``chains``, ``draws`` and ``warmup`` as asked
+            (:attr:`~solderpyro.config.rundir.RunInfo.sampler`; keys may be missing).
+    Returns:
+        one line of the report.
+    """
+    n_chain, n_draw = (int(n) for n in next(iter(post.samples.values())).shape[:2])
+    txt = f"{n_chain} chains x {n_draw} draws kept"
+    if "warmup" in settings:
+        txt += f" after {settings['warmup']} warm-up"
+    asked = settings.get("draws")
+    if asked is not None and asked != n_draw:
+        more = n_draw - asked
+        txt += (f" ({asked} asked; the chains ran on for {more} more)" if more > 0
+                else f" ({asked} asked)")
+    return txt
 
 
 def _num(v: Any, fmt: str) -> str:

@@ -100,7 +100,7 @@ def observation_index(meas: Measurements, times: tuple[float, ...], names: tuple
         ``(n_obs,)`` time indices and ``(n_obs,)`` output indices.
 
     Raises:
-        ValueError naming the first row whose time or point is not a model output.
+        ValueError: naming the first row whose time or point is not a model output.
     """
     ti = np.searchsorted(np.asarray(times), meas.time_s)
     oi = np.empty(len(meas), dtype=int)

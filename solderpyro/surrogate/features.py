@@ -87,7 +87,7 @@ class FlowStressInputs:
         rate_ref: reference inelastic strain rate, 1/s (> 0).
 
     Raises:
-        ValueError naming the missing parameter or the bad reference value.
+        ValueError: naming the missing parameter or the bad reference value.
     """
 
     def __init__(self, box: Box, fixed: Mapping[str, float], T_ref_C: float = 125.0,
