@@ -293,8 +293,9 @@ def first_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
     starts = {}
     for sc in screened:
         x = x_b.copy()
-        if sc.effect in ladder and len(lay.cols(sc.effect)) == 1:
-            x[lay.cols(sc.effect)] = ladder[sc.effect]
+        j = size_col(lay, sc.effect)
+        if sc.effect in ladder and j is not None:
+            x[j] = ladder[sc.effect]
         starts[sc.effect] = x
     first = refit_candidates(lay, fe, meas, sigma, x_b, base["chi2"], (), starts)
     log.info("diagnose: refits from the base point (chi2 %.1f): %s", base["chi2"], ", ".join(
@@ -379,12 +380,26 @@ def spread_starts(lay: Layout, base_x: np.ndarray, k: int = SPREAD_STARTS, seed:
 
 
 def effect_start(lay: Layout, effect: str, ladder: dict[str, float]) -> np.ndarray:
-    """A candidate's parameters at a global start: its ladder magnitude where the screen found
-    one (one-parameter effects), else the middle of its box."""
+    """A candidate's parameters ``(n_p,)`` at a global start: the middle of its box, and the
+    parameter that sizes it at its ladder magnitude where the screen found one."""
     cols = lay.cols(effect)
-    if effect in ladder and len(cols) == 1:
-        return np.array([ladder[effect]])
-    return 0.5 * (lay.lo[cols] + lay.hi[cols])
+    x = 0.5 * (lay.lo[cols] + lay.hi[cols])
+    j = size_col(lay, effect)
+    if effect in ladder and j is not None:
+        x[list(cols).index(j)] = ladder[effect]
+    return x
+
+
+def size_col(lay: Layout, effect: str) -> int | None:
+    """The column of the parameter that sizes candidate ``effect``
+    (:attr:`~solderpyro.effects.Effect.size_index`), or None when several do."""
+    cols = lay.cols(effect)
+    if len(cols) == 1:
+        return int(cols[0])
+    eff = (None if lay.fx_all is None else
+           next((e for e in lay.fx_all.effects if e.name == effect), None))
+    k = None if eff is None else eff.size_index
+    return None if k is None else int(cols[k])
 
 
 def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,

@@ -136,15 +136,17 @@ def _fd_rows(theta: np.ndarray, off: np.ndarray, cols: Columns) -> list[np.ndarr
 
 def _ladder_rows(base0: np.ndarray, cands: dict[str, Any], cols: Columns, n_cal: int
                  ) -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
-    """A ladder of finite magnitudes per one-parameter candidate, from the first draw's row
-    ``base0``: the likelihood ratio sees effects whose first derivative at "off" vanishes
-    (thresholds, e.g. yielding). Returns ``(effect -> magnitudes, FE rows)``."""
+    """A ladder of finite magnitudes of each candidate sized by one parameter
+    (:attr:`~solderpyro.effects.Effect.size_index`; its form parameters stay at "off"), from
+    the first draw's row ``base0``: the likelihood ratio sees effects whose first derivative at
+    "off" vanishes (thresholds, e.g. yielding). Returns ``(effect -> magnitudes, FE rows)``."""
     ladder: dict[str, np.ndarray] = {}
     rows = []
     for ename, eff in cands.items():
-        if eff.n_params != 1:
+        k = eff.size_index
+        if k is None:
             continue
-        j = n_cal + int(np.flatnonzero(np.array(cols.owner[n_cal:]) == ename)[0])
+        j = n_cal + int(np.flatnonzero(np.array(cols.owner[n_cal:]) == ename)[0]) + k
         ladder[ename] = ladder_values(eff)
         for v in ladder[ename]:
             r = base0.copy()
@@ -173,11 +175,15 @@ def _fd_jacobians(V: np.ndarray, K: int, cols: Columns) -> tuple[np.ndarray, np.
 
 
 def ladder_values(eff: Any) -> np.ndarray:
-    """``(len(LADDER),)`` magnitudes of a one-parameter effect ``eff`` (bound
-    :class:`~solderpyro.effects.Effect`): the shares :data:`LADDER` of the way from "off" to
-    the farther edge of its box, in its own units."""
-    b, o = eff.params, float(eff.off[0])
-    far = b.upper[0] if b.upper[0] - o >= o - b.lower[0] else b.lower[0]
+    """``(len(LADDER),)`` magnitudes of the parameter that sizes ``eff`` (bound
+    :class:`~solderpyro.effects.Effect`; :attr:`~solderpyro.effects.Effect.size_index`): the
+    shares :data:`LADDER` of the way from "off" to the farther edge of its box, in its own
+    units."""
+    k = eff.size_index
+    if k is None:
+        raise ValueError(f"ladder_values: effect {eff.name!r} is sized by several parameters")
+    b, o = eff.params, float(eff.off[k])
+    far = b.upper[k] if b.upper[k] - o >= o - b.lower[k] else b.lower[k]
     return o + np.asarray(LADDER) * (far - o)
 
 
@@ -213,7 +219,7 @@ def score_tests(y: np.ndarray, V: np.ndarray, J: np.ndarray, cols: Columns, sigm
 def apply_ladder(mf: Misfit, scores: list[Score], y: np.ndarray, J0: np.ndarray,
                  cols: Columns, sigma: float,
                  ladder: dict[str, tuple[np.ndarray, np.ndarray]] | None) -> None:
-    """The likelihood ratio of each one-parameter candidate over its ladder of magnitudes
+    """The likelihood ratio of each candidate with a ladder over its magnitudes
     (first draw, ``J0 (n, n_col)``); where it is the larger statistic it replaces the score's
     (``scores`` are changed in place)."""
     w = np.full(len(y), 1.0 / sigma**2)

@@ -299,8 +299,8 @@ def add_cannot_rule_out(diag: Diagnosis, found: list[dict], fx_all: Any) -> None
     """Put ``found`` (:func:`~solderpyro.diagnose.ruleout.cannot_rule_out`) in ``diag``: each
     in words (the effect's parameter and unit from ``fx_all``, an EffectSet), and where there
     are any, in the verdict and the suggestions (``diag`` is changed in place)."""
-    params = {e.name: (e.params.names[0], (e.params.units or ("",))[0])
-              for e in fx_all.effects if e.n_params == 1}
+    params = {e.name: (e.params.names[k], (e.params.units or ("",) * e.n_params)[k])
+              for e in fx_all.effects if (k := e.size_index) is not None}
     for r in found:
         r["text"] = describe(r, *params.get(r["effect"], ("value", "")))
     diag.cannot_rule_out = found

@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from solderpyro.effects.base import Effect, PlasticBand
+from solderpyro.effects.base import Effect, PlasticBand, PreHistory
 from solderpyro.fem.loading import ThermalCycle
 from solderpyro.params import Box
 
@@ -165,13 +165,24 @@ class EffectSet:
             e.check(qe)
 
     # ------------------------------------------------------------------ composed hooks
-    def pre_history(self) -> tuple[float, float] | None:
-        """The one ``(duration s, largest |dT| K)`` pre-history, or None."""
+    def pre_history(self) -> PreHistory | None:
+        """The one pre-history (:class:`~solderpyro.effects.base.PreHistory`), or None."""
         for e in self.effects:
             ph = e.pre_history()
             if ph is not None:
                 return ph
         return None
+
+    def cooldown(self, q: torch.Tensor) -> torch.Tensor:
+        """Each member's cool-down ``(b,)`` s: the first effect that sets one, else the
+        pre-history's whole duration."""
+        for e, qe in zip(self.effects, self.split(q), strict=True):
+            c = e.cooldown(qe)
+            if c is not None:
+                return c
+        ph = self.pre_history()
+        return torch.full((q.shape[0],), 1.0 if ph is None else ph.duration_s, dtype=q.dtype,
+                          device=q.device)
 
     def stress_free(self, T_ref: float, q: torch.Tensor) -> torch.Tensor:
         """Stress-free temperature ``(b,)`` degC per member."""
@@ -184,15 +195,15 @@ class EffectSet:
                     q: torch.Tensor) -> torch.Tensor:
         """Member temperature ``(b,)`` degC at time ``t`` s.
 
-        For ``t < 0`` (pre-history of duration ``D``) the temperature goes linearly from the
-        member's stress-free temperature at ``-D`` to the program's start at 0; from t = 0 on,
+        For ``t < 0`` (the pre-history) the temperature goes linearly from the member's
+        stress-free temperature at ``-D`` (its :meth:`cooldown`; before that it rests there)
+        to the program's start at 0; from t = 0 on,
         the program ``cycle(t)`` transformed by the history hooks.
         """
         if t < 0.0:
-            ph = self.pre_history()
-            D = 1.0 if ph is None else ph[0]
             T0 = cycle(0.0)
-            return T0 + (self.stress_free(T_ref, q) - T0) * (-t / D)
+            frac = torch.clamp(-t / self.cooldown(q), max=1.0)
+            return T0 + (self.stress_free(T_ref, q) - T0) * frac
         T = torch.full((q.shape[0],), cycle(t), dtype=q.dtype, device=q.device)
         for e, qe in zip(self.effects, self.split(q), strict=True):
             T = e.temperature(T, t, cycle, qe)
@@ -254,4 +265,5 @@ def _overrides(e: Effect, hook: str) -> bool:
     return getattr(type(e), hook) is not getattr(Effect, hook)
 
 
-__all__ = ["EFFECTS", "Effect", "EffectSet", "effect_box", "effect_set", "get_effect"]
+__all__ = ["EFFECTS", "Effect", "EffectSet", "PreHistory", "effect_box", "effect_set",
+           "get_effect"]

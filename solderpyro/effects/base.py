@@ -10,6 +10,7 @@ seam                   hook
 temperature history    :meth:`Effect.temperature` (member temperature at a time of the cycle)
 initial state          :meth:`Effect.stress_free` + :meth:`Effect.pre_history` (a simulated
                        history before t = 0; V is then reported relative to the state at t = 0)
+                       + :meth:`Effect.cooldown` (each member's cool-down in it)
 material law           :meth:`Effect.thermal_strain`, :meth:`Effect.modulus`,
                        :meth:`Effect.back_stress_modulus` (solder back stress),
                        :meth:`Effect.plastic_band` + :meth:`Effect.yield_stress` (a band of
@@ -33,9 +34,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 
-from solderpyro.fem.loading import ThermalCycle
+from solderpyro.fem.loading import ThermalCycle, TimeStepping
 from solderpyro.params import Box
 
 
@@ -64,6 +66,49 @@ class PlasticBand:
 
 
 @dataclass(frozen=True)
+class PreHistory:
+    """A history simulated before t = 0: each member cools from its stress-free temperature to
+    the program's start over its own cool-down, ending at t = 0.
+
+    Attributes:
+        duration_s: the longest cool-down, s (the pre-history starts at ``-duration_s``; a
+            member with a shorter one rests at its stress-free temperature until its
+            cool-down starts, which changes nothing: the specimen is stress free there).
+        dT: the largest ``|T_sf - T_start|``, K.
+        shortest_s: the shortest cool-down, s (the fastest ramp the grid must resolve).
+    """
+
+    duration_s: float
+    dT: float
+    shortest_s: float
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.shortest_s <= self.duration_s:
+            raise ValueError(f"PreHistory: need 0 < shortest_s <= duration_s, got "
+                             f"{self.shortest_s} and {self.duration_s}")
+        if not self.dT >= 0.0:
+            raise ValueError(f"PreHistory: dT must be >= 0 K, got {self.dT}")
+
+    def grid(self, ts: TimeStepping) -> np.ndarray:
+        """Step end times ``(n + 1,)`` s from ``-duration_s`` to 0, shared by the batch.
+
+        At time ``t < 0`` only members whose cool-down is at least ``|t|`` are ramping, at
+        most at ``dT / max(|t|, shortest_s)`` K/s, so the step there is
+        ``min(dt_max, dT_max max(|t|, shortest_s) / dT)``: fine near 0, where the fastest
+        cool-downs run, and growing geometrically back in time (about
+        ``dT / dT_max (1 + ln(duration_s / shortest_s))`` steps in all).
+        """
+        out = [0.0]
+        t = 0.0
+        while t > -self.duration_s * (1.0 - 1e-12):
+            rate = self.dT / max(-t, self.shortest_s)
+            h = ts.dt_max if rate == 0.0 else min(ts.dt_max, ts.dT_max / rate)
+            t = max(t - h, -self.duration_s)
+            out.append(t)
+        return np.array(out[::-1])
+
+
+@dataclass(frozen=True)
 class Effect:
     """One optional physical effect (subclass per effect, one module each).
 
@@ -79,6 +124,10 @@ class Effect:
 
     name: ClassVar[str] = ""
     seam: ClassVar[str] = ""
+    #: parameters that carry the effect's form (how it acts: a cool-down, a law's shape), not
+    #: its size; the data may inform them, and the diagnosis's screen varies the size alone,
+    #: with these at "off" (:attr:`size_index`)
+    nuisance: ClassVar[tuple[str, ...]] = ()
     box: Box | None = field(default=None, compare=False, repr=False,
                             metadata={"prior": True})
 
@@ -101,6 +150,13 @@ class Effect:
     def n_params(self) -> int:
         """The number of the effect's parameters (its columns of the parameter vector)."""
         return self.params.dim
+
+    @property
+    def size_index(self) -> int | None:
+        """Index of the one parameter that sizes the effect (all others are :attr:`nuisance`),
+        or None when several do (e.g. one per Moire image)."""
+        sized = [k for k, nm in enumerate(self.params.names) if nm not in self.nuisance]
+        return sized[0] if len(sized) == 1 else None
 
     def bind(self, times: Sequence[float]) -> Effect:
         """This effect for the sorted output times ``times`` (s); most effects ignore them."""
@@ -152,9 +208,14 @@ class Effect:
         """Stress-free temperature ``(b,)`` degC of each member (baseline: ``T_ref``)."""
         return T_ref
 
-    def pre_history(self) -> tuple[float, float] | None:
-        """``(duration s, largest temperature change K)`` of a history simulated before t = 0
-        (from the stress-free temperature to the program's start), or None for none."""
+    def pre_history(self) -> PreHistory | None:
+        """The history simulated before t = 0 (from the stress-free temperature to the
+        program's start), or None for none."""
+        return None
+
+    def cooldown(self, q: torch.Tensor) -> torch.Tensor | None:
+        """Each member's cool-down ``(b,)`` s before t = 0 (None: the pre-history's whole
+        duration)."""
         return None
 
     def thermal_strain(self, eps: torch.Tensor, alpha: float, T: torch.Tensor,

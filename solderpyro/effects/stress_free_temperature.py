@@ -2,17 +2,24 @@
 
 After reflow the joint solidifies and is stress free at some T_sf (at most the Sn37Pb eutectic,
 183 degC), then cools to room temperature before the test. The effect simulates that
-pre-history: from t = -D (``cooldown_s``) the temperature falls linearly from each member's
-T_sf to the program's start temperature at t = 0; the solder creeps meanwhile. The Moire
-reference image is taken at the start of the cycle, so V is reported relative to the state at
-t = 0 (the FE reports ``V(t) - V(0)``).
+pre-history: each member cools linearly from its T_sf to the program's start temperature over
+its own cool-down ``D`` (s), ending at t = 0; the solder creeps meanwhile. The Moire reference
+image is taken at the start of the cycle, so V is reported relative to the state at t = 0 (the
+FE reports ``V(t) - V(0)``).
 
-The pre-history's time grid is fixed (shared by the batch; its steps respect ``dT_max`` for the
-box's largest T_sf), so members with different T_sf share it. Off: T_sf = 25 degC (the
-reference case's stress-free temperature; the pre-history is then a rest at 25 degC, which
-changes nothing). With an elastic solder a T_sf shift changes nothing in V(t) - V(0) either
-(superposition); with creep, the residual stress relaxes during the cycle and V changes.
-Seam: the initial state.
+How fast the assembly cooled is rarely known, and the data partly see it (a slower cool-down
+lets more of the residual stress relax before the test: at the true constants a 1 K/min
+cool-down from 150 degC and the 1,800 s one differ by 11 % of the effect). So the cool-down is a
+parameter of the effect, a nuisance the data inform, on a log-scale box of 900-9,000 s (about
+10 K/min to 1 K/min from 150 degC), rather than a fixed form the constants would absorb.
+
+The pre-history's time grid is shared by the batch (:class:`~solderpyro.effects.base.PreHistory`:
+it spans the box's longest cool-down and resolves its fastest ramp for the box's largest T_sf);
+a member with a shorter cool-down rests at its T_sf first, which changes nothing. Off: T_sf =
+25 degC (the reference case's stress-free temperature; the pre-history is then a rest at
+25 degC, whatever the cool-down). With an elastic solder a T_sf shift changes nothing in
+V(t) - V(0) either (superposition); with creep, the residual stress relaxes during the cycle
+and V changes. Seam: the initial state.
 """
 
 from __future__ import annotations
@@ -21,42 +28,52 @@ from dataclasses import dataclass
 
 import torch
 
-from solderpyro.effects.base import Effect
+from solderpyro.effects.base import Effect, PreHistory
 from solderpyro.params import Box
+
+#: the cool-down's box, s: about 10 K/min to 1 K/min from 150 degC to 25 degC
+COOLDOWN_BOX = (900.0, 9000.0)
+#: the cool-down where the effect is "off" (any value gives the baseline there): 5 K/min
+#: from 175 degC, as the cycle's ramps
+COOLDOWN_OFF = 1800.0
 
 
 @dataclass(frozen=True)
 class StressFreeTemperature(Effect):
-    """Stress-free temperature ``T_sf`` (degC) and a cool-down pre-history before t = 0.
-
-    Attributes:
-        cooldown_s: duration D of the cool-down from T_sf to the program's start, s (a cooling
-            rate of ~5 K/min from the eutectic, as the cycle's ramps).
-    """
+    """Stress-free temperature ``T_sf`` (degC) and the cool-down ``cooldown`` (s) before t = 0."""
 
     name = "stress_free_temperature"
     seam = "initial state"
-    cooldown_s: float = 1800.0
-
-    def __post_init__(self) -> None:
-        if not self.cooldown_s > 0:
-            raise ValueError(f"stress_free_temperature: cooldown_s must be > 0, "
-                             f"got {self.cooldown_s}")
+    nuisance = ("cooldown",)
 
     def default_box(self) -> Box:
-        return Box(("T_sf",), (25.0,), (183.0,), units=("degC",))
+        return Box(("T_sf", "cooldown"), (25.0, COOLDOWN_BOX[0]), (183.0, COOLDOWN_BOX[1]),
+                   log_scale=(False, True), units=("degC", "s"))
 
     @property
     def off(self) -> tuple[float, ...]:
-        return (25.0,)
+        return (25.0, COOLDOWN_OFF)
+
+    def check(self, q: torch.Tensor) -> None:
+        lo, hi = COOLDOWN_BOX
+        c = q[:, 1]
+        if bool(((c < lo * (1 - 1e-9)) | (c > hi * (1 + 1e-9))).any()):
+            raise ValueError(f"stress_free_temperature: cooldown must be within [{lo:g}, "
+                             f"{hi:g}] s (the pre-history's grid), got {c.min().item():g} to "
+                             f"{c.max().item():g}")
 
     def stress_free(self, T_ref: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         """``T_sf`` ``(b,)`` degC (replaces the configured stress-free temperature)."""
         return q[:, 0]
 
-    def pre_history(self) -> tuple[float, float] | None:
+    def cooldown(self, q: torch.Tensor) -> torch.Tensor:
+        """``(b,)`` s."""
+        return q[:, 1]
+
+    def pre_history(self) -> PreHistory:
         b = self.default_box()  # not an override: the grid must not depend on the prior
-        return self.cooldown_s, max(abs(b.upper[0] - self.off[0]), abs(b.lower[0] - self.off[0]))
+        dT = max(abs(b.upper[0] - self.off[0]), abs(b.lower[0] - self.off[0]))
+        return PreHistory(COOLDOWN_BOX[1], dT, COOLDOWN_BOX[0])
 
 
 EFFECT = StressFreeTemperature()

@@ -59,7 +59,7 @@ from solderpyro.fem.band import (
 )
 from solderpyro.fem.bordered import BorderedBand
 from solderpyro.fem.elements import bbar, edofs, q4_kinematics, qm6_modes
-from solderpyro.fem.loading import ThermalCycle, time_grid
+from solderpyro.fem.loading import time_grid
 from solderpyro.fem.mesh import build_mesh, locate
 from solderpyro.fem.problem import AnandSolder, Problem
 from solderpyro.materials.elastic import IP, ZZ, condense_zz, plane_elastic
@@ -851,11 +851,8 @@ class SpecimenSolver:
         pre = None if fx is None else fx.pre_history()
         if fx is not None:
             fx.check(params[:, N_ANAND:])
-        if pre is not None:  # a shared grid for the pre-history: the box's largest change
-            D, dT = pre
-            T0 = self.problem.cycle(0.0)
-            g0 = time_grid(ThermalCycle((0.0, D), (T0 + dT, T0)), (), self.problem.stepping)
-            grid = np.concatenate([g0[:-1] - D, grid])
+        if pre is not None:  # the pre-history's grid, shared by the batch
+            grid = np.concatenate([pre.grid(self.problem.stepping)[:-1], grid])
         self._fx = fx
         return params, grid, pre is not None
 

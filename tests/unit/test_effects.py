@@ -29,7 +29,7 @@ STEP = TimeStepping(dT_max=10.0, dwell_dt0=20.0, dt_max=450.0)
 TIMES = (600.0, 1500.0)
 F64 = torch.float64
 #: an interior point of each effect's box (and of moire's first offset and second rotation)
-INTERIOR = {"modulus_temperature": [3e-3], "stress_free_temperature": [120.0],
+INTERIOR = {"modulus_temperature": [3e-3], "stress_free_temperature": [120.0, 3000.0],
             "thermal_lag": [60.0], "cte_temperature": [1.5e-3],
             "moire_rigid_motion": [0.3, -0.2, 20.0, -10.0], "kinematic_hardening": [500.0],
             "copper_plasticity": [10.0]}
@@ -169,7 +169,8 @@ def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
 # ------------------------------------------------------------------ (c) gradients
 
 #: columns checked (moire: its first offset and its last rotation) and their FD steps
-FD_COLS = {"tau": 0.03, "k_E": 5e-7, "T_sf": 0.016, "c_alpha": 3e-7, "moire_c_1": 2e-4,
+FD_COLS = {"tau": 0.03, "k_E": 5e-7, "T_sf": 0.016, "cooldown": 0.3, "c_alpha": 3e-7,
+           "moire_c_1": 2e-4,
            "moire_w_2": 1e-2, "C_k": 0.2}
 #: one-sided differences at the off value, which is the box's lower edge for these
 ONE_SIDED = ("tau", "C_k")
@@ -290,7 +291,7 @@ def test_store_hash_separates_effects_and_records_round_trip(tmp_path):
     h1 = config_hash(pr, SEED_TIMES, False, torch.float64, ("thermal_lag",))
     h2 = config_hash(pr, SEED_TIMES, False, torch.float64, ("thermal_lag", "cte_temperature"))
     h3 = config_hash(pr, SEED_TIMES, False, torch.float64,
-                     (dataclasses.replace(EFFECTS["stress_free_temperature"], cooldown_s=600.0),))
+                     (dataclasses.replace(EFFECTS["cte_temperature"], T0_C=30.0),))
     h4 = config_hash(pr, SEED_TIMES, False, torch.float64, ("stress_free_temperature",))
     assert len({h0, h1, h2, h3, h4}) == 5
     boxed = EFFECTS["thermal_lag"].with_box({"tau": (0.0, 60.0)})  # a prior is not an output

@@ -110,13 +110,49 @@ def test_stress_free_temperature_superposition_elastic_and_relaxation_with_creep
     triples; 7e-12 of max|V| measured). With creep the residual stress relaxes during the
     cycle and V changes."""
     solver = SpecimenSolver(small_problem(), effects=("stress_free_temperature",))
-    q = [[25.0], [100.0], [183.0]]
+    q = [[25.0, 1800.0], [100.0, 1800.0], [183.0, 1800.0]]
     V = solver.solve(rows(q, ELASTIC), [600.0, 1500.0]).V
     err = (V - V[:1]).abs().max().item()
     assert err < 1e-10 * V.abs().max().item(), err
     Vc = solver.solve(rows(q), [600.0, 1500.0]).V
     assert (Vc[2] - Vc[0]).abs().max() > 0.5
     assert (Vc[2] - Vc[0]).abs().max() > (Vc[1] - Vc[0]).abs().max()  # grows with T_sf - 25
+
+
+def test_a_slower_cool_down_relaxes_more_and_members_keep_their_own():
+    """The cool-down is each member's own: members with different cool-downs in one batch give
+    what each gives alone (the shared grid; 1e-9 of max|V|, the Newton tolerance), and a slower
+    cool-down from the same T_sf lets more of the residual stress relax before t = 0, so the
+    cycle's V moves less from the stress-free baseline (T_sf = 25)."""
+    solver = SpecimenSolver(small_problem(), effects=("stress_free_temperature",))
+    q = [[25.0, 1800.0], [150.0, 900.0], [150.0, 3000.0], [150.0, 9000.0]]
+    V = solver.solve(rows(q), [600.0, 1500.0]).V
+    for i in (1, 3):
+        alone = solver.solve(rows([q[i]]), [600.0, 1500.0]).V[0]
+        assert (V[i] - alone).abs().max() < 1e-9 * V.abs().max(), i
+    shift = [(V[i] - V[0]).abs().max().item() for i in (1, 2, 3)]
+    assert shift[0] > shift[1] > shift[2] > 0.0, shift
+
+
+def test_the_cool_down_is_recovered_from_noise_free_data():
+    """A form nuisance parameter the data inform: V made at T_sf = 150 degC cooled over 4,000 s
+    is fitted through the FE (Levenberg-Marquardt, T_sf and the cool-down free, from the
+    library's 1,800 s and 120 degC); the fit returns the cool-down within 5 % (noise-free
+    data, so only the LM's stopping tolerance and the finite differences limit it)."""
+    from solderpyro.exact.fit import LMOptions, lm_fit
+
+    solver = SpecimenSolver(small_problem(), effects=("stress_free_temperature",))
+    times = [600.0, 1500.0]
+    y = solver.solve(rows([[150.0, 4000.0]]), times).V[0].reshape(-1).numpy()
+
+    def fun(X):
+        return solver.solve(rows(X), times).V.reshape(len(X), -1).numpy()
+
+    sig = 1e-3 * float(np.abs(y).max())
+    fit = lm_fit(fun, np.array([[120.0, 1800.0]]), [25.0, 900.0], [183.0, 9000.0], y, sig,
+                 options=LMOptions(iters=25, tol=1e-6))[0]
+    assert abs(fit.x[1] / 4000.0 - 1.0) < 0.05, fit.x
+    assert abs(fit.x[0] - 150.0) < 5.0, fit.x
 
 
 # ------------------------------------------------------------------ CTE(T): free expansion
@@ -146,7 +182,8 @@ def test_cte_temperature_free_expansion_is_the_integral(effects):
                             effects=effects)
     c = torch.tensor([0.0, 2e-3, -1e-3, 3e-3], dtype=F64)
     q = c[:, None] if len(effects) == 1 else torch.stack([torch.tensor(
-        [25.0, 120.0, 60.0, 183.0], dtype=F64), c], 1)
+        [25.0, 120.0, 60.0, 183.0], dtype=F64), torch.tensor(
+        [1800.0, 900.0, 9000.0, 3000.0], dtype=F64), c], 1)
     res = solver.solve(rows(q, ELASTIC), [1.0])
     assert bool(res.ok.all())
     dT = 50.0
