@@ -17,10 +17,11 @@ The consistent tangent is closed form. When autograd is on, the converged values
 by one Newton step with the graph attached, which gives exact first derivatives with respect to
 the inputs (implicit-function theorem) without differentiating through the iterations.
 
-Optional linear (Prager) kinematic hardening, ``C_k`` (MPa) and the back stress ``X`` of
-:class:`PointState`: the flow is driven by ``xi = dev(sigma) - X`` and the return above runs on
-``xi`` with ``3G`` replaced by ``3G + C_k`` (derivation in :mod:`.kinematic`). ``C_k = None`` and
-``X = None`` is the isotropic model; ``C_k = 0`` gives the same numbers to the last bit.
+Optional linear (Prager) kinematic hardening, ``C_k`` (MPa) of :class:`PointInputs` and the back
+stress ``X`` of :class:`PointState`: the flow is driven by ``xi = dev(sigma) - X`` and the return
+above runs on ``xi`` with ``3G`` replaced by ``3G + C_k`` (derivation in :mod:`.kinematic`).
+``C_k = None`` and ``X = None`` is the isotropic model; ``C_k = 0`` gives the same numbers to the
+last bit.
 
 On the CPU in float64 without autograd, :func:`return_map_3d` runs the same algorithm point by
 point in C (:mod:`solderpyro._native`, compiled at first use; ``SOLDERPYRO_NATIVE=0`` or no
