@@ -25,6 +25,7 @@ import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import torch
 
@@ -255,18 +256,30 @@ def _field(a, shape: tuple[int, ...], width: int = 0) -> tuple[torch.Tensor, int
     return full.reshape(-1).contiguous(), 1
 
 
-def anand_update(eps, eps_p, s_n, X_n, p, T, dt, eps_th, E, nu, C_k, guess, tangent: bool,
-                 simd: bool = True):
+def _point_fields(p, inputs, shape: tuple[int, ...]):
+    """The per-point inputs of a kernel call as flat float64 fields with their row divisors
+    (:func:`_field`): ``[p, T, dt, eps_th, E, nu]``, the ``C_k`` field or None, and the
+    divisors ``(7,)`` in the kernels' order."""
+    fields = [_field(p, shape, 9), *(_field(v, shape) for v in inputs[:5])]
+    ck = None if inputs.C_k is None else _field(inputs.C_k, shape)
+    div = (ctypes.c_long * 7)(*[f[1] for f in fields], 1 if ck is None else ck[1])
+    return fields, ck, div
+
+
+def anand_update(eps, state, p, inputs, guess, tangent: bool, simd: bool = True):
     """Backward-Euler Anand update at every point, fused (the C twin of the no-autograd path of
     :func:`solderpyro.materials.integrate.return_map_3d`).
 
     Args:
-        eps: total strain, Mandel ``(..., 4)``; eps_p: start-of-step inelastic strain
-            ``(..., 4)``; s_n: start-of-step resistance ``(...)``, MPa; X_n: back stress
-            ``(..., 4)`` MPa or None.
-        p: Anand constants broadcastable to ``(..., 9)``; T (K), dt (s), eps_th, E (MPa), nu:
-            broadcastable to ``(...)``; C_k: Prager modulus (MPa) broadcastable to ``(...)``,
-            or None (no kinematic hardening).
+        eps: total strain, Mandel ``(..., 4)``.
+        state: the start-of-step state (a :class:`~solderpyro.materials.integrate.PointState`
+            or anything with its fields): inelastic strain ``eps_p (..., 4)``, resistance
+            ``s (...)`` MPa, back stress ``X (..., 4)`` MPa or None.
+        p: Anand constants broadcastable to ``(..., 9)``.
+        inputs: the step's conditions, a :class:`~solderpyro.materials.integrate.PointInputs`
+            (read by position, then ``C_k`` by name): ``T`` (K), ``dt`` (s), ``eps_th``,
+            ``E`` (MPa), ``nu`` broadcastable to ``(...)``; ``C_k``: Prager modulus (MPa)
+            broadcastable to ``(...)``, or None (no kinematic hardening).
         guess: warm start ``(..., 2)`` = (zeta, s), or None.
         tangent: whether to return the factored tangent.
         simd: use the 4-lane path where it is compiled in (:func:`simd_width`); False runs the
@@ -274,7 +287,7 @@ def anand_update(eps, eps_p, s_n, X_n, p, T, dt, eps_th, E, nu, C_k, guess, tang
     Returns:
         ``(sigma (..., 4), eps_p (..., 4), s (...), X (..., 4) or None, dep (...), x (..., 2),
         tangent)`` with ``tangent = (K, g2, coef, nb (..., 4))`` (each ``(...)``) or None;
-        ``X`` is returned whenever ``C_k`` or ``X_n`` is given.
+        ``X`` is returned whenever ``C_k`` or ``state.X`` is given.
     """
     lib = library()
     assert lib is not None
@@ -284,17 +297,16 @@ def anand_update(eps, eps_p, s_n, X_n, p, T, dt, eps_th, E, nu, C_k, guess, tang
         n *= d
     tkw = dict(dtype=torch.float64, device=eps.device)
     flat = lambda t, w: t.reshape(n, w).contiguous() if w else t.reshape(n).contiguous()  # noqa: E731
+    X_n = state.X
     e4 = flat(torch.broadcast_to(eps, (*shape, 4)), 4)
-    pn = flat(torch.broadcast_to(eps_p, (*shape, 4)), 4)
-    sn = flat(torch.broadcast_to(s_n, shape), 0)
+    pn = flat(torch.broadcast_to(state.eps_p, (*shape, 4)), 4)
+    sn = flat(torch.broadcast_to(state.s, shape), 0)
     Xn = None if X_n is None else flat(torch.broadcast_to(X_n, (*shape, 4)), 4)
     g = None if guess is None else flat(torch.broadcast_to(guess, (*shape, 2)), 2)
-    fields = [_field(p, shape, 9), *(_field(v, shape) for v in (T, dt, eps_th, E, nu))]
-    ck = None if C_k is None else _field(C_k, shape)
-    div = (ctypes.c_long * 7)(*[f[1] for f in fields], 1 if ck is None else ck[1])
+    fields, ck, div = _point_fields(p, inputs, shape)
     sigma, ep_out = torch.empty(n, 4, **tkw), torch.empty(n, 4, **tkw)
     s_out, dep, x = torch.empty(n, **tkw), torch.empty(n, **tkw), torch.empty(n, 2, **tkw)
-    X_out = None if (C_k is None and X_n is None) else torch.empty(n, 4, **tkw)
+    X_out = None if (ck is None and X_n is None) else torch.empty(n, 4, **tkw)
     tg = (torch.empty(n, **tkw), torch.empty(n, **tkw), torch.empty(n, **tkw),
           torch.empty(n, 4, **tkw)) if tangent else (None,) * 4
     nt = threads("points", n)
@@ -310,6 +322,27 @@ def anand_update(eps, eps_p, s_n, X_n, p, T, dt, eps_th, E, nu, C_k, guess, tang
             r(dep), r(x, 2), tan)
 
 
+class SolderLayer(NamedTuple):
+    """The fixed operators of a solder layer for :func:`solder_eval` (set up once per mesh).
+
+    Attributes:
+        edof: ``(n_e, 8)`` int32 retained dof of each element dof (a fixed dof: any index, with
+            zero columns in ``B`` and ``Bw``).
+        B: ``(n_e, n_qp, 3, 8)`` B-matrices, 1/mm.
+        Bw: ``B * w det J`` ``(n_e, n_qp, 3, 8)``, mm.
+        S_border: ``(dof_D (n_D,) int32, S_DD (n_D, n_D))``: the retained dofs where the
+            condensed linear stiffness ``S`` (MPa mm) is nonzero and that block; ``S u`` is
+            added to the forces.
+        plane_stress: condense the in-plane stress on eps_zz (else plane strain).
+    """
+
+    edof: torch.Tensor
+    B: torch.Tensor
+    Bw: torch.Tensor
+    S_border: tuple[torch.Tensor, torch.Tensor]
+    plane_stress: bool
+
+
 def _element_call(u: torch.Tensor, B: torch.Tensor) -> tuple[ctypes.CDLL, tuple[int, int, int]]:
     """The library and the point-array shape ``(b, n_e, n_qp)`` of an element-wise call on
     ``u (b, n_r)`` with strain operators ``B (n_e, n_qp, ...)``; at most :data:`MAX_QP`
@@ -322,56 +355,49 @@ def _element_call(u: torch.Tensor, B: torch.Tensor) -> tuple[ctypes.CDLL, tuple[
     return lib, (u.shape[0], n_e, n_qp)
 
 
-def solder_eval(u, ezz, edof, B, Bw, S_border, state, p, T, dt, eps_th, E, nu, C_k, guess,
-                plane_stress: bool, simd: bool = True):
+def solder_eval(u, ezz, layer: SolderLayer, state, p, inputs, guess, simd: bool = True):
     """Fused evaluation of a solder layer: strains, the Anand update (:func:`anand_update`),
     the plane-stress condensation of the in-plane stress on eps_zz and the internal forces.
 
     Args:
         u: ``(b, n_r)`` retained displacements, mm.
         ezz: ``(b, n_e, n_qp)`` out-of-plane strain (plane stress), or None (plane strain: 0).
-        edof: ``(n_e, 8)`` int32 retained dof of each element dof (a fixed dof: any index, with
-            zero columns in ``B`` and ``Bw``).
-        B, Bw: ``(n_e, n_qp, 3, 8)`` B-matrices and ``B * w det J`` (mm^2 / mm).
-        S_border: ``(dof_D (n_D,) int32, S_DD (n_D, n_D))``: the retained dofs where the condensed
-            linear stiffness ``S`` (MPa mm) is nonzero and that block; ``S u`` is added to the
-            forces.
+        layer: the layer's :class:`SolderLayer` operators.
         state: start-of-step :class:`~solderpyro.materials.integrate.PointState`, leading shape
             ``(b, n_e, n_qp)``.
-        p, T, dt, eps_th, E, nu, C_k, guess: as in :func:`anand_update`, broadcastable to the
-            points ``(b, n_e, n_qp)``.
-        plane_stress: condense the in-plane stress on eps_zz (else plane strain).
+        p, inputs, guess: as in :func:`anand_update`, broadcastable to the points
+            ``(b, n_e, n_qp)``.
+        simd: as in :func:`anand_update`.
     Returns:
         ``(sigma_ip (b, n_e, n_qp, 3), sigma_zz (b, n_e, n_qp), eps_p (..., 4), s, X or None,
         dep, x (..., 2), (K, g2, coef, nb (..., 4)), f (b, n_r))``; stresses MPa, forces
         ``f = S u + sum_e Bw^T sigma_ip`` (N/mm) on the retained dofs.
     """
-    lib, shape = _element_call(u, B)
+    lib, shape = _element_call(u, layer.B)
     b, n_r = u.shape
     n_e, n_qp = shape[1:]
     n = b * n_e * n_qp
     tkw = dict(dtype=torch.float64, device=u.device)
     flat = lambda t, *w: torch.broadcast_to(t, (*shape, *w)).reshape(n, *w).contiguous()  # noqa: E731
-    uc, edof, B, Bw = u.contiguous(), edof.contiguous(), B.contiguous(), Bw.contiguous()
+    uc, edof = u.contiguous(), layer.edof.contiguous()
+    B, Bw = layer.B.contiguous(), layer.Bw.contiguous()
     zc = None if ezz is None else flat(ezz)
     pn, sn = flat(state.eps_p, 4), flat(state.s)
     Xn = None if state.X is None else flat(state.X, 4)
     g = None if guess is None else flat(guess, 2)
-    fields = [_field(p, shape, 9), *(_field(v, shape) for v in (T, dt, eps_th, E, nu))]
-    ck = None if C_k is None else _field(C_k, shape)
-    div = (ctypes.c_long * 7)(*[f[1] for f in fields], 1 if ck is None else ck[1])
+    fields, ck, div = _point_fields(p, inputs, shape)
     e = lambda *w: torch.empty(n, *w, **tkw)  # noqa: E731
     sig, szz, ep, s_out, dep, x = e(3), e(), e(4), e(), e(), e(2)
-    X_out = None if (C_k is None and state.X is None) else e(4)
+    X_out = None if (ck is None and state.X is None) else e(4)
     tg = (e(), e(), e(), e(4))
     fint = torch.empty(b, n_r, **tkw)
-    dof_D, S_DD = (t.contiguous() for t in S_border)
+    dof_D, S_DD = (t.contiguous() for t in layer.S_border)
     dims = (ctypes.c_long * 5)(b, n_e, n_qp, n_r, len(dof_D))
     rc = lib.sp_solder_eval(dims, ptr(uc), ptr(zc), ptr(edof), ptr(dof_D), ptr(S_DD),
                             ptr(B), ptr(Bw), ptr(pn),
                             ptr(sn), ptr(Xn), *(ptr(f[0]) for f in fields),
                             None if ck is None else ptr(ck[0]), ctypes.addressof(div), ptr(g),
-                            int(plane_stress), ptr(sig), ptr(szz), ptr(ep), ptr(s_out),
+                            int(layer.plane_stress), ptr(sig), ptr(szz), ptr(ep), ptr(s_out),
                             ptr(X_out), ptr(dep), ptr(x), *(ptr(t) for t in tg), ptr(fint),
                             threads("points", n), int(simd))
     if rc != 0:
@@ -387,7 +413,7 @@ def dezz(du, szz, edof, B, tangent):
 
     Args:
         du: ``(b, n_r)`` displacement update, mm; szz: ``(b, n_e, n_qp)`` sigma_zz, MPa.
-        edof, B: as in :func:`solder_eval`.
+        edof, B: as the fields of :class:`SolderLayer`.
         tangent: factored 3-D tangent ``(K, g2, coef (b, n_e, n_qp), nb (..., 4))``.
     Returns:
         ``(b, n_e, n_qp)`` eps_zz update.
@@ -414,28 +440,58 @@ def _required() -> ctypes.CDLL:
     return lib
 
 
+class GPArrays(NamedTuple):
+    """The K component GPs of :class:`ReducedLoglik` (NumPy float64 arrays).
+
+    Attributes:
+        U: ``(n_sim, d')`` training inputs; os: ``(K,)`` outputscales; inv_ls2: ``(K, d')``
+        inverse squared lengthscales; c0: ``(K,)`` constant means; w: ``(K, d')`` linear means
+        or None; alpha: ``(K, n_sim)``; linv: ``(K, n_sim, n_sim)`` inverse Cholesky factors
+        (lower); matern: Matern 5/2 (else Gaussian) kernel.
+    """
+
+    U: Any
+    os: Any
+    inv_ls2: Any
+    c0: Any
+    w: Any
+    alpha: Any
+    linv: Any
+    matern: bool
+
+
+class MomentSeries(NamedTuple):
+    """The truncation variance's moment series of :class:`ReducedLoglik`
+    (``calibration.reduced``'s weight moments): ``Mq (rows, L + 1)``, ``mt (L + 1,)``, the
+    centre ``mid`` and half-width ``half`` of the variances (um^2) and the series' relative
+    tolerance ``tol``."""
+
+    Mq: Any
+    mt: Any
+    mid: float
+    half: float
+    tol: float
+
+
 class ReducedLoglik:
     """The reduced PCA log density and its gradient in one native call
     (``reduced.c``: :class:`~solderpyro.calibration.reduced.ComponentGPs`, its vector-Jacobian
     product and ``PCAReduction._loglik_projected``, fused).
 
     Args (NumPy float64 arrays, kept referenced here):
-        U: ``(n_sim, d')`` GP training inputs; os: ``(K,)`` outputscales; inv_ls2: ``(K, d')``
-        inverse squared lengthscales; c0: ``(K,)`` constant means; w: ``(K, d')`` linear
-        means or None; alpha: ``(K, n_sim)``; linv: ``(K, n_sim, n_sim)`` inverse Cholesky
-        factors (lower); matern: Matern 5/2 (else Gaussian) kernel; Mq ``(rows, L + 1)``, mt
-        ``(L + 1,)``, mid, half, tol: the truncation variance's moment series
-        (``_WeightMoments``); d: ``(n,)`` truncation variance, um^2; Qt: ``(rows, n)`` the
-        sums' rows.
+        gps: the component GPs (:class:`GPArrays`).
+        series: the truncation variance's moment series (:class:`MomentSeries`).
+        d: ``(n,)`` truncation variance, um^2; Qt: ``(rows, n)`` the sums' rows.
     Raises:
         RuntimeError: no native library (check :func:`library` first).
     """
 
-    def __init__(self, U, os, inv_ls2, c0, w, alpha, linv, matern: bool, Mq, mt, mid: float,
-                 half: float, tol: float, d, Qt) -> None:
+    def __init__(self, gps: GPArrays, series: MomentSeries, d, Qt) -> None:
         import numpy as np
 
         lib = _required()
+        U, os, inv_ls2, c0, w, alpha, linv, matern = gps
+        Mq, mt, mid, half, tol = series
         c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
         self._keep = [c(a) for a in (U, os, inv_ls2, c0, alpha, linv, Mq, mt, d, Qt)]
         Uc, osc, ils, c0c, al, li, Mqc, mtc, dc, Qtc = self._keep

@@ -267,9 +267,10 @@ def native_loglik(gps: ComponentGPs, red: PCAReduction) -> Any:
     if _native.library() is None:
         return None
     mo = red._moments
-    return _native.ReducedLoglik(gps.U, gps.os, gps.inv_ls2, gps.c0, gps.w, gps.alpha, gps.linv,
-                                 gps.kernel != "gaussian", mo.Mq, mo.mt, mo.mid, mo.half, mo.TOL,
-                                 red.d, red._Qt)
+    arrays = _native.GPArrays(gps.U, gps.os, gps.inv_ls2, gps.c0, gps.w, gps.alpha, gps.linv,
+                              gps.kernel != "gaussian")
+    series = _native.MomentSeries(mo.Mq, mo.mt, mo.mid, mo.half, mo.TOL)
+    return _native.ReducedLoglik(arrays, series, red.d, red._Qt)
 
 
 class _WeightMoments:

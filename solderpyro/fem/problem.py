@@ -7,6 +7,7 @@ Units: mm, MPa, s, degC (at this surface), displacements reported in um.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -39,6 +40,30 @@ class Elastic:
         return self.alpha * (T_C - T_ref_C)
 
 
+class SolderStep(NamedTuple):
+    """The step's conditions of a solder law's Gauss-point update (:meth:`AnandSolder.update`).
+
+    Attributes:
+        T_C: end-of-step temperature, degC: a float or per member ``(b, 1, 1)``.
+        T_ref_C: stress-free temperature, degC.
+        dt: step, s.
+        eps_th, E: free thermal strain and Young's modulus (MPa), float or ``(b, 1, 1)``,
+            replacing the law's :meth:`~Elastic.thermal_strain` and :meth:`~AnandSolder.modulus`
+            (physical effects computed per batch member, see :mod:`solderpyro.effects`); None:
+            the law's own.
+        C_k: Prager modulus of a back stress (MPa), float or ``(b, 1, 1)``, or None (none);
+            the state then carries the back stress ``X``
+            (:mod:`solderpyro.materials.kinematic`).
+    """
+
+    T_C: Any
+    T_ref_C: float
+    dt: float
+    eps_th: Any = None
+    E: Any = None
+    C_k: Any = None
+
+
 @dataclass(frozen=True)
 class AnandSolder(Elastic):
     """Thermo-elastic-viscoplastic solder (Anand); the nine constants come per batch member.
@@ -53,28 +78,25 @@ class AnandSolder(Elastic):
         """Young's modulus (MPa) at temperature ``T_C`` (constant in the baseline model)."""
         return self.E
 
-    def update(self, eps, state, p, T_C, T_ref_C, dt, guess=None, tangent=True, *,
-               eps_th=None, E=None, C_k=None):
+    def update(self, eps, state, p, step: SolderStep, guess=None, tangent=True):
         """Gauss-point update; see :func:`solderpyro.materials.integrate.return_map_3d`.
 
         Args:
             eps: ``(b, n_e, n_qp, 4)`` total strain (Mandel); state: start-of-step state;
-            p: ``(b, 1, 1, 9)`` Anand constants; T_C: end-of-step temperature (degC), a float
-                or per member ``(b, 1, 1)``; T_ref_C: stress-free temperature; dt: step (s).
-            eps_th, E: optional free thermal strain and Young's modulus (MPa), float or
-                ``(b, 1, 1)``, replacing :meth:`thermal_strain` and :meth:`modulus` (physical
-                effects computed per batch member, see :mod:`solderpyro.effects`).
-            C_k: optional Prager modulus of a back stress (MPa), float or ``(b, 1, 1)``; the
-                state then carries the back stress ``X`` (:mod:`solderpyro.materials.kinematic`).
+            p: ``(b, 1, 1, 9)`` Anand constants; step: the step's :class:`SolderStep`
+                (temperatures degC, dt s, optional per-member thermal strain, modulus and
+                Prager modulus); guess, tangent: as in ``return_map_3d``.
         """
-        from solderpyro.materials.integrate import return_map_3d
+        from solderpyro.materials.integrate import PointInputs, return_map_3d
 
+        eps_th = step.eps_th
         if eps_th is None:
-            eps_th = self.thermal_strain(T_C, T_ref_C)
+            eps_th = self.thermal_strain(step.T_C, step.T_ref_C)
+        E = step.E
         if E is None:
-            E = self.modulus(T_C)
-        return return_map_3d(eps, state, p, T_C + 273.15, dt, eps_th, E, self.nu,
-                             guess=guess, tangent=tangent, C_k=C_k)
+            E = self.modulus(step.T_C)
+        inputs = PointInputs(step.T_C + 273.15, step.dt, eps_th, E, self.nu, step.C_k)
+        return return_map_3d(eps, state, p, inputs, guess=guess, tangent=tangent)
 
 
 #: Material laws by config name (``materials.<key>.law``); effects register theirs here.

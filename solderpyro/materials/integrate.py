@@ -17,10 +17,11 @@ The consistent tangent is closed form. When autograd is on, the converged values
 by one Newton step with the graph attached, which gives exact first derivatives with respect to
 the inputs (implicit-function theorem) without differentiating through the iterations.
 
-Optional linear (Prager) kinematic hardening, ``C_k`` (MPa) and the back stress ``X`` of
-:class:`PointState`: the flow is driven by ``xi = dev(sigma) - X`` and the return above runs on
-``xi`` with ``3G`` replaced by ``3G + C_k`` (derivation in :mod:`.kinematic`). ``C_k = None`` and
-``X = None`` is the isotropic model; ``C_k = 0`` gives the same numbers to the last bit.
+Optional linear (Prager) kinematic hardening, ``C_k`` (MPa) of :class:`PointInputs` and the back
+stress ``X`` of :class:`PointState`: the flow is driven by ``xi = dev(sigma) - X`` and the return
+above runs on ``xi`` with ``3G`` replaced by ``3G + C_k`` (derivation in :mod:`.kinematic`).
+``C_k = None`` and ``X = None`` is the isotropic model; ``C_k = 0`` gives the same numbers to the
+last bit.
 
 On the CPU in float64 without autograd, :func:`return_map_3d` runs the same algorithm point by
 point in C (:mod:`solderpyro._native`, compiled at first use; ``SOLDERPYRO_NATIVE=0`` or no
@@ -33,6 +34,7 @@ Shapes: strains and stresses are Mandel 4-vectors ``(..., 4)`` = (xx, yy, zz, sq
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import torch
 
@@ -92,6 +94,28 @@ class PointState:
         """The same state cut from the autograd graph."""
         return PointState(self.eps_p.detach(), self.s.detach(), self.eps_zz.detach(),
                           None if self.X is None else self.X.detach())
+
+
+class PointInputs(NamedTuple):
+    """The step's conditions of the Anand update at the points, each broadcastable to the
+    points' shape ``(...)`` (floats, or tensors such as ``(b, 1, 1)`` per batch member).
+
+    Attributes:
+        T: end-of-step temperature, K.
+        dt: step, s.
+        eps_th: free thermal strain ``alpha*(T - T_ref)``, dimensionless.
+        E: Young's modulus, MPa.
+        nu: Poisson's ratio.
+        C_k: Prager kinematic hardening modulus, MPa, or None / 0 for none (see
+            :mod:`.kinematic`).
+    """
+
+    T: Any
+    dt: Any
+    eps_th: Any
+    E: Any
+    nu: Any
+    C_k: Any = None
 
 
 def initial_state(shape: tuple[int, ...], s0: torch.Tensor, *, kinematic: bool = False,
@@ -205,6 +229,16 @@ def _partials(tr: _Trial, zeta, s, s_n, p, c, G):
     return R, H, J, yc, dH_ds, dH_dL
 
 
+class TangentAux(NamedTuple):
+    """What the consistent tangent needs from the converged local solve, each ``(...)``:
+    ``yc = y coth(y)`` of the flow residual and the hardening residual's ``dH/ds`` (1) and
+    ``dH/dlog(dep)`` (MPa) (see :func:`_partials_raw`)."""
+
+    yc: torch.Tensor
+    dH_ds: torch.Tensor
+    dH_dL: torch.Tensor
+
+
 #: Below this many points the joint Newton iterates on the full arrays; above it, it drops the
 #: converged points from its working set (index gathers cost less than the elementwise work).
 COMPACT_MIN = 4096
@@ -256,7 +290,7 @@ def _return_map_joint(tr: _Trial, s_n, p, c, G, zeta, s, iters=12):
         ds = -(j00 * H - j10 * R) / det
         zeta = torch.where(done, zeta, zeta + dz.clamp(-10.0, 10.0))
         s = torch.where(done, s, (s + ds).clamp_min(1e-3 * sn))
-    aux = (yc, dH_ds, dH_dL)
+    aux = TangentAux(yc, dH_ds, dH_dL)
     if w is not None:
         for buf, val in zip(full, (zeta, s, *aux), strict=True):
             buf[w] = val
@@ -264,7 +298,7 @@ def _return_map_joint(tr: _Trial, s_n, p, c, G, zeta, s, iters=12):
         d[w] = done
         zeta, s, done, yc, dH_ds, dH_dL = (t.reshape(s_n.shape)
                                            for t in (*full[:2], d, *full[2:]))
-        aux = (yc, dH_ds, dH_dL)
+        aux = TangentAux(yc, dH_ds, dH_dL)
     return zeta, s, done, aux
 
 
@@ -313,10 +347,12 @@ class Tangent3D:
         return Tangent3D(self.K[idx], self.g2[idx], self.coef[idx], self.nb[idx])
 
 
-def _tangent3d(tr: _Trial, zeta, s, m, K, G, yc, dH_ds, dH_dL, C_k=None) -> Tangent3D:
-    """Consistent 3-D tangent at the converged point, from the tangent ingredients
-    ``(yc, dH_ds, dH_dL)`` of :func:`_partials_raw` there; ``C_k`` ``(...)`` or None the
-    kinematic modulus (see :mod:`.kinematic` for the two extra factors)."""
+def _tangent3d(tr: _Trial, zeta, s, m, K, G, aux: TangentAux, C_k=None) -> Tangent3D:
+    """Consistent 3-D tangent at the converged point ``(zeta, s)`` (``m`` the rate
+    sensitivity, ``K``, ``G`` the bulk and shear moduli, MPa), from the tangent ingredients
+    ``aux`` of :func:`_partials_raw` there; ``C_k`` ``(...)`` or None the kinematic modulus
+    (see :mod:`.kinematic` for the two extra factors)."""
+    yc, dH_ds, dH_dL = aux
     w = yc * torch.exp((-zeta).clamp(max=700.0)) / m
     Fs_dHdL = yc / (m * s) * dH_dL
     bracket = torch.sigmoid(-zeta) - w * dH_ds / ((1.0 + w) * dH_ds - Fs_dHdL)
@@ -344,48 +380,47 @@ def _initial_zeta(tr: _Trial, s_n, p, c, G):
     return -d + torch.log(-torch.expm1(d))
 
 
-def _moduli(shape, tkw, T, eps_th, E, nu, p):
-    T = torch.broadcast_to(torch.as_tensor(T, **tkw), shape)
-    eps_th = torch.broadcast_to(torch.as_tensor(eps_th, **tkw), shape)
-    E = torch.broadcast_to(torch.as_tensor(E, **tkw), shape)
-    nu = torch.broadcast_to(torch.as_tensor(nu, **tkw), shape)
+def _moduli(shape, tkw, inputs: PointInputs, p):
+    """``(T, eps_th, K, G, p)`` broadcast to the points ``shape`` (K and G in MPa)."""
+    T = torch.broadcast_to(torch.as_tensor(inputs.T, **tkw), shape)
+    eps_th = torch.broadcast_to(torch.as_tensor(inputs.eps_th, **tkw), shape)
+    E = torch.broadcast_to(torch.as_tensor(inputs.E, **tkw), shape)
+    nu = torch.broadcast_to(torch.as_tensor(inputs.nu, **tkw), shape)
     p = torch.broadcast_to(p, (*shape, 9))
     return T, eps_th, E / (3.0 * (1.0 - 2.0 * nu)), E / (2.0 * (1.0 + nu)), p
 
 
-def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, tangent=True,
-                  C_k=None):
+def return_map_3d(eps, state: PointState, p, inputs: PointInputs, guess=None, tangent=True):
     """Backward-Euler Anand update for a given full 3-D strain (plane components + eps_zz).
 
     Args:
         eps: end-of-step total strain, Mandel ``(..., 4)`` = (xx, yy, zz, sqrt2*xy).
         state: start-of-step :class:`PointState` with leading shape ``(...)``.
         p: Anand constants ``(..., 9)`` (broadcastable), ANAND_NAMES order.
-        T: end-of-step temperature, K; dt: step, s; eps_th: free thermal strain
-            ``alpha*(T - T_ref)``; E (MPa), nu: elastic constants. All broadcastable to ``(...)``.
+        inputs: the step's :class:`PointInputs` (temperature K, step s, free thermal strain,
+            E MPa, nu, Prager modulus ``C_k`` MPa or None), broadcastable to ``(...)`` (e.g.
+            ``(b, 1, 1)`` per batch member in the FE). With ``C_k`` the back stress is
+            ``state.X`` (None = zero); the new state carries ``X`` whenever ``C_k`` or
+            ``state.X`` is given. See :mod:`.kinematic`.
         guess: optional ``(..., 2)`` warm start ``(zeta, s)`` from a nearby solve.
         tangent: whether to compute the 3-D consistent tangent; ``"factored"`` returns it as a
             :class:`Tangent3D` instead of a ``(..., 4, 4)`` tensor.
-        C_k: Prager kinematic hardening modulus, MPa, broadcastable to ``(...)`` (e.g.
-            ``(b, 1, 1)`` per batch member in the FE), or None / 0 for none. The back stress is
-            ``state.X`` (None = zero); the new state carries ``X`` whenever ``C_k`` or
-            ``state.X`` is given. See :mod:`.kinematic`.
     Returns:
         ``(sigma (..., 4), new_state, C (..., 4, 4) or None, dep (...), x (..., 2))``; ``x`` is
         the detached solution ``(zeta, s)`` for warm starts. With autograd on, outputs carry
         exact first derivatives with respect to every input, ``C_k`` and ``state.X`` included
         (one Newton step with the graph).
     """
-    if (_native.usable(eps, state.eps_p, state.s, state.X, p, T, dt, eps_th, E, nu, C_k, guess)
+    if (_native.usable(eps, state.eps_p, state.s, state.X, p, *inputs, guess)
             and torch.broadcast_shapes(eps.shape[:-1], state.s.shape) == eps.shape[:-1]):
-        return _return_map_native(eps, state, p, T, dt, eps_th, E, nu, guess, tangent, C_k)
+        return _return_map_native(eps, state, p, inputs, guess, tangent)
     shape = eps.shape[:-1]
     tkw = dict(dtype=eps.dtype, device=eps.device)
-    T, eps_th, K, G, p = _moduli(shape, tkw, T, eps_th, E, nu, p)
-    Ck = _kinematic_modulus(C_k, shape, tkw)
+    T, eps_th, K, G, p = _moduli(shape, tkw, inputs, p)
+    Ck = _kinematic_modulus(inputs.C_k, shape, tkw)
     Gk, Xn = _return_modulus(G, Ck), state.X
     _, QR, A, *_ = unpack(p)
-    c = torch.log(dt * A) - QR / T
+    c = torch.log(inputs.dt * A) - QR / T
     with torch.no_grad():
         a = [t.detach() for t in (eps, state.eps_p, state.s, p, c, eps_th, K, G, Gk)]
         xd = None if Xn is None else Xn.detach()
@@ -408,9 +443,8 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
         C: torch.Tensor | Tangent3D | None = None
         if tangent:
             if aux is None:
-                aux = _partials(tr, zeta, s, a[2], a[3], a[4], a[8])[3:]
-            yc, dH_ds, dH_dL = aux
-            Cf = _tangent3d(tr, zeta, s, a[3][..., 4], a[6], a[7], yc, dH_ds, dH_dL,
+                aux = TangentAux(*_partials(tr, zeta, s, a[2], a[3], a[4], a[8])[3:])
+            Cf = _tangent3d(tr, zeta, s, a[3][..., 4], a[6], a[7], aux,
                             C_k=None if Ck is None else Ck.detach())
             C = Cf if tangent == "factored" else Cf.full()
     needs_grad = torch.is_grad_enabled() and any(
@@ -430,14 +464,15 @@ def return_map_3d(eps, state: PointState, p, T, dt, eps_th, E, nu, guess=None, t
     return sigma, PointState(state.eps_p + deps_p, s, eps[..., ZZ], X), C, dep, x
 
 
-def _return_map_native(eps, state: PointState, p, T, dt, eps_th, E, nu, guess, tangent, C_k):
+def _return_map_native(eps, state: PointState, p, inputs: PointInputs, guess, tangent):
     """:func:`return_map_3d` without autograd through the fused C kernel
     (:func:`solderpyro._native.anand_update`): the same algorithm point by point, the same
     outputs to rounding."""
+    C_k = inputs.C_k
     if C_k is not None and not isinstance(C_k, torch.Tensor) and C_k == 0:
-        C_k = None  # as _kinematic_modulus: a plain 0 is no kinematic hardening
-    sigma, eps_p, s, X, dep, x, tan = _native.anand_update(
-        eps, state.eps_p, state.s, state.X, p, T, dt, eps_th, E, nu, C_k, guess, bool(tangent))
+        inputs = inputs._replace(C_k=None)  # as _kinematic_modulus: a plain 0 is none
+    sigma, eps_p, s, X, dep, x, tan = _native.anand_update(eps, state, p, inputs, guess,
+                                                           bool(tangent))
     C: torch.Tensor | Tangent3D | None = None
     if tan is not None:
         C = Tangent3D(*tan)
@@ -479,40 +514,42 @@ def ezz_predictor(eps_ip, state: PointState, eps_th, E, nu):
     return state.eps_p[..., ZZ] + eps_th - nu / (1.0 - nu) * ee
 
 
-def anand_update(eps_ip, state: PointState, p, T, dt, eps_th, E, nu, plane="stress",
-                 tangent=True, guess=None, iters=30, C_k=None):
+def anand_update(eps_ip, state: PointState, p, inputs: PointInputs, plane="stress",
+                 tangent=True, guess=None, iters=30):
     """Anand update for an in-plane strain, plane stress (local eps_zz iteration) or strain.
 
     Args:
         eps_ip: end-of-step in-plane total strain, Mandel ``(..., 3)`` = (xx, yy, sqrt2*xy).
-        state, p, T, dt, eps_th, E, nu, guess, C_k: as in :func:`return_map_3d`.
+        state, p, inputs, guess: as in :func:`return_map_3d`.
         plane: ``"stress"`` (sigma_zz = 0, eps_zz iterated by Newton) or ``"strain"``.
+        iters: at most this many Newton iterations on eps_zz (plane stress).
     Returns:
         ``(sigma (..., 4), new_state, C_ip (..., 3, 3) or None, dep, x)`` with the in-plane
         consistent tangent (plane-stress condensed). Differentiable like :func:`return_map_3d`.
     """
     if plane == "strain":
         out = return_map_3d(full_strain(eps_ip, torch.zeros_like(eps_ip[..., 0])), state, p,
-                            T, dt, eps_th, E, nu, guess, tangent, C_k=C_k)
+                            inputs, guess, tangent)
         C = condense_zz(out[2], plane) if tangent else None
         return out[0], out[1], C, out[3], out[4]
     if plane != "stress":
         raise ValueError(f"plane must be 'stress' or 'strain', got {plane!r}")
     with torch.no_grad():
-        ezz = ezz_predictor(eps_ip.detach(), state.detach(), torch.as_tensor(eps_th), E, nu)
-        Ckd = C_k.detach() if isinstance(C_k, torch.Tensor) else C_k
+        ezz = ezz_predictor(eps_ip.detach(), state.detach(), torch.as_tensor(inputs.eps_th),
+                            inputs.E, inputs.nu)
+        C_k = inputs.C_k
+        fixed = inputs._replace(C_k=C_k.detach()) if isinstance(C_k, torch.Tensor) else inputs
         for _ in range(iters):
             sig, _, C, _, guess = return_map_3d(full_strain(eps_ip.detach(), ezz),
-                                                state.detach(), p.detach(), T, dt, eps_th,
-                                                E, nu, guess, C_k=Ckd)
+                                                state.detach(), p.detach(), fixed, guess)
             if bool((sig[..., ZZ].abs() <= 1e-12 * (1.0 + sig.abs().amax(-1))).all()):
                 break
             ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
     if torch.is_grad_enabled():  # one Newton step on eps_zz with the graph attached
         assert C is not None
-        sig, *_ = return_map_3d(full_strain(eps_ip, ezz), state, p, T, dt, eps_th, E, nu,
-                                guess, tangent=False, C_k=C_k)
+        sig, *_ = return_map_3d(full_strain(eps_ip, ezz), state, p, inputs, guess,
+                                tangent=False)
         ezz = ezz - sig[..., ZZ] / C[..., ZZ, ZZ]
-    sig, st, C, dep, x = return_map_3d(full_strain(eps_ip, ezz), state, p, T, dt, eps_th,
-                                       E, nu, guess, tangent, C_k=C_k)
+    sig, st, C, dep, x = return_map_3d(full_strain(eps_ip, ezz), state, p, inputs, guess,
+                                       tangent)
     return sig, st, condense_zz(C, plane) if tangent else None, dep, x

@@ -1,8 +1,8 @@
 """Linear (Prager) kinematic hardening on top of the Anand flow: equations and closed forms.
 
-The update itself lives in :func:`solderpyro.materials.integrate.return_map_3d` (keyword
-``C_k``, state field ``PointState.X``); this module documents it and gives the closed forms the
-tests check it against.
+The update itself lives in :func:`solderpyro.materials.integrate.return_map_3d` (the field
+``C_k`` of its ``PointInputs``, the state field ``PointState.X``); this module documents it and
+gives the closed forms the tests check it against.
 
 Notation (Mandel 4-vectors ``(xx, yy, zz, sqrt2*xy)``, so ``a:b = a.b`` and ``|a|`` is the
 tensor norm): for a deviator ``a`` the von Mises equivalent is ``a_eq = sqrt(3/2)*|a|``; for an

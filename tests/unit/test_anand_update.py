@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from solderpyro.materials.integrate import PointState, anand_update, initial_state
+from solderpyro.materials.integrate import PointInputs, PointState, anand_update, initial_state
 from solderpyro.params import anand_tensor
 
 CASES = [{}, {"s0": 5.0, "QR": 7000.0, "xi": 5.0, "m": 0.05}, {"s0": 25.0, "m": 0.5},
@@ -26,7 +26,7 @@ EPS = torch.tensor([[2e-4, -1e-4, 8e-4], [-5e-4, 3e-4, -2e-3], [1e-3, 1e-3, 1e-6
 def test_consistent_tangent_matches_fd(vals, plane, dt):
     p = anand_tensor(vals)
     st = _state(p)
-    args = (st, p, 360.0, dt, 2e-4, 32000.0, 0.35, plane)
+    args = (st, p, PointInputs(360.0, dt, 2e-4, 32000.0, 0.35), plane)
     sig, _, C, _, _ = anand_update(EPS, *args)
     if plane == "stress":
         assert sig[:, 2].abs().max() < 1e-7  # sigma_zz = 0 enforced
@@ -46,8 +46,9 @@ def test_parameter_gradient_matches_fd(vals):
     st = _state(p0)
 
     def f(p):
-        sig, st1, _, _, _ = anand_update(EPS, PointState(st.eps_p, st.s, st.eps_zz), p, 360.0,
-                                         20.0, 2e-4, 32000.0, 0.35, "stress", tangent=False)
+        sig, st1, _, _, _ = anand_update(EPS, PointState(st.eps_p, st.s, st.eps_zz), p,
+                                         PointInputs(360.0, 20.0, 2e-4, 32000.0, 0.35),
+                                         "stress", tangent=False)
         return torch.cat([sig.reshape(-1), st1.s, st1.eps_p.reshape(-1) * 1e4])
 
     J = torch.autograd.functional.jacobian(f, p0)
@@ -68,8 +69,8 @@ def test_batch_shapes_broadcast():
     p = torch.stack([anand_tensor({}), anand_tensor({"m": 0.1})])[:, None, :]  # (2, 1, 9)
     st = initial_state((2, 3), p[..., 0])
     eps = torch.stack([EPS, EPS])
-    sig, *_ = anand_update(eps, st, p, 360.0, 10.0, 2e-4, 32000.0, 0.35)
+    inputs = PointInputs(360.0, 10.0, 2e-4, 32000.0, 0.35)
+    sig, *_ = anand_update(eps, st, p, inputs)
     for i in range(2):
-        s1, *_ = anand_update(EPS, initial_state((3,), p[i, 0, 0]), p[i, 0], 360.0, 10.0, 2e-4,
-                              32000.0, 0.35)
+        s1, *_ = anand_update(EPS, initial_state((3,), p[i, 0, 0]), p[i, 0], inputs)
         assert torch.allclose(sig[i], s1, rtol=0, atol=1e-12)

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from solderpyro.materials.integrate import (
+    PointInputs,
     PointState,
     anand_update,
     initial_state,
@@ -29,6 +30,11 @@ def _state(p, X=None):
         [1.0, 0.8, 1.3]), torch.zeros(3), X)
 
 
+def _inputs(dt, Ck=None):
+    """The step's conditions at 360 K with the thermal strain 2e-4."""
+    return PointInputs(360.0, dt, 2e-4, E, NU, Ck)
+
+
 def _fields(out):
     sig, st, C, dep, x = out
     return [sig, st.eps_p, st.s, st.eps_zz, dep, x] + ([] if C is None else [C])
@@ -42,10 +48,9 @@ def test_zero_modulus_is_bit_exact(vals, plane, dt):
     update (C_k = None, the code path of the model without back stress) to the last bit:
     stress, state, tangent, dep, warm start; and the new back stress is exactly zero."""
     p = anand_tensor(vals)
-    args = (p, 360.0, dt, 2e-4, E, NU, plane)
-    ref = anand_update(EPS, _state(p), *args)
+    ref = anand_update(EPS, _state(p), p, _inputs(dt), plane)
     for Ck, X in [(torch.tensor(0.0), None), (torch.zeros(3), torch.zeros(3, 4))]:
-        out = anand_update(EPS, _state(p, X), *args, C_k=Ck)
+        out = anand_update(EPS, _state(p, X), p, _inputs(dt, Ck), plane)
         for a, b in zip(_fields(ref), _fields(out), strict=True):
             assert torch.equal(a, b)
         assert ref[1].X is None and torch.equal(out[1].X, torch.zeros(3, 4))
@@ -55,12 +60,12 @@ def test_zero_modulus_gradient_is_bit_exact():
     """(a) d(sigma, s)/d(Anand constants) at C_k = 0 equal those of the isotropic update."""
     p0 = anand_tensor({})
 
-    def grad(**kw):
+    def grad(Ck=None):
         p = p0.clone().requires_grad_()
-        sig, st, *_ = anand_update(EPS, _state(p0), p, 360.0, 20.0, 2e-4, E, NU, **kw)
+        sig, st, *_ = anand_update(EPS, _state(p0), p, _inputs(20.0, Ck))
         return torch.autograd.grad(sig.sum() + st.s.sum(), p)[0]
 
-    assert torch.equal(grad(), grad(C_k=torch.tensor(0.0, requires_grad=True)))
+    assert torch.equal(grad(), grad(torch.tensor(0.0, requires_grad=True)))
 
 
 @pytest.mark.parametrize("vals", CASES)
@@ -71,8 +76,8 @@ def test_kinematic_tangent_matches_fd(vals, plane, dt, Ck):
     """(d) Consistent in-plane tangent with back stress (non-zero X_n, not collinear with the
     trial deviator) vs central differences, rel 1e-6 as for the isotropic tangent."""
     p = anand_tensor(vals)
-    args = (_state(p, X_N), p, 360.0, dt, 2e-4, E, NU, plane)
-    sig, st, C, _, _ = anand_update(EPS, *args, C_k=Ck)
+    args = (_state(p, X_N), p, _inputs(dt, Ck), plane)
+    sig, st, C, _, _ = anand_update(EPS, *args)
     if plane == "stress":
         assert sig[:, 2].abs().max() < 1e-7  # sigma_zz = 0 enforced
     h = 1e-7
@@ -80,14 +85,14 @@ def test_kinematic_tangent_matches_fd(vals, plane, dt, Ck):
         e1, e2 = EPS.clone(), EPS.clone()
         e1[:, j] += h
         e2[:, j] -= h
-        fd = (anand_update(e1, *args, C_k=Ck)[0] - anand_update(e2, *args, C_k=Ck)[0])
+        fd = (anand_update(e1, *args)[0] - anand_update(e2, *args)[0])
         fd = fd[:, [0, 1, 3]] / (2 * h)
         assert torch.allclose(C[:, :, j], fd, rtol=1e-6, atol=1e-6 * fd.abs().max())
 
 
 def _outputs(Ck, p, X, plane="stress"):
-    sig, st, _, _, _ = anand_update(EPS, _state(p, X), p, 360.0, 20.0, 2e-4, E, NU, plane,
-                                    tangent=False, C_k=Ck)
+    sig, st, _, _, _ = anand_update(EPS, _state(p, X), p, _inputs(20.0, Ck), plane,
+                                    tangent=False)
     return torch.cat([sig.reshape(-1), st.s, st.eps_p.reshape(-1) * 1e4, st.X.reshape(-1)])
 
 
@@ -138,12 +143,11 @@ def test_batch_broadcast_of_Ck():
     Ck = torch.tensor([1500.0, 9000.0])[:, None, None]  # (2, 1, 1)
     eps = torch.stack([EPS, 0.5 * EPS])[None].expand(2, 2, 3, 3)  # (2, 2, 3, 3)
     st = initial_state((2, 2, 3), p[..., 0], kinematic=True)
-    sig, st1, C, _, _ = anand_update(eps, st, p, 360.0, 10.0, 2e-4, E, NU, C_k=Ck)
+    sig, st1, C, _, _ = anand_update(eps, st, p, _inputs(10.0, Ck))
     assert st1.X.shape == (2, 2, 3, 4) and C.shape == (2, 2, 3, 3, 3)
     for i in range(2):
         s1, st2, C1, _, _ = anand_update(eps[i], initial_state((2, 3), p[i, 0, 0, 0]),
-                                         p[i, 0, 0], 360.0, 10.0, 2e-4, E, NU,
-                                         C_k=Ck[i].item())
+                                         p[i, 0, 0], _inputs(10.0, Ck[i].item()))
         assert torch.allclose(sig[i], s1, rtol=0, atol=1e-12)
         assert torch.allclose(st1.X[i], st2.X, rtol=0, atol=1e-12)
         assert torch.allclose(C[i], C1, rtol=1e-12, atol=1e-9)
@@ -161,8 +165,7 @@ def test_point_state_back_stress_field():
     assert not _state(p, Xg).detach().X.requires_grad
     eps = torch.cat([EPS[:, :2], torch.zeros(3, 1), EPS[:, 2:]], -1)
     Ck = 4000.0
-    sig, st1, _, dep, _ = return_map_3d(eps, _state(p, X_N), p, 360.0, 30.0, 2e-4, E, NU,
-                                        C_k=Ck)
+    sig, st1, _, dep, _ = return_map_3d(eps, _state(p, X_N), p, _inputs(30.0, Ck))
     deps = st1.eps_p - _state(p).eps_p
     assert torch.allclose(st1.X, X_N + 2.0 / 3.0 * Ck * deps, rtol=1e-14, atol=1e-12)
     assert st1.X[:, :3].sum(-1).abs().max() < 1e-12  # deviatoric
@@ -171,7 +174,7 @@ def test_point_state_back_stress_field():
     xi = sig - sig[:, :3].sum(-1, keepdim=True) / 3 * m - st1.X
     assert torch.allclose(deps, 1.5 * (dep / equivalent(xi))[:, None] * xi, rtol=1e-10,
                           atol=1e-15)
-    _, st2, _, _, _ = return_map_3d(eps, _state(p, X_N), p, 360.0, 30.0, 2e-4, E, NU)
+    _, st2, _, _, _ = return_map_3d(eps, _state(p, X_N), p, _inputs(30.0))
     assert torch.equal(st2.X, X_N)  # no C_k: back stress carried, not evolved
     G = E / (2 * (1 + NU))
     q_tr = equivalent(sig - sig[:, :3].sum(-1, keepdim=True) / 3 * m + 2 * G * deps - X_N)

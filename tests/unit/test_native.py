@@ -12,10 +12,12 @@ import torch
 from solderpyro import _native
 from solderpyro.fem.loading import ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
+from solderpyro.fem.points import BandTangent
 from solderpyro.fem.problem import Problem
-from solderpyro.fem.solver import SpecimenSolver, _BandTangent
+from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.fem.thermo import MemberStep
 from solderpyro.materials.elastic import condense_zz, iso_3d
-from solderpyro.materials.integrate import PointState, Tangent3D, return_map_3d
+from solderpyro.materials.integrate import PointInputs, PointState, Tangent3D, return_map_3d
 from solderpyro.params import anand_tensor
 
 F64 = torch.float64
@@ -91,15 +93,15 @@ def test_kernel_matches_torch_path(monkeypatch, kinematic, warm, n):
     state, back stress, factored tangent, dep and the local solution (both from the predictor
     and from a perturbed warm start; 4099 points: the 4-lane loop and its scalar tail)."""
     eps, st, p, T, dt, Ck = _random_points(n, seed=n + 7 * kinematic, kinematic=kinematic)
-    args = (eps, st, p, T, dt, 2e-4 * torch.ones(n, dtype=F64), 32000.0, 0.35)
+    args = (eps, st, p, PointInputs(T, dt, 2e-4 * torch.ones(n, dtype=F64), 32000.0, 0.35, Ck))
     guess = None
     if warm:
-        x0 = return_map_3d(*args, C_k=Ck, tangent=False)[4]
+        x0 = return_map_3d(*args, tangent=False)[4]
         guess = x0 * (1 + 1e-3 * torch.randn(x0.shape, generator=torch.Generator().manual_seed(1),
                                                dtype=F64))
-    nat = return_map_3d(*args, guess=guess, C_k=Ck, tangent="factored")
+    nat = return_map_3d(*args, guess=guess, tangent="factored")
     monkeypatch.setenv("SOLDERPYRO_NATIVE", "0")
-    ref = return_map_3d(*args, guess=guess, C_k=Ck, tangent="factored")
+    ref = return_map_3d(*args, guess=guess, tangent="factored")
     assert isinstance(ref[2], Tangent3D) and isinstance(nat[2], Tangent3D)
     for a, b in zip(_fields(nat), _fields(ref), strict=True):
         _close(a, b, 1e-12)
@@ -112,7 +114,7 @@ def test_simd_and_scalar_paths_agree():
     if _native.simd_width() != 4:
         pytest.skip("no 4-lane path on this machine")
     eps, st, p, T, dt, Ck = _random_points(4096, seed=3, kinematic=True)
-    args = (eps, st.eps_p, st.s, st.X, p, T, dt, 2e-4, 32000.0, 0.35, Ck, None, True)
+    args = (eps, st, p, PointInputs(T, dt, 2e-4, 32000.0, 0.35, Ck), None, True)
     a = _native.anand_update(*args, simd=True)
     b = _native.anand_update(*args, simd=False)
     for x, y in zip(a, b, strict=True):
@@ -128,7 +130,7 @@ def test_threads_do_not_change_the_result(monkeypatch):
     (The budget is set directly: torch.set_num_threads(n > 1) itself breaks batched LU solves
     with torch 2.13 / MKL for the rest of the process.)"""
     eps, st, p, T, dt, Ck = _random_points(40000, seed=5, kinematic=True)
-    args = (eps, st.eps_p, st.s, st.X, p, T, dt, 2e-4, 32000.0, 0.35, Ck, None, True)
+    args = (eps, st, p, PointInputs(T, dt, 2e-4, 32000.0, 0.35, Ck), None, True)
     monkeypatch.setattr(_native._budget, "n", 1, raising=False)
     a = _native.anand_update(*args)
     monkeypatch.setattr(_native._budget, "n", 2, raising=False)
@@ -161,23 +163,23 @@ def test_bordered_band_solve_matches_dense(plane):
     """Assembly + bordered-band Cholesky + solve equal the dense torch path (assembled tangent,
     torch.linalg.solve) on the reference mesh, for a subset of cache slots."""
     solver = SpecimenSolver(Problem(plane=plane))
-    bb = solver._bb
+    bb = solver.bb
     assert bb is not None and bb.nI > 0 and bb.nD > 0
     T3 = _tangents(solver, 5, seed=2)
     F = torch.zeros(8, bb.nbuf, dtype=F64)
     slots = torch.tensor([6, 0, 3, 1, 7])
-    info = solver._factor_native(F, slots, T3)
+    info = solver.newton.factor_native(F, slots, T3)
     assert torch.equal(info, torch.zeros(5, dtype=torch.int32))
     rhs = torch.randn(5, solver.n_r, generator=torch.Generator().manual_seed(4), dtype=F64)
     x = bb.solve(F, slots, rhs)
-    ref = _chol_solve(solver._tangent(solver._condense(T3)), rhs)
+    ref = _chol_solve(solver.newton.tangent(solver.points.condense(T3)), rhs)
     assert ((x - ref).norm(dim=1) / ref.norm(dim=1)).max() < 1e-10
 
 
 def test_bordered_band_with_plastic_band_matches_dense():
     """The banded discretisation (copper band with condensed incompatible modes) too."""
-    solver = SpecimenSolver(Problem(), effects=("copper_plasticity",))._banded
-    assert solver is not None and solver.band is not None and solver._bb is not None
+    solver = SpecimenSolver(Problem(), effects=("copper_plasticity",)).banded
+    assert solver is not None and solver.band is not None and solver.bb is not None
     b = 3
     T3 = _tangents(solver, b, seed=5)
     n_eb = solver.B.shape[0] - solver.n_s
@@ -185,13 +187,13 @@ def test_bordered_band_with_plastic_band_matches_dense():
                             torch.tensor(130e3 / 2.68, dtype=F64)), "stress")
     scale = 0.5 + torch.rand(b, n_eb, 4, 1, 1, generator=torch.Generator().manual_seed(0),
                              dtype=F64)
-    C3 = _BandTangent(T3, Cb * scale)
-    F = torch.zeros(b, solver._bb.nbuf, dtype=F64)
-    info = solver._factor_native(F, torch.arange(b), C3)
+    C3 = BandTangent(T3, Cb * scale)
+    F = torch.zeros(b, solver.bb.nbuf, dtype=F64)
+    info = solver.newton.factor_native(F, torch.arange(b), C3)
     assert torch.equal(info, torch.zeros(b, dtype=torch.int32))
     rhs = torch.randn(b, solver.n_r, generator=torch.Generator().manual_seed(1), dtype=F64)
-    x = solver._bb.solve(F, torch.arange(b), rhs)
-    ref = _chol_solve(solver._tangent(solver._condense(C3)), rhs)
+    x = solver.bb.solve(F, torch.arange(b), rhs)
+    ref = _chol_solve(solver.newton.tangent(solver.points.condense(C3)), rhs)
     assert ((x - ref).norm(dim=1) / ref.norm(dim=1)).max() < 1e-10
 
 
@@ -201,8 +203,8 @@ def test_not_positive_definite_is_reported():
     solver = SpecimenSolver(Problem())
     T3 = _tangents(solver, 2, seed=0)
     T3.g2[1] = -1e6  # negative shear stiffness everywhere in member 1
-    F = torch.zeros(2, solver._bb.nbuf, dtype=F64)
-    info = solver._factor_native(F, torch.arange(2), T3)
+    F = torch.zeros(2, solver.bb.nbuf, dtype=F64)
+    info = solver.newton.factor_native(F, torch.arange(2), T3)
     assert info[0] == 0 and info[1] != 0
 
 
@@ -221,13 +223,14 @@ def test_fused_evaluation_matches_torch(monkeypatch, plane):
                     torch.zeros(b, *solver.wdet.shape, dtype=F64))
     ezz = 1e-4 * torch.randn(b, *solver.wdet.shape, generator=g, dtype=F64)
     ezz = ezz if plane == "stress" else None
-    fext = solver._f_ext(60.0).expand(b, -1)
-    nat = solver._material_fused(u, ezz, st, p, 60.0, 30.0, None)
+    fext = solver.f_ext(60.0).expand(b, -1)
+    step = MemberStep(p, solver.thermo.at_temperature(60.0), 30.0)
+    nat = solver.points.material_fused(u, ezz, st, step, None)
     assert nat is not None
     monkeypatch.setenv("SOLDERPYRO_NATIVE", "0")
-    assert solver._material_fused(u, ezz, st, p, 60.0, 30.0, None) is None
-    ref = solver._material(u, ezz, st, p, 60.0, 30.0, condense=False)
-    R = solver._residual(u, ref[0], fext)
+    assert solver.points.material_fused(u, ezz, st, step, None) is None
+    ref = solver.points.material(u, ezz, st, step, condense=False)
+    R = solver.newton.residual(u, ref[0], fext)
     for a, r in zip([nat[0], nat[2], nat[3], nat[4].eps_p, nat[4].s, nat[5], nat[6]],
                     [ref[0], ref[2], ref[3], ref[4].eps_p, ref[4].s, ref[5], ref[6]],
                     strict=True):
@@ -235,9 +238,9 @@ def test_fused_evaluation_matches_torch(monkeypatch, plane):
     _close(nat[7] - fext, R, 1e-12)
     if plane == "stress":  # the accompanying eps_zz update
         du = 1e-4 * torch.randn(b, solver.n_r, generator=g, dtype=F64)
-        dz = solver._dezz(du, ref[2], nat[3])
+        dz = solver.points.dezz(du, ref[2], nat[3])
         monkeypatch.delenv("SOLDERPYRO_NATIVE")
-        _close(solver._dezz(du, ref[2], nat[3]), dz, 1e-12)
+        _close(solver.points.dezz(du, ref[2], nat[3]), dz, 1e-12)
 
 
 @pytest.mark.parametrize("plane", ["stress", "strain"])
@@ -279,7 +282,7 @@ def test_switched_off_uses_the_torch_path(monkeypatch):
     for name in ("anand_update", "solder_eval", "dezz"):
         monkeypatch.setattr(_native, name, boom)
     solver = SpecimenSolver(small_problem())
-    assert not solver._native_linalg() and "U" in solver._factor_cache(1)
+    assert not solver.newton.native_linalg() and "U" in solver.newton.factor_cache(1)
     r = solver.solve(params(ROWS[:2]), [600.0])
     assert bool(r.ok.all())
 
@@ -297,7 +300,7 @@ def test_missing_compiler_warns_once_and_falls_back(monkeypatch, tmp_path):
         assert _native.library() is None  # no second warning
         eps, st, p, T, dt, _ = _random_points(5, seed=0)
         assert not _native.usable(eps)
-        sig = return_map_3d(eps, st, p, T, dt, 2e-4, 32000.0, 0.35)[0]
+        sig = return_map_3d(eps, st, p, PointInputs(T, dt, 2e-4, 32000.0, 0.35))[0]
     assert torch.isfinite(sig).all()
 
 

@@ -7,6 +7,7 @@ import torch
 
 from solderpyro.materials.anand import s_closed_form, saturation
 from solderpyro.materials.integrate import (
+    PointInputs,
     _solve_s,
     anand_update,
     initial_state,
@@ -35,7 +36,8 @@ def _shear_drive(p, TC, rate, eps_total, n_steps, plane="stress"):
     for k in range(1, n_steps + 1):
         g = gdot * dt * k
         eps = torch.tensor([[0.0, 0.0, g / math.sqrt(2.0)]])  # Mandel sqrt2*eps_xy
-        sig, st, _, _, _ = anand_update(eps, st, p, T, dt, 0.0, 32000.0, 0.35, plane)
+        sig, st, _, _, _ = anand_update(eps, st, p, PointInputs(T, dt, 0.0, 32000.0, 0.35),
+                                        plane)
     return math.sqrt(1.5) * sig[0].norm().item(), st.s.item()
 
 
@@ -112,7 +114,8 @@ def test_flow_rule_identity_no_overflow(xi_sigma_over_s, m):
     eps = torch.tensor([[0.0, 0.0, g / math.sqrt(2.0)]])
     st = initial_state((1,), p[0])
     dt, T = 10.0, 350.0
-    sig, st1, C, dep, _ = anand_update(eps, st, p, T, dt, 0.0, 32000.0, 0.35, "strain")
+    sig, st1, C, dep, _ = anand_update(eps, st, p, PointInputs(T, dt, 0.0, 32000.0, 0.35),
+                                       "strain")
     assert torch.isfinite(sig).all() and torch.isfinite(C).all()
     q = math.sqrt(1.5) * sig[0].norm().item()
     rate = dep.item() / dt

@@ -17,7 +17,7 @@ from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import AnandSolder, Elastic, Problem
 from solderpyro.fem.solver import SDIRK_GAMMA, SpecimenSolver
 from solderpyro.materials.elastic import bulk_shear
-from solderpyro.materials.integrate import PointState, full_strain, return_map_3d
+from solderpyro.materials.integrate import PointInputs, PointState, full_strain, return_map_3d
 from solderpyro.materials.j2 import j2_update
 from solderpyro.params import anand_tensor
 
@@ -261,9 +261,9 @@ def test_kinematic_hardening_fe_stages_follow_the_gauss_point_law():
         Ck = P[:, 9] if len(p) == len(P) else None
         if Ck is None:  # a sub-step of some members: not in this test's reference cycle
             continue
-        full = full_strain(solver._strain(u1), st1.eps_zz)
-        _, ref, *_ = return_map_3d(full, st0, p[:, None, None, :9], T1.T + 273.15, dt,
-                                   T1.eps_th, T1.E, nu, C_k=Ck[:, None, None])
+        full = full_strain(solver.points.strain(u1), st1.eps_zz)
+        inputs = PointInputs(T1.T + 273.15, dt, T1.eps_th, T1.E, nu, Ck[:, None, None])
+        _, ref, *_ = return_map_3d(full, st0, p[:, None, None, :9], inputs)
         for a, b in ((ref.X, st1.X), (ref.eps_p, st1.eps_p), (ref.s, st1.s)):
             assert (a - b).abs().max() <= 1e-9 * b.abs().max() + 1e-15, j
         if j % 2 == 1:  # stage 2 of a step: its start extrapolates stage 1

@@ -21,6 +21,7 @@ from solderpyro.fem.loading import ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import AnandSolder, Elastic, Problem
 from solderpyro.fem.solver import SpecimenSolver
+from solderpyro.fem.thermo import MemberStep
 from solderpyro.materials.elastic import plane_elastic
 from solderpyro.materials.integrate import initial_state
 from solderpyro.params import anand_tensor
@@ -165,7 +166,8 @@ def test_uniform_free_thermal_expansion(plane):
     u1, st1, ok, _ = solver.step(u0, st0, p, 25.0 + dT, 1.0)
     assert bool(ok.all())
     ezz = st1.eps_zz if plane == "stress" else None
-    sig_ip, _, szz, *_ = solver._material(u1, ezz, st0, p, 25.0 + dT, 1.0)
+    step = MemberStep(p, solver.thermo.at_temperature(25.0 + dT), 1.0)
+    sig_ip, _, szz, *_ = solver.points.material(u1, ezz, st0, step)
     # in plane strain sigma_zz = -E alpha dT is the (correct) reaction to eps_zz = 0: not checked
     smax = max(sig_ip.abs().max().item(), szz.abs().max().item() if plane == "stress" else 0.0)
     print(f"  max |solder stress| = {smax:.2e} MPa (E alpha dT = {E * alpha * dT:.0f} MPa)")

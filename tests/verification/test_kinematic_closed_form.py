@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from solderpyro.materials.anand import saturation
-from solderpyro.materials.integrate import _solve_s, anand_update, initial_state
+from solderpyro.materials.integrate import PointInputs, _solve_s, anand_update, initial_state
 from solderpyro.materials.kinematic import equivalent, flow_stress_closed_form, strain_equivalent
 from solderpyro.params import LIU2008, WANG2001, anand_tensor
 
@@ -63,8 +63,9 @@ def _drive_constant_rate(n, p, T, rate, Ck, eps_end):
         s, _, _ = _solve_s(L, c, s.clone(), s.clone(), p)
         target = c_flow * s + Ck * k * h
         gamma = target / (math.sqrt(3.0) * G) + math.sqrt(3.0) * k * h
-        sig, st, _, dep, _ = anand_update(_shear(gamma), st, p, T, dt, 0.0, E, NU, "strain",
-                                          tangent=False, C_k=Ck)
+        sig, st, _, dep, _ = anand_update(_shear(gamma), st, p,
+                                          PointInputs(T, dt, 0.0, E, NU, Ck), "strain",
+                                          tangent=False)
         q = equivalent(sig)
         x_err = (equivalent(st.X) - Ck * strain_equivalent(st.eps_p)).abs() / target
         err = torch.maximum(err, torch.stack([((dep - h) / h).abs().max(),
@@ -103,13 +104,15 @@ def _solve_rate(st, p, T, dt, Ck, gamma_n, bracket, h, iters=200):
     lo, hi = bracket
     for _ in range(iters):
         mid = 0.5 * (lo + hi)
-        _, _, _, dep, _ = anand_update(_shear(gamma_n + mid), st, p, T, dt, 0.0, E, NU,
-                                       "stress", tangent=False, C_k=Ck)
+        _, _, _, dep, _ = anand_update(_shear(gamma_n + mid), st, p,
+                                       PointInputs(T, dt, 0.0, E, NU, Ck), "stress",
+                                       tangent=False)
         lo, hi = torch.where(dep > h, lo, mid), torch.where(dep > h, mid, hi)
         if bool(((hi - lo).abs() <= 4e-16 * hi.abs()).all()):
             break
-    sig, st1, _, dep, _ = anand_update(_shear(gamma_n + 0.5 * (lo + hi)), st, p, T, dt, 0.0, E,
-                                       NU, "stress", tangent=False, C_k=Ck)
+    sig, st1, _, dep, _ = anand_update(_shear(gamma_n + 0.5 * (lo + hi)), st, p,
+                                       PointInputs(T, dt, 0.0, E, NU, Ck), "stress",
+                                       tangent=False)
     return math.sqrt(1.5) * sig[:, 3], dep, st1.s
 
 
@@ -130,8 +133,8 @@ def test_bauschinger_offset_is_twice_back_stress(TC):
     st = initial_state((len(Ck),), p[0], kinematic=True)
     for k in range(1, 41):
         gamma_n = torch.full_like(Ck, 1e-3 * dt * k)
-        sig, st, _, dep, _ = anand_update(_shear(gamma_n), st, p, T, dt, 0.0, E, NU, "stress",
-                                          C_k=Ck)
+        sig, st, _, dep, _ = anand_update(_shear(gamma_n), st, p,
+                                          PointInputs(T, dt, 0.0, E, NU, Ck), "stress")
     ep = strain_equivalent(st.eps_p)
     assert torch.allclose(equivalent(st.X), Ck * ep, rtol=1e-13, atol=0)  # proportional
     zero_xi = (st.X[:, 3] - sig[:, 3]) / (math.sqrt(2.0) * G)  # increment with xi_tr = 0
