@@ -102,8 +102,9 @@ def test_locate_interpolates_bilinear_fields_exactly():
     np.testing.assert_allclose(got, f(pts[:, 0], pts[:, 1]), rtol=0, atol=1e-12)
     # each point lies inside the element found
     xy = mesh.nodes[mesh.elems[el]]
-    assert np.all((xy[..., 0].min(1) - 1e-12 <= pts[:, 0]) & (pts[:, 0] <= xy[..., 0].max(1) + 1e-12))
-    assert np.all((xy[..., 1].min(1) - 1e-12 <= pts[:, 1]) & (pts[:, 1] <= xy[..., 1].max(1) + 1e-12))
+    for d in (0, 1):
+        assert np.all((xy[..., d].min(1) - 1e-12 <= pts[:, d])
+                      & (pts[:, d] <= xy[..., d].max(1) + 1e-12))
     node = mesh.elems[el[-1]][np.argmax(w[-1])]
     assert np.allclose(mesh.nodes[node], [0.0, 0.0]) and w[-1].max() == pytest.approx(1.0)
 
