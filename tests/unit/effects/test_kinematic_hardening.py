@@ -1,0 +1,30 @@
+"""kinematic_hardening's hook (solderpyro.effects.kinematic_hardening): the Prager modulus of
+the solder's back stress, 0 at off (the isotropic update to the last bit, checked through the
+FE in tests/unit/test_effects.py), the member's C_k otherwise, added to any earlier one."""
+
+import pytest
+import torch
+
+from solderpyro.effects import EFFECTS, EffectSet
+
+F64 = torch.float64
+EFF = EFFECTS["kinematic_hardening"]
+
+
+def test_back_stress_modulus_is_the_members_C_k():
+    q = torch.tensor([[0.0], [300.0], [2000.0]], dtype=F64)
+    Ck = EFF.back_stress_modulus(None, q)
+    assert torch.equal(Ck, q[:, 0]) and EFF.off == (0.0,)
+    assert torch.equal(EFF.back_stress_modulus(torch.full((3,), 100.0, dtype=F64), q),
+                       q[:, 0] + 100.0)
+    fx = EffectSet(["kinematic_hardening"])
+    assert fx.kinematic and torch.equal(fx.back_stress_modulus(q), q[:, 0])
+    assert not EffectSet(["thermal_lag"]).kinematic
+    assert EffectSet(["thermal_lag"]).back_stress_modulus(torch.zeros(3, 1)) is None
+    b = EFF.params
+    assert (b.lower, b.upper, b.units) == ((0.0,), (2000.0,), ("MPa",))
+
+
+def test_negative_modulus_is_rejected():
+    with pytest.raises(ValueError, match="C_k must be >= 0 MPa"):
+        EFF.check(torch.tensor([[-5.0]], dtype=F64))
