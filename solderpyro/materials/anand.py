@@ -49,7 +49,8 @@ def s_closed_form(eps_p: torch.Tensor, rate: torch.Tensor, T: torch.Tensor,
                   p: torch.Tensor) -> torch.Tensor:
     """Deformation resistance ``s(eps_p)`` at constant rate and temperature (anand.md), MPa.
 
-    Valid for any ``a > 0``; for ``a == 1`` the exponential form is used.
+    Valid for any ``a > 0``; for ``a == 1`` the exponential form is used; for ``a < 1`` s
+    reaches ``s*`` at a finite strain and stays there.
     """
     s0, _, _, _, _, h0, _, _, a = unpack(p)
     _, s_star = saturation(rate, T, p)
@@ -57,7 +58,8 @@ def s_closed_form(eps_p: torch.Tensor, rate: torch.Tensor, T: torch.Tensor,
     d0 = (s_star - s0).abs()
     a1 = (a - 1.0).abs() < 1e-12
     a_safe = torch.where(a1, torch.full_like(a, 2.0), a)
-    inner = d0 ** (1 - a_safe) + (a_safe - 1) * h0 * s_star ** (-a_safe) * eps_p
+    # for a < 1, s reaches s* at a finite strain (inner = 0) and stays there
+    inner = (d0 ** (1 - a_safe) + (a_safe - 1) * h0 * s_star ** (-a_safe) * eps_p).clamp_min(0)
     d_pow = inner ** (1.0 / (1 - a_safe))
     d_exp = d0 * torch.exp(-h0 * eps_p / s_star)
     return s_star - sign * torch.where(a1, d_exp, d_pow)

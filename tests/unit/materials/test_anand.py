@@ -96,3 +96,20 @@ def test_hardening_residual_derivatives_match_autograd():
     torch.testing.assert_close(s_star, LIU2008["s_hat"] * torch.exp(LIU2008["n"] * logZ))
     H0 = hardening_residual(s, s_n, torch.full((3,), -800.0, dtype=F64), logZ, p)[0]
     torch.testing.assert_close(H0, s.detach() - s_n, rtol=0, atol=1e-12)
+
+
+def test_below_a_of_one_s_reaches_saturation_at_a_finite_strain_and_stays():
+    """For a < 1 the s-equation ds/de = h0 |1 - s/s*|^a reaches s* in finite strain
+    e* = (s* - s0)^(1-a) s*^a / (h0 (1 - a)) and stays there: no NaN past it."""
+    p = anand_tensor({"a": 0.6, "s0": 5.0}, dtype=torch.float64)
+    rate = torch.tensor(1e-4, dtype=torch.float64)
+    T = torch.tensor(300.0, dtype=torch.float64)
+    _, s_star = saturation(rate, T, p)
+    h0, a = p[..., 5], p[..., 8]
+    d0 = s_star - 5.0
+    e_star = d0 ** (1 - a) * s_star**a / ((1 - a) * h0)  # where inner = 0
+    eps = torch.stack([0.5 * e_star, 0.999 * e_star, e_star, 2 * e_star, 100 * e_star])
+    s = s_closed_form(eps, rate, T, p)
+    assert torch.isfinite(s).all()
+    assert float(s[0]) < float(s_star)
+    assert torch.allclose(s[2:], s_star.expand(3), rtol=1e-12, atol=0)
