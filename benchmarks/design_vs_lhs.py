@@ -67,14 +67,14 @@ def truths(n: int, seed: int = 2026) -> list[dict[str, float]]:
 
 def dataset(work: Path, i: int, truth: dict[str, float]) -> Path:
     """Dataset ``i`` (noise seed ``i``), made by the finer FE unless already there."""
-    from solderpyro.diagnose.hidden import make_dataset
+    from solderpyro.diagnose.hidden import HiddenTruth, make_dataset
 
     path = work / f"d{i:02d}" / "data.csv"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.csv")
         make_dataset(build(compose(FINE)), None, tmp, True, SEED_TIMES, noise=NOISE, seed=i,
-                     anand=truth)
+                     truth=HiddenTruth(anand=truth))
         tmp.replace(path)  # a crash mid-write leaves no half dataset
     return path
 

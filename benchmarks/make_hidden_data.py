@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from solderpyro.config.compose import build, compose
-from solderpyro.diagnose.hidden import TRUTH, hidden_values, make_dataset
+from solderpyro.diagnose.hidden import TRUTH, HiddenTruth, hidden_values, make_dataset
 from solderpyro.effects import EFFECTS
 from solderpyro.fem.loading import SEED_TIMES
 
@@ -92,7 +92,7 @@ def main() -> None:
                 vals = (np.asarray(fixed, float) if fixed else
                         hidden_values(setup, eff, target_rms=size, anand=truth)[0])
                 make_dataset(setup, eff, p, field, SEED_TIMES, noise=0.05, seed=a.seed,
-                             values=vals, anand=truth)
+                             truth=HiddenTruth(vals, truth))
                 made(p, t0)
 
 

@@ -10,6 +10,7 @@ Units: um, s, and each effect's own parameter units (docs/effects.md).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -84,10 +85,23 @@ def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 
     return lad[k], float(rms[k])
 
 
-def make_dataset(setup: Any, effect: Any, path: str | Path,
-                 field: bool, times: tuple[float, ...], noise: float = 0.05, seed: int = 0,
-                 values: np.ndarray | None = None, anand: dict[str, float] | None = None
-                 ) -> Path:
+@dataclass(frozen=True)
+class HiddenTruth:
+    """Where a hidden-effect dataset is made.
+
+    Attributes:
+        values: ``(n_p,)`` the effects' parameters, concatenated in the order of the effects
+            (None: :func:`hidden_values` per effect).
+        anand: Anand constants of the truth (None: :data:`TRUTH`).
+    """
+
+    values: np.ndarray | None = None
+    anand: dict[str, float] | None = None
+
+
+def make_dataset(setup: Any, effect: Any, path: str | Path, field: bool,
+                 times: tuple[float, ...], noise: float = 0.05, seed: int = 0,
+                 truth: HiddenTruth = HiddenTruth()) -> Path:
     """Write a measurement CSV with a hidden ``effect`` (None: a clean dataset).
 
     Args:
@@ -99,9 +113,7 @@ def make_dataset(setup: Any, effect: Any, path: str | Path,
             None.
         path: the CSV to write. field: the 31 x 18 grid (plus A, B) instead of A and B only.
         times: observation times, s. noise: sd of the added Gaussian noise, um.
-        values: the effects' parameters, concatenated in the order of ``effect`` (default
-            :func:`hidden_values` per effect).
-        anand: Anand constants of the truth (default :data:`TRUTH`).
+        truth: the effects' parameters and the Anand constants (:class:`HiddenTruth`).
     Returns:
         the path; metadata lines name the truth (``hidden_effect``, ``hidden_values``;
         several effects joined by ``+``).
@@ -115,9 +127,10 @@ def make_dataset(setup: Any, effect: Any, path: str | Path,
     names = () if effect is None else (
         tuple(effect) if isinstance(effect, (tuple, list)) else (effect,))
     label = "+".join(nm if isinstance(nm, str) else nm.name for nm in names)
-    truth = dict(anand or TRUTH)
-    a = anand_tensor(truth, base=setup.anand, dtype=torch.float64)[None]
-    meta = {"generator": "solderpyro hidden-effect dataset", "truth": str(truth),
+    values = truth.values
+    truth_c = dict(truth.anand or TRUTH)
+    a = anand_tensor(truth_c, base=setup.anand, dtype=torch.float64)[None]
+    meta = {"generator": "solderpyro hidden-effect dataset", "truth": str(truth_c),
             "noise_sigma_um": str(noise), "hidden_effect": label or "none"}
     forms = [nm.settings() for nm in names if not isinstance(nm, str)]
     if forms:  # a form other than the library's: what it is, for the record
@@ -128,7 +141,7 @@ def make_dataset(setup: Any, effect: Any, path: str | Path,
         if values is None:
             parts, sizes = [], []
             for nm in names:
-                v, rms = hidden_values(setup, nm, seed=seed, anand=truth)
+                v, rms = hidden_values(setup, nm, seed=seed, anand=truth_c)
                 parts.append(np.atleast_1d(np.asarray(v, float)))
                 sizes.append(f"{rms:.4g}")
             values = np.concatenate(parts)

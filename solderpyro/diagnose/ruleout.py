@@ -31,6 +31,7 @@ assessed here.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -40,10 +41,26 @@ from scipy import stats
 REJECT = float(stats.chi2.ppf(0.95, 1))
 
 
+@dataclass(frozen=True)
+class Constants:
+    """The calibrated constants as the calibration reported them.
+
+    Attributes:
+        names: ``(p,)`` their names; lower, upper: ``(p,)`` their prior box (physical units).
+        draws: ``(N, p)`` posterior draws; intervals: name -> the reported 95 % interval
+            (names missing are not judged).
+    """
+
+    names: list[str]
+    lower: np.ndarray
+    upper: np.ndarray
+    draws: np.ndarray
+    intervals: dict[str, tuple[float, float]]
+
+
 def cannot_rule_out(y: np.ndarray, v0: np.ndarray, j_theta: np.ndarray, sigma: float,
-                    ladder: dict[str, tuple[np.ndarray, np.ndarray]], draws: np.ndarray,
-                    names: list[str], lower: np.ndarray, upper: np.ndarray,
-                    intervals: dict[str, tuple[float, float]]) -> list[dict]:
+                    ladder: dict[str, tuple[np.ndarray, np.ndarray]], consts: Constants
+                    ) -> list[dict]:
     """The one-parameter candidates whose unrejected magnitudes move a constant outside its
     reported interval.
 
@@ -53,9 +70,7 @@ def cannot_rule_out(y: np.ndarray, v0: np.ndarray, j_theta: np.ndarray, sigma: f
             per unit); sigma: noise sd, um.
         ladder: effect -> ``(values (L,), V (L, n))``: its magnitudes (its own units,
             ascending from "off") and the FE there (um), the constants as for ``v0``.
-        draws: ``(N, p)`` posterior draws of the constants (physical units); names: their
-            names; lower, upper: ``(p,)`` their box; intervals: name -> the reported 95 %
-            interval (names missing are not judged).
+        consts: the constants' names, box, posterior draws and reported intervals.
 
     Returns:
         one dict per such effect, the largest shift (in interval widths) first: ``effect``,
@@ -64,6 +79,8 @@ def cannot_rule_out(y: np.ndarray, v0: np.ndarray, j_theta: np.ndarray, sigma: f
         names moved outside their interval) and ``shift_widths`` (the largest move of those,
         in interval widths).
     """
+    names, lower, upper = consts.names, consts.lower, consts.upper
+    draws, intervals = consts.draws, consts.intervals
     w = 1.0 / sigma**2
     prec = j_theta.T @ j_theta * w + np.diag(12.0 / (upper - lower) ** 2)
 

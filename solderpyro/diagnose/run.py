@@ -66,7 +66,7 @@ from solderpyro.diagnose.refits import (
     linearised_steps,
     pick_draws,
 )
-from solderpyro.diagnose.ruleout import cannot_rule_out
+from solderpyro.diagnose.ruleout import Constants, cannot_rule_out
 from solderpyro.diagnose.screen import (
     MIN_IDENTIFIABLE,
     apply_ladder,
@@ -145,8 +145,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
             thetas[0] = base["x"][:lay.n_cal]
             _log_base(base)
     with cost.stage("fe_jacobians"):
-        fej = fe_jacobians(setup, thetas, run_effects, candidates, lay.times, lay.field,
-                           progress=progress, fe=fe)
+        fej = fe_jacobians(lay, thetas, fe, progress=progress)
     with cost.stage("score_tests"):
         V, J, lad = at_observations(fej, meas)
         mf, scores, per_draw = score_tests(y, V, J, fej["cols"], sigma)
@@ -189,9 +188,9 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
             intervals = reported_intervals(d)
             if intervals is not None:
                 found = cannot_rule_out(
-                    y, V[0], J[0][:, group(fej["cols"], "theta")], sigma, lad, dr["theta"],
-                    list(fej["cols"].names[:lay.n_cal]), lay.lo[:lay.n_cal],
-                    lay.hi[:lay.n_cal], intervals)
+                    y, V[0], J[0][:, group(fej["cols"], "theta")], sigma, lad, Constants(
+                        list(fej["cols"].names[:lay.n_cal]), lay.lo[:lay.n_cal],
+                        lay.hi[:lay.n_cal], dr["theta"], intervals))
                 add_cannot_rule_out(diag, found, lay.fx_all)
     if diag.indistinguishable and fits is not None:
         with cost.stage("separation"):

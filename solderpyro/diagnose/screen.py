@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from scipy.stats import chi2 as _chi2
 
+from solderpyro.diagnose.refits import Layout
 from solderpyro.diagnose.stats import Misfit, Score, evidence, misfit, score_test
 from solderpyro.specimen import SpecimenModels
 
@@ -62,22 +63,20 @@ def fd_design(box_names: list[str], box_lo: list[float], box_hi: list[float],
     return Columns(names, owner, np.array(step), np.array(central))
 
 
-def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
-                 candidates: tuple[str, ...], times: tuple[float, ...], field: bool,
-                 rel: float = 1e-3, progress: bool = True, fe: SpecimenModels | None = None
-                 ) -> dict[str, Any]:
+def fe_jacobians(lay: Layout, theta: np.ndarray, fe: SpecimenModels | None = None,
+                 rel: float = 1e-3, progress: bool = True) -> dict[str, Any]:
     """FE outputs and finite-difference Jacobians at calibrated draws, candidates at "off".
 
     Args:
-        setup: typed problem and parameter box; ``setup.space`` are the calibrated Anand
-            constants.
+        lay: the diagnosis's layout (:class:`~solderpyro.diagnose.refits.Layout`: the setup,
+            whose ``space`` are the calibrated Anand constants, the effects already on in the
+            calibration and the candidates to test, the output times (s), whether the data
+            include the 31 x 18 grid).
         theta: ``(K, n_cal)`` calibrated parameter draws (Anand constants of ``setup.space``,
             then the run's own effects' parameters), physical units.
-        run_effects: effects already on in the calibration; candidates: effects to test.
-        times: output times, s; field: also the 31 x 18 grid.
-        rel: step as a share of each parameter's box width (one-sided at a box edge).
         fe: the diagnosis's :class:`~solderpyro.specimen.SpecimenModels` (run store, models);
             None: solve directly.
+        rel: step as a share of each parameter's box width (one-sided at a box edge).
     Returns:
         dict: ``V (K, n_time, n_out)`` at the draws (um), ``J (K, n_time, n_out, n_col)``
         (um per unit), ``cols`` (:class:`Columns`), ``names`` (output labels), ``times``,
@@ -87,6 +86,8 @@ def fe_jacobians(setup: Any, theta: np.ndarray, run_effects: tuple[str, ...],
     from solderpyro.effects import effect_set
     from solderpyro.specimen import calibration_box
 
+    setup, run_effects, candidates = lay.setup, lay.run_effects, lay.candidates
+    times, field = lay.times, lay.field
     fe = fe if fe is not None else SpecimenModels(setup)
 
     fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)

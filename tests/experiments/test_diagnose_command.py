@@ -12,7 +12,7 @@ import torch
 
 from solderpyro.cli import main
 from solderpyro.config.compose import build, compose
-from solderpyro.diagnose.hidden import make_dataset
+from solderpyro.diagnose.hidden import HiddenTruth, make_dataset
 
 TINY = ["experiment=quick", "loading.times_s=[0,600,900,1500]",
         "loading.temps_C=[25,75,75,25]", "loading.output_times=[600,900,1500]"]
@@ -28,7 +28,8 @@ def runs(tmp_path_factory):
     torch.set_num_threads(1)
     d = tmp_path_factory.mktemp("diag")
     setup = build(compose(TINY))
-    make_dataset(setup, "thermal_lag", d / "lag.csv", False, TIMES, values=np.array([120.0]))
+    make_dataset(setup, "thermal_lag", d / "lag.csv", False, TIMES,
+                 truth=HiddenTruth(values=np.array([120.0])))
     make_dataset(setup, None, d / "clean.csv", False, TIMES)
     for name in ("lag", "clean"):
         assert main(["calibrate", "--data", str(d / f"{name}.csv"), "--out", str(d / name),

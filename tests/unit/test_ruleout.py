@@ -10,9 +10,14 @@ the intervals is not reported.
 import numpy as np
 import pytest
 
-from solderpyro.diagnose.ruleout import REJECT, cannot_rule_out, describe
+from solderpyro.diagnose.ruleout import REJECT, Constants, cannot_rule_out, describe
 
 SIGMA = 0.05
+
+
+def consts(lower, upper, draws, intervals):
+    """The constants "a" and "b" as the calibration reported them."""
+    return Constants(["a", "b"], lower, upper, draws, intervals)
 N = 8
 
 
@@ -36,7 +41,7 @@ def test_a_mimicked_effect_is_reported_with_the_constants_it_implies():
     j, theta0, v0, y, lower, upper, draws, intervals = _case()
     mags = np.array([0.1, 0.3, 1.0])
     lad = {"mimic": (mags, v0[None, :] + mags[:, None] * 0.2 * j[:, 0][None, :])}
-    out = cannot_rule_out(y, v0, j, SIGMA, lad, draws, ["a", "b"], lower, upper, intervals)
+    out = cannot_rule_out(y, v0, j, SIGMA, lad, consts(lower, upper, draws, intervals))
     assert [r["effect"] for r in out] == ["mimic"]
     r = out[0]
     assert r["value"] == 1.0 and abs(r["chi2_rise"]) < 1e-6  # absorbed entirely
@@ -59,15 +64,15 @@ def test_an_effect_the_constants_cannot_mimic_is_rejected_past_its_first_rungs()
     # 3.84 at 10 sigma; a mimicked part 0.3 J[:, 1] rides along, outside b's interval
     mags = np.array([0.5, 10.0])
     rows = v0[None, :] + (mags[:, None] * SIGMA) * e[None, :] + 0.3 * j[:, 1][None, :]
-    out = cannot_rule_out(y, v0, j, SIGMA, {"part": (mags, rows)}, draws, ["a", "b"], lower,
-                          upper, intervals)
+    out = cannot_rule_out(y, v0, j, SIGMA, {"part": (mags, rows)},
+                          consts(lower, upper, draws, intervals))
     assert len(out) == 1 and out[0]["value"] == 0.5  # the 10-sigma rung is rejected
     rise = out[0]["chi2_rise"]
     assert rise < REJECT and rise == pytest.approx(
         float((e @ (y - v0) * -2 * 0.5 * SIGMA + (0.5 * SIGMA) ** 2) / SIGMA**2), abs=1e-3)
     rows_far = v0[None, :] + (mags[:, None] * SIGMA) * e[None, :]
-    far = cannot_rule_out(y, v0, j, SIGMA, {"part": (mags[1:], rows_far[1:])}, draws,
-                          ["a", "b"], lower, upper, intervals)
+    far = cannot_rule_out(y, v0, j, SIGMA, {"part": (mags[1:], rows_far[1:])},
+                          consts(lower, upper, draws, intervals))
     assert far == []
 
 
@@ -76,14 +81,13 @@ def test_a_small_absorbed_shift_inside_the_intervals_is_not_reported():
     half_width = 0.5 * (intervals["a"][1] - intervals["a"][0])
     small = 0.2 * half_width  # moves a by a fifth of its half-width
     lad = {"small": (np.array([1.0]), (v0 + small * j[:, 0])[None, :])}
-    assert cannot_rule_out(y, v0, j, SIGMA, lad, draws, ["a", "b"], lower, upper,
-                           intervals) == []
+    assert cannot_rule_out(y, v0, j, SIGMA, lad, consts(lower, upper, draws, intervals)) == []
 
 
 def test_a_shift_past_the_box_is_clipped_and_says_so():
     j, theta0, v0, y, lower, upper, draws, intervals = _case()
     lad = {"big": (np.array([1.0]), (v0 + 30.0 * j[:, 0])[None, :])}
-    out = cannot_rule_out(y, v0, j, SIGMA, lad, draws, ["a", "b"], lower, upper, intervals)
+    out = cannot_rule_out(y, v0, j, SIGMA, lad, consts(lower, upper, draws, intervals))
     mean_a, moved_a, clipped = out[0]["moves"]["a"]
     assert clipped and moved_a == lower[0]
     assert "the box's edge" in describe(out[0], "k", "MPa")
