@@ -41,6 +41,7 @@ from solderpyro.pipeline.fe_check import (
     FE_CHECK_DRAWS,
     discretization_check,
     fe_check,
+    misfit_remains,
     ranked,
 )
 from solderpyro.pipeline.fe_exact import (
@@ -279,6 +280,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
             clock("best_fit")
     else:
         rep = Reported(rows, bands, problems, surrogate_trust(loop.converged, full_exact))
+        left = remaining_misfit(checked.result.get("rms_over_sigma"), len(cp.y), cp.space.dim)
+        if left:  # at the best checked posterior draw, the FE check within its bound
+            rep = Reported(rows, bands, [*problems, left], rep.trust + f", with care: {left}")
     disc = discretization_stage(cp, out, fit, checked)
     if disc["warn"]:
         rep.problems = [*rep.problems, disc["message"]]
@@ -602,9 +606,33 @@ def adopt_exact(w: RunOutputs, rep: Reported, ex: Any, ex_info: dict[str, Any]) 
              f"{ex_info['khat']:.2f}): the design's budget ran out before the FE confirmed "
              "the surrogate" if not w.loop.converged else
              f"the FE-exact posterior (ESS {ex_info['ess']:.0f})")
+    problems = list(rep.problems)
+    left = remaining_misfit((ex_info.get("best_fit") or {}).get("rms_over_sigma"),
+                            len(cp.y), cp.space.dim)
+    ex_info["misfit_remains"] = bool(left)
+    if left:
+        trust += f", with care: {left}"
+        problems.append(left)
     log.info("exact: reliable: summary.csv, draws.npz and the predictive are the FE-exact "
              "posterior's")
-    return Reported(rows, bands, rep.problems, trust)
+    return Reported(rows, bands, problems, trust)
+
+
+def remaining_misfit(rms_sd: float | None, n: int, p: int) -> str:
+    """What the trust line must say where a misfit remains at a best fit ``rms_sd`` noise sd
+    off on ``n`` values with ``p`` parameters
+    (:func:`~solderpyro.pipeline.fe_check.misfit_remains`), else ""."""
+    if rms_sd is None or n <= p:
+        return ""
+    c2 = float(rms_sd) ** 2 * n
+    left, q = misfit_remains(c2, n, p)
+    if not left:
+        return ""
+    return (f"a misfit remains at the FE's best fit (chi2 {c2:.0f} on {n - p} dof, above its "
+            f"99 % point {q:.0f}; RMS {float(rms_sd):.2f} noise sd): the model still misses "
+            "part of the physics, the constants absorb what they can of it, and these "
+            "intervals do not include that model-form error, so they may miss the true "
+            "constants; run solderpyro diagnose on this run")
 
 
 def profile_stage(cp: CalibrationProblem, out: Path, rep: Reported, ex: Any,

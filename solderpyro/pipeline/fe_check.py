@@ -28,6 +28,23 @@ def misfits(chi2: float, n: int) -> bool:
     return bool(np.sqrt(chi2 / n) > FE_CHECK_RMS and chi2 > chi2_dist.ppf(FE_CHECK_QUANTILE, n))
 
 
+#: a misfit remains at the FE's best fit when its chi-square exceeds this quantile of
+#: chi2(n - p): the model then still misses part of the physics (within the FE check's bound)
+REMAINS_QUANTILE = 0.99
+
+
+def misfit_remains(chi2: float, n: int, p: int) -> tuple[bool, float]:
+    """Whether a misfit remains at a best fit of ``p`` parameters to ``n`` values whose
+    chi-square (residuals over the noise sd) is ``chi2``, and the quantile it is judged by:
+    ``chi2 > `` the :data:`REMAINS_QUANTILE` point of chi2(n - p)."""
+    from scipy.stats import chi2 as chi2_dist
+
+    if n - p < 1:
+        raise ValueError(f"misfit_remains: need more values than parameters, got n={n}, p={p}")
+    q = float(chi2_dist.ppf(REMAINS_QUANTILE, n - p))
+    return bool(np.isfinite(chi2) and chi2 > q), q
+
+
 def ranked(V: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``(b,)`` indices of the FE outputs ``V (b, n_obs)`` from the best fit of ``y
     (n_obs,)`` (lowest sum of squared residuals) to the worst, rows with a NaN (not converged)

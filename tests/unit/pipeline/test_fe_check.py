@@ -87,3 +87,24 @@ def test_refined_multiplies_elements_and_divides_step_limits():
     assert (fs.growth, fs.dep_max, fs.scheme) == (st.growth, st.dep_max, st.scheme)
     assert fine.plane == "stress"
     assert refined(pr, 2.0).mesh.nx == 60
+
+
+def test_a_misfit_remains_beyond_the_99_percent_point_of_chi2_n_minus_p():
+    """The remaining-misfit rule: chi2 at its expectation n - p is no misfit, beyond the 99 %
+    point of chi2(n - p) is (here the residual-stress case's 2,613 on 2,232 values, 4
+    parameters: RMS 1.08 noise sd, inside the FE check's 1.5 bound); the trust line says so."""
+    from scipy.stats import chi2 as chi2_dist
+
+    from solderpyro.pipeline.calibrate import remaining_misfit
+    from solderpyro.pipeline.fe_check import misfit_remains
+
+    n, p = 2232, 4
+    assert misfit_remains(n - p, n, p) == (False, pytest.approx(chi2_dist.ppf(0.99, n - p)))
+    assert misfit_remains(2613.0, n, p)[0]
+    assert not misfit_remains(chi2_dist.ppf(0.985, n - p), n, p)[0]
+    assert misfit_remains(float("nan"), n, p)[0] is False
+    with pytest.raises(ValueError, match="more values than parameters"):
+        misfit_remains(3.0, 4, 4)
+    text = remaining_misfit((2613.0 / n) ** 0.5, n, p)
+    assert "misfit remains" in text and "2228 dof" in text and "diagnose" in text
+    assert remaining_misfit(1.0, n, p) == "" and remaining_misfit(None, n, p) == ""
