@@ -11,7 +11,7 @@ from typing import Any
 import torch
 
 from solderpyro.calibration.api import calibrate_joint, calibrate_modular
-from solderpyro.calibration.data import CalibrationData
+from solderpyro.calibration.data import CalibrationData, InputAxes
 from solderpyro.calibration.mcmc import Posterior, format_summary, write_summary
 from solderpyro.params import Box
 from solderpyro.surrogate import GPSurrogate
@@ -74,7 +74,7 @@ def koh_from_tables(sim: str | Path, obs: str | Path, x: Sequence[str], t: Seque
     o = read_columns(obs, [*x, y], "OBS")
     nx = len(x)
     data = CalibrationData.create(s[:, :nx], s[:, nx:-1], s[:, -1], o[:, :nx], o[:, -1],
-                                  list(x), list(t))
+                                  InputAxes(list(x), list(t)))
     log.info("%d runs, %d observations, calibrating %s (%s)", data.n_sim, data.n_obs,
              ", ".join(t), mode)
     if propose < 0:
