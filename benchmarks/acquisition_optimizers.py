@@ -22,6 +22,7 @@ import torch
 
 from solderpyro.design import lhs
 from solderpyro.design.acquisition import (
+    AcquisitionPoints,
     greedy_draws,
     loglik_terms,
     propose,
@@ -61,7 +62,8 @@ def main() -> None:
     _, v = propose(acq, 4, a.q, "draws", candidates=mc)
     res["optimize_acqf_discrete"] = {"value": v, "seconds": time.perf_counter() - t}
     t = time.perf_counter()
-    _, v = greedy_draws(gp, "loglik", box.from_unit(mc), box.from_unit(mc), a.q, 0.05, yo)
+    pts = AcquisitionPoints(box.from_unit(mc), box.from_unit(mc))
+    _, v = greedy_draws(gp, "loglik", pts, a.q, 0.05, yo)
     res["greedy_draws"] = {"value": v, "seconds": time.perf_counter() - t}
     out = {"command": f"python benchmarks/acquisition_optimizers.py --q {a.q}", "q": a.q,
            "results": res}

@@ -75,6 +75,7 @@ from solderpyro.calibration import (  # noqa: E402
     calibrate_joint,
     calibrate_modular,
 )
+from solderpyro.calibration.data import InputAxes  # noqa: E402
 from solderpyro.calibration.koh import prepare_joint  # noqa: E402
 from solderpyro.calibration.kronjoint import kron_joint  # noqa: E402
 from solderpyro.calibration.mcmc import NutsOptions, flatten_sites  # noqa: E402
@@ -108,8 +109,8 @@ def joint_data(m: int = 50, n: int = 8, seed: int = 0) -> CalibrationData:
     xo = torch.linspace(0, 1, n, dtype=DT)[:, None]
     g = torch.Generator().manual_seed(seed)
     yo = j_code(xo, J_TRUE) + 0.05 * torch.randn(n, generator=g, dtype=DT)
-    return CalibrationData.create(xs, ts, ys, xo, yo, ["x"], list(J_BOX.names),
-                                  theta_box=J_BOX, x_box=Box(("x",), (0.0,), (1.0,)))
+    return CalibrationData.create(xs, ts, ys, xo, yo, InputAxes(
+        ["x"], list(J_BOX.names), theta_box=J_BOX, x_box=Box(("x",), (0.0,), (1.0,))))
 
 
 def fall_time(h: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
@@ -150,8 +151,8 @@ def _ball(xs: torch.Tensor, ts: torch.Tensor, n: int, seed: int) -> CalibrationD
     g = torch.Generator().manual_seed(seed)
     t_true = fall_time(xo[:, 0], torch.tensor(C_TRUE, dtype=DT))
     yo = t_true * (1.0 + 0.01 * torch.randn(n, generator=g, dtype=DT))
-    return CalibrationData.create(xs, ts, ys, xo, yo, ["h"], ["C"], theta_box=C_BOX,
-                                  x_box=H_BOX)
+    return CalibrationData.create(xs, ts, ys, xo, yo,
+                                  InputAxes(["h"], ["C"], theta_box=C_BOX, x_box=H_BOX))
 
 
 def ball_data(m: int = 400, n: int = 12, seed: int = 0) -> CalibrationData:

@@ -28,7 +28,7 @@ import torch
 
 from solderpyro.calibration import Priors
 from solderpyro.compute.executor import executor_from_options
-from solderpyro.compute.store import RunStore
+from solderpyro.compute.runstore import RunStore
 from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.hidden import TRUTH, make_dataset
 from solderpyro.exact.coords import sampling_coords

@@ -20,7 +20,7 @@ import warnings
 import numpy as np
 import torch
 
-from solderpyro.compute.store import RunStore
+from solderpyro.compute.runstore import RunStore
 from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs
 from solderpyro.specimen import SpecimenModel, StoreUse

@@ -30,7 +30,7 @@ import torch
 
 from solderpyro.calibration import Priors, calibrate_modular
 from solderpyro.compute.executor import executor_from_options
-from solderpyro.compute.store import RunStore
+from solderpyro.compute.runstore import RunStore
 from solderpyro.compute.sweep import sweep
 from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs

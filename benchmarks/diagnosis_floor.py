@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from solderpyro.compute.executor import executor_from_options
-from solderpyro.compute.store import RunStore
+from solderpyro.compute.runstore import RunStore
 from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.decide import FLOOR_FILE, floor_from_fits
 from solderpyro.diagnose.hidden import TRUTH, make_dataset

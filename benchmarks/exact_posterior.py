@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors
-from solderpyro.compute.store import RunStore
+from solderpyro.compute.runstore import RunStore
 from solderpyro.config.compose import build, compose
 from solderpyro.exact.coords import sampling_coords
 from solderpyro.fem.loading import SEED_TIMES

@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_koh import ball_grid_data  # noqa: E402
 
 from solderpyro.calibration import CalibrationData, Priors  # noqa: E402
+from solderpyro.calibration.data import InputAxes  # noqa: E402
 from solderpyro.calibration.fastkoh import joint_flat  # noqa: E402
 from solderpyro.calibration.koh import prepare_joint  # noqa: E402
 from solderpyro.params import Box  # noqa: E402
@@ -56,8 +57,8 @@ def smooth_product(mt: int, mx: int, n: int = 5, seed: int = 0) -> CalibrationDa
     def tt_(a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(a, dtype=DT)
 
-    return CalibrationData.create(tt_(xs), tt_(ts), tt_(f(xs, ts)), tt_(xo), tt_(yo), ["u"],
-                                  ["t"], theta_box=tb, x_box=unit)
+    return CalibrationData.create(tt_(xs), tt_(ts), tt_(f(xs, ts)), tt_(xo), tt_(yo),
+                                  InputAxes(["u"], ["t"], theta_box=tb, x_box=unit))
 
 
 def time_case(data: CalibrationData, reps: int, seed: int = 1) -> dict:

@@ -85,7 +85,7 @@ def main() -> None:
     from solderpyro.calibration.fastkoh import flat_model
     from solderpyro.calibration.koh import SITE_SIGMA, SITE_T, observation_model
     from solderpyro.calibration.reduced import PCAReduction
-    from solderpyro.design.acquisition import greedy_draws
+    from solderpyro.design.acquisition import AcquisitionPoints, greedy_draws
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", help="a finished 'solderpyro calibrate' run directory")
@@ -207,7 +207,8 @@ def main() -> None:
     res = {}
 
     def new() -> None:
-        res["new"] = greedy_draws(gp, "loglik", mc, cand, 8, s_med, sm.y, None, pend)
+        res["new"] = greedy_draws(gp, "loglik", AcquisitionPoints(mc, cand, pend), 8, s_med,
+                                  sm.y)
 
     def full() -> None:
         res["full"] = _greedy_full(gp, mc, cand, 8, s_med, sm.y, pend)

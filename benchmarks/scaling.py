@@ -48,7 +48,8 @@ from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs
 from solderpyro.compute.executor import DaskExecutor, InProcess
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.compute.store import RunStore, run_doe
+from solderpyro.compute.runstore import RunStore
+from solderpyro.compute.store import DoeOptions, run_doe
 
 mode, n, batch, root = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
 s = build(compose([]))
@@ -67,12 +68,11 @@ else:
 t1 = time.perf_counter()
 extra = {}
 if mode == "inproc":
-    res = run_doe(solver, store, h, P, s.times, batch_size=batch, progress=False, executor=ex)
+    res = run_doe(solver, store, h, P, s.times, options=DoeOptions(batch, False, ex))
 else:
     from distributed import get_task_stream
     with get_task_stream(ex.client) as ts:
-        res = run_doe(solver, store, h, P, s.times, batch_size=batch, progress=False,
-                      executor=ex)
+        res = run_doe(solver, store, h, P, s.times, options=DoeOptions(batch, False, ex))
     spans = sorted((r["worker"], ss["start"], ss["stop"]) for r in ts.data
                    for ss in r["startstops"] if ss["action"] == "compute")
     busy = sum(b - a for _, a, b in spans)
@@ -143,7 +143,7 @@ def _records(root: Path, n: int, legacy: bool) -> float:
 
 
 def bench_store(a: argparse.Namespace) -> dict:
-    from solderpyro.compute.store import RunStore
+    from solderpyro.compute.runstore import RunStore
 
     out = {}
     for label, n, legacy in (("base64", a.runs, False), ("lists", a.runs // 5, True)):

@@ -21,7 +21,7 @@ import warnings
 
 import torch
 
-from solderpyro.compute.store import RunStore
+from solderpyro.compute.runstore import RunStore
 from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs
 from solderpyro.specimen import SpecimenModel, StoreUse

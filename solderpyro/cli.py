@@ -173,9 +173,9 @@ def cmd_example(a, overrides) -> int:
 def cmd_koh(a, overrides) -> int:
     if overrides:
         raise ValueError(f"'koh' takes no config overrides, got {overrides}")
-    from solderpyro.calibration.tables import koh_from_tables
+    from solderpyro.calibration.tables import RunTables, koh_from_tables
 
-    koh_from_tables(a.sim, a.obs, _names(a.x), _names(a.t), a.y, a.out, mode=a.mode,
+    koh_from_tables(RunTables(a.sim, a.obs, _names(a.x), _names(a.t), a.y), a.out, mode=a.mode,
                     discrepancy=a.discrepancy, propose=a.propose, **_nuts_args(a))
     print(f"\nsummary: {Path(a.out) / 'summary.csv'}")
     return 0

@@ -8,7 +8,7 @@ nine constants over a prior box by two independent routes:
   unit-cube coordinates u comes from autograd through the solver; ``nu_i = E[(dy/du_i)^2]``,
   and for inputs uniform on [0, 1] the total Sobol index obeys ``S_T,i <= nu_i / (pi^2 Var y)``.
 - **Sobol main and total indices** through a GP surrogate fitted to an LHS of FE runs (kept in
-  the crash-safe :class:`~solderpyro.compute.store.RunStore`): Saltelli (2010) main-effect and
+  the crash-safe :class:`~solderpyro.compute.runstore.RunStore`): Saltelli (2010) main-effect and
   Jansen (1999) total-effect estimators on the GP mean, scrambled-Sobol base samples,
   bootstrap intervals over the sample rows.
 
@@ -441,7 +441,7 @@ class SensitivitySettings:
         grad_points: LHS points of the DGSM (>= 2).
         grad_batch: members per autograd FE solve of the DGSM (>= 1).
         times: output times, s (None: ``setup.times``).
-        store_root: directory of the :class:`~solderpyro.compute.store.RunStore`.
+        store_root: directory of the :class:`~solderpyro.compute.runstore.RunStore`.
         seed: LHS seed of the DOE (the DGSM design uses ``seed + 1``), Sobol scrambling and
             bootstrap seed.
         n_sobol: Sobol base sample (a power of two >= 16).
@@ -499,7 +499,7 @@ def run_sensitivity(setup: Any, out: str | Path,
     Returns:
         :class:`SensitivityResult`.
     """
-    from solderpyro.compute.store import RunStore
+    from solderpyro.compute.runstore import RunStore
     from solderpyro.design import lhs
     from solderpyro.specimen import SpecimenModel, StoreUse
 

@@ -66,8 +66,7 @@ def direct_flat(inp: ObsInputs, priors: Priors | None = None) -> FlatModel:
     pr = priors or Priors()
     reject_unsupported(pr, {"emulators other than FunctionEmulator (the direct mode)":
                             not isinstance(inp.emulator, FunctionEmulator),
-                            "discrepancy=True": inp.discrepancy,
-                            "a LocalBox prior": hasattr(inp.theta_box, "log_support")})
+                            "discrepancy=True": inp.discrepancy})
     em = inp.emulator
     assert isinstance(em, FunctionEmulator)
     y_t = inp.y_obs
@@ -138,8 +137,7 @@ def joint_flat(inp: JointInputs, priors: Priors | None = None,
     reject_unsupported(pr, {f"kernel={inp.kernel!r}": inp.kernel != "gaussian",
                             f"mean={inp.mean!r}": inp.mean != "constant",
                             "discrepancy=True": inp.discrepancy,
-                            "Priors.corr_log=True": pr.corr_log,
-                            "a LocalBox prior": hasattr(inp.data.theta_box, "log_support")})
+                            "Priors.corr_log=True": pr.corr_log})
     d = inp.data
     p, nc = d.theta_box.dim, inp.n_corr
     sig, mu, sd = sigma_site(pr, d.y_obs.detach().cpu().numpy().astype(float), p)

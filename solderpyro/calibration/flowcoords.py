@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -101,6 +102,47 @@ def _h(w: float) -> tuple[float, float, float]:
         s2 = math.exp(2.0 * w)
         return w - s2 / 6.0, 1.0 - s2 / 3.0, -2.0 * s2 / 3.0
     return math.log(ash), h1, h1 * (1.0 - h1 * (1.0 + sa_r))
+
+
+class _SoftMaps(NamedTuple):
+    """The four :func:`soft` maps of :meth:`SoftFlowCoords.forward` (each ``soft``'s tuple of
+    value, log slope and partials): xi's, m's, the saturation stress's and the initial
+    stress's."""
+
+    xi: tuple[float, ...]
+    m: tuple[float, ...]
+    sat: tuple[float, ...]
+    init: tuple[float, ...]
+
+
+class _SaturationSolve(NamedTuple):
+    """The solve for ``z = lr + (Q/R) / T`` in :meth:`SoftFlowCoords.forward`: ``z``,
+    ``G(z, m)``'s partials ``dG/dz``, ``dG/dm``, ``h'(mz)``, ``h''(mz)``, and ``dG/dm`` at
+    the interval's ends ``za``, ``zb``."""
+
+    z: float
+    Gz: float
+    Gm: float
+    h1: float
+    h2: float
+    Gma: float
+    Gmb: float
+
+
+class _PhysicalValues(NamedTuple):
+    """The physical values of :meth:`SoftFlowCoords.forward` and their unit maps: xi and m
+    with ``dx/dt``; s0 (MPa); the log slopes ``log dt/dx`` of s0 and Q/R and their
+    derivatives in x."""
+
+    xi: float
+    dxi: float
+    m: float
+    dm: float
+    s0: float
+    lt_s0: float
+    dlt_s0: float
+    lt_qr: float
+    dlt_qr: float
 
 
 class SoftFlowCoords:
@@ -226,17 +268,22 @@ class SoftFlowCoords:
               + s1[1] + math.log(s0) + lt_s0)
         t = np.clip([t_s0, t_qr, t_xi, t_m], 0.0, 1.0)
 
+        soft_maps = _SoftMaps(sx, sm, s2, s1)
+        sat = _SaturationSolve(z, Gz, Gm, h1, h2, Gma, Gmb)
+        phys = _PhysicalValues(xi, dxi, m, dm, s0, lt_s0, dlt_s0, lt_qr, dlt_qr)
+
         def vjp(g: np.ndarray) -> np.ndarray:
-            return self._reverse(g, sx, sm, s2, s1, xi, dxi, m, dm, z, Gz, Gm, h1, h2, Gma, Gmb,
-                                 s0, lt_s0, dlt_s0, lt_qr, dlt_qr)
+            return self._reverse(g, soft_maps, sat, phys)
         return t, ld, vjp
 
-    def _reverse(self, g: np.ndarray, sx: tuple, sm: tuple, s2: tuple, s1: tuple, xi: float,
-                 dxi: float, m: float, dm: float, z: float, Gz: float, Gm: float, h1: float,
-                 h2: float, Gma: float, Gmb: float, s0: float, lt_s0: float, dlt_s0: float,
-                 lt_qr: float, dlt_qr: float) -> np.ndarray:
-        """The reverse pass of :meth:`forward`: adjoints of ``g . t + ld``."""
+    def _reverse(self, g: np.ndarray, soft_maps: _SoftMaps, sat: _SaturationSolve,
+                 phys: _PhysicalValues) -> np.ndarray:
+        """The reverse pass of :meth:`forward` from its saved values: adjoints of
+        ``g . t + ld``, ``g (4,)`` -> ``(4,)``."""
         F = self.frac
+        sx, sm, s2, s1 = soft_maps
+        z, Gz, Gm, h1, h2, Gma, Gmb = sat
+        xi, dxi, m, dm, s0, lt_s0, dlt_s0, lt_qr, dlt_qr = phys
         b_s0 = g[0] * math.exp(lt_s0) + 1.0 / s0 + dlt_s0
         b_y1 = b_s0 * s0
         b_common = -b_s0 * s0

@@ -400,8 +400,8 @@ def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
     per gradient.
 
     Raises:
-        NotImplementedError: another emulator, a discrepancy, a LocalBox prior or custom
-            priors (the generic path, :func:`~.potential.torch_flat`, covers those).
+        NotImplementedError: another emulator, a discrepancy or custom priors (the generic
+            path, :func:`~.potential.torch_flat`, covers those).
     """
     from solderpyro.calibration.emulators import GPEmulator, ObservedEmulator
     from solderpyro.calibration.flat import FlatModel, FlatSite, reject_unsupported, sigma_site
@@ -415,8 +415,7 @@ def pca_flat(inp: Any, priors: Any = None, coords: str = "auto") -> Any:
     if coords not in ("auto", "logit"):
         raise ValueError(f"pca_flat coords must be 'auto' or 'logit', got {coords!r}")
     reject_unsupported(pr, {"emulators other than a PCA GPEmulator": not ok,
-                      "discrepancy=True": inp.discrepancy,
-                      "a LocalBox prior": hasattr(inp.theta_box, "log_support")})
+                      "discrepancy=True": inp.discrepancy})
     gp = base.gp
     red = PCAReduction(gp, inp.y_obs)
     gps = ComponentGPs(gp)

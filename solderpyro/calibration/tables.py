@@ -5,13 +5,14 @@ from __future__ import annotations
 import csv
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from solderpyro.calibration.api import calibrate_joint, calibrate_modular
-from solderpyro.calibration.data import CalibrationData
+from solderpyro.calibration.data import CalibrationData, InputAxes
 from solderpyro.calibration.mcmc import Posterior, format_summary, write_summary
 from solderpyro.params import Box
 from solderpyro.surrogate import GPSurrogate
@@ -50,10 +51,29 @@ def read_columns(path: str | Path, columns: Sequence[str], what: str) -> torch.T
     return torch.tensor(out, dtype=torch.float64).reshape(len(out), len(columns))
 
 
-def koh_from_tables(sim: str | Path, obs: str | Path, x: Sequence[str], t: Sequence[str],
-                    y: str, out: str | Path, mode: str = "joint", discrepancy: bool = False,
-                    propose: int = 0, **nuts: Any) -> Posterior:
-    """Calibrate from SIM.csv (columns x, t, y) and OBS.csv (columns x, y).
+@dataclass(frozen=True)
+class RunTables:
+    """The two CSV tables of a calibration and the columns read from them.
+
+    Attributes:
+        sim: path of SIM.csv, the simulator's runs (columns ``x``, ``t``, ``y``).
+        obs: path of OBS.csv, the observations (columns ``x``, ``y``).
+        x: the controllable inputs' columns (in both tables).
+        t: the calibrated inputs' columns (SIM.csv only; at least one).
+        y: the response's column (in both tables, same units).
+    """
+
+    sim: str | Path
+    obs: str | Path
+    x: Sequence[str]
+    t: Sequence[str]
+    y: str
+
+
+def koh_from_tables(tables: RunTables, out: str | Path, mode: str = "joint",
+                    discrepancy: bool = False, propose: int = 0, **nuts: Any) -> Posterior:
+    """Calibrate from the tables ``tables`` (:class:`RunTables`: SIM.csv with columns x, t, y
+    and OBS.csv with columns x, y).
 
     The flat prior of t spans the range of the runs. ``mode`` is ``"joint"`` (the seed's full
     joint) or ``"modular"`` (GP fitted first, its LOO check written and warned on). Writes
@@ -64,17 +84,18 @@ def koh_from_tables(sim: str | Path, obs: str | Path, x: Sequence[str], t: Seque
     ``out/proposed.csv`` (each t at every observed x; :mod:`solderpyro.design.external`),
     never one still pending from an earlier call (``out/pending.csv``).
     """
+    x, t, y = tables.x, tables.t, tables.y
     if mode not in ("joint", "modular"):
         raise ValueError(f"--mode must be 'joint' or 'modular', got {mode!r}")
     if not t:
         raise ValueError("--t must name at least one calibration column")
     outd = Path(out)
     outd.mkdir(parents=True, exist_ok=True)
-    s = read_columns(sim, [*x, *t, y], "SIM")
-    o = read_columns(obs, [*x, y], "OBS")
+    s = read_columns(tables.sim, [*x, *t, y], "SIM")
+    o = read_columns(tables.obs, [*x, y], "OBS")
     nx = len(x)
     data = CalibrationData.create(s[:, :nx], s[:, nx:-1], s[:, -1], o[:, :nx], o[:, -1],
-                                  list(x), list(t))
+                                  InputAxes(list(x), list(t)))
     log.info("%d runs, %d observations, calibrating %s (%s)", data.n_sim, data.n_obs,
              ", ".join(t), mode)
     if propose < 0:

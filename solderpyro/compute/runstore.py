@@ -19,7 +19,7 @@ new ``root``. Each record names the solderpyro version that computed it.
 
 This module imports nothing that runs FE batches: :mod:`solderpyro.compute.executor` (where batches
 run, and where workers write their runs) and :mod:`solderpyro.compute.store` (the DOE runner
-:func:`~solderpyro.compute.store.run_doe`, which re-exports this module's public names) build on it.
+:func:`~solderpyro.compute.store.run_doe`) build on it.
 """
 
 from __future__ import annotations

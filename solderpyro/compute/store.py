@@ -7,10 +7,7 @@ member of a batch as soon as the batch finishes: a kill loses at most the batch 
 rerun computes only what is missing. Failed members are stored (``ok=False`` with the reason)
 and are not recomputed on rerun.
 
-The run store's public names (:class:`~solderpyro.compute.runstore.RunStore`,
-:class:`~solderpyro.compute.runstore.RunRecord`, :func:`~solderpyro.compute.runstore.config_hash`,
-:func:`~solderpyro.compute.runstore.param_hash`, ...) are importable from here too, so that a
-campaign needs one import. Imports run one way: runstore <- executor <- store.
+Imports run one way: runstore <- executor <- store.
 """
 
 from __future__ import annotations
@@ -26,23 +23,28 @@ import numpy as np
 import torch
 
 from solderpyro.compute.executor import current_executor
-from solderpyro.compute.runstore import (
-    STORE_SCHEMA,
-    RunRecord,
-    RunStore,
-    config_hash,
-    config_inputs,
-    decode_array,
-    encode_array,
-    param_hash,
-    write_atomic,
-)
+from solderpyro.compute.runstore import RunRecord, RunStore, param_hash
 from solderpyro.params import ANAND_NAMES
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STORE_SCHEMA", "DoeResult", "RunRecord", "RunStore", "config_hash", "config_inputs",
-           "decode_array", "encode_array", "param_hash", "run_doe", "write_atomic"]
+__all__ = ["DoeOptions", "DoeResult", "run_doe"]
+
+
+@dataclass(frozen=True)
+class DoeOptions:
+    """How :func:`run_doe` runs the rows it must solve.
+
+    Attributes:
+        batch_size: members per FE solve (>= 1).
+        progress: a tqdm bar over the batches.
+        executor: where the batches run (:mod:`solderpyro.compute.executor`); None: the
+            current one (:func:`~solderpyro.compute.executor.current_executor`).
+    """
+
+    batch_size: int = 64
+    progress: bool = True
+    executor: Any = None
 
 
 @dataclass(frozen=True)
@@ -94,15 +96,15 @@ def _assemble(keys: list[str], found: dict[str, RunRecord],
 
 
 def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
-            times: Sequence[float], batch_size: int = 64, progress: bool = True,
-            param_names: Sequence[str] | None = None, executor: Any = None) -> DoeResult:
+            times: Sequence[float], param_names: Sequence[str] | None = None,
+            options: DoeOptions | None = None) -> DoeResult:
     """Solve a design ``params (n, 9 + n_eff)``, reusing and filling ``store``.
 
     Rows already stored under ``cfg_hash`` (converged or failed) are read back; the others are
-    solved in batches of at most ``batch_size`` by the executor (``executor``, default
-    :func:`~solderpyro.compute.executor.current_executor`: in this process unless a Dask cluster was
-    chosen), and every member of a batch is stored as soon as that batch finishes. Duplicate
-    rows are solved once.
+    solved in batches of at most ``options.batch_size`` by the executor (``options.executor``,
+    default :func:`~solderpyro.compute.executor.current_executor`: in this process unless a Dask
+    cluster was chosen), and every member of a batch is stored as soon as that batch finishes.
+    Duplicate rows are solved once.
 
     Args:
         solver: a :class:`~solderpyro.fem.solver.SpecimenSolver` (anything with
@@ -114,14 +116,17 @@ def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
             and effects.
         params: ``(n, 9 + n_eff)`` Anand constants in ANAND_NAMES order (MPa, K, 1/s), then
             the effects' parameters (``n_eff = 0`` without effects), finite.
-        times: output times, s. batch_size: members per FE solve. progress: tqdm over batches.
+        times: output times, s.
         param_names: names of the ``params`` columns; default ``solver.param_names(times)``
             when the solver has it, else ANAND_NAMES.
-        executor: where the batches run (:mod:`solderpyro.compute.executor`); None: the current one.
+        options: batch size, progress bar and executor (:class:`DoeOptions`; None: its
+            defaults).
 
     Returns:
         :class:`DoeResult`; V is NaN for failed members, whose reasons are logged.
     """
+    opt = options or DoeOptions()
+    batch_size = opt.batch_size
     p = torch.as_tensor(params).detach().to(device="cpu", dtype=torch.float64)
     tt = sorted(float(t) for t in times)
     pnames = _param_names(solver, tt, param_names)
@@ -149,11 +154,11 @@ def run_doe(solver: Any, store: RunStore, cfg_hash: str, params: torch.Tensor,
               n_reused, len(keys), len(missing))
     from tqdm.auto import tqdm
 
-    ex = executor if executor is not None else current_executor()
+    ex = opt.executor if opt.executor is not None else current_executor()
     batches = [[missing[j] for j in part] for part in ex.partition(len(missing), batch_size)]
     fe_s = 0.0
     with tqdm(total=len(missing), desc=f"FE runs ({ex.describe()})", unit="run",
-              disable=not progress or not batches) as bar:
+              disable=not opt.progress or not batches) as bar:
         for out in ex.run(solver, [p[rows] for rows in batches], tt, pnames, store, cfg_hash):
             for rec in out.records:
                 if not (out.stored or out.lost):

@@ -23,6 +23,8 @@ outputs, so one fantasy (BoTorch's default dummy sampler) makes both criteria ex
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from botorch.acquisition import AcquisitionFunction
@@ -153,12 +155,25 @@ class _PosteriorColumns:
         return self.block(slice(None), slice(i, i + 1))[:, :, 0]
 
 
-def greedy_draws(gp: GPSurrogate, criterion: str, mc_theta: torch.Tensor,
-                 cand_theta: torch.Tensor, q: int, sigma: float, y: torch.Tensor | None = None,
-                 offset: torch.Tensor | None = None, pending: torch.Tensor | None = None
+class AcquisitionPoints(NamedTuple):
+    """The parameter sets one greedy choice of runs works over (physical units).
+
+    Attributes:
+        draws: ``(N, d)`` posterior draws the criterion integrates over.
+        candidates: ``(C, d)`` the runs to choose from.
+        pending: ``(P, d)`` runs asked for and not yet back (None: none).
+    """
+
+    draws: torch.Tensor
+    candidates: torch.Tensor
+    pending: torch.Tensor | None = None
+
+
+def greedy_draws(gp: GPSurrogate, criterion: str, points: AcquisitionPoints, q: int,
+                 sigma: float, y: torch.Tensor | None = None, offset: torch.Tensor | None = None
                  ) -> tuple[torch.Tensor, float]:
-    """The best ``q`` of ``cand_theta`` for a criterion, chosen greedily one at a time (each
-    choice joins the pending runs before the next), in closed form.
+    """The best ``q`` of ``points.candidates`` for a criterion, chosen greedily one at a time
+    (each choice joins the pending runs before the next), in closed form.
 
     This is BoTorch's ``optimize_acqf_discrete`` on :func:`integrated_code_variance`
     (``criterion="variance"``) or :class:`qIntegratedLogLikVariance` (``"loglik"``): the same
@@ -172,8 +187,8 @@ def greedy_draws(gp: GPSurrogate, criterion: str, mc_theta: torch.Tensor,
 
     Args:
         gp: the fitted surrogate. criterion: ``"variance"`` or ``"loglik"``.
-        mc_theta: ``(N, d)`` posterior draws integrated over; cand_theta: ``(C, d)`` the
-            candidates; pending: ``(P, d)`` runs asked for and not yet back (all physical).
+        points: the posterior draws ``(N, d)`` integrated over, the candidates ``(C, d)`` and
+            the pending runs ``(P, d)`` (:class:`AcquisitionPoints`, physical).
         q: how many to choose (<= C). sigma: noise sd (um).
         y, offset: the data ``(n_y,)`` and observation-side offsets ``(N, n_y)`` (for
             ``"loglik"``).
@@ -183,6 +198,7 @@ def greedy_draws(gp: GPSurrogate, criterion: str, mc_theta: torch.Tensor,
     """
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    mc_theta, cand_theta, pending = points
     N, C = len(mc_theta), len(cand_theta)
     if not 1 <= q <= C:
         raise ValueError(f"greedy_draws: need 1 <= q <= {C} candidates, got q={q}")

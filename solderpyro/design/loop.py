@@ -493,6 +493,7 @@ def acquire(gp: GPSurrogate, draws: Draws, box: Box, s: LoopSettings, y: torch.T
         ``(q, d)`` parameter rows (physical, inside ``box``) and the criterion's value.
     """
     from solderpyro.design.acquisition import (
+        AcquisitionPoints,
         greedy_draws,
         integrated_code_variance,
         loglik_terms,
@@ -508,8 +509,8 @@ def acquire(gp: GPSurrogate, draws: Draws, box: Box, s: LoopSettings, y: torch.T
     cand_th = draws.theta[spread_indices(N, s.candidates)]
     off_mc = None if draws.offset is None else draws.offset[mi]
     if s.optimizer == "draws":  # closed form, the same choice as BoTorch's (tested)
-        idx, val = greedy_draws(gp, s.criterion, draws.theta[mi], cand_th, q, sig, y, off_mc,
-                                pending)
+        pts = AcquisitionPoints(draws.theta[mi], cand_th, pending)
+        idx, val = greedy_draws(gp, s.criterion, pts, q, sig, y, off_mc)
         Xu = box.to_unit(cand_th[idx])
     else:
         model = botorch_model(gp)

@@ -13,7 +13,7 @@ from solderpyro.config.rundir import RunInfo
 def run_store(info: RunInfo, run_dir: Path) -> Any:
     """The run store of the calibration (its record's ``store``; a relative path is taken
     from the working directory, as ``calibrate`` took it), else ``run_dir/fe_store``."""
-    from solderpyro.compute.store import RunStore
+    from solderpyro.compute.runstore import RunStore
 
     root = info.store
     return RunStore(Path(root) if root else run_dir / "fe_store")

@@ -35,6 +35,7 @@ from solderpyro.calibration import (
     predict_joint,
     predict_observation_model,
 )
+from solderpyro.calibration.data import InputAxes
 from solderpyro.calibration.mcmc import format_summary, write_summary
 from solderpyro.params import Box
 
@@ -134,8 +135,8 @@ def run(out: str | Path, seed: int = 0, chains: int = 4, warmup: int = 500, draw
     direct.save(out / "posterior_direct.nc")
     log.info("Table II: full-joint KOH from %d LHS runs", n_lhs)
     xs, ts, ys = lhs_runs(n_lhs, seed)
-    data = CalibrationData.create(xs, ts, ys, x, y, ["x"], ["t"], theta_box=LHS_T,
-                                  x_box=X_BOX)
+    data = CalibrationData.create(xs, ts, ys, x, y,
+                                  InputAxes(["x"], ["t"], theta_box=LHS_T, x_box=X_BOX))
     joint, j_inp = calibrate_joint(data, Priors(sigma_max=SIGMA_MAX), **nuts)
     rows = {r["parameter"]: r for r in joint.summary()}
     # Eq. 4's theta is sampled on the unit cube; x and t both span 3, so on the seed's raw

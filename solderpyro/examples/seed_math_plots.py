@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -16,10 +17,25 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def _prediction(path, x, y, xg, bands, true_fn, label, color, title, extra=None) -> None:
-    """Predictive bands, the true process and the data on one axes (Figures 1 and 4)."""
+class BandStyle(NamedTuple):
+    """How a figure draws its predictive bands: the bands' legend label, their matplotlib
+    colour, and the figure's title."""
+
+    label: str
+    color: str
+    title: str
+
+
+def _prediction(path, x, y, xg, bands, true_fn, style: BandStyle, extra=None) -> None:
+    """Predictive bands, the true process and the data on one axes (Figures 1 and 4).
+
+    Args:
+        path: the PNG written. x: ``(n, 1)`` and y: ``(n,)`` the data. xg: ``(g, 1)`` the
+            grid of the bands (:class:`~solderpyro.calibration.predictive.Bands`) and of
+            ``true_fn``. style: :class:`BandStyle`. extra: ``ax -> None`` draws more.
+    """
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    plot_bands(ax, xg[:, 0], bands, label, color=color)
+    plot_bands(ax, xg[:, 0], bands, style.label, color=style.color)
     if extra is not None:
         extra(ax)
     ax.plot(xg[:, 0], true_fn(xg[:, 0]), "k:", label="true process")
@@ -27,7 +43,7 @@ def _prediction(path, x, y, xg, bands, true_fn, label, color, title, extra=None)
     ax.set_xlabel("x")
     ax.set_ylabel("y")
     ax.legend()
-    ax.set_title(title)
+    ax.set_title(style.title)
     _save(fig, path)
 
 
@@ -37,8 +53,8 @@ def fig1(path, x, y, xg, bands, t_reg, true_fn) -> None:
         ax.plot(xg[:, 0], 5 * torch.exp(-t_reg * xg[:, 0]), "C1--",
                 label=f"regression t={t_reg:.3f}")
 
-    _prediction(path, x, y, xg, bands, true_fn, "direct", "C0",
-                "Figure 1: data and direct calibration", regression)
+    _prediction(path, x, y, xg, bands, true_fn,
+                BandStyle("direct", "C0", "Figure 1: data and direct calibration"), regression)
 
 
 def fig2(path, post) -> None:
@@ -81,5 +97,5 @@ def fig3(path, xs, ts, ys, data, post, inp, code) -> None:
 
 def fig4(path, x, y, xg, bands, true_fn) -> None:
     """Full-joint posterior predictive against the true process."""
-    _prediction(path, x, y, xg, bands, true_fn, "full joint", "C2",
-                "Figure 4: posterior prediction of the surrogate calibration")
+    _prediction(path, x, y, xg, bands, true_fn, BandStyle(
+        "full joint", "C2", "Figure 4: posterior prediction of the surrogate calibration"))

@@ -476,14 +476,15 @@ def _best_fit_stage(cp: CalibrationProblem, s: CalibrationSettings, best: dict[s
     spread (:func:`~.fe_exact.best_fit_posterior`), and the FE's predictive at
     ``BEST_FIT_BAND_RUNS`` of its draws (one batched solve through the store)."""
     from solderpyro.exact.coords import sampling_coords
-    from solderpyro.pipeline.fe_exact import best_fit_posterior
+    from solderpyro.pipeline.fe_exact import BestFitOptions, best_fit_posterior
 
     sg = s.surrogate
     coords = sampling_coords(cp.space, cp.setup.space.defaults, "auto", sg.inputs_T_C,
                              sg.inputs_rate)
     x = np.array([best["x"][nm] for nm in cp.space.names])
     y = cp.y.detach().cpu().numpy()
-    fit = best_fit_posterior(cp.observed, coords, x, y, noise_sd, PREDICTIVE_DRAWS, s.seed)
+    fit = best_fit_posterior(cp.observed, coords, x, y, noise_sd,
+                             BestFitOptions(PREDICTIVE_DRAWS, s.seed))
     log.info("the FE's own best fit (chi2 %.0f, spread widened %.2fx for the misfit) is the "
              "reported result: %s", fit.chi2, fit.scale, ", ".join(
                  f"{r['parameter']}={r['median']:.4g} [{r['q2.5']:.4g}, {r['q97.5']:.4g}]"

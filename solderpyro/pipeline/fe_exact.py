@@ -334,9 +334,26 @@ class BestFitPosterior:
     rows: list[dict[str, Any]]
 
 
+@dataclass(frozen=True)
+class BestFitOptions:
+    """How :func:`best_fit_posterior` refines the fit and draws its spread.
+
+    Attributes:
+        n_draws: draws of the scaled Laplace Gaussian kept (inside the box).
+        seed: seed of those draws.
+        lm_iters: at most this many more Levenberg-Marquardt steps from the start.
+        lm_tol: the steps stop when one lowers chi-square (noise units) by less than this.
+    """
+
+    n_draws: int = 1000
+    seed: int = 0
+    lm_iters: int = 15
+    lm_tol: float = 0.5
+
+
 def best_fit_posterior(fun: Any, coords: Any, x_best: np.ndarray, y: np.ndarray,
-                       noise_sd: float, n_draws: int = 1000, seed: int = 0,
-                       lm_iters: int = 15, lm_tol: float = 0.5) -> BestFitPosterior:
+                       noise_sd: float, options: BestFitOptions | None = None
+                       ) -> BestFitPosterior:
     """The FE's best fit as the reported posterior of a model that misfits the data.
 
     Why: a surrogate posterior of a model that cannot fit sits where the surrogate's code
@@ -358,14 +375,18 @@ def best_fit_posterior(fun: Any, coords: Any, x_best: np.ndarray, y: np.ndarray,
         fun: ``rows (b, dim) -> (b, n_obs)`` um, the FE (through the run store); coords: the
             sampling coordinates (:func:`solderpyro.exact.coords.sampling_coords`); x_best:
             ``(dim,)`` physical; y: ``(n_obs,)`` um; noise_sd: um.
+        options: ``n_draws``, ``seed``, ``lm_iters``, ``lm_tol`` (:class:`BestFitOptions`;
+            None: its defaults).
     Returns:
         :class:`BestFitPosterior`.
     """
     from solderpyro.exact.posterior import laplace_cov_w
 
+    opt = options or BestFitOptions()
+    n_draws, seed = opt.n_draws, opt.seed
     space = coords.space
-    best = fe_best_fit(fun, np.asarray(x_best, float)[None], space, y, noise_sd, lm_iters,
-                       lm_tol)
+    best = fe_best_fit(fun, np.asarray(x_best, float)[None], space, y, noise_sd, opt.lm_iters,
+                       opt.lm_tol)
     n, d = y.size, space.dim
     scale = float(np.sqrt(max(best.chi2 / max(n - d, 1), 1.0)))
     J = best.jacobian_unit(space.lower, space.upper, space.log_scale)

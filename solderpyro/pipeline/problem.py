@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import Priors
-from solderpyro.compute.store import RunStore
+from solderpyro.compute.runstore import RunStore
 from solderpyro.config.compose import Setup
 from solderpyro.effects import EffectSet
 from solderpyro.io.measurements import Measurements

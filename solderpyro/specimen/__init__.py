@@ -20,7 +20,6 @@ from solderpyro.specimen.model import (
 from solderpyro.specimen.observed import (
     OBSERVATION_SEAM,
     calibration_box,
-    fe_params,
     observation_index,
     observation_offset,
     output_points,
@@ -29,6 +28,6 @@ from solderpyro.specimen.observed import (
 
 __all__ = [
     "OBSERVATION_SEAM", "ModelRuns", "RunTally", "SpecimenModel",
-    "SpecimenModels", "StoreUse", "calibration_box", "fe_params", "observation_index",
+    "SpecimenModels", "StoreUse", "calibration_box", "observation_index",
     "observation_offset", "output_points", "split_effects",
 ]

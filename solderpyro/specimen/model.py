@@ -39,7 +39,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from solderpyro.compute.store import RunStore, param_hash, run_doe
+from solderpyro.compute.runstore import RunStore, param_hash
+from solderpyro.compute.store import DoeOptions, run_doe
 from solderpyro.effects import Effect, EffectSet
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.problem import Problem, reference_grid
@@ -425,9 +426,9 @@ class SpecimenModel(torch.nn.Module):
             h = self.cfg_hash
             assert h is not None
             batch = self._even_batch(h, P) if use.even_batches else use.batch
-            doe = run_doe(_SolverOnDemand(self), use.store, h, P, self.times, batch,
-                          use.progress if progress is None else progress,
-                          param_names=self.solver_param_names)
+            opts = DoeOptions(batch, use.progress if progress is None else progress)
+            doe = run_doe(_SolverOnDemand(self), use.store, h, P, self.times,
+                          self.solver_param_names, opts)
             res = ModelRuns(doe.V, doe.ok, list(doe.reasons), tuple(doe.times),
                             tuple(doe.names), int(doe.n_computed), int(doe.n_reused))
         res.V = res.V.detach().cpu().to(torch.float64)

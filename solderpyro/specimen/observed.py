@@ -74,13 +74,6 @@ def observation_offset(fx_obs: EffectSet, problem: Any, names: Sequence[str], n_
     return offset
 
 
-def fe_params(setup: Setup, theta: torch.Tensor) -> torch.Tensor:
-    """Solver rows ``(n, 9 + n_eff)`` from calibrated ``theta (n, n_anand + n_eff)``: the nine
-    Anand constants (defaults for those not calibrated), then the effects' parameters."""
-    n = setup.space.n_theta
-    return torch.cat([setup.space.full(theta[:, :n]), theta[:, n:]], 1)
-
-
 def output_points(problem: Any) -> dict[str, tuple[float, float]]:
     """Every label a measurement may name: the problem's points (A, B) and the 31 x 18 grid.
 

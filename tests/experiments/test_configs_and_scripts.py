@@ -134,8 +134,8 @@ def test_demo_command_runs_tiny(tmp_path):
     the profile intervals, whose FE runs are kept in the store too."""
     import csv
 
-    from solderpyro.compute.store import param_hash
-    from solderpyro.specimen import fe_params
+    from solderpyro.compute.runstore import param_hash
+    from solderpyro.specimen import SpecimenModel
 
     assert main(["demo", "--out", str(tmp_path), *DEMO_TINY, "--exact", "off", *TINY]) == 0
     assert (tmp_path / "cycle.png").exists() and len(read_measurements(
@@ -186,7 +186,8 @@ def test_demo_command_runs_tiny(tmp_path):
     # best checked draw and the discretization check's at the best FE-checked posterior draw
     store = _stored(tmp_path / "store")
     S = np.stack(list(store.values()))
-    for x in fe_params(setup, X).numpy():
+    to_rows = SpecimenModel(setup.problem, setup.space).solver_rows
+    for x in to_rows(X).numpy():
         assert np.isclose(S, x, rtol=1e-7, atol=0.0).all(1).any(), x
     chk = info["fe_check"]
     assert chk["draws"] == 8 and len(rows) + 3 < len(store) <= len(rows) + 3 + chk["draws"]
@@ -231,7 +232,7 @@ def test_demo_command_runs_tiny(tmp_path):
     smp = np.load(out / "exact_samples.npz")
     inside = np.isfinite(smp["log_target"])
     assert inside.sum() >= 6 and smp["theta"].shape == (12, 4)
-    solver_rows = fe_params(setup, torch.as_tensor(smp["theta"][inside]))
+    solver_rows = to_rows(torch.as_tensor(smp["theta"][inside]))
     names = {p.name for p in (tmp_path / "store").glob("*/runs/*.json")}
     assert {f"{param_hash(r)}.json" for r in solver_rows} <= names
     # ... and the best fit's forward differences (2 starts x 4 parameters in its first step)

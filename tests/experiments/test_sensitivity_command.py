@@ -50,7 +50,8 @@ def test_sensitivity_command_contract(tmp_path, capsys):
     # the DOE is in the store and its design is reproducible: the same LHS is served entirely
     # from the store (a solver that must not be called)
     from solderpyro.analysis.sensitivity import sensitivity_box
-    from solderpyro.compute.store import RunStore, run_doe
+    from solderpyro.compute.runstore import RunStore
+    from solderpyro.compute.store import DoeOptions, run_doe
     from solderpyro.config.compose import build, compose
     from solderpyro.design import lhs
 
@@ -62,7 +63,8 @@ def test_sensitivity_command_contract(tmp_path, capsys):
     def no_solve(p, times):
         raise AssertionError("stored runs were recomputed")
 
-    doe = run_doe(no_solve, st, h, box.full(lhs(box, 12, 3)), (600.0, 1500.0), progress=False)
+    doe = run_doe(no_solve, st, h, box.full(lhs(box, 12, 3)), (600.0, 1500.0),
+                  options=DoeOptions(progress=False))
     assert doe.n_reused == 12 and doe.n_computed == 0
 
 

@@ -36,7 +36,7 @@ def test_the_specimen_model_moved_to_cuda_gives_the_cpu_reference(tmp_path) -> N
     from test_specimen_model import G_REF, THETA, V_REF, W  # this folder
 
     from solderpyro import SpecimenModel
-    from solderpyro.compute.store import RunStore
+    from solderpyro.compute.runstore import RunStore
     from solderpyro.specimen import StoreUse
 
     f64 = torch.float64

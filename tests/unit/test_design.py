@@ -10,6 +10,7 @@ import torch
 
 from solderpyro.design import lhs
 from solderpyro.design.acquisition import (
+    AcquisitionPoints,
     greedy_draws,
     integrated_code_variance,
     loglik_terms,
@@ -138,7 +139,7 @@ def test_the_closed_form_greedy_choice_is_botorchs(gp4):
                                                             X_pending=pend_u)),
                       ("loglik", qIntegratedLogLikVariance(m, mc_u, gr, M, X_pending=pend_u))):
         Xb, _ = optimize_acqf_discrete(acq, 3, cand_u, unique=True)
-        idx, val = greedy_draws(gp, crit, mc, cand, 3, sig, y, pending=pend)
+        idx, val = greedy_draws(gp, crit, AcquisitionPoints(mc, cand, pend), 3, sig, y)
         torch.testing.assert_close(cand_u[idx], Xb)
         assert val == pytest.approx(float(acq(Xb[None])), rel=1e-4)
 

@@ -8,12 +8,12 @@ import logging
 import numpy as np
 import torch
 
-from solderpyro.compute.store import RunStore, config_hash
+from solderpyro.compute.runstore import RunStore, config_hash
 from solderpyro.config.compose import build, compose
 from solderpyro.diagnose.costs import STAGES, Costs
 from solderpyro.diagnose.write import cost_lines
 from solderpyro.effects import effect_set
-from solderpyro.specimen import SpecimenModels, fe_params
+from solderpyro.specimen import SpecimenModel, SpecimenModels
 
 TINY = ["experiment=quick", "loading.times_s=[0,600,900,1500]",
         "loading.temps_C=[25,75,75,25]", "loading.output_times=[600,900,1500]"]
@@ -62,7 +62,11 @@ def test_observation_effects_share_the_fe_run(tmp_path):
     shifted = list(base)
     shifted[4] = 0.2  # moire_c_1: the 600 s image
     theta = torch.tensor([base, shifted], dtype=torch.float64)
-    rows = fe_params(setup, theta)
+    # the reference solver applies every effect itself: its rows are the Anand constants
+    # (the model's solver rows without effects), then every effect's parameters
+    k = setup.space.n_theta
+    rows = torch.cat([SpecimenModel(setup.problem, setup.space).solver_rows(theta[:, :k]),
+                      theta[:, k:]], 1)
     store = RunStore(tmp_path / "store")
     fe = SpecimenModels(setup, store)
     out = fe.runs(theta, TIMES, False, fx)

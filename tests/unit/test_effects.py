@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from solderpyro.compute.executor import InProcess
-from solderpyro.compute.store import RunRecord, RunStore, config_hash, param_hash, run_doe
+from solderpyro.compute.runstore import RunRecord, RunStore, config_hash, param_hash
+from solderpyro.compute.store import DoeOptions, run_doe
 from solderpyro.config.compose import build, compose
 from solderpyro.effects import EFFECTS, Effect, EffectSet, effect_box, effect_set, get_effect
 from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
@@ -310,17 +311,17 @@ def test_store_hash_separates_effects_and_records_round_trip(tmp_path):
     h = store.register(pr, SEED_TIMES, False, torch.float64, ("thermal_lag",))
     assert store.meta(h)["inputs"]["effects"][0]["__dict__"]  # readable settings in meta.json
     P = with_anand([[0.0], [30.0], [30.0]])
-    r = run_doe(fake, store, h, P, SEED_TIMES, progress=False, param_names=names,
-                executor=InProcess(processes=1))
+    r = run_doe(fake, store, h, P, SEED_TIMES, names,
+                DoeOptions(progress=False, executor=InProcess(processes=1)))
     assert r.n_computed == 2 and r.V[1, 0, 0] == 30.0 and calls == [2]
-    r = run_doe(fake, store, h, P, SEED_TIMES, progress=False, param_names=names,
-                executor=InProcess(processes=1))
+    r = run_doe(fake, store, h, P, SEED_TIMES, names,
+                DoeOptions(progress=False, executor=InProcess(processes=1)))
     assert r.n_reused == 3 and calls == [2]
     rec = store.get(h, P[1])
     assert isinstance(rec, RunRecord) and rec.params["tau"] == 30.0 and rec.values == P[1].tolist()
     assert param_hash(P[1]) != param_hash(P[0]) and param_hash(P[0, :9]) != param_hash(P[0])
     with pytest.raises(ValueError, match=r"shape \(n, 10\)"):
-        run_doe(fake, store, h, P[:, :9], SEED_TIMES, progress=False, param_names=names)
+        run_doe(fake, store, h, P[:, :9], SEED_TIMES, names, DoeOptions(progress=False))
 
 
 def test_rebind_params_carries_each_image_to_its_time():

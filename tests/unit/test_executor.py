@@ -26,7 +26,8 @@ from solderpyro.compute.executor import (
     parse_cluster,
     use_executor,
 )
-from solderpyro.compute.store import RunStore, param_hash, run_doe
+from solderpyro.compute.runstore import RunStore, param_hash
+from solderpyro.compute.store import DoeOptions, run_doe
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.params import ANAND_NAMES, ParameterSpace
@@ -86,7 +87,8 @@ def test_default_executor_is_in_process_without_dask_import(tmp_path):
     import subprocess
 
     code = ("import sys, torch\n"
-            "from solderpyro.compute.store import RunStore, run_doe\n"
+            "from solderpyro.compute.runstore import RunStore\n"
+            "from solderpyro.compute.store import DoeOptions, run_doe\n"
             "from solderpyro.compute.executor import current_executor\n"
             "from types import SimpleNamespace\n"
             "def solver(p, t):\n"
@@ -94,7 +96,7 @@ def test_default_executor_is_in_process_without_dask_import(tmp_path):
             "    return SimpleNamespace(times=tt, names=['A'], V=p[:, None, :1] * tt[None, :,"
             " None], ok=torch.ones(len(p), dtype=torch.bool), reasons=[''] * len(p))\n"
             f"r = run_doe(solver, RunStore({str(tmp_path)!r}), 'c', torch.rand(3, 9) + 1,"
-            " [1.0, 2.0], progress=False)\n"
+            " [1.0, 2.0], options=DoeOptions(progress=False))\n"
             "assert r.n_computed == 3 and current_executor().describe() == 'in-process'\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in"
             " ('dask', 'distributed')))\n")
@@ -110,10 +112,10 @@ def test_two_workers_give_the_in_process_numbers(tmp_path, cluster):
     ref_store, dask_store = RunStore(tmp_path / "ref"), RunStore(tmp_path / "dask")
     h = ref_store.register(problem, SEED_TIMES, False, torch.float64)
     assert dask_store.register(problem, SEED_TIMES, False, torch.float64) == h
-    ref = run_doe(solver, ref_store, h, P, SEED_TIMES, batch_size=64, progress=False)
+    ref = run_doe(solver, ref_store, h, P, SEED_TIMES, options=DoeOptions(64, False))
     with use_executor(cluster):
         assert current_executor() is cluster
-        got = run_doe(solver, dask_store, h, P, SEED_TIMES, batch_size=64, progress=False)
+        got = run_doe(solver, dask_store, h, P, SEED_TIMES, options=DoeOptions(64, False))
     assert current_executor().describe() == "in-process"
     assert bool(ref.ok.all()) and torch.equal(got.ok, ref.ok)
     # the workers solve other batches of the same runs: rounding only (a member's iterations
@@ -122,7 +124,8 @@ def test_two_workers_give_the_in_process_numbers(tmp_path, cluster):
     torch.testing.assert_close(got.V, ref.V, rtol=0, atol=1e-12 * ref.V.abs().max().item())
     files = sorted(p.name for p in (tmp_path / "dask" / h / "runs").glob("*.json"))
     assert files == sorted(f"{param_hash(r)}.json" for r in P)  # each run stored once
-    again = run_doe(solver, dask_store, h, P, SEED_TIMES, executor=cluster, progress=False)
+    again = run_doe(solver, dask_store, h, P, SEED_TIMES,
+                    options=DoeOptions(progress=False, executor=cluster))
     assert (again.n_reused, again.n_computed) == (6, 0)
 
 
@@ -145,15 +148,14 @@ def test_worker_killed_mid_campaign_completes_with_every_run_stored_once(tmp_pat
 
     th = threading.Thread(target=killer)
     th.start()
-    res = run_doe(solver, store, h, P, SEED_TIMES, batch_size=1, executor=cluster,
-                  progress=False)
+    res = run_doe(solver, store, h, P, SEED_TIMES, options=DoeOptions(1, False, cluster))
     th.join()
     assert killed, "no worker was killed"
     assert bool(res.ok.all()) and res.n_computed == 8
     files = sorted(p.name for p in runs.glob("*.json"))
     assert files == sorted(f"{param_hash(r)}.json" for r in P)
-    ref = run_doe(solver, RunStore(tmp_path / "ref"), h, P, SEED_TIMES, progress=False,
-                  executor=InProcess())
+    ref = run_doe(solver, RunStore(tmp_path / "ref"), h, P, SEED_TIMES,
+                  options=DoeOptions(progress=False, executor=InProcess()))
     torch.testing.assert_close(res.V, ref.V, rtol=0, atol=1e-12 * ref.V.abs().max().item())
     cluster.client.wait_for_workers(2, timeout=60)  # the nanny restarted the dead worker
 
@@ -187,14 +189,15 @@ def test_a_batch_that_kills_every_worker_is_failed_not_hung(tmp_path):
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
         with DaskExecutor.start("local:1") as ex:
             t0 = time.monotonic()
-            res = run_doe(KillerSolver(), store, "cfg", _params(2), SEED_TIMES, executor=ex,
-                          progress=False)
+            res = run_doe(KillerSolver(), store, "cfg", _params(2), SEED_TIMES,
+                          options=DoeOptions(progress=False, executor=ex))
             assert time.monotonic() - t0 < 120
             assert not bool(res.ok.any())
             assert all("worker died" in r and "not stored" in r for r in res.reasons)
             assert not (tmp_path / "cfg" / "runs").exists()  # a rerun will try again
-            ok = run_doe(AffineSolver(), store, "cfg", _params(2), SEED_TIMES, executor=ex,
-                         progress=False)  # and the cluster still works
+            # and the cluster still works
+            ok = run_doe(AffineSolver(), store, "cfg", _params(2), SEED_TIMES,
+                         options=DoeOptions(progress=False, executor=ex))
             assert bool(ok.ok.all()) and ok.n_computed == 2
 
 
@@ -219,7 +222,7 @@ def test_store_written_by_two_processes_at_once_stays_consistent(tmp_path):
     import subprocess
 
     code = ("import sys, numpy as np\n"
-            "from solderpyro.compute.store import RunStore, RunRecord\n"
+            "from solderpyro.compute.runstore import RunStore, RunRecord\n"
             "from solderpyro.params import ANAND_NAMES\n"
             "lo, hi = int(sys.argv[2]), int(sys.argv[3])\n"
             "s = RunStore(sys.argv[1])\n"
@@ -246,7 +249,8 @@ import sys, torch
 from solderpyro.compute.executor import DaskExecutor
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.compute.store import RunStore, run_doe
+from solderpyro.compute.runstore import RunStore
+from solderpyro.compute.store import DoeOptions, run_doe
 sys.path.insert(0, sys.argv[2])
 from test_executor import _params, cheap_problem
 
@@ -255,7 +259,7 @@ store = RunStore(sys.argv[1])
 h = store.register(problem, SEED_TIMES, False, torch.float64)
 with DaskExecutor.start("local:2") as ex:
     run_doe(SpecimenSolver(problem, None, dtype=torch.float64), store, h, _params(8),
-            SEED_TIMES, batch_size=1, executor=ex, progress=False)
+            SEED_TIMES, options=DoeOptions(1, False, ex))
 """
 
 
@@ -287,7 +291,7 @@ def test_client_killed_mid_campaign_then_rerun_reuses_every_stored_run(tmp_path)
     kept = {p.name for p in runs.glob("*.json")}
     assert 2 <= len(kept) < 8
     res = run_doe(SpecimenSolver(problem, None, dtype=torch.float64), store, h, _params(8),
-                  SEED_TIMES, batch_size=4, progress=False, executor=InProcess())
+                  SEED_TIMES, options=DoeOptions(4, False, InProcess()))
     assert (res.n_reused, res.n_computed) == (len(kept), 8 - len(kept))
     assert bool(res.ok.all())
     assert {p.name for p in runs.glob("*.json")} == {f"{param_hash(r)}.json"

@@ -6,7 +6,7 @@ import csv
 import numpy as np
 import torch
 
-from solderpyro.calibration.tables import koh_from_tables
+from solderpyro.calibration.tables import RunTables, koh_from_tables
 from solderpyro.design.external import read_pending, still_pending
 
 T_TRUE = 0.7
@@ -48,7 +48,7 @@ def test_propose_writes_runs_in_the_posterior_and_never_a_pending_one_twice(tmp_
     s, o = _tables(tmp_path, np.linspace(0.0, 2.0, 6))
     out = tmp_path / "out"
     kw = dict(mode="modular", chains=1, warmup=150, draws=200, progress=False)
-    post = koh_from_tables(s, o, ["x"], ["t"], "y", out, propose=2, **kw)
+    post = koh_from_tables(RunTables(s, o, ["x"], ["t"], "y"), out, propose=2, **kw)
     lo, hi = np.quantile(post.flat("t").numpy(), [0.0, 1.0])
     with (out / "proposed.csv").open() as f:
         rows = list(csv.DictReader(f))
@@ -61,7 +61,7 @@ def test_propose_writes_runs_in_the_posterior_and_never_a_pending_one_twice(tmp_
     assert post.flat("t").numpy().std() < 0.5 * 2.0 / np.sqrt(12.0)
     assert sorted({float(r["x"]) for r in rows}) == [0.2, 0.6, 0.9]
     # called again before the results are in: two new sets, the first two stay pending
-    koh_from_tables(s, o, ["x"], ["t"], "y", out, propose=2, **kw)
+    koh_from_tables(RunTables(s, o, ["x"], ["t"], "y"), out, propose=2, **kw)
     pend = read_pending(out / "pending.csv", ["t"])
     assert len(pend) == 4 and len(set(pend[:, 0].tolist())) == 4
     with (out / "proposed.csv").open() as f:

@@ -35,6 +35,7 @@ import torch
 from scipy.stats import qmc
 
 from solderpyro.calibration import CalibrationData, Priors
+from solderpyro.calibration.data import InputAxes
 from solderpyro.calibration.emulators import FunctionEmulator, GPEmulator, ObservedEmulator
 from solderpyro.calibration.fastkoh import flat_model
 from solderpyro.calibration.koh import (
@@ -68,7 +69,8 @@ def _seed_joint(pr: Priors) -> tuple:
     """The seed's full joint: 5 LHS runs, 11 observations, one t."""
     x, y = make_data(0)
     xs, ts, ys = lhs_runs(5, 0)
-    data = CalibrationData.create(xs, ts, ys, x, y, ["x"], ["t"], theta_box=LHS_T, x_box=X_BOX)
+    data = CalibrationData.create(xs, ts, ys, x, y,
+                                  InputAxes(["x"], ["t"], theta_box=LHS_T, x_box=X_BOX))
     return prepare_joint(data, nugget=1e-4), pr
 
 
@@ -85,8 +87,8 @@ def _multi_joint(ard: bool, pr: Priors) -> tuple:
     ys = torch.stack([f(xs[i:i + 1], ts[i])[0] for i in range(12)])
     xo = xb.from_unit(torch.as_tensor(qmc.LatinHypercube(d=2, seed=4).random(5), dtype=DT))
     yo = f(xo, torch.tensor([1.0, 1.5, 0.5], dtype=DT)) + 0.05 * torch.linspace(-1, 1, 5)
-    data = CalibrationData.create(xs, ts, ys, xo, yo, list(xb.names), list(tb.names),
-                                  theta_box=tb, x_box=xb)
+    data = CalibrationData.create(xs, ts, ys, xo, yo, InputAxes(list(xb.names), list(tb.names),
+                                                                     theta_box=tb, x_box=xb))
     return prepare_joint(data, ard=ard, nugget=1e-4), pr
 
 
@@ -107,8 +109,8 @@ def _product_joint(pr: Priors) -> tuple:
     box = Box(("t",), (0.0,), (1.0,))
     xb = Box(("x",), (0.0,), (1.0,))
     tt = functools.partial(torch.as_tensor, dtype=DT)
-    data = CalibrationData.create(tt(xs), tt(ts), tt(f(xs, ts)), tt(xo), tt(yo), ["x"], ["t"],
-                                  theta_box=box, x_box=xb)
+    data = CalibrationData.create(tt(xs), tt(ts), tt(f(xs, ts)), tt(xo), tt(yo),
+                                  InputAxes(["x"], ["t"], theta_box=box, x_box=xb))
     inp = prepare_joint(data)
     assert kron_joint(inp) is not None  # the problem is the Kronecker path's
     return inp, pr

@@ -21,6 +21,7 @@ import torch
 
 from solderpyro.calibration import CalibrationData, Priors, calibrate_direct, calibrate_joint
 from solderpyro.calibration.api import _post
+from solderpyro.calibration.data import InputAxes
 from solderpyro.calibration.emulators import FunctionEmulator
 from solderpyro.calibration.fastkoh import direct_flat, flat_model, joint_flat
 from solderpyro.calibration.koh import (
@@ -198,7 +199,8 @@ def test_fast_results_have_pyro_layout():
 def _seed_joint_data(n_lhs: int = 5) -> CalibrationData:
     x, y = make_data(0)
     xs, ts, ys = lhs_runs(n_lhs, 0)
-    return CalibrationData.create(xs, ts, ys, x, y, ["x"], ["t"], theta_box=LHS_T, x_box=X_BOX)
+    return CalibrationData.create(xs, ts, ys, x, y,
+                                  InputAxes(["x"], ["t"], theta_box=LHS_T, x_box=X_BOX))
 
 
 # ---------------------------------------------------------------------- the joint posterior

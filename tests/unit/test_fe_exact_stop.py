@@ -68,14 +68,14 @@ def test_a_model_that_cannot_fit_reports_its_best_fit_with_a_widened_spread():
     """For a model that misfits, the reported result is the FE's own least-squares fit with
     the Laplace covariance scaled by chi2 / (n - dim): on a line fitted to a parabola that is
     the ordinary least-squares answer (numpy.polyfit's scaled covariance)."""
-    from solderpyro.pipeline.fe_exact import best_fit_posterior
+    from solderpyro.pipeline.fe_exact import BestFitOptions, best_fit_posterior
 
     rng = np.random.default_rng(2)
     y = 1.0 + 0.5 * S + 2.0 * S**2 + 0.05 * rng.standard_normal(S.size)
     box = Box(("a", "b"), (0.0, 0.0), (3.0, 4.0))  # the optimum (0.67, 2.5) inside
     # from near the optimum (the design's LM fit): one more step finds it (a linear model)
     fit = best_fit_posterior(_fun, UnitCoords(box), np.array([0.7, 2.4]), y, 0.05,
-                             n_draws=4000, seed=0)
+                             BestFitOptions(n_draws=4000, seed=0))
     (b, a), cov = np.polyfit(S, y, 1, cov=True)  # cov scaled by the residual variance
     assert np.allclose(fit.x, [a, b], atol=2e-3)  # LM from a near start: the LS optimum
     chi2 = float(np.sum((y - a - b * S) ** 2)) / 0.05**2

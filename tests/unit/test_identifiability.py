@@ -16,7 +16,7 @@ from solderpyro.fem.problem import reference_grid
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.io.measurements import from_arrays
 from solderpyro.pipeline.fe_exact import identifiability, ridge_ends
-from solderpyro.specimen import calibration_box, fe_params
+from solderpyro.specimen import SpecimenModel, calibration_box
 
 TINY = ["experiment=quick", "loading.times_s=[0,600,900]", "loading.temps_C=[25,75,75]",
         "loading.output_times=[600,900]"]
@@ -55,7 +55,8 @@ def _case(col: int, lo: float, hi: float, effects: tuple[str, ...] = (), n: int 
     space = calibration_box(setup, effect_set(effects, TIMES) if effects else None)
     sol = SpecimenSolver(setup.problem)
     liu = np.array([setup.space.defaults[n] for n in setup.space.names], float)
-    V = sol.solve(fe_params(setup, torch.tensor(liu[None])), TIMES).V[0].numpy()
+    rows = SpecimenModel(setup.problem, setup.space).solver_rows(torch.tensor(liu[None]))
+    V = sol.solve(rows, TIMES).V[0].numpy()
     pts = [setup.problem.points[k] for k in sol.names]
     meas = from_arrays(TIMES, list(sol.names), np.array(pts), V, sigma_um=0.05)
     X = np.zeros((n, space.dim))
@@ -94,8 +95,8 @@ def test_a_weak_parameter_is_named_with_the_measurement_that_separates_its_ends(
     assert ends[0, 0] < 6.5 and ends[1, 0] > 23.5
     assert np.allclose(ends[:, 1:], ex.samples[0, 1:])
     grid = reference_grid()
-    V = SpecimenSolver(setup.problem, grid).solve(
-        fe_params(setup, torch.tensor(ends)), TIMES).V.numpy()
+    V = SpecimenSolver(setup.problem, grid).solve(SpecimenModel(
+        setup.problem, setup.space).solver_rows(torch.tensor(ends)), TIMES).V.numpy()
     on_grid = np.array([n in set(grid[0]) for n in SpecimenSolver(setup.problem, grid).names])
     dV = np.abs(V[0] - V[1])[:, on_grid]  # (T, 558): nothing of the grid is measured
     opt = {o["measurement"]: o for o in info["options"]}

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from solderpyro.calibration import CalibrationData, Priors, calibrate_direct
+from solderpyro.calibration.data import InputAxes
 from solderpyro.calibration.koh import joint_cholesky, joint_loglik, prepare_joint
 from solderpyro.examples.seed_math import LHS_T, X_BOX, code, lhs_runs, make_data
 
@@ -15,7 +16,8 @@ DT = torch.float64
 def _data():
     x, y = make_data(0)
     xs, ts, ys = lhs_runs(8, 0)
-    return CalibrationData.create(xs, ts, ys, x, y, ["x"], ["t"], theta_box=LHS_T, x_box=X_BOX)
+    return CalibrationData.create(xs, ts, ys, x, y,
+                                  InputAxes(["x"], ["t"], theta_box=LHS_T, x_box=X_BOX))
 
 
 def test_beta_marginal_equals_quadrature():

@@ -14,6 +14,7 @@ import torch
 from scipy.stats import qmc
 
 from solderpyro.calibration import CalibrationData, Priors
+from solderpyro.calibration.data import InputAxes
 from solderpyro.calibration.fastkoh import joint_flat
 from solderpyro.calibration.koh import joint_loglik, prepare_joint
 from solderpyro.calibration.kronjoint import MIN_RUNS, KronJoint, kron_joint, product_design
@@ -46,7 +47,8 @@ def _product_data(mt: int, mx: int, p: int, nx: int, n: int = 5, seed: int = 0,
         return torch.as_tensor(a, dtype=DT)
 
     return CalibrationData.create(tt(xs), tt(ts), tt(f(xs, ts)), tt(xo), tt(yo),
-                                  list(xb.names), list(tb.names), theta_box=tb, x_box=xb)
+                                  InputAxes(list(xb.names), list(tb.names), theta_box=tb,
+                                            x_box=xb))
 
 
 def _points(inp, p: int, k: int = 4, seed: int = 1) -> list[np.ndarray]:

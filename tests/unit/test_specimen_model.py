@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from solderpyro import SpecimenModel
-from solderpyro.compute.store import RunStore
+from solderpyro.compute.runstore import RunStore
 from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import Problem

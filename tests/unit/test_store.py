@@ -19,13 +19,8 @@ import pytest
 import torch
 
 from solderpyro.compute.executor import InProcess
-from solderpyro.compute.store import (
-    RunRecord,
-    RunStore,
-    config_hash,
-    param_hash,
-    run_doe,
-)
+from solderpyro.compute.runstore import RunRecord, RunStore, config_hash, param_hash
+from solderpyro.compute.store import DoeOptions, run_doe
 from solderpyro.design import lhs
 from solderpyro.fem.loading import SEED_TIMES, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import MeshSpec
@@ -69,8 +64,8 @@ def test_config_hash_is_stable_within_and_across_processes():
     assert h == config_hash(Problem(), SEED_TIMES, False, torch.float64)
     assert h == config_hash(Problem(), tuple(reversed(SEED_TIMES)), False, torch.float64)
     code = ("import torch; from solderpyro.fem.problem import Problem; "
-            "from solderpyro.fem.loading import SEED_TIMES; from solderpyro.compute.store import "
-            "config_hash; print(config_hash(Problem(), SEED_TIMES, False, torch.float64))")
+            "from solderpyro.fem.loading import SEED_TIMES; from solderpyro.compute.runstore "
+            "import config_hash; print(config_hash(Problem(), SEED_TIMES, False, torch.float64))")
     env = dict(os.environ, PYTHONHASHSEED="123")  # a different str-hash seed than ours
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=REPO, env=env, timeout=120, check=True)
@@ -229,8 +224,9 @@ def test_doe_stores_failed_members_and_never_recomputes_them(tmp_path, caplog):
     assert 0 < n_fail < len(params)
     store, solver = RunStore(tmp_path), FakeSolver()
     with caplog.at_level(logging.DEBUG, logger="solderpyro"):  # the summary line is DEBUG
-        res = run_doe(solver, store, "cfg", params, SEED_TIMES, batch_size=4, progress=False,
-                      executor=InProcess(processes=1))  # one process: its calls are all
+        # one process: its calls are all
+        res = run_doe(solver, store, "cfg", params, SEED_TIMES,
+                      options=DoeOptions(4, False, InProcess(processes=1)))
     assert solver.calls == [4, 4, 2] and (res.n_reused, res.n_computed) == (0, 10)
     assert res.V.shape == (12, 4, 2) and res.n_failed == n_fail
     assert torch.isnan(res.V[~res.ok]).all() and torch.isfinite(res.V[res.ok]).all()
@@ -241,7 +237,7 @@ def test_doe_stores_failed_members_and_never_recomputes_them(tmp_path, caplog):
     assert any(f"{n_fail} failed" in m and str(tmp_path) in m for m in msgs)
     assert sum("failed (params" in m for m in msgs) == n_fail
     solver2 = FakeSolver()
-    res2 = run_doe(solver2, store, "cfg", params, SEED_TIMES, batch_size=4, progress=False)
+    res2 = run_doe(solver2, store, "cfg", params, SEED_TIMES, options=DoeOptions(4, False))
     assert solver2.calls == [] and (res2.n_reused, res2.n_computed) == (12, 0)
     assert torch.equal(res2.ok, res.ok) and res2.reasons == res.reasons
     torch.testing.assert_close(res2.V, res.V, rtol=0, atol=0, equal_nan=True)
@@ -251,12 +247,12 @@ def test_doe_crash_keeps_finished_batches(tmp_path):
     params = _params([[10.0 + i, 9000.0 + 100 * i, 2.0, 0.2] for i in range(6)])
     store = RunStore(tmp_path)
     with pytest.raises(RuntimeError, match="simulated crash"):
-        run_doe(FakeSolver(fail_at=2), store, "cfg", params, SEED_TIMES, batch_size=2,
-                progress=False, executor=InProcess(processes=1))
+        run_doe(FakeSolver(fail_at=2), store, "cfg", params, SEED_TIMES,
+                options=DoeOptions(2, False, InProcess(processes=1)))
     assert len(store.records("cfg")) == 4
     solver = FakeSolver()
-    res = run_doe(solver, store, "cfg", params, SEED_TIMES, batch_size=2, progress=False,
-                  executor=InProcess(processes=1))
+    res = run_doe(solver, store, "cfg", params, SEED_TIMES,
+                  options=DoeOptions(2, False, InProcess(processes=1)))
     assert (res.n_reused, res.n_computed, solver.calls) == (4, 2, [2])
 
 
@@ -277,14 +273,15 @@ DOE_SCRIPT = CHEAP_SRC + """
 import sys, torch
 from solderpyro.fem.loading import SEED_TIMES
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.compute.store import RunStore, run_doe
+from solderpyro.compute.runstore import RunStore
+from solderpyro.compute.store import DoeOptions, run_doe
 
 params = torch.tensor({params}, dtype=torch.float64)
 problem = cheap_problem()
 store = RunStore(sys.argv[1])
 h = store.register(problem, SEED_TIMES, False, torch.float64)
 run_doe(SpecimenSolver(problem, None, dtype=torch.float64), store, h, params, SEED_TIMES,
-        batch_size=1, progress=False)
+        options=DoeOptions(1, False))
 """
 
 
@@ -314,7 +311,7 @@ def test_kill_minus_9_mid_doe_loses_nothing_computed(tmp_path):
     assert 1 <= n_stored < 4, "the DOE finished before the kill: make each batch slower"
     assert store.meta(h) is not None
     solver = SpecimenSolver(problem, None, dtype=torch.float64)
-    res = run_doe(solver, store, h, params, SEED_TIMES, batch_size=1, progress=False)
+    res = run_doe(solver, store, h, params, SEED_TIMES, options=DoeOptions(1, False))
     assert res.n_reused == n_stored >= 1 and res.n_computed == 4 - n_stored
     assert res.ok.all() and len(store.records(h)) == 4
     fresh = solver.solve(params, SEED_TIMES)  # all four, one batch, in this process

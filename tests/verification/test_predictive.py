@@ -18,6 +18,7 @@ from solderpyro.calibration import (
     predict_joint,
     predict_observation_model,
 )
+from solderpyro.calibration.data import InputAxes
 from solderpyro.examples.seed_math import X_BOX, code, lhs_runs, make_data, true_process
 from solderpyro.params import Box
 
@@ -48,8 +49,9 @@ def test_discrepancy_repairs_the_wrong_model():
 def test_joint_predictive_covers_truth_without_model_error():
     x, y = make_data(7, true_fn=lambda xx: 5 * torch.exp(-0.7 * xx))
     xs, ts, ys = lhs_runs(20, 0)
-    data = CalibrationData.create(xs, ts, ys, x, y, ["x"], ["t"],
-                                  theta_box=Box(("t",), (-0.5,), (2.5,)), x_box=X_BOX)
+    data = CalibrationData.create(
+        xs, ts, ys, x, y,
+        InputAxes(["x"], ["t"], theta_box=Box(("t",), (-0.5,), (2.5,)), x_box=X_BOX))
     post, inp = calibrate_joint(data, Priors(sigma_max=5.0), **NUTS)
     bands = predict_joint(post, inp, XG, n_draws=300)
     truth = 5 * torch.exp(-0.7 * XG[:, 0])
