@@ -91,7 +91,7 @@ def direct_flat(inp: ObsInputs, priors: Priors | None = None) -> FlatModel:
         leaf_np[:] = t
         leaf.grad = None
         s = float(x[p])
-        if not s * s > 0.0:  # sigma (or its square) underflowed to 0: zero density
+        if not s * s * s > 0.0:  # sigma (or its cube) underflowed to 0: zero density
             return -math.inf, np.zeros(p + 1)
         with torch.enable_grad():
             mean = f(x_obs, leaf)

@@ -13,7 +13,7 @@ directory), :mod:`~.refits` (the base fit and the candidates' refits), :mod:`~.s
 Jacobians, score tests, ladder), :mod:`~.verdict`, :mod:`~.ruleout`, :mod:`~.separation`,
 :mod:`~.fingerprint`, :mod:`~.write`; :mod:`~.costs` keeps the stage clock.
 
-Every FE run goes through the calibration's run store (:class:`~solderpyro.compute.store.RunStore`,
+Every FE run goes through the calibration's run store (:class:`~solderpyro.compute.runstore.RunStore`,
 the run record's ``store``), registered with the solver's problem, times, field flag, dtype and
 the effects switched on: each run is kept as soon as its batch finishes, a rerun of the
 diagnosis reads every run back, and rows that several stages share (the Jacobians' base and
