@@ -13,13 +13,13 @@ directory), :mod:`~.refits` (the base fit and the candidates' refits), :mod:`~.s
 Jacobians, score tests, ladder), :mod:`~.verdict`, :mod:`~.ruleout`, :mod:`~.separation`,
 :mod:`~.fingerprint`, :mod:`~.write`; :mod:`~.costs` keeps the stage clock.
 
-Every FE run goes through the calibration's run store (:class:`~solderpyro.compute.runstore.RunStore`,
-the run record's ``store``), registered with the solver's problem, times, field flag, dtype and
-the effects switched on: each run is kept as soon as its batch finishes, a rerun of the
-diagnosis reads every run back, and rows that several stages share (the Jacobians' base and
-forward rows, the refits' first steps, a refit that did not move) are solved once. Each
-stage's seconds and FE runs (computed, reused) are logged and written to ``diagnosis.json``
-(``"timing"``) and ``diagnosis.md``.
+Every FE run goes through the calibration's run store
+(:class:`~solderpyro.compute.runstore.RunStore`, the run record's ``store``), registered with the
+solver's problem, times, field flag, dtype and the effects switched on: each run is kept as soon as
+its batch finishes, a rerun of the diagnosis reads every run back, and rows that several stages
+share (the Jacobians' base and forward rows, the refits' first steps, a refit that did not move) are
+solved once. Each stage's seconds and FE runs (computed, reused) are logged and written to
+``diagnosis.json`` (``"timing"``) and ``diagnosis.md``.
 
 The FE is exact (no code uncertainty), so the misfit and score statistics are measured against
 the measurement noise alone: the noise the data file states (``sigma_um``) when there is one,
