@@ -8,7 +8,7 @@ one warning and the callers keep their pure-torch path, which also serves every 
 dtype and autograd. ``SOLDERPYRO_NATIVE=0`` switches the native kernels off.
 
 The kernels implement the same algorithms as the torch code they replace, point by point or
-member by member; results agree to rounding (tests/unit/test_native.py).
+member by member; results agree to rounding (tests/unit/native/test_native.py).
 """
 
 from __future__ import annotations

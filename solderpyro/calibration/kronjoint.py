@@ -24,7 +24,7 @@ trace reduces to sums over the eigenbasis.
 Cost per gradient: two symmetric eigendecompositions (``m_t``, ``m_x``) and products of
 ``m_t x m_x`` arrays with the ``n`` observation columns, ``O(m_t^3 + m_x^3 + n m (m_t +
 m_x))``, against the dense ``(m + n)^3`` Cholesky and inverse. It is the same likelihood:
-equal to the dense one to rounding (tests/unit/test_kronjoint.py, 1e-8 relative).
+equal to the dense one to rounding (tests/unit/calibration/test_kronjoint.py, 1e-8 relative).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 floor calibrated against discretization, and forward steps.
 
 Pure arithmetic on chi-squares of FE refits (:func:`solderpyro.diagnose.run.diagnose` runs the
-refits), so every rule here is checked on toys (tests/unit/test_diagnose_decide.py).
+refits), so every rule here is checked on toys (tests/unit/diagnose/test_decide.py).
 
 The rules, as the diagnosis states them:
 

@@ -1,7 +1,7 @@
 """Statistics of model misfit: predictive checks and score (Lagrange-multiplier) tests.
 
 Everything here is plain linear algebra on residuals and Jacobians, so it can be checked
-against closed forms (tests/unit/test_diagnose_stats.py). Units: residuals in um, weights in
+against closed forms (tests/unit/diagnose/test_stats.py). Units: residuals in um, weights in
 1/um^2; parameters in whatever units their Jacobian columns use.
 
 Score test of an effect with parameters phi (k of them, "off" at phi0) in the model

@@ -101,7 +101,7 @@ def test_what_the_data_cannot_rule_out_is_said_where_the_model_fits(runs):
     """Where the model fits, the stage runs, and any candidate it lists is one the data do not
     reject (chi2 rise < 3.84) whose move is real: the moved value lies outside summary.csv's
     interval (on this tiny clean run the list is empty: the two candidates' linearised moves
-    stay inside; tests/unit/test_ruleout.py has cases with a known answer); where the model
+    stay inside; tests/unit/diagnose/test_ruleout.py has cases with a known answer); where the model
     misfits the stage does not run."""
     from solderpyro.calibration.intervals import reported_interval
     from solderpyro.diagnose.ruleout import REJECT

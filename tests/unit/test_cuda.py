@@ -30,7 +30,7 @@ def test_a_batched_cuda_solve_equals_the_cpu_solve() -> None:
 
 def test_the_specimen_model_moved_to_cuda_gives_the_cpu_reference(tmp_path) -> None:
     """``SpecimenModel.to("cuda")``: its buffers and its solver follow; V and dV/dtheta equal
-    the CPU's reference values (tests/unit/test_specimen_model.py) to round-off, and the
+    the CPU's reference values (tests/unit/specimen/test_model.py) to round-off, and the
     run-store path on the GPU equals the direct solve."""
     import numpy as np
     from test_specimen_model import G_REF, THETA, V_REF, W  # this folder

@@ -3,7 +3,7 @@ posterior is known: y = a x + c + N(0, sigma^2) with flat priors on a box that d
 (sigma flat on (0, 1)). Integrating sigma out, p(a, c | y) ~ RSS(a, c)^(-(n-1)/2): a
 Student t with n - 3 degrees of freedom centred on the least-squares fit, covariance
 RSS_min / (n - 5) (F^T F)^-1. The seed's cases against grid posteriors are in
-tests/unit/test_fast_nuts.py and tests/verification/test_calibration_stats.py."""
+tests/unit/calibration/test_nuts.py and tests/verification/test_calibration_stats.py."""
 
 import numpy as np
 import torch

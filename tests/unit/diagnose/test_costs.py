@@ -1,6 +1,6 @@
 """The stage clock of a diagnosis (solderpyro.diagnose.costs): a stage's seconds cover the
 block's wall time, and without an FE counter it reports no runs. Stage run counts and the
-total are in tests/unit/test_diagnose_batching.py."""
+total are in tests/unit/diagnose/test_run.py."""
 
 import time
 

@@ -1,7 +1,7 @@
 """Fingerprints of candidate effects (solderpyro.diagnose.fingerprint) with refits for some
 candidates and not for others, on point data: each candidate's source, the decomposition
 residual = fingerprint + residual after, and the Pearson shape correlation. The denoised
-full-field case and the all-refit case are in tests/unit/test_denoise.py."""
+full-field case and the all-refit case are in tests/unit/diagnose/test_denoise.py."""
 
 from types import SimpleNamespace
 

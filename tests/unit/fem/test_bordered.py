@@ -2,7 +2,7 @@
 retained systems, through its public calls only: its solves equal torch.linalg.solve of the
 dense assembled K = S + sum_e Bw^T C B (- dKe), within the rounding bound of the condition
 number; a matrix that is not positive definite is reported. The reference-mesh solver path
-is in tests/unit/test_native.py."""
+is in tests/unit/native/test_native.py."""
 
 import numpy as np
 import pytest

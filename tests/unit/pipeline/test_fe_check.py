@@ -1,7 +1,7 @@
 """The FE check's arithmetic (solderpyro.pipeline.fe_check) on given arrays: the ranking of
 draws, chi-square and RMS of the best one, the misfit rule at both of its thresholds, and the
 refined problem of the discretization check. The ok/not-ok cases over draws are in
-tests/unit/test_hidden_ladder.py, the refinement's effect on the FE in
+tests/unit/diagnose/test_hidden.py, the refinement's effect on the FE in
 tests/verification/test_discretization.py."""
 
 import dataclasses

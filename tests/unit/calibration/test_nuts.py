@@ -42,7 +42,7 @@ TOL = 4.5  # standard errors
 
 def _stats_module():
     """tests/verification/test_calibration_stats.py (its grid posterior and MCSE helpers)."""
-    path = Path(__file__).parents[1] / "verification" / "test_calibration_stats.py"
+    path = Path(__file__).parents[2] / "verification" / "test_calibration_stats.py"
     spec = importlib.util.spec_from_file_location("_calibration_stats_helpers", path)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
@@ -236,7 +236,7 @@ def test_joint_fast_matches_pyro_on_benchmark_case():
     """The benchmark's joint case (m = 50, n = 8, 4 calibration parameters), as above."""
     import sys
 
-    sys.path.insert(0, str(Path(__file__).parents[2] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).parents[3] / "benchmarks"))
     from bench_koh import joint_data
 
     data = joint_data()

@@ -28,7 +28,7 @@ from solderpyro.fem.problem import AnandSolder, Problem
 from solderpyro.fem.solver import SpecimenSolver
 from solderpyro.params import ANAND_NAMES, LIU2008, ParameterSpace
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 #: A coarse, cheap problem (about a second per FE solve): mesh=coarse rows, nx=8, long steps.
 CHEAP_SRC = """
