@@ -9,7 +9,7 @@ PIN_SPEC ?= gpytorch==1.15.2 linear-operator==0.6.1 pyro-ppl==1.9.2 botorch==0.1
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-all lint bench bench-koh seed-math clean
+.PHONY: install demo test test-all lint bench bench-koh seed-math wheel-smoke clean
 
 $(STAMP): pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -43,8 +43,13 @@ bench-koh: $(STAMP)
 	$(BIN)/python -m pip install -q -e ".[bench]"
 	$(BIN)/python benchmarks/bench_koh.py
 
+# build the wheel, install it into a fresh environment outside the checkout (reusing .venv's
+# dependencies) and run simulate and a short demo calibration from an empty directory
+wheel-smoke: $(STAMP)
+	.ci/wheel_smoke $(BIN)/python
+
 seed-math: $(STAMP)
 	$(BIN)/solderpyro example seed-math --out runs/seed-math
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache
+	rm -rf $(VENV) runs .pytest_cache build dist
