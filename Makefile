@@ -9,7 +9,7 @@ PIN_SPEC ?= gpytorch==1.15.2 linear-operator==0.6.1 pyro-ppl==1.9.2 botorch==0.1
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-all lint bench bench-koh docs seed-math clean
+.PHONY: install demo test test-all lint bench bench-koh docs seed-math wheel-smoke clean
 
 $(STAMP): pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -47,8 +47,13 @@ docs: $(STAMP)
 	$(BIN)/python -m pip install -q -e ".[docs]"
 	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict
 
+# build the wheel, install it into a fresh environment outside the checkout (reusing .venv's
+# dependencies) and run simulate and a short demo calibration from an empty directory
+wheel-smoke: $(STAMP)
+	.ci/wheel_smoke $(BIN)/python
+
 seed-math: $(STAMP)
 	$(BIN)/solderpyro example seed-math --out runs/seed-math
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache
+	rm -rf $(VENV) runs .pytest_cache build dist

@@ -26,7 +26,7 @@ from solderpyro.specimen import output_points
 log = logging.getLogger(__name__)
 
 
-@hydra.main(config_path="../configs", config_name="config", version_base=None)
+@hydra.main(config_path="pkg://solderpyro.conf", config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
     if not cfg.data.path:
         raise SystemExit("set data.path=FILE.csv (a measurement CSV, shared/data-format.md)")

@@ -32,7 +32,7 @@ from solderpyro.specimen import output_points
 log = logging.getLogger(__name__)
 
 
-@hydra.main(config_path="../configs", config_name="config", version_base=None)
+@hydra.main(config_path="pkg://solderpyro.conf", config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
     case = dict(cfg.get("case") or {})
     effect = str(case.get("effect", "thermal_lag"))

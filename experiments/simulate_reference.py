@@ -24,7 +24,7 @@ from solderpyro.reporting.plots import plot_cycle
 log = logging.getLogger(__name__)
 
 
-@hydra.main(config_path="../configs", config_name="config", version_base=None)
+@hydra.main(config_path="pkg://solderpyro.conf", config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
     setup = build(cfg)
     out = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)

@@ -1,7 +1,13 @@
 """Command-line interface: ``solderpyro <command> [options] [key=value ...]``.
 
-Trailing ``key=value`` arguments are Hydra overrides of the configs in ``configs/``
-(e.g. ``mesh=fine specimen.plane=strain solver.device=cuda``).
+Trailing ``key=value`` arguments are Hydra overrides of the packaged configs
+(``solderpyro/conf``; e.g. ``mesh=fine specimen.plane=strain solver.device=cuda``);
+``--config-dir DIR`` adds a directory of the user's own config groups.
+
+Exit status: 0 done, 2 a usage error (a bad flag, flag value or config override), 1 a failure
+of the computation (a data file it cannot use, a solve that fails); the message names the
+cause and the file. Every heavy import (torch, the solver, Hydra) happens inside the command
+that needs it, so ``--help`` and ``--version`` answer without loading them.
 """
 
 from __future__ import annotations
@@ -10,23 +16,63 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
-import numpy as np
+from solderpyro.version import __version__
 
 log = logging.getLogger("solderpyro")
+
+#: Commands whose model comes from the configs (they take overrides and ``--config-dir``).
+CONFIG_COMMANDS = ("simulate", "demo", "calibrate", "sweep", "sensitivity")
+
+#: The defaults the calibration flags' help shows, equal to the fields of
+#: :class:`~solderpyro.config.settings.CalibrationSettings` (a test checks it): the settings
+#: module imports the design loop and torch, which ``--help`` does not wait for.
+HELP_DEFAULTS: dict[str, Any] = {
+    "budget": 110, "start": 30, "batch": 8, "criterion": "loglik", "optimizer": "draws",
+    "exact_mode": "auto", "exact_runs": 64, "exact_rounds": 3, "exact_profile": 9,
+    "chains": 4, "warmup": 500, "draws": 1500}
+
+
+class UsageError(Exception):
+    """A bad command line (flag value, config override): exit status 2."""
+
+
+def _usage(fn, *args, **kw):
+    """``fn(*args, **kw)``, its ValueError (a bad value from the command line) re-raised as a
+    :class:`UsageError`."""
+    try:
+        return fn(*args, **kw)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 def _split_overrides(rest: list[str]) -> list[str]:
     bad = [a for a in rest if "=" not in a or a.startswith("-")]
     if bad:
-        raise ValueError(f"unrecognized arguments {bad}: config overrides must be key=value")
+        raise UsageError(f"unrecognized arguments {' '.join(bad)}: options are listed by "
+                         f"'solderpyro COMMAND --help'; config overrides are key=value")
     return rest
+
+
+def _no_overrides(command: str, overrides: list[str]) -> None:
+    if overrides:
+        raise UsageError(f"'{command}' takes no config overrides, got {overrides}")
+
+
+def _need_file(flag: str, path, what: str = "file") -> None:
+    """A path named on the command line must exist (before any computation): a missing one is
+    a usage error naming the flag and the path."""
+    p = Path(path)
+    ok = p.is_dir() if what == "directory" else p.is_file()
+    if not ok:
+        raise UsageError(f"{flag}: no such {what}: {p}")
 
 
 def _setup(overrides):
     from solderpyro.config.compose import build, compose
 
-    return build(compose(overrides))
+    return build(_usage(compose, overrides))
 
 
 def simulate_table(setup, anand: dict, times, field: bool, progress: bool = True):
@@ -55,11 +101,13 @@ def cmd_simulate(a, overrides) -> int:
     from solderpyro.io.measurements import from_arrays, write_measurements
     from solderpyro.params import parse_theta
 
-    theta = parse_theta(a.theta) if a.theta else {}
+    theta = _usage(parse_theta, a.theta) if a.theta else {}
     if a.noise is not None and not a.noise > 0:
-        raise ValueError(f"--noise must be > 0 um, got {a.noise}")
+        raise UsageError(f"--noise must be > 0 um, got {a.noise}")
     setup = _setup(overrides)
-    times = parse_times(a.times) if a.times else setup.times
+    times = _usage(parse_times, a.times) if a.times else setup.times
+    import numpy as np
+
     t, names, pts, V = simulate_table(setup, theta, times, a.field, progress=not a.quiet)
     sigma = None
     if a.noise is not None:
@@ -80,6 +128,8 @@ def cmd_simulate(a, overrides) -> int:
 
 
 def cmd_demo(a, overrides) -> int:
+    import numpy as np
+
     from solderpyro.fem.loading import EXTENDED_TIMES
     from solderpyro.io.measurements import from_arrays, write_measurements
 
@@ -119,6 +169,8 @@ DEMO_NOISE_UM = 0.05
 
 def _demo_calibration(a, setup, out: Path, overrides=()) -> int:
     """Synthetic measurements at DEMO_TRUTH (+ N(0, 0.05^2) um) -> calibrate -> report."""
+    import numpy as np
+
     from solderpyro.io.measurements import from_arrays, write_measurements
     from solderpyro.pipeline import calibrate_specimen
 
@@ -151,17 +203,13 @@ def _demo_calibration(a, setup, out: Path, overrides=()) -> int:
     return 0
 
 
-
-
-
 def _nuts_args(a) -> dict:
     return dict(chains=a.chains, warmup=a.warmup, draws=a.draws, seed=a.seed,
                 progress=not a.quiet)
 
 
 def cmd_example(a, overrides) -> int:
-    if overrides:
-        raise ValueError(f"'example' takes no config overrides, got {overrides}")
+    _no_overrides("example", overrides)
     from solderpyro.examples import seed_math
 
     res = seed_math.run(a.out, **_nuts_args(a))
@@ -171,8 +219,11 @@ def cmd_example(a, overrides) -> int:
 
 
 def cmd_koh(a, overrides) -> int:
-    if overrides:
-        raise ValueError(f"'koh' takes no config overrides, got {overrides}")
+    _no_overrides("koh", overrides)
+    if a.mode not in ("joint", "modular"):
+        raise UsageError(f"--mode must be 'joint' or 'modular', got {a.mode!r}")
+    _need_file("--sim", a.sim, "SIM file")
+    _need_file("--obs", a.obs, "OBS file")
     from solderpyro.calibration.tables import RunTables, koh_from_tables
 
     koh_from_tables(RunTables(a.sim, a.obs, _names(a.x), _names(a.t), a.y), a.out, mode=a.mode,
@@ -191,7 +242,7 @@ def _settings(a, setup, overrides=()):
     from solderpyro.config.compose import calibration_settings, compose
     from solderpyro.config.settings import CalibrationSettings, SurrogateSettings
 
-    s = calibration_settings(compose(list(overrides)))
+    s = calibration_settings(_usage(compose, list(overrides)))
     s.surrogate = SurrogateSettings(**setup.surrogate)
     d0 = CalibrationSettings()
 
@@ -228,10 +279,13 @@ def cmd_calibrate(a, overrides) -> int:
     from solderpyro.pipeline import calibrate_specimen
     from solderpyro.specimen import output_points
 
+    _need_file("--data", a.data, "measurement file")
+    if a.warm_from:
+        _need_file("--warm-from", a.warm_from, "directory")
     setup = _setup(overrides)
     meas = read_measurements(a.data, valid_points=output_points(setup.problem))
     s = _settings(a, setup, overrides)
-    s.validate(setup.space.dim)
+    _usage(s.validate, setup.space.dim)
     warm = None
     if a.warm_from:
         from solderpyro.pipeline.warm import warm_start
@@ -255,10 +309,10 @@ def cmd_sweep(a, overrides) -> int:
     files = sorted({f for pat in a.data for f in (glob.glob(pat) or [pat])})
     missing = [f for f in files if not Path(f).is_file()]
     if missing:
-        raise FileNotFoundError(f"--data: no such measurement file(s): {', '.join(missing)}")
+        raise UsageError(f"--data: no such measurement file(s): {', '.join(missing)}")
     stems = [Path(f).stem for f in files]
     if len(set(stems)) != len(stems):
-        raise ValueError(f"--data: file names must differ (each names its run directory), "
+        raise UsageError(f"--data: file names must differ (each names its run directory), "
                          f"got {stems}")
     out = Path(a.out)
     store = str(Path(a.store).resolve())
@@ -282,10 +336,11 @@ def cmd_sweep(a, overrides) -> int:
 
 def cmd_diagnose(a, overrides) -> int:
     if overrides:
-        raise ValueError(f"'diagnose' takes no config overrides (the run's own are used), "
+        raise UsageError(f"'diagnose' takes no config overrides (the run's own are used), "
                          f"got {overrides}")
     if a.draws < 1:
-        raise ValueError(f"--draws must be >= 1, got {a.draws}")
+        raise UsageError(f"--draws must be >= 1, got {a.draws}")
+    _need_file("RUN_DIR", Path(a.run_dir) / "run.json", "run record (not a run directory)")
     from solderpyro.diagnose import diagnose
     from solderpyro.diagnose.decide import share_text
 
@@ -315,9 +370,9 @@ def cmd_sensitivity(a, overrides) -> int:
     )
     from solderpyro.config.compose import parse_times
 
-    bounds = parse_bounds(a.box)
+    bounds = _usage(parse_bounds, a.box)
     setup = _setup(overrides)
-    times = parse_times(a.times) if a.times else setup.times
+    times = _usage(parse_times, a.times) if a.times else setup.times
     cmd = " ".join(["solderpyro sensitivity", "--out", str(a.out), "--runs", str(a.runs),
                     "--grad-points", str(a.grad_points), "--seed", str(a.seed),
                     *(["--times", a.times] if a.times else []),
@@ -337,8 +392,7 @@ def cmd_sensitivity(a, overrides) -> int:
 
 
 def cmd_compare(a, overrides) -> int:
-    if overrides:
-        raise ValueError(f"'compare' takes no config overrides, got {overrides}")
+    _no_overrides("compare", overrides)
     from solderpyro.diagnose.compare import compare
 
     r = compare(a.before, a.after, a.out)
@@ -357,48 +411,69 @@ def _names(text: str) -> list[str]:
     return [n.strip() for n in text.split(",") if n.strip()]
 
 
+def _common() -> argparse.ArgumentParser:
+    """``-q`` / ``-v``, accepted before the command and after it (defaults suppressed, so a
+    sub-command's absent flag does not undo the main parser's)."""
+    c = argparse.ArgumentParser(add_help=False)
+    g = c.add_mutually_exclusive_group()
+    g.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                   help="warnings and errors only, no progress bars")
+    g.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                   help="debug logging")
+    return c
+
+
+def _add_config_dir(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config-dir", default=None, metavar="DIR",
+                   help="a directory of your own config groups, searched after the packaged "
+                   "ones (e.g. DIR/mesh/mine.yaml, selected by mesh=mine; README, "
+                   "'Your own configs')")
+
+
 def _add_nuts(p: argparse.ArgumentParser, chains: int = 4, draws: int = 1000,
               warmup: int = 500) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (data and sampler)")
     p.add_argument("--chains", type=int, default=chains, help="NUTS chains")
     p.add_argument("--warmup", type=int, default=warmup, help="warm-up iterations per chain")
     p.add_argument("--draws", type=int, default=draws, help="kept draws per chain")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def _add_design(p: argparse.ArgumentParser) -> None:
     """The adaptive design's and the FE-exact fallback's options (calibrate, demo)."""
-    from solderpyro.config.settings import DesignSettings, ExactSettings
-
-    ds, es = DesignSettings(), ExactSettings()
+    d = HELP_DEFAULTS
     p.add_argument("--budget", type=int, default=None, metavar="N",
-                   help=f"most FE runs the adaptive design makes (default {ds.budget}): a "
-                   "Latin-hypercube start, then rounds of acquired runs (BoTorch) and FE checks "
-                   "at posterior draws until the FE confirms the surrogate")
+                   help=f"most FE runs the adaptive design makes (default {d['budget']}): a "
+                   "Latin-hypercube start, then rounds of acquired runs and FE checks at "
+                   "posterior draws until the FE confirms the surrogate. Each round's runs are "
+                   "the posterior draws where the surrogate's code uncertainty matters most, "
+                   "chosen by a closed-form greedy selection (design/acquisition.py): the same "
+                   "batch as BoTorch's optimize_acqf_discrete, ~40x faster "
+                   "(benchmarks/results/acquisition_optimizers.json)")
     p.add_argument("--start", type=int, default=None, metavar="N",
-                   help=f"Latin-hypercube FE runs before the first round (default {ds.start})")
-    p.add_argument("--q", type=int, default=ds.batch,
-                   help=f"FE runs acquired per round, one batched solve (default {ds.batch})")
-    p.add_argument("--criterion", default=ds.criterion, choices=["loglik", "variance"],
+                   help=f"Latin-hypercube FE runs before the first round (default {d['start']})")
+    p.add_argument("--q", type=int, default=d["batch"],
+                   help=f"FE runs acquired per round, one batched solve (default {d['batch']})")
+    p.add_argument("--criterion", default=d["criterion"], choices=["loglik", "variance"],
                    help="acquisition: loglik (posterior-weighted code variance of the "
-                   "log-likelihood, default) or variance (BoTorch's integrated posterior "
-                   "variance at the observed outputs)")
-    p.add_argument("--optimizer", default=ds.optimizer, choices=["draws", "optimize"],
-                   help="draws: the best q of the posterior draws (default); optimize: "
-                   "BoTorch's optimize_acqf over the box")
+                   "log-likelihood, default) or variance (the integrated posterior variance "
+                   "at the observed outputs, BoTorch's qNegIntegratedPosteriorVariance)")
+    p.add_argument("--optimizer", default=d["optimizer"], choices=["draws", "optimize"],
+                   help="draws: the best q of the posterior draws, closed-form greedy "
+                   "(default); optimize: BoTorch's optimize_acqf over the box (minutes per "
+                   "round)")
     p.add_argument("--batch", type=int, default=64, help="FE runs per batched solve")
-    p.add_argument("--exact", default=es.mode, choices=["auto", "on", "off"],
+    p.add_argument("--exact", default=d["exact_mode"], choices=["auto", "on", "off"],
                    help="the FE-exact posterior (adaptive importance sampling with the FE in "
                    "the likelihood) and profile-likelihood intervals: auto (default) runs them "
                    "when the design's budget runs out with the FE disagreeing with the "
                    "surrogate; on: always; off: never")
-    p.add_argument("--exact-runs", type=int, default=es.runs, metavar="N",
-                   help=f"FE runs per importance-sampling round (default {es.runs})")
-    p.add_argument("--exact-rounds", type=int, default=es.rounds, metavar="R",
-                   help=f"importance-sampling rounds (default {es.rounds})")
-    p.add_argument("--exact-profile", type=int, default=es.profile, metavar="G",
+    p.add_argument("--exact-runs", type=int, default=d["exact_runs"], metavar="N",
+                   help=f"FE runs per importance-sampling round (default {d['exact_runs']})")
+    p.add_argument("--exact-rounds", type=int, default=d["exact_rounds"], metavar="R",
+                   help=f"importance-sampling rounds (default {d['exact_rounds']})")
+    p.add_argument("--exact-profile", type=int, default=d["exact_profile"], metavar="G",
                    help=f"grid points of the chi-square profile along the ridge (default "
-                   f"{es.profile}; 0: none)")
+                   f"{d['exact_profile']}; 0: none)")
     p.add_argument("--no-profile-ci", action="store_true",
                    help="skip the 95 %% profile-likelihood intervals after the FE-exact step")
 
@@ -416,29 +491,28 @@ def _add_cluster(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The whole command line; building it imports nothing heavy (torch, Hydra, the solver)."""
+    common = _common()
     p = argparse.ArgumentParser(
-        prog="solderpyro",
+        prog="solderpyro", parents=[common],
         description="Bayesian identification of Anand solder constants from Moire data. "
-                    "Trailing key=value arguments override the configs in configs/ (Hydra "
-                    "syntax), e.g. mesh=fine specimen.plane=strain solver.device=cuda.")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    sub = p.add_subparsers(dest="command", required=True)
-    _add_simulate_command(sub)
-    _add_demo_command(sub)
-    _add_example_command(sub)
-    _add_koh_command(sub)
-    _add_calibrate_command(sub)
-    _add_sweep_command(sub)
-    _add_diagnose_command(sub)
-    _add_sensitivity_command(sub)
-    _add_compare_command(sub)
+                    "Trailing key=value arguments override the packaged configs (Hydra "
+                    "syntax), e.g. mesh=fine specimen.plane=strain solver.device=cuda; "
+                    "--config-dir DIR adds your own. Exit status: 0 done, 2 usage error, "
+                    "1 failure of the computation.")
+    p.add_argument("--version", action="version", version=f"solderpyro {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_simulate_command, _add_demo_command, _add_example_command,
+                _add_koh_command, _add_calibrate_command, _add_sweep_command,
+                _add_diagnose_command, _add_sensitivity_command, _add_compare_command):
+        add(sub, common)
     return p
 
 
-def _add_simulate_command(sub: argparse._SubParsersAction) -> None:
+def _add_simulate_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``simulate`` sub-command's arguments (the FE model for one parameter set)."""
-    s = sub.add_parser("simulate", help="run the FE model for one parameter set and write "
-                       "the measurement CSV (shared/data-format.md)")
+    s = sub.add_parser("simulate", parents=[common], help="run the FE model for one parameter "
+                       "set and write the measurement CSV (shared/data-format.md)")
     s.add_argument("--theta", default="", help="Anand constants, e.g. s0=12.9,QR=10586,xi=2.04,"
                    "m=0.2 (names: s0, QR, A, xi, m, h0, s_hat, n, a; others from the config)")
     s.add_argument("--times", default=None, help="seed (600,2700,4800,7800 s) | extended "
@@ -449,16 +523,18 @@ def _add_simulate_command(sub: argparse._SubParsersAction) -> None:
                    help="add Gaussian noise with this standard deviation, um")
     s.add_argument("--seed", type=int, default=0, help="random seed of the noise")
     s.add_argument("--out", required=True, help="output CSV path")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_config_dir(s)
 
 
-def _add_demo_command(sub: argparse._SubParsersAction) -> None:
+def _add_demo_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``demo`` sub-command's arguments (the reference case and its synthetic-data
     calibration)."""
-    from solderpyro.config.settings import SamplerSettings
-
-    d = sub.add_parser("demo", help="simulate the reference case with the Liu 2008 constants, "
-                       "write the outputs and a plot of V_A, V_B and temperature")
+    d = sub.add_parser("demo", parents=[common], help="the whole workflow on the reference "
+                       "case: simulate it with the Liu 2008 constants (outputs and a plot of "
+                       "V_A, V_B and temperature), then calibrate s0, QR, xi, m against "
+                       "synthetic measurements made at known constants (adaptive FE design, "
+                       "KOH with NUTS, report) and say whether the 95 %% intervals hold them "
+                       "(minutes; --no-calibrate: the simulation only)")
     d.add_argument("--out", default="runs/demo", help="output directory")
     d.add_argument("--no-calibrate", action="store_true",
                    help="only simulate (skip the synthetic-data calibration)")
@@ -466,22 +542,24 @@ def _add_demo_command(sub: argparse._SubParsersAction) -> None:
     # the calibration's own sampler defaults (4 x 1500 draws after 500 warm-up): with 400
     # draws its report said R-hat 1.02 > 1.01, "not reliable until a longer run"; the
     # design's rounds leave it ~90 s in all
-    _add_nuts(d, draws=SamplerSettings().draws, warmup=SamplerSettings().warmup)
+    _add_nuts(d, draws=HELP_DEFAULTS["draws"], warmup=HELP_DEFAULTS["warmup"])
+    _add_config_dir(d)
 
 
-def _add_example_command(sub: argparse._SubParsersAction) -> None:
+def _add_example_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``example`` sub-command's arguments (the worked examples)."""
-    e = sub.add_parser("example", help="worked examples; 'seed-math' reproduces the seed "
-                       "paper's mathematical example (Tables I, II, Figures 1-4)")
+    e = sub.add_parser("example", parents=[common], help="worked examples; 'seed-math' "
+                       "reproduces the seed paper's mathematical example (Tables I, II, "
+                       "Figures 1-4)")
     e.add_argument("name", choices=["seed-math"])
     e.add_argument("--out", required=True, help="output directory")
     _add_nuts(e)
 
 
-def _add_koh_command(sub: argparse._SubParsersAction) -> None:
+def _add_koh_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``koh`` sub-command's arguments (Kennedy-O'Hagan calibration from CSV tables)."""
-    k = sub.add_parser("koh", help="Kennedy-O'Hagan calibration of any simulator from CSV "
-                       "tables of its runs and of the observations")
+    k = sub.add_parser("koh", parents=[common], help="Kennedy-O'Hagan calibration of any "
+                       "simulator from CSV tables of its runs and of the observations")
     k.add_argument("--sim", required=True, help="CSV of runs: columns x..., t..., y")
     k.add_argument("--obs", required=True, help="CSV of observations: columns x..., y")
     k.add_argument("--x", default="", help="controllable input columns, e.g. x1,x2")
@@ -492,20 +570,21 @@ def _add_koh_command(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--discrepancy", action="store_true", help="add a GP discrepancy delta(x)")
     k.add_argument("--propose", type=int, default=0, metavar="Q",
                    help="also write the next Q parameter sets for your simulator to "
-                   "OUT/proposed.csv (BoTorch: where its code uncertainty matters for the "
-                   "posterior; each t at every observed x); append their results to --sim and "
-                   "call again; sets still pending (OUT/pending.csv) are not proposed twice")
+                   "OUT/proposed.csv: posterior draws where the surrogate's code variance at "
+                   "the observed x matters most for the posterior (BoTorch's integrated "
+                   "posterior variance, chosen greedily); one row per run to make, each set at "
+                   "every distinct observed x (replicates share a run). Append their results to "
+                   "--sim and call again; sets still pending (OUT/pending.csv) are not "
+                   "proposed twice")
     _add_nuts(k)
 
 
-def _add_calibrate_command(sub: argparse._SubParsersAction) -> None:
+def _add_calibrate_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``calibrate`` sub-command's arguments (the specimen calibration)."""
-    from solderpyro.config.settings import SamplerSettings
-
-    c = sub.add_parser("calibrate", help="calibrate the Anand constants of the config's box "
-                       "(default s0, QR, xi, m) against a measurement CSV: an adaptive design "
-                       "of FE runs (run store) that stops when the FE confirms the GP "
-                       "surrogate, KOH with NUTS, report")
+    c = sub.add_parser("calibrate", parents=[common], help="calibrate the Anand constants of "
+                       "the config's box (default s0, QR, xi, m) against a measurement CSV: an "
+                       "adaptive design of FE runs (run store) that stops when the FE confirms "
+                       "the GP surrogate, KOH with NUTS, report")
     c.add_argument("--data", required=True, help="measurement CSV (shared/data-format.md); "
                    "points A, B or grid labels g_ii_jj, any output times")
     c.add_argument("--out", required=True,
@@ -517,15 +596,17 @@ def _add_calibrate_command(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--store", default="runs/store", help="run store directory (reused runs)")
     _add_cluster(c)
     _add_design(c)
-    _add_nuts(c, draws=SamplerSettings().draws)
+    _add_nuts(c, draws=HELP_DEFAULTS["draws"])
+    _add_config_dir(c)
 
 
-def _add_sweep_command(sub: argparse._SubParsersAction) -> None:
+def _add_sweep_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``sweep`` sub-command's arguments (many calibrations on a Dask cluster)."""
-    w = sub.add_parser("sweep", help="calibrate many datasets, one job each, in parallel on a "
-                       "Dask cluster (--cluster local:N) or one after another; each dataset's "
-                       "run directory is OUT/<file stem>, results recorded in OUT/sweep.json "
-                       "as each job ends (a rerun skips finished ones)")
+    w = sub.add_parser("sweep", parents=[common], help="calibrate many datasets, one job each, "
+                       "in parallel on a Dask cluster (--cluster local:N) or one after "
+                       "another; each dataset's run directory is OUT/<file stem>, results "
+                       "recorded in OUT/sweep.json as each job ends (a rerun skips finished "
+                       "ones)")
     w.add_argument("--data", nargs="+", required=True, metavar="CSV",
                    help="measurement CSVs or glob patterns")
     w.add_argument("--out", required=True, help="output directory")
@@ -533,15 +614,16 @@ def _add_sweep_command(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--args", default="", help="extra 'solderpyro calibrate' options for every "
                    "job, e.g. \"--budget 80 --chains 2\"")
     _add_cluster(w)
+    _add_config_dir(w)
 
 
-def _add_diagnose_command(sub: argparse._SubParsersAction) -> None:
+def _add_diagnose_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``diagnose`` sub-command's arguments (model checks and candidate effects of a
     run)."""
-    g = sub.add_parser("diagnose", help="does the calibrated model fit the data, and which "
-                       "physical effect is missing? Posterior predictive checks, a misfit test "
-                       "and a score test per candidate effect through the FE; writes "
-                       "RUN_DIR/diagnosis.json, diagnosis.md/.html and figures")
+    g = sub.add_parser("diagnose", parents=[common], help="does the calibrated model fit the "
+                       "data, and which physical effect is missing? Posterior predictive "
+                       "checks, a misfit test and a score test per candidate effect through the "
+                       "FE; writes RUN_DIR/diagnosis.json, diagnosis.md/.html and figures")
     g.add_argument("run_dir", help="a run directory written by 'solderpyro calibrate'")
     g.add_argument("--effects", default="", help="comma-separated candidate effects (default: "
                    "every effect the run did not switch on)")
@@ -552,16 +634,15 @@ def _add_diagnose_command(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--no-refit", action="store_true", help="test at the posterior draw itself, "
                    "not at the FE's best fit started from it (Levenberg-Marquardt, ~8 FE "
                    "solves)")
-    g.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_cluster(g)
 
 
-def _add_sensitivity_command(sub: argparse._SubParsersAction) -> None:
+def _add_sensitivity_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``sensitivity`` sub-command's arguments (the Anand constants ranked by influence)."""
-    v = sub.add_parser("sensitivity", help="rank the nine Anand constants by their influence "
-                       "on V_A, V_B over a prior box: DGSM through the FE (autograd) and Sobol "
-                       "main/total indices through a GP surrogate; writes sensitivity.csv/.json/"
-                       ".png/.md")
+    v = sub.add_parser("sensitivity", parents=[common], help="rank the nine Anand constants "
+                       "by their influence on V_A, V_B over a prior box: DGSM through the FE "
+                       "(autograd) and Sobol main/total indices through a GP surrogate; writes "
+                       "sensitivity.csv/.json/.png/.md")
     v.add_argument("--out", required=True, help="output directory")
     v.add_argument("--runs", type=int, default=100, help="LHS FE runs for the GP surrogate "
                    "(>= 10; kept in the run store)")
@@ -583,50 +664,71 @@ def _add_sensitivity_command(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--refits", type=int, default=5, help="GP refits, each without 1/REFITS "
                    "of the runs, for the surrogate's standard error of S_T (0: none)")
     v.add_argument("--batch", type=int, default=64, help="FE runs per batched DOE solve")
-    v.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_cluster(v)
+    _add_config_dir(v)
 
 
-def _add_compare_command(sub: argparse._SubParsersAction) -> None:
+def _add_compare_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``compare`` sub-command's arguments (before/after of two calibrations)."""
-    q = sub.add_parser("compare", help="before/after of two calibrations on the same data "
-                       "(e.g. without and with effects=[NAME]): RMS residual, misfit, ELPD, "
-                       "posterior shifts; writes comparison.md/.json")
+    q = sub.add_parser("compare", parents=[common], help="before/after of two calibrations on "
+                       "the same data (e.g. without and with effects=[NAME]): RMS residual, "
+                       "misfit, ELPD, posterior shifts; writes comparison.md/.json")
     q.add_argument("before", help="run directory of the first calibration")
     q.add_argument("after", help="run directory of the second calibration")
     q.add_argument("--out", default=None, help="where to write (default: AFTER)")
 
 
 def _setup_logging(a: argparse.Namespace) -> None:
-    """solderpyro's INFO lines (DEBUG with ``-v``); other packages' loggers from WARNING only
-    (no ``arviz.preview`` chatter). Progress bars only on a terminal: into a file or a pipe
-    (``sys.stderr`` not a TTY) ``--quiet`` is implied, and the log is one line per stage or
-    NUTS chain, with its time."""
+    """solderpyro's INFO lines (WARNING and above with ``-q``, DEBUG with ``-v``); other
+    packages' loggers from WARNING only (no ``arviz.preview`` chatter). ``a.quiet`` then means
+    "no progress bars": set by ``-q``, and implied when ``sys.stderr`` is not a TTY (into a
+    file or a pipe the log is one line per stage or NUTS chain, with its time)."""
     import warnings
 
+    a.quiet = bool(getattr(a, "quiet", False))
+    a.verbose = bool(getattr(a, "verbose", False))
+    level = logging.DEBUG if a.verbose else logging.WARNING if a.quiet else logging.INFO
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("solderpyro").setLevel(logging.DEBUG if a.verbose else logging.INFO)
+    logging.getLogger("solderpyro").setLevel(level)
     warnings.filterwarnings("ignore", category=FutureWarning, module="arviz")
-    if hasattr(a, "quiet") and not sys.stderr.isatty():
+    if not sys.stderr.isatty():
         a.quiet = True
 
 
+#: Failures of the computation (exit 1); anything else is a bug and keeps its traceback.
+FAILURES = (ValueError, OSError, RuntimeError, ConnectionError)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     parser = build_parser()
-    a, rest = parser.parse_known_args(argv)
+    a, rest = parser.parse_known_args(argv)  # argparse's own usage errors exit 2 here
     _setup_logging(a)
+    cmds = {"simulate": cmd_simulate, "demo": cmd_demo, "example": cmd_example,
+            "koh": cmd_koh, "calibrate": cmd_calibrate, "diagnose": cmd_diagnose,
+            "sensitivity": cmd_sensitivity, "compare": cmd_compare, "sweep": cmd_sweep}
     try:
         overrides = _split_overrides(rest)
-        cmds = {"simulate": cmd_simulate, "demo": cmd_demo, "example": cmd_example,
-                "koh": cmd_koh, "calibrate": cmd_calibrate, "diagnose": cmd_diagnose,
-                "sensitivity": cmd_sensitivity, "compare": cmd_compare, "sweep": cmd_sweep}
+        if getattr(a, "config_dir", None) is not None:
+            from solderpyro.config.compose import config_dir_override
+
+            try:
+                overrides = [config_dir_override(a.config_dir), *overrides]
+            except (ValueError, FileNotFoundError) as e:
+                raise UsageError(f"--config-dir: {e}") from None
         from solderpyro.compute.executor import executor_from_options
 
         with executor_from_options(getattr(a, "cluster", None), getattr(a, "scheduler", None)):
             return cmds[a.command](a, overrides)
-    except (ValueError, FileNotFoundError, RuntimeError, ConnectionError) as e:
-        print(f"solderpyro {a.command}: error: {e}", file=sys.stderr)
+    except UsageError as e:
+        print(f"solderpyro {a.command}: error: {e} (see 'solderpyro {a.command} --help')",
+              file=sys.stderr)
         return 2
+    except FAILURES as e:
+        if a.verbose:
+            log.exception("solderpyro %s failed", a.command)
+        print(f"solderpyro {a.command}: error: {e}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

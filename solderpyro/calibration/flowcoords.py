@@ -26,8 +26,8 @@ approach to each face outside it (``frac = 0.01``: the whitened Hessian on the c
 full-field posterior 11-58, the surrogate inputs' own 12-52; ``frac = 0.05``: 82-314). The
 density on ``q`` is the uniform prior's ``p(t)`` times ``|det dt/dq|``, the product of the
 diagonal derivatives (the map is triangular). The gradient is analytic (reverse mode by
-hand, checked against torch autograd in ``tests/unit/calibration/test_flowcoords.py``): this is evaluated
-at every leapfrog step, where torch's per-operation overhead cost 2 ms against the
+hand, checked against torch autograd in ``tests/unit/calibration/test_flowcoords.py``): this is
+evaluated at every leapfrog step, where torch's per-operation overhead cost 2 ms against the
 likelihood's 0.25 ms (measured).
 
 It applies when the calibration box holds s0, QR, xi and m and A, s_hat, n are fixed

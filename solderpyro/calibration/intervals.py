@@ -25,8 +25,8 @@ no face is the mode.
 
 Every candidate holds the share ``level`` of the posterior, so whichever is chosen the reported
 interval is a ``level`` credible set and truths drawn from the prior lie inside it at the rate
-``level`` (tests/unit/calibration/test_intervals.py checks that, and the agreement with ArviZ's HDI at a
-face).
+``level`` (tests/unit/calibration/test_intervals.py checks that, and the agreement with ArviZ's
+HDI at a face).
 
 Units: each parameter's own (the box's).
 """

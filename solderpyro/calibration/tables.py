@@ -123,6 +123,7 @@ def _propose(data: CalibrationData, gp: GPSurrogate | None, post: Posterior, q: 
     """Write the next ``q`` simulator runs (``proposed.csv``) and the pending ones."""
     from solderpyro.design.external import (
         PENDING,
+        distinct_x,
         propose_external,
         read_pending,
         still_pending,
@@ -140,7 +141,8 @@ def _propose(data: CalibrationData, gp: GPSurrogate | None, post: Posterior, q: 
     sigma = float(post.flat("sigma").median())
     th = propose_external(gp, data.x_obs, post.flat("t").to(torch.float64), sigma, q, pend)
     p = write_proposal(outd, x, t, data.x_obs, th, pend)
-    print(f"\nproposed: {p} ({q} parameter set(s), each at the {data.n_obs} observed x; "
+    n_x = len(distinct_x(data.x_obs)[0])
+    print(f"\nproposed: {p} ({q} parameter set(s), each at the {n_x} distinct observed x; "
           f"append their results to the run table and call again)")
     return p
 

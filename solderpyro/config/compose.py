@@ -25,35 +25,73 @@ from solderpyro.fem.mesh import Layer, MeshSpec
 from solderpyro.fem.problem import LAWS, Problem
 from solderpyro.params import ANAND_NAMES, Box, ParameterSpace, check_anand_values
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
+#: the packaged configs (``solderpyro/conf``, inside the installed package)
+CONFIG_MODULE = "solderpyro.conf"
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "conf"
 register_configs()  # the calibration group's schema, also for @hydra.main scripts
 
 
-def compose(overrides: list[str] | None = None, config_name: str = "config"):
-    """Compose the config with Hydra overrides (``key=value``); errors name the bad override."""
+def config_dir_override(config_dir: str | Path) -> str:
+    """The Hydra override that adds a user's config directory to the search path, after the
+    packaged configs: ``hydra.searchpath=[file:///abs/DIR]`` (what Hydra's ``--config-dir``
+    does for a ``@hydra.main`` script). A run's record keeps it with the other overrides, so
+    ``solderpyro diagnose`` rebuilds the same model.
+
+    The directory holds config groups as the package does (``DIR/mesh/mine.yaml``, selected
+    by ``mesh=mine``; ``DIR/experiment/mine.yaml`` by ``experiment=mine``; a new group
+    ``DIR/extra/x.yaml`` by ``+extra=x``). Hydra resolves a name to the first file on the
+    search path, so a file named like a packaged one (``DIR/mesh/default.yaml``,
+    ``DIR/config.yaml``) would be ignored: that is an error here, naming the file.
+
+    Raises:
+        FileNotFoundError naming the directory when it is not one; ValueError naming a file
+        that shadows a packaged one.
+    """
+    d = Path(config_dir).expanduser().resolve()
+    if not d.is_dir():
+        raise FileNotFoundError(f"config directory not found: {d}")
+    shadow = sorted(str(f) for f in d.rglob("*.yaml")
+                    if (CONFIG_DIR / f.relative_to(d)).is_file())
+    if shadow:
+        raise ValueError(f"config directory {d}: {', '.join(shadow)} has the name of a packaged "
+                         f"config, which takes precedence; give it a new name (e.g. "
+                         f"mesh/mine.yaml) and select it (mesh=mine)")
+    return f"hydra.searchpath=[file://{d}]"
+
+
+def compose(overrides: list[str] | None = None, config_name: str = "config",
+            config_dir: str | Path | None = None):
+    """Compose the config with Hydra overrides (``key=value``); errors name the bad override.
+
+    The packaged configs (``pkg://solderpyro.conf``) are the defaults; ``config_dir`` adds a
+    directory of the user's own config groups (:func:`config_dir_override`).
+    """
     from hydra import compose as _compose
-    from hydra import initialize_config_dir
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    if not CONFIG_DIR.is_dir():
-        raise FileNotFoundError(f"config directory not found: {CONFIG_DIR}")
-    from hydra.core.global_hydra import GlobalHydra
+    ov = list(overrides or [])
+    if config_dir is not None:
+        ov.insert(0, config_dir_override(config_dir))
+
+    def run():
+        with initialize_config_module(CONFIG_MODULE, version_base=None):
+            return _compose(config_name, overrides=ov)
 
     try:
         if GlobalHydra.instance().is_initialized():  # inside a @hydra.main script
             saved = GlobalHydra.instance().hydra
             GlobalHydra.instance().clear()
             try:
-                with initialize_config_dir(str(CONFIG_DIR), version_base=None):
-                    return _compose(config_name, overrides=list(overrides or []))
+                return run()
             finally:
                 if saved is not None:
                     GlobalHydra.instance().initialize(saved)
-        with initialize_config_dir(str(CONFIG_DIR), version_base=None):
-            return _compose(config_name, overrides=list(overrides or []))
+        return run()
     except (HydraException, OmegaConfBaseException) as e:
-        raise ValueError(f"bad config override in {overrides}: {e}") from None
+        raise ValueError(f"bad config override in {ov}: {e}") from None
 
 
 def calibration_settings(cfg: Any, surrogate: Mapping[str, Any] | None = None) -> Any:

@@ -1,6 +1,6 @@
 """Every setting of a specimen calibration (:func:`solderpyro.pipeline.calibrate_specimen`)
 in one typed object, which is also the Hydra structured config of the ``calibration`` group
-(``configs/calibration/default.yaml``).
+(``solderpyro/conf/calibration/default.yaml``).
 
 >>> s = CalibrationSettings()                       # the defaults: the adaptive design
 >>> s = CalibrationSettings(design=DesignSettings(budget=60), seed=3)

@@ -79,17 +79,17 @@ def test_koh_command_contract(tmp_path, mode):
     assert (out / "posterior.nc").stat().st_size > 1000
 
 
-@pytest.mark.parametrize("args,msg", [
-    (["--y", "yy"], "has no column(s) ['yy']"),
-    (["--mode", "full"], "--mode must be 'joint' or 'modular'"),
+@pytest.mark.parametrize("args,msg,status", [
+    (["--y", "yy"], "has no column(s) ['yy']", 1),  # the tables do not fit: a failure
+    (["--mode", "full"], "--mode must be 'joint' or 'modular'", 2),  # a usage error
 ])
-def test_koh_bad_input_exits_nonzero_naming_it(tmp_path, capsys, args, msg):
+def test_koh_bad_input_exits_nonzero_naming_it(tmp_path, capsys, args, msg, status):
     _tables(tmp_path)
     base = {"--sim": str(tmp_path / "sim.csv"), "--obs": str(tmp_path / "obs.csv"),
             "--x": "x", "--t": "t", "--y": "y", "--out": str(tmp_path / "o")}
     base.update(dict(zip(args[::2], args[1::2], strict=True)))
     argv = ["koh"] + [v for kv in base.items() for v in kv] + TINY
-    assert main(argv) == 2
+    assert main(argv) == status
     assert msg in capsys.readouterr().err
     assert main(["koh", "--sim", str(tmp_path / "nope.csv"), "--obs", "o.csv", "--t", "t",
                  "--y", "y", "--out", str(tmp_path / "o")]) == 2

@@ -22,7 +22,7 @@ from solderpyro.config.rundir import (
 from solderpyro.io.measurements import from_arrays
 
 TIMES = [600.0, 900.0, 1500.0]
-#: the problem's points A and B (configs/problem), as the measurements name them
+#: the problem's points A and B (solderpyro/conf/specimen), as the measurements name them
 POINTS = {"A": (15.0, 4.5), "B": (15.0, -4.0)}
 
 

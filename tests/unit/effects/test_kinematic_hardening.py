@@ -1,6 +1,7 @@
 """kinematic_hardening's hook (solderpyro.effects.kinematic_hardening): the Prager modulus of
 the solder's back stress, 0 at off (the isotropic update to the last bit, checked through the
-FE in tests/unit/effects/test_effect_set.py), the member's C_k otherwise, added to any earlier one."""
+FE in tests/unit/effects/test_effect_set.py), the member's C_k otherwise, added to any earlier
+one."""
 
 import pytest
 import torch

@@ -1,7 +1,8 @@
 """The elasto-plastic band of a linear region (solderpyro.fem.band): which elements join it,
 uniform strain through the condensed QM6 stress operator, and the J2 return at band points in
 plane stress (consistency and the pure-shear closed form). The elastic band against the
-condensed QM6 bars and the reference-mesh selection are in tests/unit/fem/test_band_plasticity.py."""
+condensed QM6 bars and the reference-mesh selection are in
+tests/unit/fem/test_band_plasticity.py."""
 
 import math
 

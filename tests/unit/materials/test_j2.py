@@ -1,8 +1,8 @@
 """J2 radial return (solderpyro.materials.j2): after a plastic step the stress is on the
 hardened yield surface, the plastic strain is deviatoric and normal to it, the pressure is
 elastic, and the energy dissipated is non-negative. The tangent, the elastic branch and the
-autograd derivatives are in tests/unit/fem/test_band_plasticity.py; the pure-shear loading and reversal
-in tests/verification/test_effects_physics.py."""
+autograd derivatives are in tests/unit/fem/test_band_plasticity.py; the pure-shear loading and
+reversal in tests/verification/test_effects_physics.py."""
 
 import math
 
