@@ -1,7 +1,7 @@
 """Before/after metrics of two calibration runs (solderpyro.diagnose.compare) on small run
 directories: the RMS residual of the predictive median, the Gaussian ELPD of a run without a
 log_likelihood group and its standard error, and the refusal to compare runs on different
-data. The full compare (figure, markdown) is in tests/unit/test_rundir.py."""
+data. The full compare (figure, markdown) is in tests/unit/config/test_rundir.py."""
 
 import numpy as np
 import pytest
