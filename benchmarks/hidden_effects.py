@@ -63,7 +63,7 @@ def _settings(setup, a, refit: bool) -> CalibrationSettings:
         sampler=SamplerSettings(chains=a.chains, warmup=a.warmup, draws=a.draws),
         exact=ExactSettings(mode=a.exact if refit else "off", runs=a.exact_runs,
                             rounds=a.exact_rounds, profile=a.exact_profile,
-                            profile_ci=not a.no_profile_ci),
+                            profile_ci="off" if a.no_profile_ci else "on"),
         seed=0, store=a.store or a.work + "/store", progress=False)
 
 

@@ -267,7 +267,9 @@ def _settings(a, setup, overrides=()):
     flag(a.exact_rounds, d0.exact.rounds, ex, "rounds")
     flag(a.exact_profile, d0.exact.profile, ex, "profile")
     if a.no_profile_ci:
-        ex.profile_ci = False
+        ex.profile_ci = "off"
+    elif a.profile_ci:
+        ex.profile_ci = "on"
     top = {"seed": a.seed, "store": str(a.store), "batch": a.batch}
     s = dataclasses.replace(s, **{k: v for k, v in top.items()
                                   if v != getattr(d0, k)}, progress=not a.quiet)
@@ -476,6 +478,9 @@ def _add_design(p: argparse.ArgumentParser) -> None:
                    f"{d['exact_profile']}; 0: none)")
     p.add_argument("--no-profile-ci", action="store_true",
                    help="skip the 95 %% profile-likelihood intervals after the FE-exact step")
+    p.add_argument("--profile-ci", action="store_true",
+                   help="compute them even where the FE-exact posterior is reliable (by "
+                   "default only where it is not: they take many minutes of FE runs)")
 
 
 def _add_cluster(p: argparse.ArgumentParser) -> None:

@@ -20,6 +20,9 @@ from solderpyro.design.loop import LoopSettings
 DesignSettings = LoopSettings
 
 EXACT_MODES = ("auto", "on", "off")
+#: the profile-likelihood intervals: auto computes them only where the FE-exact posterior is
+#: not reliable (then they are the FE's own intervals)
+PROFILE_CI_MODES = ("auto", "on", "off")
 DISCRETIZATION_MODES = ("correct", "check")
 
 
@@ -113,13 +116,16 @@ class ExactSettings:
     ``mode``: ``"auto"`` runs them when the design stops on its budget with the FE still
     disagreeing with the surrogate; ``"on"`` always; ``"off"`` never. ``runs`` FE runs per
     round, ``rounds`` rounds, a ``profile``-point chi-square profile along the ridge (0:
-    none), ``profile_ci``: the 95 % profile-likelihood intervals through the FE after it."""
+    none), ``profile_ci``: the 95 % profile-likelihood intervals through the FE after it:
+    ``"auto"`` only where its posterior is not reliable (a reliable FE-exact posterior already
+    gives the intervals; the profiles take many minutes of FE runs), ``"on"`` always,
+    ``"off"`` never (true/false, as older run records hold it, read as on/off)."""
 
     mode: str = "auto"
     runs: int = 64
     rounds: int = 3
     profile: int = 9
-    profile_ci: bool = True
+    profile_ci: str = "auto"
 
 
 @dataclass
@@ -188,6 +194,11 @@ class CalibrationSettings:
         ex = self.exact
         if ex.mode not in EXACT_MODES:
             raise ValueError(f"exact.mode must be one of {EXACT_MODES}, got {ex.mode!r}")
+        if isinstance(ex.profile_ci, bool):
+            ex.profile_ci = "on" if ex.profile_ci else "off"
+        if ex.profile_ci not in PROFILE_CI_MODES:
+            raise ValueError(f"exact.profile_ci must be one of {PROFILE_CI_MODES}, got "
+                             f"{ex.profile_ci!r}")
         if ex.runs < 2 or ex.rounds < 1 or ex.profile < 0 or ex.profile == 1:
             raise ValueError(f"exact: need runs >= 2, rounds >= 1 and profile = 0 or >= 2, got "
                              f"runs={ex.runs}, rounds={ex.rounds}, profile={ex.profile}")

@@ -542,7 +542,11 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
             "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
             "--budget; the profile intervals (profile_ci.csv) are the FE's own"))
     w.write(rep, ex, ex_info, ex_rows)
-    if not ex_s.profile_ci:
+    if ex_s.profile_ci == "off":
+        return rep
+    if ex_s.profile_ci == "auto" and ex.reliable:
+        log.info("exact: profile intervals not computed: the FE-exact posterior is reliable "
+                 "(calibration.exact.profile_ci=on computes them)")
         return rep
     skip = unprofilable(cp.space.dim, len(cp.y))
     if skip:

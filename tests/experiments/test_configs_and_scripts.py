@@ -214,7 +214,7 @@ def test_demo_command_runs_tiny(tmp_path):
     assert main(["calibrate", "--data", str(tmp_path / "data.csv"), "--out", str(out),
                  "--store", str(tmp_path / "store"), *DEMO_TINY, "--exact", "on",
                  "--exact-runs", "6", "--exact-rounds", "2", "--exact-profile", "3",
-                 "calibration.discretization=check", *TINY]) == 0
+                 "--profile-ci", "calibration.discretization=check", *TINY]) == 0
     # the discretization only measured: the data not corrected, nothing recorded as such
     assert not (out / "discretization_correction.npz").exists()
     assert "correction" not in json.loads((out / "run.json").read_text())["discretization"]
@@ -245,7 +245,7 @@ def test_demo_command_runs_tiny(tmp_path):
     assert (out / "exact_posterior.png").stat().st_size > 1000
     ex_info = info["exact"]
     assert info["settings"]["exact"] == {"mode": "on", "runs": 6, "rounds": 2, "profile": 3,
-                                         "profile_ci": True}
+                                         "profile_ci": "on"}
     assert info["posterior"] == ("fe-exact" if ex_info["reliable"] else "surrogate")
     assert len(ex_info["rounds"]) == 2 and ex_info["samples"] == 12
     # the profile-likelihood intervals: one per calibrated parameter inside the box, each end
