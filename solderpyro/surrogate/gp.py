@@ -33,7 +33,6 @@ from solderpyro.surrogate.kernels import gaussian, matern52
 from solderpyro.surrogate.mll import mll_closure
 from solderpyro.surrogate.transforms import Standardizer
 
-
 #: training rows up to which GPyTorch factorizes exactly (Cholesky) inside
 #: :func:`exact_linear_algebra`, instead of conjugate gradients and Lanczos
 EXACT_ROWS = 4096

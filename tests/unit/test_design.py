@@ -86,7 +86,8 @@ def test_botorch_model_is_the_surrogate(gp4):
 def test_a_scalar_surrogate_is_a_single_output_botorch_model(mean):
     box = Box(("x", "t"), (0.0, 0.0), (1.0, 2.0))
     x = lhs(box, 20, 3)
-    gp = GPSurrogate(box, mean=mean, options=GPOptions(restarts=1)).fit(x, torch.sin(2 * x[:, 0]) + x[:, 1])
+    gp = GPSurrogate(box, mean=mean, options=GPOptions(restarts=1)).fit(
+        x, torch.sin(2 * x[:, 0]) + x[:, 1])
     m = botorch_model(gp)
     xt = lhs(box, 6, 4)
     mc, vc = gp.coefficients(xt, False)

@@ -289,8 +289,8 @@ def test_the_factors_reproduce_the_coefficients_predictive(kernel):
 def test_an_input_maps_scaling_is_the_gp_inputs():
     """With an input map the GP inputs are ``(inputs(x) - lo) / span`` for the published
     ``input_scaling``, and before a fit the factors are refused."""
-    gp = GPSurrogate(BOX, options=GPOptions(restarts=1), inputs=lambda x: torch.stack([x[..., 0] * x[..., 1],
-                                                                     x[..., 1]], -1))
+    gp = GPSurrogate(BOX, options=GPOptions(restarts=1),
+                     inputs=lambda x: torch.stack([x[..., 0] * x[..., 1], x[..., 1]], -1))
     with pytest.raises(RuntimeError, match="fit"):
         gp.factors()
     x = _design(12)
