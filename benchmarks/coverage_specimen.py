@@ -35,7 +35,7 @@ from solderpyro.compute.sweep import sweep
 from solderpyro.config.compose import build, compose
 from solderpyro.design import lhs
 from solderpyro.specimen import SpecimenModel, StoreUse
-from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate import GPOptions, GPSurrogate
 from solderpyro.surrogate.features import input_map
 
 
@@ -131,7 +131,7 @@ def main() -> None:
     feats = input_map(inputs, sp, sp.defaults, setup.surrogate["inputs_T_C"],
                       setup.surrogate["inputs_rate"])
     gp = GPSurrogate(sp, output=a.output, kernel=kernel, ard=True, inputs=feats,
-                     var_explained=a.var_explained).fit(
+                     options=GPOptions(var_explained=a.var_explained)).fit(
         theta[doe.ok], y_sim[doe.ok])
     truths = lhs(sp, a.datasets, 12345)  # prior draws, stratified
     tv = model.runs(truths)

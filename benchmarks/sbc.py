@@ -166,7 +166,7 @@ ANAND_PRIORS = Priors(sigma_known=0.3)
 def anand_problem(n_runs: int = 30, seed: int = 0) -> Problem:
     """The flow-stress PCA-surrogate model of the four Anand constants (see the docstring)."""
     from solderpyro.design import lhs
-    from solderpyro.surrogate import GPSurrogate
+    from solderpyro.surrogate import GPOptions, GPSurrogate
     from solderpyro.surrogate.features import FlowStressInputs
 
     feats = FlowStressInputs(ANAND_BOX, ANAND_FIXED)
@@ -180,8 +180,8 @@ def anand_problem(n_runs: int = 30, seed: int = 0) -> Problem:
     th = lhs(ANAND_BOX, n_runs, seed).to(DT)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        gp = GPSurrogate(ANAND_BOX, output="pca", kernel="matern52", ard=True, n_pc=4,
-                         inputs=feats, restarts=1).fit(th, field(th))
+        gp = GPSurrogate(ANAND_BOX, output="pca", kernel="matern52", ard=True,
+                         options=GPOptions(n_pc=4, restarts=1), inputs=feats).fit(th, field(th))
     return _gp_problem("anand", gp, ANAND_BOX, ANAND_PRIORS, {
         "n_obs": 60, "n_runs": n_runs, "inputs": "flow_stress",
         "sigma_prior": "LogNormal(log 0.3, 0.1)"})

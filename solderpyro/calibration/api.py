@@ -51,7 +51,8 @@ def _post(run: NutsRun, box: Box) -> Posterior:
     out = {"t": box.from_unit(samples[SITE_T])}
     out.update({k: v for k, v in samples.items() if k != SITE_T})
     return Posterior(out, {"t": list(box.names)}, run.divergences, run.seconds, dict(samples),
-                     warm=run.warm, stats=run.stats, diverging=run.diverging)
+                     warm=run.warm, stats=run.stats, diverging=run.diverging,
+                     sample_stats=run.sample_stats)
 
 
 def calibrate_direct(f: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],

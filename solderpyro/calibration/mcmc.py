@@ -69,6 +69,9 @@ class Posterior:
         stats: per chain: step size, mean acceptance, gradient evaluations.
         diverging: ``(chain, draw)`` bool, which draws came from a divergent transition
             (None: only the counts are known).
+        sample_stats: the sampler's per-draw statistics, each ``(chain, draw)``, by ArviZ's
+            names (:data:`~.nuts.SAMPLE_STATS`: energy, step_size, tree_depth, n_steps,
+            acceptance_rate, lp, diverging); empty where the sampler kept none.
     """
 
     samples: dict[str, torch.Tensor]
@@ -79,6 +82,12 @@ class Posterior:
     warm: WarmStart | None = None
     stats: list[dict[str, float]] = field(default_factory=list)
     diverging: np.ndarray | None = None
+    sample_stats: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_draws(self) -> int:
+        """Draws per chain (after any run-on: :meth:`extend`)."""
+        return next(iter(self.samples.values())).shape[1]
 
     @property
     def n_chains(self) -> int:
@@ -93,17 +102,23 @@ class Posterior:
         """Scalar parameters by display name -> ``(chain, draw)`` arrays."""
         return flatten_sites(self.samples, self.labels)
 
-    def to_inference_data(self, predictive: dict[str, np.ndarray] | None = None) -> Any:
-        """ArviZ InferenceData: posterior group; divergences in sample_stats; with
-        ``predictive`` also ``observed_data``, ``posterior_predictive`` and
-        ``log_likelihood`` (variable ``y``, dimension ``obs``), so that ``az.plot_ppc``,
-        ``az.loo`` and ``az.compare`` work on the file directly.
+    def to_inference_data(self, predictive: dict[str, Any] | None = None) -> Any:
+        """ArviZ InferenceData: the ``posterior`` group; ``sample_stats`` with the sampler's
+        per-draw statistics (:attr:`sample_stats`: energy, step size, tree depth, leapfrog
+        steps, acceptance, lp, diverging; ``az.bfmi`` and ``az.plot_energy`` read them) or, for
+        a posterior made without them, ``diverging`` alone; with ``predictive`` also
+        ``observed_data``, ``posterior_predictive`` and ``log_likelihood`` (variable ``y``,
+        dimension ``obs``), so that ``az.plot_ppc``, ``az.loo`` and ``az.compare`` work on the
+        file directly. The ``draw`` dimension holds every draw of each chain.
 
         Args:
             predictive: ``{"y": (n_obs,) data, "index": (k,) flat indices into (chain, draw)
                 taken at the same draws of every chain (:func:`thin_index`), "observed":
                 (k, n_obs) predictive draws of a new measurement, "log_likelihood": (k, n_obs)
-                pointwise log density of the data (nats)}``.
+                pointwise log density of the data (nats)}``, optionally ``"coords"``:
+                ``{name: (n_obs,) array}`` coordinates of the ``obs`` dimension (``"label"``
+                becomes its index, the others, e.g. time_s, point, x_mm, y_mm, ride along;
+                without them ``obs`` is ``0..n_obs-1``).
         """
         az = import_arviz()
         cols = self.columns()
@@ -114,7 +129,9 @@ class Posterior:
             div = np.zeros((self.n_chains, n_draw), dtype=bool)
             for c, k in enumerate(self.divergences):
                 div[c, :k] = True
-        idata = az.from_dict(posterior=cols, sample_stats={"diverging": div})
+        stats = {k: np.asarray(v) for k, v in self.sample_stats.items()}
+        stats["diverging"] = div
+        idata = az.from_dict(posterior=cols, sample_stats=stats)
         if predictive is not None:
             idata.add_groups(**_predictive_groups(predictive, self.n_chains, n_draw))
         return idata
@@ -136,9 +153,11 @@ class Posterior:
 
     def extend(self, more: Posterior) -> Posterior:
         """These chains continued by ``more``'s (the same chains run on from their last
-        draws, e.g. :func:`run_nuts` with ``warm=self.warm``): every site's draws
-        concatenated along the draw axis, divergences added, the time summed, ``more``'s warm
-        state kept.
+        draws, e.g. :func:`run_nuts` with ``warm=self.warm``): every site's draws and
+        per-draw statistics concatenated along the draw axis, divergences added, the time
+        summed, ``more``'s warm state kept. (``lp`` and ``energy`` are in the coordinates each
+        run sampled in: a continuation in freshly fitted ridge coordinates has them on another
+        scale, and BFMI over the join mixes the two.)
 
         Raises:
             ValueError: ``more`` has other sites or another number of chains.
@@ -153,9 +172,12 @@ class Posterior:
                if self.diverging is not None and more.diverging is not None else None)
         stats = [{**a, "n_grad": a["n_grad"] + b["n_grad"]}
                  for a, b in zip(self.stats, more.stats, strict=True)]
+        # per-draw statistics where both runs kept the same ones
+        per_draw = {k: np.concatenate([v, more.sample_stats[k]], 1)
+                    for k, v in self.sample_stats.items() if k in more.sample_stats}
         return Posterior(samples, dict(self.labels),
                          [a + b for a, b in zip(self.divergences, more.divergences, strict=True)],
-                         self.seconds + more.seconds, raw, more.warm, stats, div)
+                         self.seconds + more.seconds, raw, more.warm, stats, div, per_draw)
 
     def min_ess(self) -> float:
         """Smallest bulk ESS over the scalar parameters."""
@@ -193,13 +215,20 @@ def _predictive_groups(pr: dict[str, np.ndarray], chains: int, draws: int
         raise ValueError("predictive draws must be the same draws of every chain (thin_index)")
     pos = idx[:m] % draws
     y = np.asarray(pr["y"], float)
-    co = {"chain": np.arange(chains), "draw": pos, "obs": np.arange(len(y))}
+    extra = {k: np.asarray(v) for k, v in (pr.get("coords") or {}).items()}
+    for k, v in extra.items():
+        if v.shape != y.shape:
+            raise ValueError(f"predictive coords[{k!r}] has shape {v.shape}, the data "
+                             f"{y.shape}")
+    obs = extra.pop("label", np.arange(len(y)))
+    obs_co = {"obs": obs, **{k: ("obs", v) for k, v in extra.items()}}
+    co = {"chain": np.arange(chains), "draw": pos, **obs_co}
 
     def ds(name: str) -> Any:
         v = np.asarray(pr[name], np.float32).reshape(chains, m, len(y))
         return xr.Dataset({"y": (("chain", "draw", "obs"), v)}, coords=co)
 
-    return {"observed_data": xr.Dataset({"y": (("obs",), y)}, coords={"obs": co["obs"]}),
+    return {"observed_data": xr.Dataset({"y": (("obs",), y)}, coords=obs_co),
             "posterior_predictive": ds("observed"), "log_likelihood": ds("log_likelihood")}
 
 
@@ -377,6 +406,9 @@ class NutsRun:
         warm: the adapted state, to warm-start a related run.
         stats: per chain: step size, mean acceptance, gradient evaluations.
         diverging: ``(chain, draw)`` bool, which kept draws came from a divergent transition.
+        sample_stats: per kept draw, each ``(chain, draw)``: energy, step_size, tree_depth,
+            n_steps, acceptance_rate, lp, diverging (:attr:`~.nuts.NutsResult.sample_stats`;
+            ``lp`` and ``energy`` in the coordinates the chains ran in, nats).
     """
 
     samples: dict[str, torch.Tensor]
@@ -385,6 +417,7 @@ class NutsRun:
     warm: WarmStart
     stats: list[dict[str, float]]
     diverging: np.ndarray | None = None
+    sample_stats: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def default_workers(chains: int) -> int:
@@ -618,7 +651,7 @@ def _nuts_run(res: Any, fm: Any, rmap: Any, names: list[str], args: tuple, o: Nu
     stats = [{"step_size": float(a), "accept_prob": float(b), "n_grad": float(c)}
              for a, b, c in zip(res.step_size, res.accept_prob, res.n_leapfrog, strict=True)]
     return NutsRun(samples, res.divergences, time.perf_counter() - t0, ws, stats,
-                   res.diverging)
+                   res.diverging, dict(res.sample_stats))
 
 
 #: draws a :class:`WarmStart` keeps (thinned evenly through the chains) for a next run's map

@@ -48,6 +48,12 @@ class NutsResult:
         tree_depth: ``(chains, draws)`` tree depth of each kept draw.
         diverging: ``(chains, draws)`` bool, whether the transition that made each kept draw
             diverged (where they sit shows what the sampler could not follow).
+        sample_stats: per kept draw, each ``(chains, draws)``, ArviZ's names
+            (:data:`SAMPLE_STATS`): ``energy`` (the Hamiltonian ``-log p(q) + p M^-1 p / 2``
+            at the selected point, nats), ``step_size``, ``tree_depth``, ``n_steps``
+            (leapfrog steps of the transition), ``acceptance_rate`` (the mean acceptance
+            statistic over the tree), ``lp`` (the log density at the draw, unconstrained
+            scale, nats), ``diverging``.
     """
 
     draws: np.ndarray
@@ -59,6 +65,13 @@ class NutsResult:
     n_leapfrog: list[int] = field(default_factory=list)
     tree_depth: np.ndarray | None = None
     diverging: np.ndarray | None = None
+    sample_stats: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+#: the per-draw statistics of :attr:`NutsResult.sample_stats`, named as ArviZ's
+#: ``sample_stats`` group names them (``az.bfmi`` and ``az.plot_energy`` read ``energy``)
+SAMPLE_STATS = ("energy", "step_size", "tree_depth", "n_steps", "acceptance_rate", "lp",
+                "diverging")
 
 
 class _Metric:
@@ -131,9 +144,9 @@ class _Chain:
                                    "posterior is improper or the gradient is wrong")
 
     # ------------------------------------------------------------------- one transition
-    def transition(self) -> tuple[float, int, bool, int]:
+    def transition(self) -> tuple[float, int, bool, int, float]:
         """One NUTS iteration; updates the state. Returns (acceptance statistic, tree depth,
-        divergent, leapfrog steps)."""
+        divergent, leapfrog steps, energy: the Hamiltonian at the selected point, nats)."""
         f, rng, metric, max_de = self.f, self.rng, self.metric, self.max_de
         vel = metric.velocity
         p0 = metric.sample_p(rng, self.q.shape[0])
@@ -213,7 +226,8 @@ class _Chain:
                 break
         self.q, self.lp, self.g = prop[0], prop[3], prop[2]
         self.n_grad += n_grad
-        return sum_acc / max(n_leap, 1), depth, divergent, n_leap
+        energy = -prop[3] + 0.5 * float(prop[1] @ prop[4])
+        return sum_acc / max(n_leap, 1), depth, divergent, n_leap, energy
 
 
 class _DualAveraging:
@@ -374,7 +388,9 @@ def sample_nuts(logp_and_grad: LogpGrad, dim: int, settings: NutsSettings = Nuts
     outs = _map_chains(job, chains, st.workers, on_chain)
     res = NutsResult(np.stack([o["draws"] for o in outs]),
                      tree_depth=np.stack([o["depth"] for o in outs]),
-                     diverging=np.stack([o["diverging"] for o in outs]))
+                     diverging=np.stack([o["diverging"] for o in outs]),
+                     sample_stats={k: np.stack([o["stats"][k] for o in outs])
+                                   for k in SAMPLE_STATS})
     for o in outs:
         res.divergences.append(o["divergences"])
         res.step_size.append(o["step_size"])
@@ -495,7 +511,7 @@ def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
     win = _Windows(warmup)
     window: list[np.ndarray] = []
     for _ in range(warmup):
-        acc, _, _, _ = ch.transition()
+        acc = ch.transition()[0]
         ch.step = da.learn(acc)
         if win.in_window():
             window.append(ch.q)
@@ -515,17 +531,17 @@ def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
         win.counter += 1
     if warmup > 0:
         ch.step = da.final()
-    acc_sum = 0.0
-    out = np.empty((job.s.draws, d))
-    depth_out = np.empty(job.s.draws, dtype=np.int64)
-    div_out = np.zeros(job.s.draws, dtype=bool)
-    for i in range(job.s.draws):
-        acc, depth, div, _ = ch.transition()
+    n = job.s.draws
+    out = np.empty((n, d))
+    st = {"energy": np.empty(n), "step_size": np.full(n, ch.step), "lp": np.empty(n),
+          "tree_depth": np.empty(n, dtype=np.int64), "n_steps": np.empty(n, dtype=np.int64),
+          "acceptance_rate": np.empty(n), "diverging": np.zeros(n, dtype=bool)}
+    for i in range(n):
+        acc, depth, div, n_leap, energy = ch.transition()
         out[i] = ch.q
-        depth_out[i] = depth
-        div_out[i] = bool(div)
-        acc_sum += acc
-    return {"draws": out, "depth": depth_out, "diverging": div_out,
-            "divergences": int(div_out.sum()), "step_size": ch.step,
-            "inv_metric": ch.metric.inv, "accept_prob": acc_sum / job.s.draws,
+        st["energy"][i], st["lp"][i], st["acceptance_rate"][i] = energy, ch.lp, acc
+        st["tree_depth"][i], st["n_steps"][i], st["diverging"][i] = depth, n_leap, div
+    return {"draws": out, "depth": st["tree_depth"], "diverging": st["diverging"], "stats": st,
+            "divergences": int(st["diverging"].sum()), "step_size": ch.step,
+            "inv_metric": ch.metric.inv, "accept_prob": sum(st["acceptance_rate"].tolist()) / n,
             "n_leapfrog": ch.n_grad}

@@ -33,7 +33,7 @@ class SurrogateSettings:
     stresses at ``inputs_T_C`` degC and ``inputs_rate`` 1/s replace s0 and Q/R).
     ``truncation``: a PCA surrogate keeps components until the variance they leave, summed
     over the observed values in noise variances, is at most ``truncation * sqrt(2 n)`` (a
-    chi-square no added FE run could remove; see ``GPSurrogate(resid_chi2=)``). 0.01: on 54
+    chi-square no added FE run could remove; see ``GPOptions.resid_chi2``). 0.01: on 54
     runs of the clean field case it keeps 19 components where 0.1 kept 13, and the
     surrogate's error at posterior draws ``|FE - surrogate|^2 / sigma^2`` falls 1.35 -> 0.06
     (most of it was the FE's part outside the kept components, which no GP learns);

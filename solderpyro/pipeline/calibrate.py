@@ -53,7 +53,13 @@ from solderpyro.pipeline.fe_exact import (
     fe_exact,
     identifiability,
 )
-from solderpyro.pipeline.outputs import SpecimenCalibration, posterior_draws, save_run
+from solderpyro.pipeline.outputs import (
+    SpecimenCalibration,
+    loo_log_likelihood,
+    observation_coords,
+    posterior_draws,
+    save_run,
+)
 from solderpyro.pipeline.problem import CalibrationProblem
 
 log = logging.getLogger("solderpyro")
@@ -387,7 +393,8 @@ def save_posterior(cp: CalibrationProblem, post: Any, inp: Any, seed: int, out: 
     bands = predict_observation_model(post, inp, None, seed=seed, index=pick_pp)
     post.save(out / "posterior.nc", predictive={
         "y": cp.y.numpy(), "index": pick_pp.numpy(), "observed": bands.obs_draws.numpy(),
-        "log_likelihood": bands.log_likelihood(cp.y).numpy()})
+        "log_likelihood": loo_log_likelihood(post, inp, pick_pp).numpy(),
+        "coords": observation_coords(cp.meas, cp.y.shape[0])})
     return bands
 
 

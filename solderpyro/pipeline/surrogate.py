@@ -9,7 +9,7 @@ import torch
 
 from solderpyro.config.settings import SurrogateSettings
 from solderpyro.pipeline.problem import CalibrationProblem
-from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate import GPOptions, GPSurrogate
 
 log = logging.getLogger("solderpyro")
 
@@ -35,10 +35,10 @@ def fit_surrogate(cp: CalibrationProblem, s: SurrogateSettings, X: torch.Tensor,
                       s.inputs_rate)
     sd = noise_sd if noise_sd is not None else cp.priors.sigma_known
     use = bool(sd) and output == "pca"
+    trunc = GPOptions(resid_chi2=s.truncation * math.sqrt(2 * Y.shape[1]),
+                      noise_sd=sd) if use else GPOptions()
     gp = GPSurrogate(cp.gp_box, output=output, kernel=s.kernel, ard=s.ard, mean=s.mean,
-                     inputs=feats,
-                     resid_chi2=s.truncation * math.sqrt(2 * Y.shape[1]) if use else None,
-                     noise_sd=sd if use else None)
+                     options=trunc, inputs=feats)
     gp.fit(X, Y)
     log.info("surrogate: %s GP on %d runs, %d outputs, %d component(s)", output, len(X),
              Y.shape[1], gp.basis.shape[1])

@@ -20,36 +20,41 @@ inputs and cheap enough to sit inside an MCMC likelihood.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import gpytorch
 import torch
+from linear_operator import settings as linop_settings
 
 from solderpyro.params import Box
 from solderpyro.surrogate.kernels import gaussian, matern52
 from solderpyro.surrogate.mll import mll_closure
 from solderpyro.surrogate.transforms import Standardizer
 
-
-def _exact_linear_algebra() -> None:
-    """The GP's linear algebra exact (Cholesky, not conjugate gradients or Lanczos) up to 4,096
-    training rows, whether or not BoTorch was imported: importing BoTorch sets exactly these
-    global defaults (botorch/__init__.py), so without this a fit depended on import order
-    (measured: the surrogate-vs-direct calibration test moved by 4 Monte Carlo standard errors).
-    tests/unit/test_surrogate.py checks a fit is identical with and without BoTorch imported."""
-    from gpytorch import settings as gp_settings
-    from linear_operator import settings as linop_settings
-
-    linop_settings._fast_covar_root_decomposition._default = False
-    linop_settings._fast_log_prob._default = False
-    linop_settings._fast_solves._default = False
-    linop_settings.cholesky_max_tries._global_value = 6
-    linop_settings.max_cholesky_size._global_value = 4096
-    gp_settings.max_eager_kernel_size._global_value = 4096
+#: training rows up to which GPyTorch factorizes exactly (Cholesky) inside
+#: :func:`exact_linear_algebra`, instead of conjugate gradients and Lanczos
+EXACT_ROWS = 4096
 
 
-_exact_linear_algebra()
+@contextmanager
+def exact_linear_algebra() -> Iterator[None]:
+    """The context the surrogate's GPyTorch computations run in: exact linear algebra
+    (Cholesky, not conjugate gradients or Lanczos) up to :data:`EXACT_ROWS` training rows, no
+    fast solves, log-probabilities or root decompositions, up to 6 jitter tries; kernels
+    evaluated eagerly up to :data:`EXACT_ROWS` rows. These are the values importing BoTorch sets
+    as process-wide defaults (botorch/__init__.py): in a context they make a fit independent of
+    whether BoTorch was imported (measured before: the surrogate-vs-direct calibration test
+    moved by 4 Monte Carlo standard errors with import order), and they leave a host's own
+    GPyTorch settings as they were outside it. ``tests/unit/test_host_settings.py`` checks that
+    importing solderpyro changes no GPyTorch or linear_operator setting."""
+    with linop_settings.fast_computations(covar_root_decomposition=False, log_prob=False,
+                                          solves=False), \
+            linop_settings.cholesky_max_tries(6), \
+            linop_settings.max_cholesky_size(EXACT_ROWS), \
+            gpytorch.settings.max_eager_kernel_size(EXACT_ROWS):
+        yield
 
 
 class SurrogateWarning(UserWarning):
@@ -156,17 +161,14 @@ class GPFactors:
     alpha: torch.Tensor
 
 
-class GPSurrogate:
-    """GPyTorch exact-GP surrogate over a named input box.
+@dataclass(frozen=True)
+class GPOptions:
+    """How many components a ``"pca"`` surrogate keeps, and how its GPs are fitted.
 
-    Args:
-        box: the inputs (names, bounds, log-scale); ``d = box.dim``.
-        output: ``"scalar"``, ``"batched"`` or ``"pca"`` (see module docstring).
-        kernel: ``"gaussian"`` (seed Eq. 4) or ``"matern52"``.
-        mean: ``"constant"`` (seed's f(X) beta with f = 1) or ``"linear"``.
-        ard: one lengthscale per input (else one shared, as the seed's single theta).
-        n_pc: kept components for ``"pca"`` (default: enough for ``var_explained``).
-        var_explained: fraction of the standardized output variance the kept PCs explain.
+    Attributes:
+        n_pc: kept components for ``"pca"`` (None: enough for ``var_explained``).
+        var_explained: fraction of the standardized output variance the kept PCs explain,
+            in (0, 1].
         resid_chi2: with ``noise_sd``, keep more components (``"pca"``) until the truncation
             variance the PCs leave, summed over the outputs in units of the noise variance,
             ``sum_i resid_i / noise_sd^2``, is at most this (a chi-square: the code variance
@@ -174,9 +176,49 @@ class GPSurrogate:
             sampling sd), but never more than half as many components as runs. Measured on
             102 full-field runs (2,240 outputs, sigma 0.05 um): var_explained 0.999 keeps 8 PCs
             and leaves 178; 15 PCs leave 4.9, 20 leave 0.7.
-        noise_sd: the data's noise sd, output units (for ``resid_chi2``).
+        noise_sd: the data's noise sd, output units (for ``resid_chi2``; both or neither).
         nugget: lower bound of the GP noise variance (standardized units), for conditioning.
-        restarts: L-BFGS restarts from different initial lengthscales.
+        restarts: L-BFGS restarts from different initial lengthscales (at least 1 is run).
+
+    Raises:
+        ValueError naming the field when one is out of range.
+    """
+
+    n_pc: int | None = None
+    var_explained: float = 0.999
+    resid_chi2: float | None = None
+    noise_sd: float | None = None
+    nugget: float = 1e-6
+    restarts: int = 3
+
+    def __post_init__(self) -> None:
+        if not 0 < self.var_explained <= 1:
+            raise ValueError(f"var_explained must be in (0, 1], got {self.var_explained}")
+        if (self.resid_chi2 is None) != (self.noise_sd is None):
+            raise ValueError("resid_chi2 and noise_sd go together (both or neither)")
+        if self.noise_sd is not None and not (self.noise_sd > 0 and self.resid_chi2 is not None
+                                              and self.resid_chi2 > 0):
+            raise ValueError(f"need noise_sd > 0 and resid_chi2 > 0, got {self.noise_sd}, "
+                             f"{self.resid_chi2}")
+        if self.n_pc is not None and self.n_pc < 1:
+            raise ValueError(f"n_pc must be a positive integer or None, got {self.n_pc}")
+
+
+class GPSurrogate:
+    """GPyTorch exact-GP surrogate over a named input box.
+
+    The hyperparameter fit runs in :func:`exact_linear_algebra`; predictions, the leave-one-out
+    check and :meth:`factors` are plain torch on the cached factors and read no GPyTorch
+    setting, so a host's GPyTorch settings change none of this class's numbers.
+
+    Args:
+        box: the inputs (names, bounds, log-scale); ``d = box.dim``.
+        output: ``"scalar"``, ``"batched"`` or ``"pca"`` (see module docstring).
+        kernel: ``"gaussian"`` (seed Eq. 4) or ``"matern52"``.
+        mean: ``"constant"`` (seed's f(X) beta with f = 1) or ``"linear"``.
+        ard: one lengthscale per input (else one shared, as the seed's single theta).
+        options: the PCA truncation, nugget and restarts (:class:`GPOptions`; None: its
+            defaults).
         inputs: optional differentiable map of physical inputs ``(..., d) -> (..., d')`` that
             the GP sees instead of the box's unit cube (e.g. ``FlowStressInputs``); its values
             are rescaled to [0, 1] over the range they take on the box (a 1024-point LHS and
@@ -184,27 +226,19 @@ class GPSurrogate:
     """
 
     def __init__(self, box: Box, output: str = "scalar", kernel: str = "gaussian",
-                 mean: str = "constant", ard: bool = False, n_pc: int | None = None,
-                 var_explained: float = 0.999, nugget: float = 1e-6, restarts: int = 3,
-                 resid_chi2: float | None = None, noise_sd: float | None = None,
+                 mean: str = "constant", ard: bool = False, options: GPOptions | None = None,
                  inputs: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
         for name, val, ok in (("output", output, ("scalar", "batched", "pca")),
                               ("kernel", kernel, ("gaussian", "matern52")),
                               ("mean", mean, ("constant", "linear"))):
             if val not in ok:
                 raise ValueError(f"GPSurrogate {name}={val!r}; choose one of {ok}")
-        if not 0 < var_explained <= 1:
-            raise ValueError(f"var_explained must be in (0, 1], got {var_explained}")
+        o = options if options is not None else GPOptions()
         self.box, self.output, self.kernel, self.mean = box, output, kernel, mean
-        self.ard, self.n_pc, self.var_explained = ard, n_pc, var_explained
-        if (resid_chi2 is None) != (noise_sd is None):
-            raise ValueError("resid_chi2 and noise_sd go together (both or neither)")
-        if noise_sd is not None and not (noise_sd > 0 and resid_chi2 is not None
-                                         and resid_chi2 > 0):
-            raise ValueError(f"need noise_sd > 0 and resid_chi2 > 0, got {noise_sd}, "
-                             f"{resid_chi2}")
-        self.resid_chi2, self.noise_sd = resid_chi2, noise_sd
-        self.nugget, self.restarts = nugget, restarts
+        self.ard, self.options = ard, o
+        self.n_pc, self.var_explained = o.n_pc, o.var_explained
+        self.resid_chi2, self.noise_sd = o.resid_chi2, o.noise_sd
+        self.nugget, self.restarts = o.nugget, o.restarts
         self.inputs = inputs
         self.model: BatchGP | None = None
 
@@ -220,6 +254,11 @@ class GPSurrogate:
             self, fitted.
         """
         x, y = self._check_xy(x, y)
+        with exact_linear_algebra():
+            self._fit(x, y)
+        return self
+
+    def _fit(self, x: torch.Tensor, y: torch.Tensor) -> None:
         self._x_train, self._y_train = x, y
         self.std = Standardizer.fit(y)
         ys = self.std.forward(y)  # (n, n_y)
@@ -241,7 +280,6 @@ class GPSurrogate:
                               self.ard, self.nugget).to(dtype=u.dtype, device=u.device)
         _fit_mll(self.model, self.restarts)
         self._freeze()
-        return self
 
     def _check_xy(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if x.ndim != 2 or x.shape[1] != self.box.dim:

@@ -28,7 +28,7 @@ from solderpyro.design.loop import (
 )
 from solderpyro.design.model import botorch_model, observed_weights
 from solderpyro.params import Box, ParameterSpace
-from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate import GPOptions, GPSurrogate
 
 BOX1 = Box(("t",), (0.0,), (1.0,))
 GRID = torch.linspace(0, 1, 801, dtype=torch.float64)[:, None]
@@ -87,7 +87,8 @@ def test_botorch_model_is_the_surrogate(gp4):
 def test_a_scalar_surrogate_is_a_single_output_botorch_model(mean):
     box = Box(("x", "t"), (0.0, 0.0), (1.0, 2.0))
     x = lhs(box, 20, 3)
-    gp = GPSurrogate(box, mean=mean, restarts=1).fit(x, torch.sin(2 * x[:, 0]) + x[:, 1])
+    gp = GPSurrogate(box, mean=mean, options=GPOptions(restarts=1)).fit(
+        x, torch.sin(2 * x[:, 0]) + x[:, 1])
     m = botorch_model(gp)
     xt = lhs(box, 6, 4)
     mc, vc = gp.coefficients(xt, False)
@@ -199,7 +200,8 @@ def _toy_problem(bias: float = 0.0, calls: list | None = None, cache: dict | Non
         return V, torch.ones(len(th), dtype=torch.bool)
 
     def fit(X, Y):  # a biased surrogate learns outputs shifted by a smooth bias
-        return GPSurrogate(BOX1, output="batched", kernel="matern52", restarts=1).fit(
+        return GPSurrogate(BOX1, output="batched", kernel="matern52",
+                           options=GPOptions(restarts=1)).fit(
             X, Y + bias * torch.cos(3 * X))
 
     return LoopProblem(BOX1, y, fe, fit, lambda gp, prev, final: _toy_posterior(gp, y))

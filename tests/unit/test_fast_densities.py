@@ -48,7 +48,7 @@ from solderpyro.calibration.kronjoint import MIN_RUNS, kron_joint
 from solderpyro.design import lhs
 from solderpyro.examples.seed_math import LHS_T, X_BOX, code, lhs_runs, make_data
 from solderpyro.params import Box
-from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate import GPOptions, GPSurrogate
 from solderpyro.surrogate.features import FlowStressInputs
 
 DT = torch.float64
@@ -130,7 +130,7 @@ def _field(theta: torch.Tensor) -> torch.Tensor:
 def _pca_gp() -> GPSurrogate:
     th = lhs(PCA_BOX, 20, 0).to(DT)
     return GPSurrogate(PCA_BOX, output="pca", kernel="gaussian", mean="linear", ard=True,
-                       n_pc=3, restarts=1).fit(th, _field(th))
+                       options=GPOptions(n_pc=3, restarts=1)).fit(th, _field(th))
 
 
 def _pca(offsets: bool, pr: Priors) -> tuple:
@@ -173,7 +173,7 @@ def _flow_gp(with_n: bool) -> GPSurrogate:
     box = ANAND_N if with_n else ANAND
     th = lhs(box, 25, 0).to(DT)
     return GPSurrogate(box, output="pca", kernel="matern52", mean="constant", ard=True,
-                       n_pc=4, inputs=FlowStressInputs(box, FIXED), restarts=1
+                       options=GPOptions(n_pc=4, restarts=1), inputs=FlowStressInputs(box, FIXED)
                        ).fit(th, _anand_field(box, th))
 
 

@@ -9,7 +9,7 @@ from solderpyro.calibration import Priors
 from solderpyro.calibration.emulators import GPEmulator
 from solderpyro.calibration.koh import SITE_Y, observation_model, prepare_observation
 from solderpyro.params import Box
-from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate import GPOptions, GPSurrogate
 
 
 def _field_gp(n_y=60, n=16):
@@ -18,7 +18,7 @@ def _field_gp(n_y=60, n=16):
     x = torch.rand(n, 2, generator=g, dtype=torch.float64)
     s = torch.linspace(0, 1, n_y, dtype=torch.float64)
     y = torch.sin(3 * x[:, :1] + 2 * s) * (1 + x[:, 1:]) + 0.3 * x[:, 1:] * s ** 2
-    return GPSurrogate(box, output="pca", n_pc=3).fit(x, y), box
+    return GPSurrogate(box, output="pca", options=GPOptions(n_pc=3)).fit(x, y), box
 
 
 def test_lowrank_equals_dense_covariance():

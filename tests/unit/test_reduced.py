@@ -14,7 +14,7 @@ from solderpyro.calibration.koh import Priors, prepare_observation
 from solderpyro.calibration.reduced import PCAReduction, pca_flat, reduced_loglik_torch
 from solderpyro.design import lhs
 from solderpyro.params import Box
-from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate import GPOptions, GPSurrogate
 from solderpyro.surrogate.features import FlowStressInputs
 
 DT = torch.float64
@@ -34,8 +34,8 @@ def _field(theta: torch.Tensor, n_y: int = 60) -> torch.Tensor:
 def _gp(kernel: str, mean: str, inputs: bool, n: int = 25) -> GPSurrogate:
     th = lhs(ANAND, n, 0).to(DT)
     feats = FlowStressInputs(ANAND, FIXED) if inputs else None
-    return GPSurrogate(ANAND, output="pca", kernel=kernel, mean=mean, ard=True, n_pc=4,
-                       inputs=feats, restarts=1).fit(th, _field(th))
+    return GPSurrogate(ANAND, output="pca", kernel=kernel, mean=mean, ard=True,
+                       options=GPOptions(n_pc=4, restarts=1), inputs=feats).fit(th, _field(th))
 
 
 @pytest.fixture(scope="module")
@@ -319,7 +319,8 @@ def test_native_flow_flat_equals_the_python_flat_model(extra, pr):
         th = lhs(box, 30, 1).to(DT)
         y = _field(th[:, :4]) + 0.3 * th[:, 4:5]
         gp = GPSurrogate(box, output="pca", kernel="matern52", mean="constant", ard=True,
-                         n_pc=4, inputs=FlowStressInputs(box, FIXED), restarts=1).fit(th, y)
+                         options=GPOptions(n_pc=4, restarts=1),
+                         inputs=FlowStressInputs(box, FIXED)).fit(th, y)
     else:
         box = ANAND
         gp = _gp("matern52", "constant", True)

@@ -6,7 +6,7 @@ import torch
 from scipy.stats import qmc
 
 from solderpyro.params import Box
-from solderpyro.surrogate import GPSurrogate, SurrogateWarning
+from solderpyro.surrogate import GPOptions, GPSurrogate, SurrogateWarning
 
 BOX = Box(("x", "t"), (0.0, 0.2), (3.0, 1.5), (False, True))
 
@@ -139,23 +139,25 @@ def test_pca_keeps_components_until_the_truncation_chi_square_is_below_its_bound
     y = torch.stack([torch.sin(3 * u[:, 0] + k / 10) * (1 + u[:, 1])
                      + 0.01 * k * u[:, 2] ** 2 * u[:, 3] + 1e-3 * torch.cos(7 * u[:, 3] * k)
                      for k in range(30)], 1)
-    plain = GPSurrogate(box, output="pca", restarts=1).fit(x, y)
+    plain = GPSurrogate(box, output="pca", options=GPOptions(restarts=1)).fit(x, y)
     sd, tol = 1e-3, 5.0
-    gp = GPSurrogate(box, output="pca", restarts=1, resid_chi2=tol, noise_sd=sd).fit(x, y)
+    gp = GPSurrogate(box, output="pca",
+                     options=GPOptions(resid_chi2=tol, noise_sd=sd, restarts=1)).fit(x, y)
 
     def left(g):
         return float((g.resid_var * g.std.scale**2).sum() / sd**2)
 
     k = gp.basis.shape[1]
     assert left(plain) > tol >= left(gp) and k > plain.basis.shape[1]
-    fewer = GPSurrogate(box, output="pca", restarts=1, n_pc=k - 1).fit(x, y)
+    fewer = GPSurrogate(box, output="pca", options=GPOptions(n_pc=k - 1, restarts=1)).fit(x, y)
     assert left(fewer) > tol
     # never more components than half the runs
-    few = GPSurrogate(box, output="pca", restarts=1, resid_chi2=0.01, noise_sd=sd).fit(
+    few = GPSurrogate(box, output="pca",
+                      options=GPOptions(resid_chi2=0.01, noise_sd=sd, restarts=1)).fit(
         x[:12], y[:12])
     assert few.basis.shape[1] == 6 and left(few) > 0.01
     with pytest.raises(ValueError, match="go together"):
-        GPSurrogate(box, output="pca", noise_sd=0.1)
+        GPOptions(noise_sd=0.1)
 
 
 _FIT = """
@@ -179,14 +181,16 @@ print(repr(m.flatten().tolist() + v.flatten().tolist()))
 
 def test_gp_fit_does_not_depend_on_whether_botorch_was_imported():
     """Importing BoTorch sets linear_operator's global defaults (Cholesky to 4,096 rows, no
-    fast solves); the GP module sets the same ones, so a fit in an interpreter that imported
-    BoTorch first is identical to one that did not."""
+    fast solves); the fit runs in a context with the same values
+    (:func:`~solderpyro.surrogate.exact_linear_algebra`), so a fit in an interpreter that
+    imported BoTorch first is identical to one that did not, and without BoTorch the
+    interpreter keeps GPyTorch's own defaults."""
     import subprocess
     import sys
 
     out = [subprocess.run([sys.executable, "-c", _FIT, arg], capture_output=True, text=True,
                           check=True).stdout.splitlines() for arg in ("plain", "botorch")]
-    assert out[0][0] == out[1][0] == "[4096, False, 6]"
+    assert out[0][0] == "[800, True, 3]" and out[1][0] == "[4096, False, 6]"
     assert out[0][1] == out[1][1]
 
 
@@ -256,7 +260,8 @@ def test_the_factors_reproduce_the_coefficients_predictive(kernel):
     :meth:`GPSurrogate.coefficients` (same float64 arithmetic, so to rounding: 1e-12), and the
     factors' training inputs are the GP inputs of the training runs."""
     x = _design(15)
-    gp = GPSurrogate(BOX, kernel=kernel, mean="linear", ard=True, restarts=1).fit(x, _f(x))
+    gp = GPSurrogate(BOX, kernel=kernel, mean="linear", ard=True,
+                     options=GPOptions(restarts=1)).fit(x, _f(x))
     f = gp.factors()
     k, n = f.z.shape
     assert (k, n) == (1, 15) and f.u.shape == (1, 15, 2) and f.chol.shape == (1, 15, 15)
@@ -284,8 +289,8 @@ def test_the_factors_reproduce_the_coefficients_predictive(kernel):
 def test_an_input_maps_scaling_is_the_gp_inputs():
     """With an input map the GP inputs are ``(inputs(x) - lo) / span`` for the published
     ``input_scaling``, and before a fit the factors are refused."""
-    gp = GPSurrogate(BOX, restarts=1, inputs=lambda x: torch.stack([x[..., 0] * x[..., 1],
-                                                                     x[..., 1]], -1))
+    gp = GPSurrogate(BOX, options=GPOptions(restarts=1),
+                     inputs=lambda x: torch.stack([x[..., 0] * x[..., 1], x[..., 1]], -1))
     with pytest.raises(RuntimeError, match="fit"):
         gp.factors()
     x = _design(12)
