@@ -5,7 +5,7 @@
  * map, the GP input map (reduced.GPInputMap with surrogate.features.FlowStressInputs, A, s_hat
  * and n fixed), the reduced likelihood (reduced.c) and every chain rule back. The same
  * formulas in the same order as the Python, which stays the reference and the fallback
- * (tests/unit/test_reduced.py checks the two agree). Why: with the reduced likelihood in C,
+ * (tests/unit/calibration/test_reduced.py checks the two agree). Why: with the reduced likelihood in C,
  * the Python around it was 55 of the 94 us of a gradient (BENCHMARKS.md, "Per-gradient and
  * per-round costs of the calibration").
  *

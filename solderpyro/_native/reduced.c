@@ -7,7 +7,7 @@
  * PCAReduction._loglik_projected and _k_terms (NumPy), step by step; the only difference is
  * P = V^1/2 M^-1 V^1/2 formed from M's Cholesky factor instead of an LU inverse. Why C: the
  * NumPy version makes ~60 calls on arrays of 20-91 values per gradient, and the calls, not
- * the arithmetic, were most of its 128 us (tests/unit/test_reduced.py checks the two agree).
+ * the arithmetic, were most of its 128 us (tests/unit/calibration/test_reduced.py checks the two agree).
  *
  * dims: K, n_sim, d' (GP inputs), rows (= K(K+1)/2 + K + 1), n (outputs), kernel (0 gaussian,
  *       1 Matern 5/2), has_w (a linear mean), max_order (moment series' cap, < 128)

@@ -50,7 +50,7 @@ SITE_Y = "y"  #: the likelihood
 #: this order by :func:`~.fastkoh.flat_model` (the first that covers the configuration, i.e.
 #: does not raise :class:`NotImplementedError`, is sampled; none: Pyro's potential of the
 #: model). Each is checked against the model's own log density, value and gradient, by
-#: ``tests/unit/test_fast_densities.py``, which iterates over this table.
+#: ``tests/unit/calibration/test_fastkoh.py``, which iterates over this table.
 FAST_DENSITIES: dict[Callable[..., None], tuple[str, ...]] = {}
 
 _Model = TypeVar("_Model", bound=Callable[..., None])

@@ -24,7 +24,7 @@ tape. The gradient is analytic (``dll/dc = B^T C^-1 r``, ``dll/dv_j = 1/2 ((B^T 
 kernels and the input map in NumPy (:class:`GPInputMap`).
 
 :func:`reduced_loglik_torch` is the same reduced likelihood in torch, for the check against
-the full density (``tests/unit/test_reduced.py``: equal to 1e-8 relative).
+the full density (``tests/unit/calibration/test_reduced.py``: equal to 1e-8 relative).
 """
 
 from __future__ import annotations

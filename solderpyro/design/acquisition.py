@@ -213,7 +213,7 @@ def greedy_draws(gp: GPSurrogate, criterion: str, points: AcquisitionPoints, q: 
         # candidates block are formed: the full (k, N + C + P, N + C + P) matrix and its
         # rank-1 updates took 2.9 s per design round on one thread (20 components, 256 draws,
         # 512 candidates, q 8 + 4 pending; 6.8 s on a busy machine), this 0.5 s, the same choices
-        # (benchmarks/round_costs.py; tests/unit/test_design.py)
+        # (benchmarks/round_costs.py; tests/unit/design/test_loop.py)
         d_all = cols.diag()  # (k, N + C + P)
         X = cols.block(slice(0, N), slice(N, N + C))  # (k, N, C)
         W: list[torch.Tensor] = []  # the rank-1 terms w (k, N + C + P), cov = cov0 - sum w w^T

@@ -17,7 +17,7 @@ exp(-sqrt5 r)``; Gaussian: ``rho' = rho``).
 Why: GPyTorch's autograd through the batched Cholesky took 13 ms per evaluation on the loop's
 recalibration surrogate (20 components, 98 runs; 459 evaluations, 6.1 s per fit, 7.4 ms of it
 ``backward``); this takes ~3 ms (BENCHMARKS.md, "Per-gradient and per-round costs of the
-calibration"; ``tests/unit/test_surrogate.py`` checks loss and gradient against GPyTorch's
+calibration"; ``tests/unit/surrogate/test_gp.py`` checks loss and gradient against GPyTorch's
 autograd). Where a Cholesky factorization fails (GPyTorch would add jitter) the closure evaluates
 GPyTorch's own loss for that step.
 """

@@ -1,7 +1,8 @@
 """What the likelihood sees of the computer model (solderpyro.calibration.emulators): the
 direct function at the observation inputs, a scalar GP's (x, t) input layout, and additive
 observation-side offsets that leave the code covariance alone. GP-backed emulators against
-the surrogate are in tests/unit/test_lowrank.py and tests/unit/test_reduced.py."""
+the surrogate are in tests/unit/calibration/test_koh_lowrank.py and
+tests/unit/calibration/test_reduced.py."""
 
 from types import SimpleNamespace
 

@@ -1,7 +1,7 @@
 """The one sampler (calibration.mcmc.run_nuts: the NumPy NUTS of calibration.nuts on the
 analytic KOH densities of calibration.fastkoh / calibration.reduced, or on Pyro's potential),
 checked against Pyro's NUTS as the reference. The analytic densities themselves are checked
-against the Pyro models they implement in tests/unit/test_fast_densities.py.
+against the Pyro models they implement in tests/unit/calibration/test_fastkoh.py.
 
 Statistical checks compare with references within Monte Carlo error: standard errors come
 from ArviZ's ESS (bulk ESS of the mean, quantile ESS of quantiles) and tolerances are 4.5 of

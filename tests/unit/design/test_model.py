@@ -1,7 +1,7 @@
 """The surrogate seen by BoTorch (solderpyro.design.model): the input transform maps the unit
 cube through the box to the GP's inputs, and observed_weights turns the GP coefficients'
 variances into the noise-weighted code variance of the observed outputs. The BoTorch model
-against the surrogate's predictive distribution is in tests/unit/test_design.py."""
+against the surrogate's predictive distribution is in tests/unit/design/test_loop.py."""
 
 import pytest
 import torch
