@@ -215,7 +215,8 @@ def _predictive_groups(pr: dict[str, np.ndarray], chains: int, draws: int
         raise ValueError("predictive draws must be the same draws of every chain (thin_index)")
     pos = idx[:m] % draws
     y = np.asarray(pr["y"], float)
-    extra = {k: np.asarray(v) for k, v in (pr.get("coords") or {}).items()}
+    coords: Any = pr.get("coords") or {}
+    extra = {k: np.asarray(v) for k, v in coords.items()}
     for k, v in extra.items():
         if v.shape != y.shape:
             raise ValueError(f"predictive coords[{k!r}] has shape {v.shape}, the data "

@@ -452,7 +452,7 @@ def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
         name, label = key.split("|", 1)
         if name not in best or f.chi2 < best[name][1].chi2:
             best[name] = (label, f)
-    go_on = {}
+    go_on: dict[str, tuple[tuple[str, ...], np.ndarray]] = {}
     for name, (_, f) in best.items():
         held = done.get(name)
         if held is not None and held.chi2 <= f.chi2:

@@ -257,6 +257,7 @@ class NewtonStep:
                 return ut, zt, evt
             u_new = torch.where(good[:, None], ut, u_new)
             if dz is not None:
+                assert zt is not None and z_new is not None
                 z_new = torch.where(good[:, None, None], zt, z_new)
             gi = torch.nonzero(good).squeeze(1)
             ev_new = evt if ev_new is None else put(ev_new, take(evt, gi), gi, inplace)

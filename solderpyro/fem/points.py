@@ -178,7 +178,8 @@ class PointEvaluator:
         if self.problem.plane == "stress":
             cz = col_zz(C3)
             sig_ip = sig_ip - cz[..., IP] / cz[..., ZZ, None] * szz[..., None]
-        sb, Cb, st1b, dgb, xb = band_update(self.band, eps[:, n:], st_b, *th.band,
+        eps_th_b, sigma_y_b = th.band
+        sb, Cb, st1b, dgb, xb = band_update(self.band, eps[:, n:], st_b, eps_th_b, sigma_y_b,
                                             None if guess is None else guess[:, n:], tangent)
         C3m = BandTangent(C3, Cb) if tangent else None
         C = self.condense(C3m) if tangent and condense else None

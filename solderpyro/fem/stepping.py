@@ -39,7 +39,7 @@ class Members(NamedTuple):
     vel: torch.Tensor | None = None
     gid: torch.Tensor | None = None
 
-    def index(self, idx) -> Members:
+    def subset(self, idx) -> Members:
         """The members ``idx``."""
         return Members(self.u[idx], self.st.index(idx), self.p[idx],
                        None if self.vel is None else self.vel[idx],
@@ -100,7 +100,7 @@ class TimeLoop:
         idx = torch.nonzero(~good).squeeze(1)
         self.nsub += len(idx)
         tm = 0.5 * (t0 + t1)
-        sub = m.index(idx)
+        sub = m.subset(idx)
         ua, sa, oka = self.advance(sub, t0, tm, depth + 1)
         v = (ua - sub.u) / (tm - t0)
         ub, sb, okb = self.advance(Members(ua, sa, sub.p, v, sub.gid), tm, t1, depth + 1)
