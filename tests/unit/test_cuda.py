@@ -32,8 +32,13 @@ def test_the_specimen_model_moved_to_cuda_gives_the_cpu_reference(tmp_path) -> N
     """``SpecimenModel.to("cuda")``: its buffers and its solver follow; V and dV/dtheta equal
     the CPU's reference values (tests/unit/specimen/test_model.py) to round-off, and the
     run-store path on the GPU equals the direct solve."""
+    import sys
+    from pathlib import Path
+
     import numpy as np
-    from test_specimen_model import G_REF, THETA, V_REF, W  # this folder
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent / "specimen"))
+    from test_model import G_REF, THETA, V_REF, W
 
     from solderpyro import SpecimenModel
     from solderpyro.compute.runstore import RunStore

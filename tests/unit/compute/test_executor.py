@@ -16,7 +16,9 @@ import cloudpickle
 import numpy as np
 import pytest
 import torch
-from test_store import cheap_problem  # tests/unit is on sys.path under pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # test_store beside this file
+from test_store import cheap_problem  # noqa: E402
 
 from solderpyro.compute.executor import (
     DaskExecutor,
