@@ -107,11 +107,11 @@ class _Chain:
     """One chain's NUTS transitions (state: position, log density, gradient)."""
 
     def __init__(self, f: LogpGrad, q: np.ndarray, lp: float, g: np.ndarray,
-                 rng: np.random.Generator, metric: _Metric, step: float, max_depth: int,
-                 max_energy_error: float) -> None:
+                 rng: np.random.Generator, metric: _Metric, step: float,
+                 settings: NutsSettings) -> None:
         self.f, self.q, self.lp, self.g = f, q, lp, g
         self.rng, self.metric, self.step = rng, metric, step
-        self.max_depth, self.max_de = max_depth, max_energy_error
+        self.max_depth, self.max_de = settings.max_tree_depth, settings.max_energy_error
         self.n_grad = 0
 
     # -------------------------------------------------------------- step-size heuristic
@@ -503,8 +503,7 @@ def _run_chain(job: _ChainJob, q: np.ndarray, lp: float, g: np.ndarray,
     d = q.shape[0]
     dense, warmup = job.s.dense_mass, job.s.warmup
     metric = _Metric(job.metric0)
-    ch = _Chain(job.f, q, lp, g, rng, metric, job.step0, job.s.max_tree_depth,
-                job.s.max_energy_error)
+    ch = _Chain(job.f, q, lp, g, rng, metric, job.step0, job.s)
     if not job.keep_step:
         ch.init_step()
     da = _DualAveraging(ch.step, job.s.target_accept)
