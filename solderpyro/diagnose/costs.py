@@ -17,6 +17,7 @@ STAGES = {"load": "loading the run", "predictive_check": "posterior predictive c
           "best_fit": "FE best fit (baseline refit)",
           "fe_jacobians": "FE Jacobians (+ ladder runs)", "score_tests": "score tests",
           "ladder": "likelihood-ratio ladder", "profile_refits": "profile refits",
+          "global_refits": "global refits (every candidate, several starts)",
           "verdict": "ranking and verdict", "cannot_rule_out": "what the data cannot rule out",
           "separation": "separation",
           "fingerprints": "fingerprints (refit predictions, denoising)",
@@ -39,13 +40,15 @@ class Costs:
         """Time the block as stage ``name`` (a key of :data:`STAGES`): its seconds and the FE
         runs of :attr:`fe` (computed, reused) it took are kept and logged."""
         t0, (c0, r0) = time.perf_counter(), self._counts()
-        yield
-        c1, r1 = self._counts()
-        row = {"seconds": round(time.perf_counter() - t0, 3), "fe_runs": c1 - c0,
-               "fe_reused": r1 - r0}
-        self.stages[name] = row
-        log.info("diagnose: %-30s %8.2f s, %4d FE runs computed, %4d reused", STAGES[name],
-                 row["seconds"], row["fe_runs"], row["fe_reused"])
+        try:
+            yield
+        finally:  # a stage that raises is counted too (its FE runs are stored all the same)
+            c1, r1 = self._counts()
+            row = {"seconds": round(time.perf_counter() - t0, 3), "fe_runs": c1 - c0,
+                   "fe_reused": r1 - r0}
+            self.stages[name] = row
+            log.info("diagnose: %-30s %8.2f s, %4d FE runs computed, %4d reused",
+                     STAGES[name], row["seconds"], row["fe_runs"], row["fe_reused"])
 
     def table(self) -> dict[str, dict[str, float | int]]:
         """The stages, then ``"total"`` (wall time since the start)."""

@@ -21,3 +21,27 @@ def test_stage_seconds_cover_the_block_and_the_total_covers_the_stages():
     tab = cost.table()
     assert tab["total"]["seconds"] >= row["seconds"] - 1e-3
     assert set(tab) - {"total"} <= set(STAGES)
+
+
+def test_every_stage_the_diagnosis_times_has_a_label():
+    """Each ``cost.stage("...")`` in diagnose/run.py names a key of STAGES (the log and
+    diagnosis.md label it; an unknown name would fail the diagnosis at its end)."""
+    import re
+    from pathlib import Path
+
+    import solderpyro.diagnose.run as run
+    from solderpyro.diagnose.costs import STAGES
+
+    names = set(re.findall(r'cost\.stage\("([a-z_]+)"\)', Path(run.__file__).read_text()))
+    assert "global_refits" in names and names <= set(STAGES), names - set(STAGES)
+
+
+def test_a_stage_that_raises_is_counted():
+    import pytest
+
+    from solderpyro.diagnose.costs import Costs
+
+    c = Costs()
+    with pytest.raises(RuntimeError), c.stage("best_fit"):
+        raise RuntimeError("the fit failed")
+    assert "best_fit" in c.stages and c.stages["best_fit"]["fe_runs"] == 0
