@@ -272,7 +272,8 @@ def _settings(a, setup, overrides=()):
         ex.profile_ci = "on"
     top = {"seed": a.seed, "store": str(a.store), "batch": a.batch}
     s = dataclasses.replace(s, **{k: v for k, v in top.items()
-                                  if v != getattr(d0, k)}, progress=not a.quiet)
+                                  if v != getattr(d0, k)},
+                            progress=not getattr(a, "quiet", False))
     return s
 
 

@@ -76,7 +76,7 @@ def test_closed_form_choice_equals_botorch_fantasies():
 
 def test_proposed_csv_has_one_row_per_run(tmp_path):
     """Replicated observations (3 per x): proposed.csv holds each set once per distinct x."""
-    from solderpyro.calibration.tables import koh_from_tables
+    from solderpyro.calibration.tables import RunTables, koh_from_tables
 
     rng = np.random.default_rng(0)
     xs = [(0.1, 0.2), (0.5, 0.8), (0.9, 0.3)]
@@ -92,9 +92,9 @@ def test_proposed_csv_has_one_row_per_run(tmp_path):
             for _ in range(3):
                 w.writerow([x1, x2, _sim(x1, x2, 0.7) + 0.02 * rng.standard_normal()])
     out = tmp_path / "out"
-    koh_from_tables(tmp_path / "sim.csv", tmp_path / "obs.csv", ["x1", "x2"], ["t"], "y", out,
-                    mode="modular", propose=3, chains=1, warmup=100, draws=100,
-                    progress=False)
+    koh_from_tables(RunTables(tmp_path / "sim.csv", tmp_path / "obs.csv", ["x1", "x2"], ["t"],
+                              "y"), out, mode="modular", propose=3, chains=1, warmup=100,
+                    draws=100, progress=False)
     with (out / "proposed.csv").open() as f:
         rows = list(csv.reader(f))[1:]
     assert len(rows) == 3 * len(xs)

@@ -9,7 +9,7 @@ import torch
 from solderpyro.design.model import SurrogateInputs, observed_weights
 from solderpyro.design.space_filling import lhs
 from solderpyro.params import Box
-from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate import GPOptions, GPSurrogate
 
 F64 = torch.float64
 BOX = Box(("s0", "A"), (5.0, 1e4), (25.0, 1e8), log_scale=(False, True))
@@ -21,8 +21,8 @@ def gp():
     u = BOX.to_unit(x)
     y = torch.stack([torch.sin(2 * u[:, 0] + 0.3 * k) * (1 + k) + u[:, 1] * k
                      for k in range(6)], 1)  # (14, 6), output scales 1..6
-    return GPSurrogate(BOX, output="pca", kernel="matern52", ard=False, n_pc=2,
-                       restarts=1).fit(x, y)
+    return GPSurrogate(BOX, output="pca", kernel="matern52", ard=False,
+                       options=GPOptions(n_pc=2, restarts=1)).fit(x, y)
 
 
 def test_observed_weights_sum_the_code_variance_of_the_outputs(gp):
