@@ -84,7 +84,7 @@ def test_where_points_at_the_largest_standardized_residual():
 
 def test_what_the_data_cannot_rule_out_is_added_to_the_verdict(monkeypatch):
     dg = Diagnosis(False, "the model fits", [], {}, [], [])
-    eff = SimpleNamespace(name="cu", n_params=1,
+    eff = SimpleNamespace(name="cu", n_params=1, size_index=0,
                           params=SimpleNamespace(names=("cu_yield",), units=("MPa",)))
     found = [{"effect": "cu", "outside": ["m"], "value": 15.0, "shift": {"m": -0.03}}]
     fx_all = SimpleNamespace(effects=[eff])
