@@ -44,8 +44,8 @@ def config_dir_override(config_dir: str | Path) -> str:
     ``DIR/config.yaml``) would be ignored: that is an error here, naming the file.
 
     Raises:
-        FileNotFoundError naming the directory when it is not one; ValueError naming a file
-        that shadows a packaged one.
+        FileNotFoundError: naming the directory when it is not one.
+        ValueError: naming a file that shadows a packaged one.
     """
     d = Path(config_dir).expanduser().resolve()
     if not d.is_dir():

@@ -181,7 +181,7 @@ class GPOptions:
         restarts: L-BFGS restarts from different initial lengthscales (at least 1 is run).
 
     Raises:
-        ValueError naming the field when one is out of range.
+        ValueError: naming the field when one is out of range.
     """
 
     n_pc: int | None = None
