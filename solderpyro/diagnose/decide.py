@@ -283,16 +283,30 @@ def remains(chi2_after: float, n: int, n_params: int) -> bool:
     return bool(_chi2.sf(chi2_after, max(n - n_params, 1)) < ALPHA)
 
 
+def chosen_refit(steps: list[list[Judged]], chosen: tuple[str, ...]) -> Refit | None:
+    """The refit that added the last of ``chosen`` (the latest step holding it: a forward step
+    that added nothing more holds only the other candidates), or None."""
+    if not chosen:
+        return None
+    for st in reversed(steps):
+        for j in st:
+            if j.refit.name == chosen[-1]:
+                return j.refit
+    return None
+
+
 def settled(steps: list[list[Judged]], chosen: tuple[str, ...], tie: list[str], n: int,
             sigma: float, floor: Floor) -> bool:
-    """Whether the forward steps' outcome explains the data: the chosen effects' last refit, or
-    the best of the tied candidates, leaves at most :data:`EXPLAINED_SD` noise sd
-    (:func:`explained`). False when nothing was chosen or tied."""
+    """Whether the forward steps' outcome explains the data: the chosen effects' refit
+    (:func:`chosen_refit`), or the best of the tied candidates in the last step, leaves at most
+    :data:`EXPLAINED_SD` noise sd (:func:`explained`). False when nothing was chosen or tied."""
     if not steps or not (chosen or tie):
         return False
-    names = set(tie) if tie else {chosen[-1]}
-    chi = [j.refit.chi2 for j in steps[-1] if j.refit.ok and j.refit.name in names]
-    return bool(chi) and explained(min(chi), n, sigma, floor)
+    if tie:
+        chi = [j.refit.chi2 for j in steps[-1] if j.refit.ok and j.refit.name in tie]
+        return bool(chi) and explained(min(chi), n, sigma, floor)
+    last = chosen_refit(steps, chosen)
+    return last is not None and explained(last.chi2, n, sigma, floor)
 
 
 def needs_global(faces: bool, base_chi2: float, n: int, n_params: int, settled_: bool) -> bool:

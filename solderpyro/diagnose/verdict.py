@@ -20,6 +20,7 @@ from solderpyro.diagnose.decide import (
     EXPLAINED_SD,
     Floor,
     Judged,
+    chosen_refit,
     effect_size,
     explained,
     remains,
@@ -145,9 +146,8 @@ def headline(v: VerdictInputs) -> str:
 
 
 def final_chi2(v: VerdictInputs) -> float:
-    """Chi-square of the last chosen effect's refit in the last step (the base's if none)."""
-    last = next((j.refit for j in v.steps[-1] if v.chosen and j.refit.name == v.chosen[-1]),
-                None) if v.steps else None
+    """Chi-square of the refit that added the last chosen effect (the base's if none)."""
+    last = chosen_refit(v.steps, v.chosen)
     return last.chi2 if last is not None else v.base_chi2
 
 

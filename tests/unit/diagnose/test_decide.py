@@ -225,3 +225,21 @@ def test_the_screen_picks_significant_scores_and_lets_the_refits_decide_when_a_m
     sc[1].dof = 4
     assert [s.name for s in to_refit(sc, 5, True, 4, 0.01, 4)] == ["mimicked", "mid", "weak",
                                                                    "weaker"]
+
+
+def test_the_chosen_refit_is_found_where_it_was_added_when_a_later_step_adds_nothing():
+    """A forward step that refits the others with A on and flags none holds only them: the
+    chi-square of the model with A is the refit that added A, not the base's (the verdict and
+    the global-refit rule read it there)."""
+    from types import SimpleNamespace as S
+
+    from solderpyro.diagnose.decide import Floor, chosen_refit, settled
+
+    a = S(refit=S(name="A", chi2=2250.0, ok=True))
+    b = S(refit=S(name="B", chi2=2400.0, ok=True))
+    b2 = S(refit=S(name="B", chi2=2249.5, ok=True))
+    steps = [[a, b], [b2]]  # step 2: B with A on, not flagged: nothing added
+    assert chosen_refit(steps, ("A",)) is a.refit
+    assert chosen_refit(steps, ()) is None
+    # 2,250 on 2,240 values at sigma 1: RMS 1.0 noise sd, explained
+    assert settled(steps, ("A",), [], 2240, 1.0, Floor())
