@@ -13,9 +13,9 @@ form                      differs from the library's effect by
 ``lag_second_order``      two first-order lags in series, each tau/2 (the library: one lag tau)
 ``cte_quadratic``         alpha(T) = alpha25 (1 + c (T - 25) + (c (T - 25))^2 / 2) (the
                           library: linear in T)
-``stress_free_slow``      the stress-free temperature, cooled at 1 K/min before the cycle (the
-                          library's pre-history cools over 1,800 s)
-``stress_free_moderate``  cooled at 2 K/min
+``stress_free_slow``      stress free at 150 degC, cooled before the cycle by Newton's law
+                          (fastest at first) at a mean 1 K/min (the library: a constant rate)
+``stress_free_moderate``  the same from 100 degC at a mean 2 K/min
 ========================  ===================================================================
 
 :func:`form` returns the :class:`~solderpyro.effects.Effect` instance; ``FORMS`` lists them.
@@ -23,14 +23,15 @@ form                      differs from the library's effect by
 
 from __future__ import annotations
 
-import dataclasses
+import math
 from dataclasses import dataclass
 
 import torch
 
-from solderpyro.effects import EFFECTS
+from solderpyro.effects.base import PreHistory
 from solderpyro.effects.cte_temperature import CteTemperature
 from solderpyro.effects.modulus_temperature import ModulusTemperature
+from solderpyro.effects.stress_free_temperature import StressFreeTemperature
 from solderpyro.effects.thermal_lag import ThermalLag
 from solderpyro.fem.loading import ThermalCycle
 
@@ -107,11 +108,39 @@ class CteQuadratic(CteTemperature):
         return eps + alpha * (F(T) - F(T_ref))
 
 
-def _stress_free(rate_K_per_min: float, T_sf: float) -> object:
-    """The library's stress-free temperature with the cool-down that ``rate`` gives from
-    ``T_sf`` to 25 degC."""
-    return dataclasses.replace(EFFECTS["stress_free_temperature"],
-                               cooldown_s=(T_sf - 25.0) / rate_K_per_min * 60.0)
+@dataclass(frozen=True)
+class NewtonCooling(PreHistory):
+    """A cool-down that slows as it nears the room (Newton's law of cooling: the temperature
+    relaxes exponentially, fastest at the start), instead of the library's constant rate:
+    ``(T - T_start) / (T_sf - T_start) = expm1(a s) / expm1(a)`` at the share ``s`` of the
+    cool-down still to run; its fastest rate is ``a e^a / (e^a - 1)`` times the mean."""
+
+    a: float = 3.0
+
+    @property
+    def peak_rate(self) -> float:
+        return self.a * math.exp(self.a) / math.expm1(self.a)
+
+    def fraction(self, s: torch.Tensor) -> torch.Tensor:
+        """``(b,)``, 1 at the cool-down's start (``s`` = 1), 0 at t = 0."""
+        return torch.expm1(self.a * s) / math.expm1(self.a)
+
+
+@dataclass(frozen=True)
+class StressFreeNewton(StressFreeTemperature):
+    """The library's stress-free temperature and cool-down, the cool-down Newtonian
+    (:class:`NewtonCooling`)."""
+
+    form: str = "newton"  # in the run-store hash: never mistaken for the library's runs
+
+    def pre_history(self) -> PreHistory:
+        ph = super().pre_history()
+        return NewtonCooling(ph.duration_s, ph.dT, ph.shortest_s)
+
+
+def cooldown_s(rate_K_per_min: float, T_sf: float) -> float:
+    """The cool-down, s, whose mean rate from ``T_sf`` to 25 degC is ``rate`` K/min."""
+    return (T_sf - 25.0) / rate_K_per_min * 60.0
 
 
 #: form name -> (the effect instance, the library effect it stands for, the hidden values to
@@ -120,8 +149,10 @@ FORMS = {
     "modulus_linear": (ModulusLinear(), "modulus_temperature", None),
     "lag_second_order": (LagSecondOrder(), "thermal_lag", None),
     "cte_quadratic": (CteQuadratic(), "cte_temperature", None),
-    "stress_free_slow": (_stress_free(1.0, 150.0), "stress_free_temperature", (150.0,)),
-    "stress_free_moderate": (_stress_free(2.0, 100.0), "stress_free_temperature", (100.0,)),
+    "stress_free_slow": (StressFreeNewton(), "stress_free_temperature",
+                         (150.0, cooldown_s(1.0, 150.0))),
+    "stress_free_moderate": (StressFreeNewton(), "stress_free_temperature",
+                             (100.0, cooldown_s(2.0, 100.0))),
 }
 
 

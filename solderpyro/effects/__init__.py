@@ -195,14 +195,17 @@ class EffectSet:
                     q: torch.Tensor) -> torch.Tensor:
         """Member temperature ``(b,)`` degC at time ``t`` s.
 
-        For ``t < 0`` (the pre-history) the temperature goes linearly from the member's
-        stress-free temperature at ``-D`` (its :meth:`cooldown`; before that it rests there)
-        to the program's start at 0; from t = 0 on,
-        the program ``cycle(t)`` transformed by the history hooks.
+        For ``t < 0`` (the pre-history) the temperature goes from the member's stress-free
+        temperature at ``-D`` (its :meth:`cooldown`; before that it rests there) to the
+        program's start at 0, as the pre-history's
+        :meth:`~solderpyro.effects.base.PreHistory.fraction` shapes it (linearly in time); from
+        t = 0 on, the program ``cycle(t)`` transformed by the history hooks.
         """
         if t < 0.0:
             T0 = cycle(0.0)
-            frac = torch.clamp(-t / self.cooldown(q), max=1.0)
+            ph = self.pre_history()
+            s = torch.clamp(-t / self.cooldown(q), max=1.0)
+            frac = s if ph is None else ph.fraction(s)
             return T0 + (self.stress_free(T_ref, q) - T0) * frac
         T = torch.full((q.shape[0],), cycle(t), dtype=q.dtype, device=q.device)
         for e, qe in zip(self.effects, self.split(q), strict=True):

@@ -68,7 +68,9 @@ class PlasticBand:
 @dataclass(frozen=True)
 class PreHistory:
     """A history simulated before t = 0: each member cools from its stress-free temperature to
-    the program's start over its own cool-down, ending at t = 0.
+    the program's start over its own cool-down, ending at t = 0, linearly in time (a constant
+    cooling rate; a subclass may shape the cool-down through :meth:`fraction` and
+    :attr:`peak_rate`).
 
     Attributes:
         duration_s: the longest cool-down, s (the pre-history starts at ``-duration_s``; a
@@ -89,6 +91,16 @@ class PreHistory:
         if not self.dT >= 0.0:
             raise ValueError(f"PreHistory: dT must be >= 0 K, got {self.dT}")
 
+    @property
+    def peak_rate(self) -> float:
+        """The cool-down's fastest rate over its mean rate (1: a constant rate)."""
+        return 1.0
+
+    def fraction(self, s: torch.Tensor) -> torch.Tensor:
+        """How far ``(T - T_start) / (T_sf - T_start)`` the member is, ``(b,)``, at the share
+        ``s`` ``(b,)`` of its cool-down still to run (1 at its start, 0 at t = 0): ``s``."""
+        return s
+
     def grid(self, ts: TimeStepping) -> np.ndarray:
         """Step end times ``(n + 1,)`` s from ``-duration_s`` to 0, shared by the batch.
 
@@ -101,7 +113,7 @@ class PreHistory:
         out = [0.0]
         t = 0.0
         while t > -self.duration_s * (1.0 - 1e-12):
-            rate = self.dT / max(-t, self.shortest_s)
+            rate = self.peak_rate * self.dT / max(-t, self.shortest_s)
             h = ts.dt_max if rate == 0.0 else min(ts.dt_max, ts.dT_max / rate)
             t = max(t - h, -self.duration_s)
             out.append(t)
