@@ -61,6 +61,9 @@ TIE = 0.02
 #: the summary columns of the reported interval (``interval`` says which kind)
 INTERVAL_COLUMNS = ("lo95", "hi95", "interval")
 CENTRAL, LOWER_FACE, UPPER_FACE = "central", "lower face", "upper face"
+#: the kind of an interval widened for model-form error where a misfit remains
+#: (:mod:`solderpyro.pipeline.model_form`)
+MODEL_FORM = "model form"
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,7 @@ from solderpyro.pipeline.fe_exact import (
     fe_exact,
     identifiability,
 )
+from solderpyro.pipeline.model_form import model_form_stage
 from solderpyro.pipeline.outputs import (
     SpecimenCalibration,
     loo_log_likelihood,
@@ -288,7 +289,11 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
         rep = Reported(rows, bands, problems, surrogate_trust(loop.converged, full_exact))
         left = remaining_misfit(checked.result.get("rms_over_sigma"), len(cp.y), cp.space.dim)
         if left:  # at the best checked posterior draw, the FE check within its bound
-            rep = Reported(rows, bands, [*problems, left], rep.trust + f", with care: {left}")
+            best = checked.draws[checked.pick][ranked(checked.V, cp.y.numpy())[0]]
+            rows, why = model_form_stage(cp, rows, best, out, s.seed)
+            rep = Reported(rows, bands, [*problems, left],
+                           rep.trust + f", with care: {left}; {why}")
+            clock("model_form")
     disc = discretization_stage(cp, out, fit, checked)
     if disc["warn"]:
         rep.problems = [*rep.problems, disc["message"]]
@@ -623,7 +628,9 @@ def adopt_exact(w: RunOutputs, rep: Reported, ex: Any, ex_info: dict[str, Any]) 
                             len(cp.y), cp.space.dim)
     ex_info["misfit_remains"] = bool(left)
     if left:
-        trust += f", with care: {left}"
+        rows, why = model_form_stage(cp, rows, np.asarray(ex_info["best_fit"]["x"]), w.out,
+                                     s.seed)
+        trust += f", with care: {left}; {why}"
         problems.append(left)
     log.info("exact: reliable: summary.csv, draws.npz and the predictive are the FE-exact "
              "posterior's")
@@ -642,9 +649,8 @@ def remaining_misfit(rms_sd: float | None, n: int, p: int) -> str:
         return ""
     return (f"a misfit remains at the FE's best fit (chi2 {c2:.0f} on {n - p} dof, above its "
             f"99 % point {q:.0f}; RMS {float(rms_sd):.2f} noise sd): the model still misses "
-            "part of the physics, the constants absorb what they can of it, and these "
-            "intervals do not include that model-form error, so they may miss the true "
-            "constants; run solderpyro diagnose on this run")
+            "part of the physics and the constants absorb what they can of it (run "
+            "solderpyro diagnose on this run)")
 
 
 def profile_stage(cp: CalibrationProblem, out: Path, rep: Reported, ex: Any,

@@ -144,7 +144,7 @@ def _warnings(d: Path, diag: dict | None, cmp: dict | None) -> list[str]:
 
 
 def _summary_rows(d: Path) -> list[list[str]]:
-    from solderpyro.calibration.intervals import CENTRAL, reported_interval
+    from solderpyro.calibration.intervals import CENTRAL, MODEL_FORM, reported_interval
 
     p = d / "summary.csv"
     if not p.is_file():
@@ -154,7 +154,10 @@ def _summary_rows(d: Path) -> list[list[str]]:
         for r in csv.DictReader(fh):
             lo, hi = reported_interval(r)  # the central quantiles in runs made before it
             face = r.get("interval") not in (None, "", CENTRAL)
-            out.append([r["parameter"] + (f" (95 % from its {r['interval']})" if face else ""),
+            kind = r.get("interval")
+            note = (" (95 % widened for model-form error)" if kind == MODEL_FORM
+                    else f" (95 % from its {kind})" if face else "")
+            out.append([r["parameter"] + note,
                         _num(lo), _num(r["median"]), _num(hi),
                         _num(r.get("r_hat", "nan"), ".3f"), _num(r.get("ess_bulk", "nan"), ".0f")])
     return out

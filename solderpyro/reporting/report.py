@@ -15,7 +15,7 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 
-from solderpyro.calibration.intervals import CENTRAL, LOWER_FACE, UPPER_FACE
+from solderpyro.calibration.intervals import CENTRAL, LOWER_FACE, MODEL_FORM, UPPER_FACE
 from solderpyro.config.rundir import RunDir
 from solderpyro.io.measurements import Measurements
 from solderpyro.reporting.plots import plot_traces, plot_validation
@@ -72,7 +72,8 @@ def _interval_cell(r: dict) -> str:
     """A summary row's reported 95 % interval, marked where it starts at a box face."""
     if "lo95" not in r:
         return "–"
-    mark = {LOWER_FACE: " (from the lower face)", UPPER_FACE: " (to the upper face)"}
+    mark = {LOWER_FACE: " (from the lower face)", UPPER_FACE: " (to the upper face)",
+            MODEL_FORM: " (widened for model-form error)"}
     return (f"[{float(r['lo95']):.4g}, {float(r['hi95']):.4g}]"
             f"{mark.get(str(r.get('interval')), '')}")
 
@@ -179,7 +180,7 @@ def write(rep: CalibrationReport) -> Path:
                      f"| {float(r['mean']):.4g} | {float(r['q97.5']):.4g} | "
                      f"{_interval_cell(r)} | "
                      f"{_num(r['r_hat'], '.3f')} | {float(r['ess_bulk']):.0f} |")
-    faces = [r for r in rows if r.get("interval", CENTRAL) != CENTRAL]
+    faces = [r for r in rows if r.get("interval", CENTRAL) in (LOWER_FACE, UPPER_FACE)]
     if faces:
         lines += ["", "The 95 % interval is the central one (2.5 % to 97.5 %) unless the "
                   "posterior piles against a face of the prior box (its densest half reaches "
@@ -188,6 +189,13 @@ def write(rep: CalibrationReport) -> Path:
                   + "; ".join(f"{r['parameter']} from its {r['interval']}" for r in faces)
                   + "). A face that is a physical limit is a result; one that is only the "
                   "box's edge says the box may be too narrow."]
+    widened = [r["parameter"] for r in rows if r.get("interval") == MODEL_FORM]
+    if widened:
+        lines += ["", "A misfit remains at the FE's best fit, so the 95 % intervals of "
+                  + ", ".join(widened) + " are widened for the model-form error: each is the "
+                  "hull of the posterior's own interval and the one a Kennedy-O'Hagan "
+                  "discrepancy over (time, x, y), fitted to the residual, leaves "
+                  "(model_form.json). The columns 2.5 % to 97.5 % are the posterior's own."]
     warn = list(rep.problems)
     warn += [f"R-hat of {r['parameter']} is {float(r['r_hat']):.3f} (> 1.01): chains disagree"
              for r in rows if float(r["r_hat"]) > 1.01]
