@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import predict_observation_model
-from solderpyro.calibration.intervals import with_intervals
+from solderpyro.calibration.intervals import LOWER_FACE, UPPER_FACE, with_intervals
 from solderpyro.calibration.mcmc import WarmStart, format_summary, thin_index, write_summary
 from solderpyro.calibration.predictive import Bands
 from solderpyro.config.compose import Setup
@@ -227,17 +227,49 @@ class RunOutputs:
         kind = "fe-exact" if saved is not None else "surrogate"
         if fit is not None:
             saved, kind = (fit.theta, fit.sigma), "fe-best-fit"
+        trust = rep.trust
+        pressed = pressed_constants(rep.rows, tuple(self.setup.anand))
+        if pressed:  # first, in the trust line and the notes
+            trust = (f"{pressed.split('. ')[0]}: likely a missing effect the constants "
+                     f"compensate (run solderpyro diagnose); {trust}")
+        notes = self.notes(trust, saved is not None, ex_info)
+        if pressed:
+            notes.insert(0, f"**constants on the box's faces**: {pressed}")
         write_summary(rep.rows, out / "summary.csv", SUMMARY)
-        run = save_run(out, self.meas, self.run_info(rep.trust, kind, ex_info),
+        run = save_run(out, self.meas, self.run_info(trust, kind, ex_info),
                        posterior_draws(post, rep.bands, cp.space.names, cp.y, self.y_liu, saved),
                        post.warm)
         t = cp.tally  # every FE run of the calibration so far (Liu, design, checks, exact)
         report.write(report.CalibrationReport(
             run, self.meas, rep.rows, post, self.loo, rep.bands, self.y_liu.numpy(),
             report.FeRunCounts(t.n_ok, t.n_failed, t.n_reused, t.n_computed), rep.problems,
-            self.notes(rep.trust, saved is not None, ex_info),
+            notes,
             None if ex is None or not ex_rows
             else report.ExactReport(ex, ex_rows, self.checked.draws)))
+
+
+#: this many material constants with intervals from a face of the box make a finding: one
+#: alone can be a physical limit (a copper that yields at the lowest stress the box allows)
+PRESSED_MIN = 2
+
+
+def pressed_constants(rows: list[dict], constants: tuple[str, ...]) -> str:
+    """The report's lead where at least :data:`PRESSED_MIN` of the material ``constants``
+    (names) have a 95 % interval that starts at a face of the prior box (the posterior's
+    densest half reaches it: :mod:`solderpyro.calibration.intervals`), else "".
+
+    Measured on the diagnosis benchmarks' base calibrations: 2-3 constants on faces wherever
+    the hidden effect moved the constants far (copper plasticity, E(T), residual stress), none
+    or one on the clean data and after the right effect was added."""
+    faces = [f"{r['parameter']} ({r['interval']})" for r in rows
+             if r["parameter"] in constants and r.get("interval") in (LOWER_FACE, UPPER_FACE)]
+    if len(faces) < PRESSED_MIN:
+        return ""
+    return (f"{', '.join(faces)} press against their prior box. Constants that pile against "
+            "the box's faces are what a model that lacks a physical effect looks like when "
+            "its constants absorb what they can of it, even where the fit is at the noise "
+            "level; the constants are then likely wrong. Run solderpyro diagnose on this run: "
+            "it refits every candidate effect from several starts across the box")
 
 
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
@@ -306,6 +338,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     if full_exact:
         rep = exact_stage(outputs, rep)
         clock("exact")
+    pressed = pressed_constants(rep.rows, tuple(setup.anand))
+    if pressed:
+        log.warning("%s", pressed)
     print(format_summary(rep.rows))
     run = RunDir.read(out)
     run.info.timing_s = clock.seconds
