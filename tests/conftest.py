@@ -23,3 +23,14 @@ def keep_environment():
     yield
     os.environ.clear()
     os.environ.update(env)
+
+
+@pytest.fixture
+def one_thread():
+    """One intra-op thread for the test, restored after it: small batched solves run several
+    times faster so on a shared machine (two threads wait on each other's cores). Use it with
+    ``pytestmark = pytest.mark.usefixtures("one_thread")``."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

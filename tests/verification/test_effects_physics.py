@@ -31,13 +31,7 @@ TIMES = (600.0, 1500.0)
 ELASTIC = {"A": 1e-30}  # Liu's constants with a negligible creep rate: an elastic solder
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small batched solves run much faster on one intra-op thread on a shared machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def small_problem(**kw):

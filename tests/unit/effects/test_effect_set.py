@@ -47,14 +47,7 @@ def with_anand(q, anand=None):
     return torch.cat([anand_tensor(anand, dtype=F64)[None].expand(q.shape[0], -1), q], 1)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small batched solves run ~8x faster on one intra-op thread when the machine is shared
-    (two threads wait on each other's cores); restored after each test."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

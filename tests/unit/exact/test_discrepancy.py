@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from solderpyro.exact.discrepancy import fit_discrepancy, koh_laplace, widened_intervals
 from solderpyro.params import Box
@@ -17,12 +16,7 @@ TRUTH = np.array([1.0, 2.0])
 BOX = Box(("a", "b"), (0.0, 0.5), (3.0, 4.0))
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _toy(seed: int, missing: float, n: int = 120):

@@ -36,12 +36,7 @@ G_REF = [[5.14960095131062667e-01, 3.69818225093902124e-03, -3.76664635715453899
           -2.07420651830893803e+01]]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def small_problem() -> Problem:
