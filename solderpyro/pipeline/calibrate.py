@@ -229,13 +229,13 @@ class RunOutputs:
         if fit is not None:
             saved, kind = (fit.theta, fit.sigma), "fe-best-fit"
         trust = rep.trust
-        pressed = pressed_constants(rep.rows, self.setup.space)
-        if pressed:  # first, in the trust line and the notes
-            trust = (f"{pressed.split('. ')[0]}: likely a missing effect the constants "
-                     f"compensate (run solderpyro diagnose); {trust}")
+        faces = pressed_faces(rep.rows, self.setup.space)
+        if faces:  # first, in the trust line and the notes
+            trust = (f"{', '.join(faces)} press against their prior box: likely a missing "
+                     f"effect the constants compensate (run solderpyro diagnose); {trust}")
         notes = self.notes(trust, saved is not None, ex_info)
-        if pressed:
-            notes.insert(0, f"**constants on the box's faces**: {pressed}")
+        if faces:
+            notes.insert(0, f"**constants on the box's faces**: {pressed_text(faces)}")
         write_summary(rep.rows, out / "summary.csv", SUMMARY)
         run = save_run(out, self.meas, self.run_info(trust, kind, ex_info),
                        posterior_draws(post, rep.bands, cp.space.names, cp.y, self.y_liu, saved),
@@ -260,11 +260,11 @@ PRESSED_NEAR = 0.02
 PRESSED_WIDTH = 0.25
 
 
-def pressed_constants(rows: list[dict], box: Box) -> str:
-    """The report's lead where at least :data:`PRESSED_MIN` of the material constants of
-    ``box`` have a reported 95 % interval (``lo95``, ``hi95``) that reaches within
-    :data:`PRESSED_NEAR` of a face and spans at most :data:`PRESSED_WIDTH` of the box, both on
-    its unit scale (log where flagged), else "".
+def pressed_faces(rows: list[dict], box: Box) -> list[str]:
+    """``"s0 (upper face)"`` for each material constant of ``box`` whose reported 95 % interval
+    (``lo95``, ``hi95``) reaches within :data:`PRESSED_NEAR` of a face and spans at most
+    :data:`PRESSED_WIDTH` of the box, both on its unit scale (log where flagged), where at
+    least :data:`PRESSED_MIN` of them do; else empty.
 
     Measured on every benchmark run on disk: the base calibrations of data with E(T), a
     thermal lag or residual stress press 3 constants (intervals over 1-21 % of their boxes,
@@ -282,13 +282,22 @@ def pressed_constants(rows: list[dict], box: Box) -> str:
         lo, hi = (float(v) for v in box.to_unit(torch.as_tensor(ends, dtype=torch.float64))[:, i])
         if hi - lo <= PRESSED_WIDTH and min(lo, 1.0 - hi) <= PRESSED_NEAR:
             faces.append(f"{r['parameter']} ({'lower' if lo <= 1.0 - hi else 'upper'} face)")
-    if len(faces) < PRESSED_MIN:
-        return ""
+    return faces if len(faces) >= PRESSED_MIN else []
+
+
+def pressed_text(faces: list[str]) -> str:
+    """The report's lead on the constants :func:`pressed_faces` found."""
     return (f"{', '.join(faces)} press against their prior box. Constants that pile against "
             "the box's faces are what a model that lacks a physical effect looks like when "
             "its constants absorb what they can of it, even where the fit is at the noise "
             "level; the constants are then likely wrong. Run solderpyro diagnose on this run: "
             "it refits every candidate effect from several starts across the box")
+
+
+def pressed_constants(rows: list[dict], box: Box) -> str:
+    """:func:`pressed_text` of :func:`pressed_faces`, or "" where no constants are pressed."""
+    faces = pressed_faces(rows, box)
+    return pressed_text(faces) if faces else ""
 
 
 def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
