@@ -30,10 +30,17 @@ class Costs:
     def __init__(self) -> None:
         self.t0 = time.perf_counter()
         self.fe: SpecimenModels | None = None
+        self.others: list[SpecimenModels] = []
         self.stages: dict[str, dict[str, float | int]] = {}
 
+    def fe_also(self, models: SpecimenModels) -> None:
+        """Count ``models``' runs too (another model of the same diagnosis, e.g. the
+        half-resolution one its global refits rank their starts with)."""
+        self.others.append(models)
+
     def _counts(self) -> tuple[int, int]:
-        return (0, 0) if self.fe is None else (self.fe.computed, self.fe.reused)
+        ms = ([] if self.fe is None else [self.fe]) + self.others
+        return sum(m.computed for m in ms), sum(m.reused for m in ms)
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from solderpyro.config.compose import build, coarsened, compose
 from solderpyro.diagnose.costs import Costs
 from solderpyro.diagnose.decide import (
     REFIT_TOL,
@@ -173,7 +174,10 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         if needs_global(bool(faces), base["chi2"], n, lay.n_cal,
                         settled(steps, chosen, tie, n, sigma, floor)):
             with cost.stage("global_refits"):
-                base, first = global_refits(lay, fe, meas, sigma, base, scores, first)
+                scout = SpecimenModels(build(compose(coarsened(list(info.overrides)))),
+                                       store, batch_size)
+                cost.fe_also(scout)
+                base, first = global_refits(lay, fe, meas, sigma, base, scores, first, scout)
                 base_chi2 = base["chi2"]
                 steps, chosen, tie = forward(lay, fe, meas, sigma, first, floor)
             freed = freeing(first, base_chi2, setup.space, len(faces)) if faces else []

@@ -230,3 +230,33 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
         if not ft.history or ft.chi2 < ft.history[-1]:
             ft.history.append(ft.chi2)
     return fits
+
+
+def difference_jacobian(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
+                        lo: Sequence[float] | np.ndarray, hi: Sequence[float] | np.ndarray,
+                        rel: float = 1e-3) -> LMFit:
+    """The forward-difference Jacobian at one point, as :func:`lm_fit` takes it, in one call
+    of ``fun`` (``1 + p`` rows) and without the trial steps of an iteration.
+
+    Args:
+        fun: ``rows (N, p) -> (N, n)`` predictions (um); x: ``(p,)`` the point, physical units,
+            inside ``[lo, hi]``; lo, hi: ``(p,)`` box; rel: the step as a share of its width
+            (backward where a forward step would leave the box).
+    Returns:
+        an :class:`LMFit` at ``x`` with every parameter free, ``J (n, p)`` on the unit-box
+        scale (None where a row failed) and ``chi2`` NaN (no data).
+    """
+    x = np.asarray(x, float).reshape(-1)
+    lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)
+    width = hi_a - lo_a
+    h = rel * width
+    rows = [x]
+    for j in range(len(x)):
+        xj = x.copy()
+        xj[j] += h[j] if x[j] + h[j] <= hi_a[j] else -h[j]
+        rows.append(xj)
+    V = fun(np.array(rows))
+    dx = np.array([rows[1 + j][j] - x[j] for j in range(len(x))])
+    J = (V[1:] - V[0]).T / dx * width
+    return LMFit(x.copy(), float("nan"), np.arange(len(x)),
+                 J if np.all(np.isfinite(J)) else None)

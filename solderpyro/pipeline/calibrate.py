@@ -1,7 +1,8 @@
 """The specimen calibration end to end, as a short sequence of stages.
 
     problem (:mod:`.problem`) -> adaptive design: surrogate + posterior per round, FE runs
-    placed by BoTorch until the FE confirms (:mod:`.adaptive`) -> FE check at posterior draws
+    at the posterior draws where the log-likelihood's code variance falls most (chosen greedily
+    in closed form) until the FE confirms (:mod:`.adaptive`) -> FE check at posterior draws
     (:mod:`.fe_check`) -> outputs (:mod:`.outputs`) -> the FE-exact posterior and profile
     intervals when the design ran out of budget with the FE still disagreeing
     (:mod:`.fe_exact`) -> outputs again.
@@ -489,7 +490,9 @@ def misfit_stage(cp: CalibrationProblem, s: CalibrationSettings, out: Path, loop
     trust += (f"; summary.csv is the FE's own best fit with its Laplace spread "
               f"widened {fit.scale:.1f}x for the misfit (the surrogate's posterior, "
               f"in summary_surrogate.csv, sits where only the surrogate fits)")
-    return fit, Reported(rows, bands, rep.problems, trust)
+    # the misfit is correlated where physics is missing: the discrepancy's intervals too
+    rows, why = model_form_stage(cp, rows, np.asarray(fit.x, float), out, s.seed)
+    return fit, Reported(rows, bands, rep.problems, f"{trust}; {why}")
 
 
 def surrogate_trust(converged: bool, full_exact: bool) -> str:

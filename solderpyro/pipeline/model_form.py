@@ -20,7 +20,7 @@ import numpy as np
 
 from solderpyro.calibration.intervals import MODEL_FORM
 from solderpyro.exact.discrepancy import WidenedInterval, fit_discrepancy, widened_intervals
-from solderpyro.exact.fit import LMOptions, lm_fit
+from solderpyro.exact.fit import difference_jacobian
 from solderpyro.pipeline.problem import CalibrationProblem
 
 log = logging.getLogger("solderpyro")
@@ -50,8 +50,8 @@ def model_form_intervals(cp: CalibrationProblem, x_best: np.ndarray, seed: int =
                          ) -> ModelForm:
     """The discrepancy's intervals at the FE's best fit ``x_best`` ``(space.dim,)`` (physical
     units): its Jacobian on the box's unit scale (forward differences through the run store:
-    one batched solve of ``1 + dim`` rows, then one of the five trial steps
-    :func:`~solderpyro.exact.fit.lm_fit` takes with it), the residual there, the
+    one batched solve of ``1 + dim`` rows, :func:`~solderpyro.exact.fit.difference_jacobian`),
+    the residual there, the
     discrepancy fitted over the measurements' (time s, x mm, y mm)."""
     space, meas = cp.space, cp.meas
     y = cp.y.numpy()
@@ -59,9 +59,7 @@ def model_form_intervals(cp: CalibrationProblem, x_best: np.ndarray, seed: int =
     r = y - cp.observed(x_best[None])[0]
     if not np.isfinite(r).all():
         raise RuntimeError("the FE did not converge at the best fit")
-    sig = cp.priors.sigma_known or float(np.sqrt(np.mean(r**2)))
-    fit = lm_fit(cp.observed, x_best[None], space.lower, space.upper, y, sig,
-                 options=LMOptions(iters=1))[0]
+    fit = difference_jacobian(cp.observed, x_best, space.lower, space.upper)
     J = fit.jacobian_unit(space.lower, space.upper, space.log_scale)
     if J is None:
         raise RuntimeError("the FE did not converge at the Jacobian's difference steps")

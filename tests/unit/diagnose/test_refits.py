@@ -118,3 +118,45 @@ def test_ladder_values_keep_only_magnitudes_that_lowered_chi2():
           SimpleNamespace(effect="y", lr=0.0, lr_value=0.9),
           SimpleNamespace(effect="z", lr=None, lr_value=None)]
     assert ladder_values(sc) == {"x": 0.4}
+
+
+class CheapToyFE(ToyFE):
+    """The toy's half-resolution stand-in: its predictions off by a smooth error of a few noise
+    sd (a coarser mesh's discretization error), its rows counted."""
+
+    def __init__(self) -> None:
+        self.rows = 0
+
+    def runs(self, P: torch.Tensor, times, field, fx) -> SimpleNamespace:
+        self.rows += len(P)
+        out = super().runs(P, times, field, fx)
+        out.V = out.V + torch.as_tensor(3.0 * SIGMA * X**3)[None, None, :]
+        return out
+
+
+class CountedToyFE(ToyFE):
+    def __init__(self) -> None:
+        self.rows = 0
+
+    def runs(self, P: torch.Tensor, times, field, fx) -> SimpleNamespace:
+        self.rows += len(P)
+        return super().runs(P, times, field, fx)
+
+
+def test_a_cheap_model_ranks_the_starts_and_the_own_fe_reaches_the_same_optimum(toy):
+    """The starts scouted and converged through a model whose predictions are off by a few
+    noise sd, then finished through the own FE: every candidate ends at the optimum the own FE
+    alone reaches (chi2 within the stopping rule's tolerance, a few LM_TOL; the constants to
+    1e-3 of their box), and the own FE evaluates fewer rows than when it does all the work."""
+    from solderpyro.diagnose.refits import LM_TOL
+
+    lay, _, meas, base, scores = toy
+    alone, own, cheap = CountedToyFE(), CountedToyFE(), CheapToyFE()
+    local = first_refits(lay, ToyFE(), meas, SIGMA, base, scores, scores)
+    _, ref = global_refits(lay, alone, meas, SIGMA, base, scores, local)
+    _, got = global_refits(lay, own, meas, SIGMA, base, scores, local, scout_fe=cheap)
+    for r, g in zip(ref, got, strict=True):
+        assert r.name == g.name
+        assert g.chi2 == pytest.approx(r.chi2, abs=4 * LM_TOL)
+        np.testing.assert_allclose(g.x[:2], r.x[:2], atol=1e-3 * (B_MAX - 0.5))
+    assert cheap.rows > 0 and own.rows < alone.rows

@@ -76,3 +76,25 @@ def test_lm_tol_stops_each_start_when_converged_and_spends_no_more_rows_on_it():
     assert fits[0].x == pytest.approx([5.0, 0.7], abs=1e-5) and fits[0].converged
     assert fits[1].converged and fits[1].iters == 0 and fits[1].chi2 < 1e-20
     assert n_rows["tol"] < n_rows["fixed"] / 2
+
+
+def test_difference_jacobian_is_lm_fits_and_costs_one_call():
+    """The Jacobian of one point equals the one an lm_fit iteration takes there (same steps,
+    same unit-box scale; a backward step on the upper bound), in one call of 1 + p rows."""
+    from solderpyro.exact.fit import difference_jacobian
+
+    calls = []
+
+    def f(rows):
+        calls.append(len(rows))
+        return _exp(rows)
+
+    x = np.array([4.0, 3.0])  # b on its upper bound: a backward step
+    jac = difference_jacobian(f, x, [0.1, 0.01], [10.0, 3.0])
+    assert calls == [3]
+    ref = lm_fit(_exp, x[None], [0.1, 0.01], [10.0, 3.0], np.zeros(11), 1.0,
+                 options=LMOptions(iters=1))[0]
+    np.testing.assert_array_equal(jac.J, ref.J)
+    # the derivative itself: d(a e^{-bx})/db times the box width, to the step's O(h) error
+    exact_b = -4.0 * X * np.exp(-3.0 * X) * (3.0 - 0.01)
+    np.testing.assert_allclose(jac.J[:, 1], exact_b, rtol=5e-3, atol=1e-12)
