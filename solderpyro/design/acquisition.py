@@ -19,24 +19,30 @@ posterior of the parameters (``mc_points``: posterior draws, unit cube):
 
 The variance of a GP with fixed hyperparameters after new runs does not depend on their
 outputs, so one fantasy (BoTorch's default dummy sampler) makes both criteria exact.
+
+BoTorch is imported where it is used, in :func:`~solderpyro.surrogate.gp.botorch_imports`
+(importing this module leaves a host's GPyTorch settings as they were), so
+:class:`qIntegratedLogLikVariance`, a BoTorch subclass, is defined on first access. Both
+criteria, and :func:`propose`, evaluate in BoTorch's settings
+(:func:`~solderpyro.surrogate.exact_linear_algebra`) whatever the host's.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import functools
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
-from botorch.acquisition import AcquisitionFunction
-from botorch.acquisition.active_learning import qNegIntegratedPosteriorVariance
-from botorch.acquisition.objective import ScalarizedPosteriorTransform
-from botorch.models.model import Model
-from botorch.optim import optimize_acqf, optimize_acqf_discrete
-from botorch.sampling.normal import SobolQMCNormalSampler
-from botorch.utils.transforms import concatenate_pending_points, t_batch_mode_transform
 
 from solderpyro.design.model import observed_weights
-from solderpyro.surrogate import GPSurrogate
+from solderpyro.surrogate import GPSurrogate, exact_linear_algebra
+from solderpyro.surrogate.gp import botorch_imports
+
+if TYPE_CHECKING:
+    from botorch.acquisition import AcquisitionFunction
+    from botorch.acquisition.active_learning import qNegIntegratedPosteriorVariance
+    from botorch.models.model import Model
 
 CRITERIA = ("loglik", "variance")
 OPTIMIZERS = ("optimize", "draws")
@@ -62,52 +68,94 @@ def integrated_code_variance(model: Model, mc_points: torch.Tensor, weights: tor
     if weights.ndim != 1 or weights.shape[0] != model.num_outputs:
         raise ValueError(f"weights must have shape ({model.num_outputs},), got "
                          f"{tuple(weights.shape)}")
+    with botorch_imports():
+        from botorch.acquisition.objective import ScalarizedPosteriorTransform
     pt = ScalarizedPosteriorTransform(weights.clamp_min(0).sqrt().to(mc_points))
-    return qNegIntegratedPosteriorVariance(model, mc_points, posterior_transform=pt,
-                                           X_pending=X_pending)
+    return _code_variance_class()(model, mc_points, posterior_transform=pt, X_pending=X_pending)
 
 
-class qIntegratedLogLikVariance(AcquisitionFunction):
-    """``-E_post[Var_code l(theta) | runs + X]``: the posterior-weighted code variance of the
-    Gaussian log-likelihood that remains after the q-batch ``X`` (nats^2).
+@functools.cache
+def _code_variance_class() -> type[qNegIntegratedPosteriorVariance]:
+    """BoTorch's ``qNegIntegratedPosteriorVariance``, evaluated in BoTorch's settings
+    (:func:`~solderpyro.surrogate.exact_linear_algebra`) whatever the host's; defined on first
+    use (BoTorch is imported only where it is used)."""
+    with botorch_imports():
+        from botorch.acquisition.active_learning import qNegIntegratedPosteriorVariance
 
-    Args:
-        model: :func:`~solderpyro.design.model.botorch_model` of the surrogate (k outputs).
-        mc_points: ``(N, d)`` posterior draws, unit cube.
-        grad: ``(N, k)`` ``g_j = (S B)^T (y - m(theta_j)) / sigma^2`` (1/coefficient unit).
-        curvature: ``(k, k)`` ``M = (S B)^T (S B) / sigma^2``.
-        X_pending: ``(m, d)`` runs asked for and not yet back.
-    See :func:`loglik_terms` for ``grad`` and ``curvature``.
-    """
+    class IntegratedCodeVariance(qNegIntegratedPosteriorVariance):
+        def forward(self, X: torch.Tensor) -> torch.Tensor:
+            with exact_linear_algebra():
+                return super().forward(X)
 
-    def __init__(self, model: Model, mc_points: torch.Tensor, grad: torch.Tensor,
-                 curvature: torch.Tensor, X_pending: torch.Tensor | None = None) -> None:
-        super().__init__(model=model)
-        k = model.num_outputs
-        if mc_points.ndim != 2 or grad.shape != (mc_points.shape[0], k) \
-                or curvature.shape != (k, k):
-            raise ValueError(f"qIntegratedLogLikVariance: need mc_points (N, d), grad (N, {k}) "
-                             f"and curvature ({k}, {k}); got {tuple(mc_points.shape)}, "
-                             f"{tuple(grad.shape)}, {tuple(curvature.shape)}")
-        self.register_buffer("mc_points", mc_points)
-        self.register_buffer("grad2", grad.square())
-        self.register_buffer("curv2", curvature.square())
-        self.sampler = SobolQMCNormalSampler(sample_shape=torch.Size([1]))
-        self.set_X_pending(X_pending)
+    return IntegratedCodeVariance
 
-    @concatenate_pending_points
-    @t_batch_mode_transform()  # type: ignore[arg-type]
-    def forward(self, X: torch.Tensor) -> torch.Tensor:
-        """``X (b, q, d)`` unit cube -> ``(b,)``."""
-        fm = self.model.fantasize(X=X, sampler=self.sampler)  # type: ignore[operator]
-        # one point at a time (as qNegIntegratedPosteriorVariance does for several outputs):
-        # a joint posterior over the N points would form (b, k, N, N) covariances
-        bdims = tuple(1 for _ in X.shape[:-2])
-        mc = self.mc_points.view(-1, *bdims, 1, X.size(-1))  # type: ignore[operator]
-        v = fm.posterior(mc).variance  # (N, 1, b, 1, k); mc: (N, 1, 1, d)
-        v = v.reshape(v.shape[0], -1, v.shape[-1]).transpose(0, 1)  # (b, N, k)
-        var = (self.grad2 * v).sum(-1) + 0.5 * torch.einsum("bnk,kl,bnl->bn", v, self.curv2, v)
-        return -var.mean(-1)
+
+@functools.cache
+def _loglik_variance_class() -> type[AcquisitionFunction]:
+    """:class:`qIntegratedLogLikVariance`, defined on first use (BoTorch is imported only where
+    it is used, in :func:`~solderpyro.surrogate.gp.botorch_imports`)."""
+    with botorch_imports():
+        from botorch.acquisition import AcquisitionFunction
+        from botorch.sampling.normal import SobolQMCNormalSampler
+        from botorch.utils.transforms import concatenate_pending_points, t_batch_mode_transform
+
+    class qIntegratedLogLikVariance(AcquisitionFunction):
+        """``-E_post[Var_code l(theta) | runs + X]``: the posterior-weighted code variance of the
+        Gaussian log-likelihood that remains after the q-batch ``X`` (nats^2).
+
+        Args:
+            model: :func:`~solderpyro.design.model.botorch_model` of the surrogate (k outputs).
+            mc_points: ``(N, d)`` posterior draws, unit cube.
+            grad: ``(N, k)`` ``g_j = (S B)^T (y - m(theta_j)) / sigma^2`` (1/coefficient unit).
+            curvature: ``(k, k)`` ``M = (S B)^T (S B) / sigma^2``.
+            X_pending: ``(m, d)`` runs asked for and not yet back.
+        See :func:`loglik_terms` for ``grad`` and ``curvature``.
+        """
+
+        def __init__(self, model: Model, mc_points: torch.Tensor, grad: torch.Tensor,
+                     curvature: torch.Tensor, X_pending: torch.Tensor | None = None) -> None:
+            super().__init__(model=model)
+            k = model.num_outputs
+            if mc_points.ndim != 2 or grad.shape != (mc_points.shape[0], k) \
+                    or curvature.shape != (k, k):
+                raise ValueError(f"qIntegratedLogLikVariance: need mc_points (N, d), grad (N, {k}) "
+                                 f"and curvature ({k}, {k}); got {tuple(mc_points.shape)}, "
+                                 f"{tuple(grad.shape)}, {tuple(curvature.shape)}")
+            self.register_buffer("mc_points", mc_points)
+            self.register_buffer("grad2", grad.square())
+            self.register_buffer("curv2", curvature.square())
+            self.sampler = SobolQMCNormalSampler(sample_shape=torch.Size([1]))
+            self.set_X_pending(X_pending)
+
+        @concatenate_pending_points
+        @t_batch_mode_transform()  # type: ignore[arg-type]
+        def forward(self, X: torch.Tensor) -> torch.Tensor:
+            """``X (b, q, d)`` unit cube -> ``(b,)``, in BoTorch's settings
+            (:func:`~solderpyro.surrogate.exact_linear_algebra`) whatever the host's."""
+            with exact_linear_algebra():
+                fm = self.model.fantasize(X=X, sampler=self.sampler)  # type: ignore[operator]
+                # one point at a time (as qNegIntegratedPosteriorVariance does for several
+                # outputs): a joint posterior over the N points would form (b, k, N, N)
+                # covariances
+                bdims = tuple(1 for _ in X.shape[:-2])
+                mc = self.mc_points.view(-1, *bdims, 1, X.size(-1))  # type: ignore[operator]
+                v = fm.posterior(mc).variance  # (N, 1, b, 1, k); mc: (N, 1, 1, d)
+            v = v.reshape(v.shape[0], -1, v.shape[-1]).transpose(0, 1)  # (b, N, k)
+            var = (self.grad2 * v).sum(-1) + 0.5 * torch.einsum("bnk,kl,bnl->bn", v,
+                                                                  self.curv2, v)
+            return -var.mean(-1)
+
+    qIntegratedLogLikVariance.__qualname__ = qIntegratedLogLikVariance.__name__  # for pickle
+    return qIntegratedLogLikVariance
+
+
+def __getattr__(name: str) -> Any:
+    """``qIntegratedLogLikVariance``: the likelihood-aware acquisition (a BoTorch
+    ``AcquisitionFunction``, ``qIntegratedLogLikVariance(model, mc_points, grad, curvature,
+    X_pending=None)``); the class is defined on first access, when BoTorch is imported."""
+    if name == "qIntegratedLogLikVariance":
+        return _loglik_variance_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def loglik_terms(gp: GPSurrogate, theta: torch.Tensor, y: torch.Tensor, sigma: float,
@@ -272,17 +320,20 @@ def propose(acq: AcquisitionFunction, d: int, q: int, method: str = "optimize",
         raise ValueError(f"propose: method must be one of {OPTIMIZERS}, got {method!r}")
     if q < 1:
         raise ValueError(f"propose: q must be >= 1, got {q}")
+    with botorch_imports():
+        from botorch.optim import optimize_acqf, optimize_acqf_discrete
     mcp = getattr(acq, "mc_points", None)
     dt: torch.dtype = mcp.dtype if isinstance(mcp, torch.Tensor) else torch.float64
-    if method == "draws":
-        if candidates is None or candidates.shape[0] < q:
-            raise ValueError("propose(method='draws') needs at least q candidates")
-        X, val = optimize_acqf_discrete(acq, q, candidates.to(dt), unique=True)
+    with exact_linear_algebra():  # BoTorch's settings, whatever the host's
+        if method == "draws":
+            if candidates is None or candidates.shape[0] < q:
+                raise ValueError("propose(method='draws') needs at least q candidates")
+            X, val = optimize_acqf_discrete(acq, q, candidates.to(dt), unique=True)
+            return X.detach(), float(acq(X[None]).item())
+        bounds = torch.stack([torch.zeros(d, dtype=dt), torch.ones(d, dtype=dt)])
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            np.random.seed(seed % 2**32)
+            X, _ = optimize_acqf(acq, bounds, q=q, num_restarts=8, raw_samples=128,
+                                 sequential=True, options={"maxiter": 100, "seed": seed})
         return X.detach(), float(acq(X[None]).item())
-    bounds = torch.stack([torch.zeros(d, dtype=dt), torch.ones(d, dtype=dt)])
-    with torch.random.fork_rng():
-        torch.manual_seed(seed)
-        np.random.seed(seed % 2**32)
-        X, _ = optimize_acqf(acq, bounds, q=q, num_restarts=8, raw_samples=128,
-                             sequential=True, options={"maxiter": 100, "seed": seed})
-    return X.detach(), float(acq(X[None]).item())

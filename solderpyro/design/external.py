@@ -2,13 +2,17 @@
 
 ``solderpyro koh ... --propose q`` calibrates from the run table as usual, then writes the
 next ``q`` parameter sets where the surrogate's code uncertainty at the observed outputs
-matters most for the posterior (:func:`~.acquisition.integrated_code_variance`: BoTorch's
-integrated posterior variance at the pairs (observed x, posterior draw of t), weighted by the
-noise). Each proposed t is to be run at every distinct observed x (one run serves an x's
-replicated observations). The user appends the results to the
-run table and calls again: the loop continues from the table, as surmise's ``supplement()``
-does. Proposals not yet in the table are *pending*: they are kept in ``pending.csv`` and count
-as runs already asked for (BoTorch's ``X_pending``), so they are never proposed twice.
+matters most for the posterior: the posterior draws of t whose runs would most lower the GP's
+variance at the pairs (observed x, posterior draw of t), averaged over the observations and
+the draws, chosen one at a time (:func:`propose_external`). That variance is computed in
+closed form from the GP's posterior covariance with rank-``n_u`` updates, not through
+BoTorch; it ranks the candidates as :func:`~.acquisition.integrated_code_variance`
+(BoTorch's ``qNegIntegratedPosteriorVariance``) with one output does. Each proposed t is to
+be run at every distinct observed x (one run serves an x's replicated observations). The
+user appends the results to the run table and calls again: the loop continues from the
+table, as surmise's ``supplement()`` does. Proposals not yet in the table are *pending*:
+they are kept in ``pending.csv`` and the GP is conditioned on them as runs already asked for
+(the role of BoTorch's ``X_pending``), so they are never proposed twice.
 """
 
 from __future__ import annotations
@@ -65,18 +69,20 @@ def propose_external(gp: GPSurrogate, x_obs: torch.Tensor, theta_draws: torch.Te
                      n_mc: int = 64, n_candidates: int = 128) -> torch.Tensor:
     """The next ``q`` parameter sets ``(q, n_t)`` for an external simulator.
 
-    The criterion is :func:`~.acquisition.integrated_code_variance` (BoTorch's
-    ``qNegIntegratedPosteriorVariance``) with one output: the GP's variance at the pairs
-    (observed x, posterior draw of t), averaged over the observations (a replicated x counts
-    once per observation), left after a candidate's runs, one at each distinct observed x,
-    and the pending ones. It is computed in closed form, as
+    The criterion is the GP's variance at the pairs (observed x, posterior draw of t),
+    averaged over ``n_mc`` draws and over the observations (a replicated x counts once per
+    observation), left after a candidate's runs, one at each distinct observed x, and the
+    pending ones; each step takes the candidate that lowers it most. No BoTorch function
+    runs: the variance is computed in closed form, as
     :func:`~.acquisition.greedy_draws` does for single runs: with fixed hyperparameters a
     batch of runs at points ``I`` lowers the posterior covariance by
     ``S[:, I] (S[I, I] + tau)^-1 S[I, :]``, so one posterior covariance block (integration
-    points x candidates' runs) and rank-``n_u`` updates give every candidate's value, the
-    same values as BoTorch's fantasy models (tested) without their memory: those formed a
-    full covariance over the integration points per candidate, 128 x 1,920^2 values (3.8 GB)
-    for 30 observations.
+    points x candidates' runs) and rank-``n_u`` updates give every candidate's value. The
+    choices are those of :func:`~.acquisition.integrated_code_variance` (BoTorch's
+    ``qNegIntegratedPosteriorVariance``) with one output, maximized over the candidates with
+    the chosen runs as ``X_pending`` (tested), without the memory of its fantasy models: those
+    form a full covariance over the integration points per candidate, 128 x 1,920^2 values
+    (3.8 GB) for 30 observations.
 
     Args:
         gp: a scalar :class:`GPSurrogate` over the box (x columns, then t columns).

@@ -3,7 +3,8 @@
 A small space-filling start, then rounds of
 
     fit the surrogate -> posterior (warm-started) -> FE at a few posterior draws (the check)
-    -> stop? -> acquire q runs (BoTorch, :mod:`solderpyro.design.acquisition`)
+    -> stop? -> acquire q runs (:mod:`solderpyro.design.acquisition`: by default the q
+    posterior draws where the code variance falls most, greedily in closed form)
     -> one batched FE solve -> refit ...
 
 The engine is generic: it sees the FE, the surrogate fit and the posterior only as callables

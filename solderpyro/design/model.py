@@ -16,36 +16,62 @@ noise-weighted code variance at the observed outputs,
 from __future__ import annotations
 
 import copy
+import functools
+from typing import TYPE_CHECKING, Any
 
 import torch
-from botorch.models import SingleTaskGP
-from botorch.models.transforms.input import InputTransform
 
 from solderpyro.surrogate import GPSurrogate
-from solderpyro.surrogate.gp import BatchGP
+from solderpyro.surrogate.gp import BatchGP, botorch_imports
+
+if TYPE_CHECKING:
+    from botorch.models import SingleTaskGP
+    from botorch.models.transforms.input import InputTransform
 
 
-class SurrogateInputs(InputTransform, torch.nn.Module):
-    """BoTorch input transform: unit cube ``X (..., d)`` -> the surrogate's GP inputs.
+@functools.cache
+def _surrogate_inputs_class() -> type[InputTransform]:
+    """:class:`SurrogateInputs`, defined on first use (BoTorch is imported only where it is
+    used, in :func:`~solderpyro.surrogate.gp.botorch_imports`)."""
+    with botorch_imports():
+        from botorch.models.transforms.input import InputTransform
 
-    ``X`` is :meth:`Box.to_unit` of the physical parameters (log-scale coordinates in their
-    logarithm); the transform applies :meth:`Box.from_unit` and the surrogate's own input map
-    (differentiable, so ``optimize_acqf`` gets gradients through it).
-    """
+    class SurrogateInputs(InputTransform, torch.nn.Module):
+        """BoTorch input transform: unit cube ``X (..., d)`` -> the surrogate's GP inputs.
 
-    def __init__(self, gp: GPSurrogate) -> None:
-        super().__init__()
-        self.transform_on_train = True
-        self.transform_on_eval = True
-        self.transform_on_fantasize = True
-        self._gp = gp
+        ``X`` is :meth:`Box.to_unit` of the physical parameters (log-scale coordinates in their
+        logarithm); the transform applies :meth:`Box.from_unit` and the surrogate's own input
+        map (differentiable, so ``optimize_acqf`` gets gradients through it).
 
-    def transform(self, X: torch.Tensor) -> torch.Tensor:
-        """``X (..., d)`` in the unit cube -> ``(..., d')`` GP inputs."""
-        return self._gp.gp_inputs(self._gp.box.from_unit(X))
+        Args:
+            gp: the fitted :class:`GPSurrogate`.
+        """
 
-    def equals(self, other: InputTransform) -> bool:
-        return isinstance(other, SurrogateInputs) and other._gp is self._gp
+        def __init__(self, gp: GPSurrogate) -> None:
+            super().__init__()
+            self.transform_on_train = True
+            self.transform_on_eval = True
+            self.transform_on_fantasize = True
+            self._gp = gp
+
+        def transform(self, X: torch.Tensor) -> torch.Tensor:
+            """``X (..., d)`` in the unit cube -> ``(..., d')`` GP inputs."""
+            return self._gp.gp_inputs(self._gp.box.from_unit(X))
+
+        def equals(self, other: InputTransform) -> bool:
+            return isinstance(other, SurrogateInputs) and other._gp is self._gp
+
+    SurrogateInputs.__qualname__ = SurrogateInputs.__name__  # pickled by module and name
+    return SurrogateInputs
+
+
+def __getattr__(name: str) -> Any:
+    """``SurrogateInputs``: BoTorch input transform, unit cube ``X (..., d)`` -> the
+    surrogate's GP inputs (``SurrogateInputs(gp)``, a BoTorch ``InputTransform``); the class is
+    defined on first access, when BoTorch is imported."""
+    if name == "SurrogateInputs":
+        return _surrogate_inputs_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def botorch_model(gp: GPSurrogate) -> SingleTaskGP:
@@ -64,6 +90,9 @@ def botorch_model(gp: GPSurrogate) -> SingleTaskGP:
         (``gp.basis.shape[1]``); inputs ``(..., q, d)``, outputs ``(..., q, k)`` in the
         standardized coefficient units of the surrogate.
     """
+    with botorch_imports():
+        from botorch.models import SingleTaskGP
+
     z = gp.factors().z  # (k, n); raises before a fit
     src = gp.model
     assert src is not None
@@ -80,7 +109,7 @@ def botorch_model(gp: GPSurrogate) -> SingleTaskGP:
         mods = [copy.deepcopy(m_) for m_ in (src.likelihood, src.covar_module,
                                               src.mean_module)]
     m = SingleTaskGP(X, Z, likelihood=mods[0], covar_module=mods[1], mean_module=mods[2],
-                     outcome_transform=None, input_transform=SurrogateInputs(gp))
+                     outcome_transform=None, input_transform=_surrogate_inputs_class()(gp))
     m.eval()
     for p in m.parameters():
         p.requires_grad_(False)

@@ -78,12 +78,16 @@ def fit_discrepancy(X: np.ndarray, r: np.ndarray, noise_sd: float | None = None,
     Raises:
         ValueError: for mismatched shapes, non-finite values or a non-positive ``noise_sd``.
     """
-    from botorch.fit import fit_gpytorch_mll
-    from botorch.models import SingleTaskGP
-    from botorch.models.transforms import Normalize, Standardize
-    from botorch.models.utils.gpytorch_modules import get_covar_module_with_dim_scaled_prior
     from gpytorch.kernels import ScaleKernel
     from gpytorch.mlls import ExactMarginalLogLikelihood
+
+    from solderpyro.surrogate.gp import botorch_imports, exact_linear_algebra
+
+    with botorch_imports():
+        from botorch.fit import fit_gpytorch_mll
+        from botorch.models import SingleTaskGP
+        from botorch.models.transforms import Normalize, Standardize
+        from botorch.models.utils.gpytorch_modules import get_covar_module_with_dim_scaled_prior
 
     X = np.asarray(X, float)
     r = np.asarray(r, float).reshape(-1)
@@ -108,23 +112,25 @@ def fit_discrepancy(X: np.ndarray, r: np.ndarray, noise_sd: float | None = None,
     Xt = torch.as_tensor(Xv[fit_idx], dtype=torch.float64)
     Yt = torch.as_tensor(r[fit_idx], dtype=torch.float64)[:, None]
     d = Xv.shape[1]
-    kernel = ScaleKernel(get_covar_module_with_dim_scaled_prior(d, use_rbf_kernel=False))
-    standardize = Standardize(1)
-    model = SingleTaskGP(
-        Xt, Yt, train_Yvar=None if noise_sd is None else torch.full_like(Yt, noise_sd**2),
-        covar_module=kernel,
-        input_transform=Normalize(d, bounds=torch.as_tensor(np.vstack([lo, lo + span]))),
-        outcome_transform=standardize)
-    fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
-    model.eval()
-    with torch.no_grad():
-        scale = float(standardize.stdvs.reshape(())) ** 2
-        u = torch.as_tensor((Xv - lo) / span, dtype=torch.float64)
-        K = kernel(u).to_dense().numpy() * scale
-        amp = float(kernel.outputscale) * scale
-        ls = kernel.base_kernel.lengthscale.reshape(-1).numpy() * span
-        s2 = (noise_sd**2 if noise_sd is not None
-              else float(model.likelihood.noise.mean()) * scale)
+    # BoTorch's fit in BoTorch's settings (exact linear algebra), whatever the host's
+    with exact_linear_algebra():
+        kernel = ScaleKernel(get_covar_module_with_dim_scaled_prior(d, use_rbf_kernel=False))
+        standardize = Standardize(1)
+        model = SingleTaskGP(
+            Xt, Yt, train_Yvar=None if noise_sd is None else torch.full_like(Yt, noise_sd**2),
+            covar_module=kernel,
+            input_transform=Normalize(d, bounds=torch.as_tensor(np.vstack([lo, lo + span]))),
+            outcome_transform=standardize)
+        fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
+        model.eval()
+        with torch.no_grad():
+            scale = float(standardize.stdvs.reshape(())) ** 2
+            u = torch.as_tensor((Xv - lo) / span, dtype=torch.float64)
+            K = kernel(u).to_dense().numpy() * scale
+            amp = float(kernel.outputscale) * scale
+            ls = kernel.base_kernel.lengthscale.reshape(-1).numpy() * span
+            s2 = (noise_sd**2 if noise_sd is not None
+                  else float(model.likelihood.noise.mean()) * scale)
     lengths[varies] = ls
     return Discrepancy(K + s2 * np.eye(r.shape[0]), float(np.sqrt(amp)), float(np.sqrt(s2)),
                        lengths)

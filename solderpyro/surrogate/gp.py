@@ -19,6 +19,7 @@ inputs and cheap enough to sit inside an MCMC likelihood.
 
 from __future__ import annotations
 
+import inspect
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -55,6 +56,53 @@ def exact_linear_algebra() -> Iterator[None]:
             linop_settings.max_cholesky_size(EXACT_ROWS), \
             gpytorch.settings.max_eager_kernel_size(EXACT_ROWS):
         yield
+
+
+def _settings_state() -> dict[tuple[type, str], tuple[bool, object]]:
+    """Every GPyTorch and linear_operator setting: ``(class, attribute) -> (whether the class
+    sets it itself, value)`` for each class of the two settings modules and each attribute a
+    setting keeps its value in (``_default``, ``_state``, ``_global_value``,
+    ``_global_float_value``, ...)."""
+    out: dict[tuple[type, str], tuple[bool, object]] = {}
+    for mod in (gpytorch.settings, linop_settings):
+        for cls in vars(mod).values():
+            if inspect.isclass(cls):
+                for k in dir(cls):
+                    if k in ("_default", "_state") or k.startswith("_global"):
+                        out[(cls, k)] = (k in vars(cls), getattr(cls, k))
+    return out
+
+
+@contextmanager
+def botorch_imports() -> Iterator[None]:
+    """The context solderpyro imports BoTorch in, where it uses it (never at a module's top)::
+
+        with botorch_imports():
+            from botorch.models import SingleTaskGP
+
+    Importing BoTorch the first time sets six GPyTorch and linear_operator settings as
+    process-wide defaults (botorch/__init__.py: ``max_cholesky_size`` 800 -> 4096 and
+    ``cholesky_max_tries`` 3 -> 6, one class each in both packages' settings modules;
+    ``max_eager_kernel_size`` 512 -> 4096; the defaults of ``fast_solves``, ``fast_log_prob``
+    and ``fast_covar_root_decomposition`` True -> False). On exit every class attribute that
+    holds a setting's value in the two settings modules is given back what it had on entry:
+    a host's own GPs keep their numbers whether or not solderpyro imported BoTorch, and a host
+    that imported BoTorch itself keeps BoTorch's defaults. solderpyro's BoTorch computations
+    run in :func:`exact_linear_algebra`, which has BoTorch's values.
+    ``tests/unit/test_host_settings.py`` checks both hosts."""
+    before = _settings_state()
+    try:
+        yield
+    finally:
+        after = _settings_state()
+        for cls, k in before.keys() | after.keys():
+            was, now = before.get((cls, k)), after.get((cls, k))
+            if was is not None and now is not None and was[0] == now[0] and was[1] is now[1]:
+                continue
+            if was is not None and was[0]:
+                setattr(cls, k, was[1])
+            elif k in vars(cls):  # set on the class inside the context: inherited again
+                delattr(cls, k)
 
 
 class SurrogateWarning(UserWarning):
