@@ -4,9 +4,10 @@ Trailing ``key=value`` arguments are Hydra overrides of the packaged configs
 (``solderpyro/conf``; e.g. ``mesh=fine specimen.plane=strain solver.device=cuda``);
 ``--config-dir DIR`` adds a directory of the user's own config groups.
 
-Exit status: 0 done, 2 a usage error (a bad flag, flag value or config override), 1 a failure
-of the computation (a data file it cannot use, a solve that fails); the message names the
-cause and the file. Every heavy import (torch, the solver, Hydra) happens inside the command
+Exit status: 0 done, 2 a usage error (a bad flag, flag value, config override or config value,
+e.g. an unknown effect), 1 a failure of the computation (a data file it cannot use: malformed,
+or binary where a text CSV is expected; a solve that fails); the message names the cause and
+the file. Every heavy import (torch, the solver, Hydra) happens inside the command
 that needs it, so ``--help`` and ``--version`` answer without loading them.
 """
 
@@ -70,9 +71,11 @@ def _need_file(flag: str, path, what: str = "file") -> None:
 
 
 def _setup(overrides):
+    """The typed setup of the composed configs; a bad override or config value (an unknown
+    effect in ``effects=[...]``, a value outside its range) is a usage error."""
     from solderpyro.config.compose import build, compose
 
-    return build(_usage(compose, overrides))
+    return _usage(build, _usage(compose, overrides))
 
 
 def simulate_table(setup, anand: dict, times, field: bool, progress: bool = True):
@@ -229,6 +232,7 @@ def cmd_koh(a, overrides) -> int:
     koh_from_tables(RunTables(a.sim, a.obs, _names(a.x), _names(a.t), a.y), a.out, mode=a.mode,
                     discrepancy=a.discrepancy, propose=a.propose, **_nuts_args(a))
     print(f"\nsummary: {Path(a.out) / 'summary.csv'}")
+    print(f"index:   {Path(a.out) / 'index.html'} (open in a browser)")
     return 0
 
 
@@ -346,8 +350,14 @@ def cmd_diagnose(a, overrides) -> int:
     _need_file("RUN_DIR", Path(a.run_dir) / "run.json", "run record (not a run directory)")
     from solderpyro.diagnose import diagnose
     from solderpyro.diagnose.decide import share_text
+    from solderpyro.diagnose.load import candidate_effects
 
     cands = tuple(_names(a.effects)) if a.effects else None
+    if cands:  # the names, before the run is loaded: an unknown one is a usage error
+        try:
+            candidate_effects((), cands)
+        except ValueError as e:
+            raise UsageError(f"--effects: {e}") from None
     dg = diagnose(a.run_dir, candidates=cands, n_draws=a.draws, seed=a.seed,
                   progress=not a.quiet, refit=not a.no_refit)
     print(f"\nverdict: {dg.verdict}\n")
@@ -429,8 +439,8 @@ def _common() -> argparse.ArgumentParser:
 def _add_config_dir(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config-dir", default=None, metavar="DIR",
                    help="a directory of your own config groups, searched after the packaged "
-                   "ones (e.g. DIR/mesh/mine.yaml, selected by mesh=mine; README, "
-                   "'Your own configs')")
+                   "ones (e.g. DIR/mesh/mine.yaml, selected by mesh=mine; docs/configuration.md, "
+                   "'Your own specimen, alloy and cycle')")
 
 
 def _add_nuts(p: argparse.ArgumentParser, chains: int = 4, draws: int = 1000,
@@ -518,13 +528,14 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_simulate_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``simulate`` sub-command's arguments (the FE model for one parameter set)."""
     s = sub.add_parser("simulate", parents=[common], help="run the FE model for one parameter "
-                       "set and write the measurement CSV (shared/data-format.md)")
+                       "set and write the measurement CSV (docs/data-format.md)")
     s.add_argument("--theta", default="", help="Anand constants, e.g. s0=12.9,QR=10586,xi=2.04,"
                    "m=0.2 (names: s0, QR, A, xi, m, h0, s_hat, n, a; others from the config)")
     s.add_argument("--times", default=None, help="seed (600,2700,4800,7800 s) | extended "
                    "(+ dwell ends) | t1,t2,... in s (default: config loading.output_times)")
     s.add_argument("--field", action="store_true",
-                   help="also write V on the 31 x 18 grid of shared/specimen.md")
+                   help="also write V on the 31 x 18 grid of the reference case "
+                   "(docs/configuration.md)")
     s.add_argument("--noise", type=float, default=None,
                    help="add Gaussian noise with this standard deviation, um")
     s.add_argument("--seed", type=int, default=0, help="random seed of the noise")
@@ -577,8 +588,9 @@ def _add_koh_command(sub: argparse._SubParsersAction, common) -> None:
     k.add_argument("--propose", type=int, default=0, metavar="Q",
                    help="also write the next Q parameter sets for your simulator to "
                    "OUT/proposed.csv: posterior draws where the surrogate's code variance at "
-                   "the observed x matters most for the posterior (BoTorch's integrated "
-                   "posterior variance, chosen greedily); one row per run to make, each set at "
+                   "the observed x matters most for the posterior (the GP's variance at the "
+                   "observed x and posterior draws, averaged, computed in closed form; sets "
+                   "chosen one at a time); one row per run to make, each set at "
                    "every distinct observed x (replicates share a run). Append their results to "
                    "--sim and call again; sets still pending (OUT/pending.csv) are not "
                    "proposed twice")
@@ -591,7 +603,7 @@ def _add_calibrate_command(sub: argparse._SubParsersAction, common) -> None:
                        "the config's box (default s0, QR, xi, m) against a measurement CSV: an "
                        "adaptive design of FE runs (run store) that stops when the FE confirms "
                        "the GP surrogate, KOH with NUTS, report")
-    c.add_argument("--data", required=True, help="measurement CSV (shared/data-format.md); "
+    c.add_argument("--data", required=True, help="measurement CSV (docs/data-format.md); "
                    "points A, B or grid labels g_ii_jj, any output times")
     c.add_argument("--out", required=True,
                    help="run directory (report.html, report.md, summary.csv, ...)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,22 +15,33 @@ import torch
 from solderpyro.calibration.api import calibrate_joint, calibrate_modular
 from solderpyro.calibration.data import CalibrationData, InputAxes
 from solderpyro.calibration.mcmc import Posterior, format_summary, write_summary
+from solderpyro.config.settings import SamplerSettings
+from solderpyro.io.text import read_text
 from solderpyro.params import Box
 from solderpyro.surrogate import GPSurrogate
 
 log = logging.getLogger("solderpyro")
 
+#: chains that agree to this R-hat are taken as converged: the specimen calibration's bar
+#: (:class:`~solderpyro.config.settings.SamplerSettings` ``max_rhat``, 1.01)
+MAX_RHAT = SamplerSettings.max_rhat
+#: the smallest bulk ESS per chain of a converged run: the specimen calibration's bar
+#: (``min_ess``, 400) over its default chains (4): 100
+MIN_ESS_PER_CHAIN = SamplerSettings.min_ess / SamplerSettings.chains
+
 
 def read_columns(path: str | Path, columns: Sequence[str], what: str) -> torch.Tensor:
     """Read named numeric columns of a CSV into ``(n_rows, len(columns))`` float64.
 
-    Errors name the file, the missing column or the bad cell.
+    Errors name the file, the missing column or the bad cell (or the first byte that is not
+    UTF-8 text).
     """
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"{what} file {p} does not exist")
-    with p.open(newline="") as f:
-        rows = list(csv.reader(line for line in f if not line.startswith("#")))
+    text = read_text(p, f"{what} file")
+    rows = list(csv.reader(line for line in text.splitlines(keepends=True)
+                           if not line.startswith("#")))
     if not rows:
         raise ValueError(f"{what} file {p} is empty")
     head = [h.strip() for h in rows[0]]
@@ -78,7 +90,10 @@ def koh_from_tables(tables: RunTables, out: str | Path, mode: str = "joint",
     The flat prior of t spans the range of the runs. ``mode`` is ``"joint"`` (the seed's full
     joint) or ``"modular"`` (GP fitted first, its LOO check written and warned on). Writes
     ``summary.csv`` (parameter, q2.5, median, mean, q97.5), ``posterior.nc``, ``traces.png``
-    (and ``surrogate_loo.png`` in modular mode) into ``out``.
+    (and ``surrogate_loo.png`` in modular mode) into ``out``, and last ``index.html``, the
+    entry page linking them (:func:`~solderpyro.reporting.index.write_index`). Chains that
+    have not converged (:func:`convergence_problems`) are warned on, in the log and on the
+    index page.
 
     ``propose > 0``: also write the next ``propose`` parameter sets for the simulator to
     ``out/proposed.csv`` (each t at every observed x; :mod:`solderpyro.design.external`),
@@ -113,9 +128,63 @@ def koh_from_tables(tables: RunTables, out: str | Path, mode: str = "joint",
     plot_traces(post).savefig(outd / "traces.png", dpi=110)
     print(format_summary(rows))
     print(f"divergences per chain: {post.divergences}")
+    problems = convergence_problems(rows, post.n_chains)
+    for msg in problems:
+        log.warning("koh: %s", msg)
     if propose:
         _propose(data, gp, post, propose, outd, list(x), list(t))
+    from solderpyro.reporting.index import write_index
+
+    verdict = (f"Kennedy-O'Hagan calibration ({mode}) of {', '.join(t)} from {data.n_sim} "
+               f"runs ({tables.sim}) and {data.n_obs} observations ({tables.obs}): the chains "
+               f"{'have not converged' if problems else 'converged'} ({_extremes(rows)}; "
+               f"{post.n_chains} chains, divergences per chain {post.divergences})")
+    write_index(outd, verdict=("bad" if problems else "good", verdict), warnings=problems)
     return post
+
+
+def _extremes(rows: Sequence[dict]) -> str:
+    """"largest R-hat 1.002 (t); smallest bulk ESS 812 (sigma)" of summary ``rows``."""
+    rh = [r for r in rows if math.isfinite(float(r["r_hat"]))]
+    es = [r for r in rows if math.isfinite(float(r["ess_bulk"]))]
+    out = []
+    if rh:
+        r = max(rh, key=lambda r: float(r["r_hat"]))
+        out.append(f"largest R-hat {float(r['r_hat']):.3f} ({r['parameter']})")
+    if es:
+        r = min(es, key=lambda r: float(r["ess_bulk"]))
+        out.append(f"smallest bulk ESS {float(r['ess_bulk']):.0f} ({r['parameter']})")
+    return "; ".join(out) or "no R-hat or ESS"
+
+
+def convergence_problems(rows: Sequence[dict], n_chains: int) -> list[str]:
+    """What says the chains have not converged: a parameter's R-hat above :data:`MAX_RHAT`
+    or its bulk ESS under :data:`MIN_ESS_PER_CHAIN` per chain (the specimen calibration's
+    bars), or no R-hat at all (one chain), one message per criterion; empty where none.
+
+    Args:
+        rows: :meth:`Posterior.summary` rows (``parameter``, ``r_hat``, ``ess_bulk``).
+        n_chains: the chains sampled.
+    """
+    min_ess = MIN_ESS_PER_CHAIN * n_chains
+    split = [r for r in rows if float(r["r_hat"]) > MAX_RHAT]
+    unchecked = [r for r in rows if math.isnan(float(r["r_hat"]))]
+    short = [r for r in rows if not float(r["ess_bulk"]) >= min_ess]  # NaN too
+    out = []
+    if unchecked:
+        out.append(f"no R-hat for {', '.join(str(r['parameter']) for r in unchecked)} "
+                   f"({n_chains} chain(s)): convergence is not checked; run 2 or more chains "
+                   f"(--chains)")
+    if split:
+        out.append("the chains disagree: R-hat " + ", ".join(
+            f"{r['parameter']} {float(r['r_hat']):.3f}" for r in split)
+            + f" > {MAX_RHAT:g}; run longer chains (--warmup, --draws) and look at traces.png")
+    if short:
+        out.append("too few effective draws: bulk ESS " + ", ".join(
+            f"{r['parameter']} {float(r['ess_bulk']):.0f}" for r in short)
+            + f" < {min_ess:.0f} ({MIN_ESS_PER_CHAIN:.0f} per chain x {n_chains} chains); "
+            f"the intervals are uncertain: run more draws (--draws)")
+    return out
 
 
 def _propose(data: CalibrationData, gp: GPSurrogate | None, post: Posterior, q: int,

@@ -32,6 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from solderpyro.io.text import read_text
+
 __all__ = ["Measurements", "read_measurements", "write_measurements", "from_arrays"]
 
 log = logging.getLogger(__name__)
@@ -221,10 +223,10 @@ def _split_lines(spath: str) -> tuple[dict[str, str], list[str], int, list[tuple
         stripped cells.
 
     Raises:
-        ValueError: for a file without a header line. OSError: if it cannot be read.
+        ValueError: for a file without a header line or one that is not UTF-8 text.
+        OSError: if it cannot be read.
     """
-    with open(spath, encoding="utf-8-sig", newline="") as fh:
-        lines = fh.read().splitlines()
+    lines = read_text(spath).splitlines()
     meta: dict[str, str] = {}
     header: list[str] | None = None
     header_line = 0

@@ -4,9 +4,10 @@ Verdict first (the diagnosis's, the comparison's, the calibration's trust line),
 figures that show where the model misses the data, the tables, the warnings, and links to
 everything else the directory holds: the full reports (``report.html`` and ``report.md``,
 ``diagnosis.html``, ``comparison.md``), the CSVs, ``posterior.nc``, the JSON records and any
-other file. It is rebuilt from whatever the directory holds by ``calibrate``, ``diagnose``
-and ``compare``, so it is always the latest state. Self-contained: inline style, images
-beside it as relative links, nothing fetched from a network.
+other file. It is rebuilt from whatever the directory holds by ``calibrate``, ``diagnose``,
+``compare`` and ``koh`` (which adds its own verdict and warnings), so it is always the latest
+state. Self-contained: inline style, images beside it as relative links, nothing fetched
+from a network.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import csv
 import html
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +43,7 @@ FIGURES = (
     ("exact_posterior.png", "FE-exact posterior against the surrogate's"),
     ("fig8_literature.png", "Literature constants against the data"),
     ("surrogate_loo.png", "Surrogate leave-one-out check"),
+    ("traces.png", "Posterior traces (koh)"),
 )
 #: the files a run directory may hold, each with what it is, in the order the page lists them
 LINKS = (("report.html", "calibration report"), ("report.md", "calibration report (Markdown)"),
@@ -59,7 +62,9 @@ LINKS = (("report.html", "calibration report"), ("report.md", "calibration repor
          ("design_rounds.json", "the adaptive design's rounds (JSON)"),
          (RUN_JSON, "run settings and record (JSON)"),
          ("sampler_state.npz", "the sampler's adapted state, for --warm-from (NumPy)"),
-         ("discretization_correction.npz", "the discretization correction used (NumPy)"))
+         ("discretization_correction.npz", "the discretization correction used (NumPy)"),
+         ("proposed.csv", "the next simulator runs to make (koh --propose; CSV)"),
+         ("pending.csv", "proposed runs not yet in the run table (koh --propose; CSV)"))
 STYLE = ("body{font-family:sans-serif;max-width:100em;margin:1.5em auto;padding:0 1em;"
          "color:#222}.verdict{border-left:.5em solid #888;padding:.6em 1em;margin:1em 0;"
          "background:#f4f4f4;font-size:1.1em}.bad{border-color:#c0392b;background:#fdecea}"
@@ -86,9 +91,10 @@ def _num(v: Any, fmt: str = ".4g") -> str:
         return str(v)
 
 
-def _verdicts(d: Path, diag: dict | None, cmp: dict | None, run: RunInfo | None
-              ) -> list[tuple[str, str]]:
-    """``(css class, html)`` of each verdict, most telling first."""
+def _verdicts(d: Path, diag: dict | None, cmp: dict | None, run: RunInfo | None,
+              given: bool = False) -> list[tuple[str, str]]:
+    """``(css class, html)`` of each verdict, most telling first (none for an empty directory
+    whose verdict is ``given``)."""
     out: list[tuple[str, str]] = []
     if diag is not None:
         by = {r["effect"]: r for r in diag.get("ranking", [])}
@@ -121,7 +127,7 @@ def _verdicts(d: Path, diag: dict | None, cmp: dict | None, run: RunInfo | None
             txt += (f" FE check: best RMS residual {_num(chk.get('rms_um'))} um = "
                     f"{_num(chk.get('rms_over_sigma'), '.2f')} noise sd.")
         out.append(("good" if ok and diag is None else "", txt))
-    if not out:
+    if not out and not given:
         out.append(("", f"{_e(d)} holds no solderpyro run yet."))
     return out
 
@@ -163,11 +169,15 @@ def _summary_rows(d: Path) -> list[list[str]]:
     return out
 
 
-def write_index(run_dir: str | Path) -> Path:
+def write_index(run_dir: str | Path, verdict: tuple[str, str] | None = None,
+                warnings: Sequence[str] = ()) -> Path:
     """Write ``run_dir/index.html`` from what the directory holds (module docstring).
 
     Args:
-        run_dir: a run directory (calibration, diagnosis, comparison).
+        run_dir: a run directory (calibration, diagnosis, comparison, ``koh``).
+        verdict: ``(css class "good" | "bad" | "", plain text)``, a verdict shown first (that
+            of a directory without a run record: ``koh``'s).
+        warnings: plain-text warnings listed before those the directory's reports hold.
     Returns:
         the path of ``index.html``.
     """
@@ -176,7 +186,9 @@ def write_index(run_dir: str | Path) -> Path:
     diag, cmp = read_json(d / DIAGNOSIS_JSON), read_json(d / COMPARISON_JSON)
     run = rd.info if rd is not None else None
     body = [f"<h1>solderpyro run: {_e(d.name)}</h1>"]
-    body += [f'<div class="verdict {c}">{t}</div>' for c, t in _verdicts(d, diag, cmp, run)]
+    lead = [(verdict[0], _e(verdict[1]))] if verdict is not None else []
+    body += [f'<div class="verdict {c}">{t}</div>'
+             for c, t in lead + _verdicts(d, diag, cmp, run, bool(lead))]
     figs = [(f, cap) for f, cap in FIGURES if (d / f).is_file()]
     if figs:
         body.append("<h2>Figures</h2>")
@@ -198,9 +210,12 @@ def write_index(run_dir: str | Path) -> Path:
                             for r in diag["ranking"] + diag.get("failed", [])]))
     rows = _summary_rows(d)
     if rows:
+        head = ["parameter", "95 % from", "median", "95 % to", "R-hat", "ESS"]
+        if all(r[-2:] == ["nan", "nan"] for r in rows):  # a summary without them (koh's)
+            head, rows = head[:-2], [r[:-2] for r in rows]
         body.append("<h2>Posterior</h2>")
-        body.append(_table(["parameter", "95 % from", "median", "95 % to", "R-hat", "ESS"], rows))
-    warn = _warnings(d, diag, cmp)
+        body.append(_table(head, rows))
+    warn = [*warnings, *_warnings(d, diag, cmp)]
     body.append("<h2>Warnings</h2>")
     body.append("<ul>" + "".join(f"<li>{_e(w)}</li>" for w in warn) + "</ul>" if warn
                 else "<p>none</p>")

@@ -102,3 +102,38 @@ def test_user_config_dir_adds_a_group_option(tmp_path, capsys):
                  *TINY]) == 2
     assert "mesh/default.yaml" in capsys.readouterr().err
     assert main(["simulate", "--out", str(out), "--config-dir", str(tmp_path / "none")]) == 2
+
+
+@pytest.mark.parametrize("command", ["calibrate", "koh"])
+def test_a_binary_data_file_exits_1_naming_the_file(tmp_path, capsys, command):
+    """A binary file where a CSV is expected is a data file the computation cannot use, as a
+    malformed CSV is (exit 1): the message names the file and the first byte that is not
+    UTF-8 text, not a bare codec error."""
+    data = tmp_path / "bin.csv"
+    data.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4)
+    (tmp_path / "obs.csv").write_text("x,y\n0.2,1\n")
+    args = (["calibrate", "--data", str(data), "--out", str(tmp_path / "o"), *TINY]
+            if command == "calibrate" else
+            ["koh", "--sim", str(data), "--obs", str(tmp_path / "obs.csv"), "--x", "x",
+             "--t", "t", "--y", "y", "--out", str(tmp_path / "o")])
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert f"{data}: not a text file (byte 0x89 at offset 0 is not UTF-8)" in err, err
+    assert "codec" not in err
+
+
+def test_an_unknown_effect_is_a_usage_error_listing_the_valid_ones(tmp_path, capsys):
+    from solderpyro.effects import EFFECTS
+
+    assert main(["simulate", "--times", "seed", "--out", str(tmp_path / "s.csv"),
+                 "effects=[bogus]"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown effect 'bogus'" in err and all(n in err for n in EFFECTS)
+    assert not (tmp_path / "s.csv").exists()
+    run = tmp_path / "run"  # checked before the run is loaded: a run record is enough
+    run.mkdir()
+    (run / "run.json").write_text("{}")
+    assert main(["diagnose", str(run), "--effects", "thermal_lag,bogus_effect"]) == 2
+    err = capsys.readouterr().err
+    assert "--effects: unknown effect(s) ['bogus_effect']" in err
+    assert all(n in err for n in EFFECTS)

@@ -19,7 +19,7 @@ HEADER = "time_s,temperature_C,point,x_mm,y_mm,quantity,value_um,sigma_um"
 
 
 def specimen_points() -> dict[str, tuple[float, float]]:
-    """A, B and the 31 x 18 grid g_ii_jj of shared/specimen.md."""
+    """A, B and the 31 x 18 grid g_ii_jj of the reference case (docs/configuration.md)."""
     pts = {"A": (15.0, 4.5), "B": (15.0, -4.0)}
     for i in range(31):
         for j in range(18):
