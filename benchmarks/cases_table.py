@@ -6,6 +6,11 @@ diagnosis's first candidate and selection, each recalibration's posterior kind, 
 ``compare``), FE check, truths covered by the 95 % intervals, R-hat / min bulk ESS, design,
 discretization check, and wall times.
 
+Then the benchmark's bars over all cases (:func:`bars`): the hidden effect selected, false
+alarms on clean data, the truths inside the reported 95 % intervals after adding the selected
+effects (per parameter), the error after them, and the loop's wall time (calibrate, diagnose,
+recalibrate; median). ``--json`` writes ``{"cases": [...], "bars": {...}}``.
+
 Usage: python benchmarks/cases_table.py WORK [--data-dir runs/hidden_effect_data] [--json OUT]
 """
 
@@ -14,6 +19,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import statistics
 import sys
 from pathlib import Path
 
@@ -48,6 +54,65 @@ def _run(d: Path) -> dict:
             "seconds": round(sum(info.timing_s.values()))}
 
 
+def final_runs(rec: dict) -> list[dict]:
+    """The runs a user ends with: the recalibration with the selected effects (``with``); in
+    a tie, the recalibration with each tied effect (``with_EFFECT``, as the verdict advises);
+    else the base run."""
+    if rec.get("with"):
+        return [rec["with"]]
+    tied = [rec[f"with_{e}"] for e in (rec.get("tie") or [[]])[0] if rec.get(f"with_{e}")]
+    return tied or [rec["base"]]
+
+
+def bars(records: list[dict]) -> dict:
+    """The hidden-effect benchmark's figures over ``records`` (one per case, as :func:`main`
+    makes them).
+
+    Returns:
+        ``selected``: cases with a hidden effect whose diagnosis selected every hidden effect,
+        of those cases; ``named``: the same, counting a tie that names them (the verdict then
+        advises recalibrating with each); ``false_alarms``: clean cases (hidden "none") with a
+        selection, a tie or a misfit flagged, of the clean cases; ``coverage``: truths inside
+        the 95 % intervals of the runs a user ends with (:func:`final_runs`), overall and per
+        parameter (``[inside, of]``); ``rms_after_sd_max``: the largest error after them in
+        noise sd (``compare``; None where not run); ``loop_s_median``: the median over cases
+        of calibrate + diagnose + recalibrate seconds (each tied recalibration counted).
+    """
+    hid = [r for r in records if r["hidden"] != "none"]
+    clean = [r for r in records if r["hidden"] == "none"]
+
+    def has(r: dict, names: list[str]) -> bool:
+        return set(r["hidden"].split("+")) <= set(names)
+
+    sel = sum(has(r, r.get("selected") or []) for r in hid)
+    named = sum(has(r, r.get("selected") or []) or has(r, (r.get("tie") or [[]])[0])
+                for r in hid)
+    alarms = sum(bool(r.get("selected") or r.get("tie") or r.get("misfit")) for r in clean)
+    per: dict[str, list[int]] = {}
+    rms = []
+    loops = []
+    for r in records:
+        finals = final_runs(r)
+        for f in finals:
+            for k in f.get("truths", []):
+                c = per.setdefault(k, [0, 0])
+                c[0] += k not in f.get("missed", [])
+                c[1] += 1
+            if f.get("compare_rms_um") and r.get("sigma_um"):
+                rms.append(f["compare_rms_um"][1] / r["sigma_um"])
+        parts = [r["base"].get("seconds"), r.get("diagnose_seconds"),
+                 *[f.get("seconds") for f in finals if f is not r["base"]]]
+        if all(p is not None for p in parts):
+            loops.append(sum(parts))
+    inside, of = sum(c[0] for c in per.values()), sum(c[1] for c in per.values())
+    return {"cases": len(records), "selected": [sel, len(hid)], "named": [named, len(hid)],
+            "false_alarms": [alarms, len(clean)], "coverage": [inside, of],
+            "coverage_per_parameter": per,
+            "rms_after_sd_max": round(max(rms), 3) if rms else None,
+            "loop_s_median": round(statistics.median(loops)) if loops else None,
+            "loop_cases_timed": len(loops)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("work")
@@ -63,6 +128,11 @@ def main() -> None:
         if dj.exists():
             dg = json.loads(dj.read_text())
             rec["selected"] = dg.get("selected")
+            rec["misfit"] = dg.get("misfit")
+            rec["tie"] = dg.get("indistinguishable") or []
+            rec["diagnose_seconds"] = round((dg.get("timing") or {}).get(
+                "total", {}).get("seconds", 0)) or None
+        rec["sigma_um"] = RunDir.read(case / "base").info.sigma_known
         withs = sorted(p for p in case.iterdir()
                        if p.name.startswith("with") and (p / "summary.csv").exists())
         runs = withs or [case / "base"]
@@ -76,11 +146,14 @@ def main() -> None:
                                        round(c["after"]["rms_um"], 4)]
             r["covered"] = f"{sum(cov.values())}/{len(cov)}"
             r["missed"] = [k for k, v in cov.items() if not v]
+            r["truths"] = list(cov)
             rec[w.name] = r
         out.append(rec)
         print(json.dumps(rec))
+    b = bars(out)
+    print(json.dumps({"bars": b}))
     if a.json:
-        Path(a.json).write_text(json.dumps(out, indent=1) + "\n")
+        Path(a.json).write_text(json.dumps({"cases": out, "bars": b}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

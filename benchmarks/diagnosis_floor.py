@@ -3,8 +3,8 @@ solderpyro/diagnose/floor.json.
 
 Two FE discretizations never agree exactly, so on enough values every candidate effect
 "explains" some of the difference between the calibration's FE and the truth. This script
-makes noise-free data of the reference case (shared/specimen.md) with a finer FE than the
-calibration's (``mesh=fine``, temperature steps of 2 K, time steps of 150 s), fits the
+makes noise-free data of the reference case (docs/configuration.md) with a finer FE than
+the calibration's (``mesh=fine``, temperature steps of 2 K, time steps of 150 s), fits the
 calibration's FE to them exactly as ``solderpyro diagnose`` does (its base fit, then each
 candidate's refit, :mod:`solderpyro.diagnose.refits`), and records per data layout (the full
 field and the points A, B) the mean-square residual of the base fit and the mean square each

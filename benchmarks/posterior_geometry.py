@@ -13,8 +13,9 @@ the posterior's spread, negative ones are curvature (a bent ridge). Optionally
 the FE.
 
 Usage: python benchmarks/posterior_geometry.py RUN_DIR [--points 8] [--seed 0]
-       [--frac 0.01] [--fe-at s0,QR,xi,m ...]
-Prints one line per point and coordinate system (the sorted eigenvalues) and a JSON summary.
+       [--frac 0.01] [--fe-at s0,QR,xi,m ...] [--json benchmarks/results/posterior_geometry.json]
+Prints one line per point and coordinate system (the sorted eigenvalues) and a JSON summary;
+writes the summary, the spectra and the inputs to the results file (overwritten).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +34,9 @@ from solderpyro.config.settings import CalibrationSettings
 from solderpyro.diagnose.load import load_run
 from solderpyro.pipeline.problem import CalibrationProblem
 from solderpyro.pipeline.surrogate import fit_surrogate
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _results import Results, json_option  # noqa: E402
 
 
 def rebuild(run: Path) -> tuple[CalibrationProblem, object, dict]:
@@ -72,7 +77,9 @@ def main() -> None:
     ap.add_argument("--frac", type=float, default=0.01,
                     help="the soft walls' width as a share of each interval (flow coordinates)")
     ap.add_argument("--fe-at", nargs="*", default=[], metavar="s0,QR,xi,m")
+    json_option(ap, __file__)
     a = ap.parse_args()
+    res = Results(a.json)
     sm, gp, r = rebuild(a.run)
     n_fe = sm.n_fe
     if sm.space.dim != n_fe:
@@ -114,6 +121,7 @@ def main() -> None:
               "gp_inputs": (np.array([umap(ui)[0] for ui in u]), ll_v, 1e-6)}
     idx = np.random.default_rng(a.seed).choice(len(u), a.points, replace=False)
     out: dict[str, dict] = {}
+    spectra: dict[str, dict] = {}
     for name, (pts, f, h) in coords.items():
         cov = np.cov(pts.T)
         ev = np.array([whitened_spectrum(f, pts[i], cov, h) for i in idx])
@@ -121,12 +129,16 @@ def main() -> None:
             print(f"{name:9s} draw {i:5d}: " + " ".join(f"{v:10.3g}" for v in e))
         out[name] = {"largest": [float(ev[:, -1].min()), float(ev[:, -1].max())],
                      "smallest": float(ev[:, 0].min())}
+        spectra[name] = {str(i): e.tolist() for i, e in zip(idx, ev, strict=True)}
     if a.fe_at:
         rows = np.array([[float(v) for v in s.split(",")] for s in a.fe_at])
         V = sm.observed(rows)
         out["fe_chi2"] = {s: float((((V[k] - sm.y.numpy()) / sigma) ** 2).sum())
                           for k, s in enumerate(a.fe_at)}
     print(json.dumps(out, indent=1))
+    res.write({**out, "spectra_by_draw": spectra}, run=a.run.resolve(), points=a.points,
+              seed=a.seed, frac=a.frac, fe_at=a.fe_at, store=str(r["info"].store),
+              data=str(r["info"].data))
 
 
 if __name__ == "__main__":

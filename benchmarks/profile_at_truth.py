@@ -10,15 +10,19 @@ truths").
 
 Usage: python benchmarks/profile_at_truth.py DATA.csv --start x1,x2,... [--effect NAME]
        [--truth-extra V ...] [--params 0,1,...] [--fine] [--store DIR]
+       [--json benchmarks/results/profile_at_truth.json]
 (e.g. runs/hidden_effect_data/none.csv --start 13.44,11160,2.41,0.104 with and without --fine;
 runs/hidden_effect_data/moire_rigid_motion.csv --effect moire_rigid_motion --fine --params 1,2,5
 with the truth's and the posterior medians' Moire values appended)
+Prints, and writes to the results file (overwritten), the best fit and each profile's Delta.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -27,6 +31,9 @@ from solderpyro.diagnose.hidden import TRUTH
 from solderpyro.exact.fit import LMOptions, lm_fit
 from solderpyro.io.measurements import read_measurements
 from solderpyro.pipeline.problem import CalibrationProblem
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _results import Results, json_option  # noqa: E402
 
 FINE = ["mesh=fine", "solver.stepping.dT_max=2.0", "solver.stepping.dt_max=150"]
 
@@ -40,7 +47,9 @@ def main() -> None:
     ap.add_argument("--params", default=None, help="indices to profile (default: all)")
     ap.add_argument("--fine", action="store_true", help="the data-making FE, not the default")
     ap.add_argument("--store", default="runs/store")
+    json_option(ap, __file__)
     a = ap.parse_args()
+    res = Results(a.json)
     meas = read_measurements(a.data)
     ov = (FINE if a.fine else []) + ([f"effects=[{a.effect}]"] if a.effect else [])
     sm = CalibrationProblem.build(build(compose(ov)), meas, a.store, 64, False)
@@ -61,10 +70,19 @@ def main() -> None:
     c2t = float((((y - sm.observed(truth[None])[0]) / sig) ** 2).sum())
     print(f"{time.perf_counter() - t0:.0f} s; best fit chi2 {fits[0].chi2:.2f} at "
           f"{np.round(fits[0].x, 4)}; truth {c2t:.2f} (joint Delta {c2t - best:.2f})")
+    profiles = {}
     for j, k in enumerate(ks):
         dl = fits[j + 1].chi2 - best
+        profiles[sm.space.names[k]] = float(dl)
         print(f"profile {sm.space.names[k]} at its truth: Delta {dl:.2f} "
               f"({'outside' if dl > 3.84 else 'inside'} the 95 % profile interval)")
+    res.write({"best_fit": np.asarray(fits[0].x).tolist(), "best_fit_chi2": float(fits[0].chi2),
+               "truth_chi2": c2t, "joint_delta": c2t - best,
+               "profile_delta_at_truth": profiles,
+               "all_inside_3_84": all(v <= 3.84 for v in profiles.values())},
+              data=Path(a.data), start=start.tolist(), effect=a.effect, truth=truth.tolist(),
+              fe="data-making (--fine)" if a.fine else "calibration (default)",
+              store=a.store, sigma_um=sig)
 
 
 if __name__ == "__main__":

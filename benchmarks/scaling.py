@@ -4,7 +4,7 @@ reading a 10,000-run store back.
     python benchmarks/scaling.py doe   [--runs 512] [--batch 64] [--repeats 1]
     python benchmarks/scaling.py store [--runs 10000]
 
-``doe``: an LHS design over the reference case's box (specimen.md: the seed's four times,
+``doe``: an LHS design over the reference case's box (docs/configuration.md: the seed's four times,
 points A and B, default mesh), solved through ``run_doe`` into a fresh store, under three
 executors, each in its own process so that thread settings do not leak:
 

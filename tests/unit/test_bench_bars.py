@@ -1,0 +1,40 @@
+"""benchmarks/cases_table.py's bars: what counts as found, a false alarm and a covered truth."""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+from cases_table import bars  # noqa: E402
+
+
+def _run(seconds, truths, missed=(), rms=None):
+    r = {"seconds": seconds, "truths": list(truths), "missed": list(missed)}
+    if rms is not None:
+        r["compare_rms_um"] = [0.1, rms]
+    return r
+
+
+def test_bars_count_selections_ties_alarms_and_the_runs_a_user_ends_with():
+    """Three cases: one selected and recalibrated (s0 missed), one tie recalibrated with both
+    tied effects (the wrong one misses two truths), one clean case flagged as a misfit. The
+    tie counts as named, not selected; both tied recalibrations count in the coverage and the
+    loop time; the clean misfit is a false alarm."""
+    recs = [
+        {"hidden": "lag", "selected": ["lag"], "tie": [], "misfit": True, "sigma_um": 0.05,
+         "diagnose_seconds": 100, "base": _run(200, ["s0", "m"]),
+         "with": _run(50, ["s0", "m", "tau"], missed=["s0"], rms=0.051)},
+        {"hidden": "kin", "selected": [], "tie": [["kin", "sf"]], "misfit": True,
+         "sigma_um": 0.05, "diagnose_seconds": 10, "base": _run(300, ["s0", "m"]),
+         "with_kin": _run(30, ["s0", "m"]), "with_sf": _run(40, ["s0", "m"], ["s0", "m"])},
+        {"hidden": "none", "selected": [], "tie": [], "misfit": True, "sigma_um": 0.05,
+         "diagnose_seconds": 5, "base": _run(100, ["s0", "m"])},
+    ]
+    b = bars(recs)
+    assert b["selected"] == [1, 2] and b["named"] == [2, 2]
+    assert b["false_alarms"] == [1, 1]
+    # lag: 2 of 3; tie: 2 of 2 and 0 of 2; clean base: 2 of 2
+    assert b["coverage"] == [6, 9]
+    assert b["coverage_per_parameter"] == {"s0": [2, 4], "m": [3, 4], "tau": [1, 1]}
+    assert b["rms_after_sd_max"] == round(0.051 / 0.05, 3)
+    # loops: 200 + 100 + 50, 300 + 10 + 30 + 40, 100 + 5: median 350
+    assert b["loop_s_median"] == 350 and b["loop_cases_timed"] == 3
