@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 @hydra.main(config_path="pkg://solderpyro.conf", config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
     if not cfg.data.path:
-        raise SystemExit("set data.path=FILE.csv (a measurement CSV, shared/data-format.md)")
+        raise SystemExit("set data.path=FILE.csv (a measurement CSV, docs/data-format.md)")
     setup = build(cfg)
     meas = read_measurements(hydra.utils.to_absolute_path(cfg.data.path),
                              valid_points=output_points(setup.problem))

@@ -4,7 +4,7 @@
     python experiments/simulate_reference.py mesh=fine specimen.plane=strain
     python experiments/simulate_reference.py -m mesh=coarse,default,fine   # a sweep (multirun)
 
-Writes simulation.csv (shared/data-format.md) and cycle.png into Hydra's run directory.
+Writes simulation.csv (docs/data-format.md) and cycle.png into Hydra's run directory.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """One parameter description for every layer: names, units, bounds, log-scale, unit-cube maps.
 
-Anand constants use the names of ``shared/anand.md``: ``s0, QR, A, xi, m, h0, s_hat, n, a``
-(QR = Q/R in kelvin). Units inside the library: MPa, K, 1/s.
+Anand constants use the names of the Anand law in docs/configuration.md ("The reference case"):
+``s0, QR, A, xi, m, h0, s_hat, n, a`` (QR = Q/R in kelvin, not Q in J/mol). Units inside the
+library: MPa, K, 1/s.
 """
 
 from __future__ import annotations
@@ -16,12 +17,14 @@ ANAND_UNITS: dict[str, str] = {
     "s0": "MPa", "QR": "K", "A": "1/s", "xi": "-", "m": "-",
     "h0": "MPa", "s_hat": "MPa", "n": "-", "a": "-",
 }
-#: Liu et al. (2008) Sn37Pb, seed Table IV: the baseline constants of shared/specimen.md.
+#: Liu et al. (2008) Sn37Pb, seed Table IV: the baseline constants of the reference case
+#: (docs/configuration.md, "The reference case").
 LIU2008: dict[str, float] = {
     "s0": 12.41, "QR": 9400.0, "A": 4.0e6, "xi": 1.5, "m": 0.303,
     "h0": 1379.0, "s_hat": 13.79, "n": 0.07, "a": 1.3,
 }
-#: Wang et al. (2001) 60Sn40Pb, the reference constants of the closed-form checks in anand.md.
+#: Wang et al. (2001) 60Sn40Pb, the constants of the closed-form saturation checks
+#: (tests/verification/test_anand_closed_form.py, docs/verification.md).
 WANG2001: dict[str, float] = {
     "s0": 56.33, "QR": 10830.0, "A": 1.49e7, "xi": 11.0, "m": 0.303,
     "h0": 2640.75, "s_hat": 80.42, "n": 0.0231, "a": 1.34,
@@ -32,7 +35,7 @@ PHYSICAL_RANGE: dict[str, tuple[float, float]] = {
     "m": (0.01, 1.0), "h0": (0.0, 1e7), "s_hat": (1e-6, 1e5), "n": (0.0, 1.0),
     "a": (0.1, 10.0),
 }
-#: The seed's calibrated box (shared/specimen.md).
+#: The seed's calibrated box (seed §4; docs/configuration.md, "The reference case").
 SEED_BOX: dict[str, tuple[float, float]] = {
     "s0": (5.0, 25.0), "QR": (7000.0, 13000.0), "xi": (1.0, 5.0), "m": (0.05, 0.5),
 }
@@ -175,7 +178,7 @@ class ParameterSpace(Box):
 
     @classmethod
     def seed(cls) -> ParameterSpace:
-        """The seed's four calibrated constants on the box of shared/specimen.md."""
+        """The seed's four calibrated constants on their box (:data:`SEED_BOX`)."""
         names = tuple(SEED_BOX)
         return cls(names, tuple(SEED_BOX[k][0] for k in names),
                    tuple(SEED_BOX[k][1] for k in names))

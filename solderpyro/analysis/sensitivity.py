@@ -42,8 +42,9 @@ log = logging.getLogger("solderpyro")
 #: The four constants the seed calibrated "after a sensitivity study" (seed §4).
 SEED_CHOICE: tuple[str, ...] = ("s0", "QR", "xi", "m")
 #: The nine-constant box: (lower, upper, log_scale). s0, QR, xi, m: the specimen's prior box
-#: (shared/specimen.md). The other five: around Liu 2008 (docs/sensitivity.md): A x/÷ 10 and
-#: h0 x/÷ 3 (log scale), s_hat x/÷ 2, n from Wang 2001's 0.0231 to 0.12, a in [1, 2].
+#: (docs/configuration.md, "The reference case"). The other five: around Liu 2008
+#: (docs/sensitivity.md): A x/÷ 10 and h0 x/÷ 3 (log scale), s_hat x/÷ 2, n from Wang 2001's
+#: 0.0231 to 0.12, a in [1, 2].
 NINE_BOX: dict[str, tuple[float, float, bool]] = {
     **{k: (lo, hi, False) for k, (lo, hi) in SEED_BOX.items()},
     "A": (LIU2008["A"] / 10.0, LIU2008["A"] * 10.0, True),

@@ -1,7 +1,7 @@
 """Optional physical effects: the :class:`Effect` base class.
 
 An effect is a piece of physics the baseline model lacks, with calibratable parameters on a
-prior box. It enters the model through one seam (shared/style.md), as a hook that transforms a
+prior box. It enters the model through one seam, as a hook that transforms a
 baseline quantity, identity by default:
 
 =====================  =========================================================================

@@ -1,6 +1,7 @@
 """Moire rigid motion: each image carries its own rigid offset and small in-plane rotation.
 
-Moire measures fringe orders, and only their differences are defined (shared/specimen.md): an
+Moire measures fringe orders, and only their differences are defined (V = N / f, N the fringe
+order, f the reference grating's frequency; docs/data-format.md, "Fringe orders"): an
 image fixes V up to an additive constant, and a small rotation of the specimen (or of the
 reference grating) between the reference image and image k adds a field linear in x. The
 baseline reports V relative to O, which removes both exactly only if O's own reading is exact

@@ -40,7 +40,8 @@ class ThermalCycle:
         return self.times[-1]
 
 
-#: shared/specimen.md: 25 -> 75 -> 100 -> 125 -> 25 degC, 5 degC/min ramps, 30 min dwells.
+#: The reference case's cycle (docs/configuration.md): 25 -> 75 -> 100 -> 125 -> 25 degC,
+#: 5 degC/min ramps, 30 min dwells.
 REFERENCE_CYCLE = ThermalCycle(
     (0.0, 600.0, 2400.0, 2700.0, 4500.0, 4800.0, 6600.0, 7800.0),
     (25.0, 75.0, 75.0, 100.0, 100.0, 125.0, 125.0, 25.0),

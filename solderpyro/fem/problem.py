@@ -115,7 +115,8 @@ REFERENCE_LAYERS = (
 
 
 def reference_grid() -> tuple[list[str], np.ndarray]:
-    """The full-field grid of shared/specimen.md: labels ``g_ii_jj`` and ``(558, 2)`` points, mm."""
+    """The full-field grid of the reference case (1 mm, 31 x 18; docs/configuration.md): labels
+    ``g_ii_jj`` and ``(558, 2)`` points, mm."""
     xs = np.arange(-15.0, 15.0 + 1e-9, 1.0)
     ys = np.arange(-4.0, 4.5 + 1e-9, 0.5)
     labels, pts = [], []

@@ -29,7 +29,8 @@ def log_sinh(y: torch.Tensor) -> torch.Tensor:
 
 def saturation(rate: torch.Tensor, T: torch.Tensor,
                p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Closed-form saturation at constant inelastic rate and temperature (anand.md).
+    """Closed-form saturation at constant inelastic rate and temperature (the Anand law of
+    docs/configuration.md, "The reference case").
 
     Args:
         rate: equivalent inelastic strain rate, 1/s.
@@ -47,7 +48,12 @@ def saturation(rate: torch.Tensor, T: torch.Tensor,
 
 def s_closed_form(eps_p: torch.Tensor, rate: torch.Tensor, T: torch.Tensor,
                   p: torch.Tensor) -> torch.Tensor:
-    """Deformation resistance ``s(eps_p)`` at constant rate and temperature (anand.md), MPa.
+    """Deformation resistance ``s(eps_p)`` at constant rate and temperature, MPa.
+
+    The exact solution of ``ds/deps_p = h0 |1 - s/s*|^a sign(1 - s/s*)`` from ``s(0) = s0``
+    with ``s*`` fixed: ``s = s* -+ [|s* - s0|^(1-a) + (a-1) h0 s*^(-a) eps_p]^(1/(1-a))``
+    (``-`` for ``s0 < s*``, ``+`` above), and ``s = s* - (s* - s0) exp(-h0 eps_p / s*)`` for
+    ``a == 1``.
 
     Valid for any ``a > 0``; for ``a == 1`` the exponential form is used; for ``a < 1`` s
     reaches ``s*`` at a finite strain and stays there.

@@ -57,9 +57,9 @@ uniaxial) loading from ``X = 0``: ``X`` stays collinear with ``xi``, ``X_eq = C_
 
     sigma_eq(eps_p) = q_Anand(s(eps_p)) + C_k*eps_p,   q_Anand = (s/xi_A)*asinh(Z^m)
 
-with ``s(eps_p)`` the transient of ``shared/anand.md``. Reversing the direction at the same rate
-and the same ``s`` needs ``xi = -q`` instead of ``+q``: the reverse flow stress is lower in
-magnitude by ``2*X_eq`` (Bauschinger effect).
+with ``s(eps_p)`` the closed-form transient of :func:`.anand.s_closed_form`. Reversing the
+direction at the same rate and the same ``s`` needs ``xi = -q`` instead of ``+q``: the reverse
+flow stress is lower in magnitude by ``2*X_eq`` (Bauschinger effect).
 """
 
 from __future__ import annotations

@@ -4,9 +4,13 @@
    FE runs (:class:`~solderpyro.specimen.SpecimenModel` through the run store).
 2. :mod:`.surrogate` -- the GP of the observed outputs.
 3. :mod:`.posterior` -- modular KOH with NUTS through the surrogate.
-4. :mod:`.adaptive` -- the adaptive design that repeats 2-3 and places FE runs (BoTorch,
-   :mod:`solderpyro.design`) until the FE confirms the surrogate; then the discretization
-   correction, which returns the corrected data, and the final posterior on them.
+4. :mod:`.adaptive` -- the adaptive design that repeats 2-3 and places FE runs
+   (:mod:`solderpyro.design`) until the FE confirms the surrogate; then the discretization
+   correction, which returns the corrected data, and the final posterior on them. By default
+   (``calibration.design.optimizer=draws``) each round's runs are the posterior draws that
+   maximize the acquisition, chosen one at a time in closed form
+   (:func:`~solderpyro.design.acquisition.greedy_draws`); ``optimizer=optimize`` runs
+   BoTorch's ``optimize_acqf`` over the box instead.
 5. :mod:`.fe_check` -- the FE at posterior draws: does the model itself fit?
 6. :mod:`.fe_exact` -- the FE-exact posterior and profile intervals, when the design's budget
    ran out with the FE disagreeing.

@@ -189,7 +189,8 @@ class RunOutputs:
         last = loop.rounds[-1]
         notes = [f"**trust**: {trust}",
                  f"adaptive design: {len(loop.X)} FE runs in {len(loop.rounds)} rounds "
-                 f"({loop.reason}): {loop.message} (design.png, design.csv)",
+                 f"({loop.reason}): {loop.message} (design.png, design.csv); "
+                 f"{acquisition_text(s.design)}",
                  f"last round: code chi2 {last.code_chi2:.3g}, max |FE - surrogate| chi2 "
                  f"{last.fe_gap:.3g} (varying by {last.fe_spread:.2g} across the checked "
                  f"draws, tolerance {s.design.fe_spread:g}), tolerance {last.tolerance:.3g}",
@@ -259,6 +260,18 @@ PRESSED_NEAR = 0.02
 #: ... and spans at most this share of the box: a posterior spread over most of the box
 #: touches a face without pressing against it
 PRESSED_WIDTH = 0.25
+
+
+def acquisition_text(design: Any) -> str:
+    """What chose a run's acquired FE runs, as its report says it (``design``: the
+    :class:`~solderpyro.design.loop.LoopSettings` that ran)."""
+    what = ("the code variance of the log-likelihood" if design.criterion == "loglik" else
+            "the surrogate's integrated variance at the observed outputs")
+    how = ("greedily in closed form among the posterior draws" if design.optimizer == "draws"
+           else "by BoTorch's optimize_acqf over the box")
+    return (f"each round's runs went where {what} falls most, chosen {how} "
+            f"(calibration.design.criterion={design.criterion}, "
+            f"optimizer={design.optimizer})")
 
 
 def pressed_faces(rows: list[dict], box: Box) -> list[str]:

@@ -157,10 +157,10 @@ class SpecimenModel(torch.nn.Module):
     up per device and dtype, on first use).
 
     Args:
-        problem: the FE problem (default: the reference case of shared/specimen.md).
+        problem: the FE problem (default: the reference case, docs/configuration.md).
         space: which Anand constants ``theta`` holds (default: s0, QR, xi, m with Liu's others).
         times: output times, s (sorted here; default: the seed's four points (a)-(d)).
-        field: also report V on the 31 x 18 grid of shared/specimen.md (after A, B).
+        field: also report V on the reference case's 31 x 18 grid (after A, B).
         dtype, device: of the solve (float64 recommended; ``"cuda"`` works).
         observation: optional map ``V (B, n_time, n_out) -> V'`` applied to the outputs of
             :meth:`forward` (after the effects).

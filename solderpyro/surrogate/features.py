@@ -10,7 +10,8 @@ the GP exactly that: with ``z = ln(rate_ref / A) + Q/R / T_ref``,
 - ``log sigma_0 = log( s0 / xi * asinh(exp(m z)) )``: the flow stress at the initial
   deformation resistance s0;
 - ``log sigma_sat = log( s_hat exp(n z) / xi * asinh(exp(m z)) )``: the steady-state flow
-  stress (deformation resistance at saturation, s* = s_hat (rate/A exp(Q/RT))^n, anand.md),
+  stress (deformation resistance at saturation, s* = s_hat (rate/A exp(Q/RT))^n, the Anand
+  law of docs/configuration.md),
 
 replacing the columns s0 and Q/R; every other input passes through on its unit-cube scale. For
 fixed xi, m (and A, s_hat, n) the map (s0, Q/R) -> (log sigma_0, log sigma_sat) is a bijection

@@ -1,4 +1,5 @@
-"""Anand material point against the closed forms of shared/anand.md (relative error <= 1e-6)."""
+"""Anand material point against its closed forms (relative error <= 1e-6): the saturation
+stress sigma* = (s_hat / xi) Z^n asinh(Z^m) and s* = s_hat Z^n (docs/configuration.md)."""
 
 import math
 
@@ -14,7 +15,8 @@ from solderpyro.materials.integrate import (
 )
 from solderpyro.params import LIU2008, WANG2001, anand_tensor
 
-# anand.md reference table (Wang 2001 constants): T (C), rate (1/s), sigma* (MPa), s* (MPa)
+# reference table (Wang 2001 60Sn40Pb constants, params.WANG2001):
+# T (C), rate (1/s), sigma* (MPa), s* (MPa)
 TABLE = [(25, 1e-4, 36.461, 102.724), (25, 1e-6, 21.118, 92.358),
          (125, 1e-4, 9.297, 83.205), (125, 1e-6, 2.571, 74.808)]
 

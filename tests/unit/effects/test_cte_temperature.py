@@ -10,7 +10,7 @@ from solderpyro.effects import EFFECTS, EffectSet
 
 F64 = torch.float64
 EFF = EFFECTS["cte_temperature"]
-ALPHA = 23.5e-6  # Sn37Pb, 1/K (shared/specimen.md)
+ALPHA = 23.5e-6  # Sn37Pb, 1/K (the reference case (docs/configuration.md))
 
 
 def _args(T, T_ref, c):

@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from solderpyro.fem.assembly import condense, linear_system
 from solderpyro.fem.mesh import Layer, MeshSpec, build_mesh
 
-STEEL = SimpleNamespace(E=200e3, nu=0.29)  # shared/specimen.md, MPa
+STEEL = SimpleNamespace(E=200e3, nu=0.29)  # the reference case (docs/configuration.md), MPa
 COPPER = SimpleNamespace(E=130e3, nu=0.34)
 LAYERS = (Layer("copper", "copper", -2.0, 0.0, 3, 0.5, "top"),
           Layer("steel", "steel", 0.0, 2.0, 3, 0.5, "bottom"))

@@ -23,7 +23,7 @@ from solderpyro.materials.elastic import bulk_shear, plane_elastic
 from solderpyro.materials.integrate import PointState
 
 F64 = torch.float64
-E_CU, NU_CU = 130e3, 0.34  # shared/specimen.md, MPa
+E_CU, NU_CU = 130e3, 0.34  # the reference case (docs/configuration.md), MPa
 LAYERS = (Layer("copper", "copper", -4.0, 0.0, 6, 0.3, "top"),
           Layer("solder", "solder", 0.0, 0.5, 2),
           Layer("steel", "steel", 0.5, 4.5, 3, 0.3, "bottom"))

@@ -1,5 +1,6 @@
 """Temperature programs and the FE time grid (solderpyro.fem.loading): the reference cycle of
-shared/specimen.md, and a grid that hits every knot and output time within the step limits."""
+the reference case (docs/configuration.md), and a grid that hits every knot and output time
+within the step limits."""
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from solderpyro.fem.loading import (
     time_grid,
 )
 
-RAMP = 5.0 / 60.0  # K/s, shared/specimen.md
+RAMP = 5.0 / 60.0  # K/s, the reference case (docs/configuration.md)
 
 
 def test_reference_cycle_is_the_specimen_md_program():

@@ -6,7 +6,8 @@ import pytest
 
 from solderpyro.fem.mesh import Layer, MeshSpec, build_mesh, graded, locate
 
-#: shared/specimen.md: copper [-4, 0], Sn37Pb [0, 0.5], SUS630 [0.5, 4.5] mm, L/2 = 15 mm
+#: the reference case (docs/configuration.md): copper [-4, 0], Sn37Pb [0, 0.5],
+#: SUS630 [0.5, 4.5] mm, L/2 = 15 mm
 LAYERS = (Layer("copper", "copper", -4.0, 0.0, 4, 0.25, "top"),
           Layer("solder", "solder", 0.0, 0.5, 3),
           Layer("steel", "steel", 0.5, 4.5, 4, 0.25, "bottom"))
@@ -90,7 +91,7 @@ def test_locate_interpolates_bilinear_fields_exactly():
     mesh = build_mesh(LAYERS, HALF, MeshSpec(nx=8))
     rng = np.random.default_rng(0)
     pts = np.c_[rng.uniform(0, HALF, 40), rng.uniform(-4.0, 4.5, 40)]
-    pts = np.r_[pts, [[15.0, 4.5], [15.0, -4.0], [0.0, 0.0]]]  # A, B and O of specimen.md
+    pts = np.r_[pts, [[15.0, 4.5], [15.0, -4.0], [0.0, 0.0]]]  # A, B and O of the reference case
     el, w = locate(mesh, pts)
     assert np.all(w >= -1e-12) and np.allclose(w.sum(1), 1.0, atol=1e-14)
 

@@ -1,7 +1,7 @@
 """The Anand pure functions (solderpyro.materials.anand): the overflow-free log sinh, the
 closed-form s(eps_p) as the solution of the s-equation, and the backward-Euler residual's
-derivatives. The reference table of anand.md and the FE update against the closed forms are
-in tests/verification/test_anand_closed_form.py."""
+derivatives. The Wang 2001 reference table and the FE update against the closed forms are in
+tests/verification/test_anand_closed_form.py."""
 
 import math
 

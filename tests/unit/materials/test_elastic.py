@@ -8,7 +8,7 @@ import torch
 from solderpyro.materials.elastic import IP, ZZ, bulk_shear, condense_zz, iso_3d, plane_elastic
 
 F64 = torch.float64
-#: shared/specimen.md materials (MPa, -)
+#: the reference case (docs/configuration.md) materials (MPa, -)
 MATERIALS = [(200e3, 0.29), (32e3, 0.35), (130e3, 0.34)]
 
 

@@ -13,7 +13,7 @@ from solderpyro.materials.integrate import PointState
 from solderpyro.materials.j2 import j2_update
 
 F64 = torch.float64
-E, NU, H = 130e3, 0.34, 1000.0  # copper (shared/specimen.md), MPa; hardening modulus
+E, NU, H = 130e3, 0.34, 1000.0  # copper (docs/configuration.md), MPa; hardening modulus
 M = torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=F64)
 
 

@@ -50,3 +50,16 @@ def test_the_nearness_and_width_are_measured_on_the_box_scale():
     assert not pressed_constants(_rows({**qr, "m": (0.05, 0.15)}), box)
     assert pressed_constants(_rows({**qr, "m": (0.051, 0.08)}), box)
     assert not pressed_constants(_rows({**qr, "m": (0.06, 0.08)}), box)
+
+
+def test_the_report_names_the_acquisition_that_ran():
+    """The default (closed-form greedy choice among posterior draws) is named as such, never
+    as BoTorch; BoTorch's optimizer is named where it ran; both name the settings."""
+    from solderpyro.design.loop import LoopSettings
+    from solderpyro.pipeline.calibrate import acquisition_text
+
+    default = acquisition_text(LoopSettings())
+    assert "closed form among the posterior draws" in default and "BoTorch" not in default
+    assert "criterion=loglik" in default and "optimizer=draws" in default
+    other = acquisition_text(LoopSettings(criterion="variance", optimizer="optimize"))
+    assert "optimize_acqf" in other and "integrated variance" in other

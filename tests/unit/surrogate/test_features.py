@@ -29,7 +29,8 @@ def test_log_asinh_exp_is_exact_and_finite_for_any_argument():
 
 
 def test_saturation_feature_is_the_anand_steady_state_flow_stress():
-    """exp of the Q/R column is anand.md's saturation stress sigma* at the reference state."""
+    """exp of the Q/R column is the closed-form saturation stress sigma*
+    (materials.anand.saturation) at the reference state."""
     f = FlowStressInputs(SEED, LIU2008, T_ref_C=125.0, rate_ref=1e-5)
     x = lhs(SEED, 64, 3)  # (64, 4)
     g = f(x)
