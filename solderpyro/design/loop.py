@@ -311,9 +311,9 @@ def fe_at_draws(p: LoopProblem, gp: GPSurrogate, d: Draws, y: torch.Tensor, rows
     th = d.theta[rows]
     V, ok = p.fe(th)
     off = 0 if d.offset is None else d.offset[rows]
-    # the residual as chi2_terms takes it for the surrogate (the offset's sign was flipped
-    # here before: every calibration with Moire rigid motion on disagreed with the FE by ~5e5
-    # in chi-square and never stopped)
+    # the residual exactly as chi2_terms takes it for the surrogate, offset subtracted: with
+    # the opposite sign every calibration with Moire rigid motion disagrees with the FE by
+    # ~5e5 in chi-square and never stops
     fe_c2 = (((y - V - off) / d.sigma[rows, None]) ** 2).sum(1).numpy()
     fe_c2[~ok.numpy()] = np.inf
     if code_draws is None:

@@ -46,8 +46,8 @@ def exact_linear_algebra() -> Iterator[None]:
     fast solves, log-probabilities or root decompositions, up to 6 jitter tries; kernels
     evaluated eagerly up to :data:`EXACT_ROWS` rows. These are the values importing BoTorch sets
     as process-wide defaults (botorch/__init__.py): in a context they make a fit independent of
-    whether BoTorch was imported (measured before: the surrogate-vs-direct calibration test
-    moved by 4 Monte Carlo standard errors with import order), and they leave a host's own
+    whether BoTorch was imported (without them the surrogate-vs-direct calibration test moved
+    by 4 Monte Carlo standard errors with import order), and they leave a host's own
     GPyTorch settings as they were outside it. ``tests/unit/test_host_settings.py`` checks that
     importing solderpyro changes no GPyTorch or linear_operator setting."""
     with linop_settings.fast_computations(covar_root_decomposition=False, log_prob=False,
