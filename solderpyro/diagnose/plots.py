@@ -224,9 +224,17 @@ def plot_point_fingerprints(meas: Any, residual: np.ndarray,
     return path.name
 
 
+def evidence_scale(evidence: Sequence[float], threshold: float) -> str:
+    """The ranking's x scale: ``"symlog"`` (linear up to ``threshold``, logarithmic above)
+    where the largest evidence is over 100 x ``threshold`` (a flagged candidate beside one
+    1,000 x stronger would show no bar on a linear axis), else ``"linear"``."""
+    return "symlog" if max([*evidence, 0.0]) > 100.0 * threshold else "linear"
+
+
 def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Path) -> str:
     """Evidence per candidate effect (bars, best at the top), each labelled with the shape
-    correlation of its fingerprint with the (denoised) residual.
+    correlation of its fingerprint with the (denoised) residual; logarithmic above the 1 %
+    line where the evidence spans more than it shows linearly (:func:`evidence_scale`).
 
     Args:
         scores: ``Score`` list, best first; correlation: effect -> correlation;
@@ -236,18 +244,28 @@ def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Pat
     """
     names = [s.effect for s in scores][::-1]
     ev = [s.evidence for s in scores][::-1]
+    thr = -np.log10(0.01 / max(len(names), 1))
+    scale = evidence_scale(ev, thr)
     fig, ax = plt.subplots(figsize=(8, 0.42 * len(names) + 1.3), layout="constrained")
     bars = ax.barh(names, ev, color="C1")
-    ax.axvline(-np.log10(0.01 / max(len(names), 1)), color="k", ls="--", lw=0.8,
-               label="1 % (Bonferroni)")
+    ax.axvline(thr, color="k", ls="--", lw=0.8, label="1 % (Bonferroni)")
     for b, n in zip(bars, names, strict=True):
         if n in correlation:
             ax.annotate(f"fingerprint r = {correlation[n]:.2f}", (b.get_width(), b.get_y()
                         + b.get_height() / 2), xytext=(4, 0), textcoords="offset points",
                         va="center", fontsize=7)
-    ax.set_xlabel("evidence: -log10 p (score test, or likelihood ratio of the FE refit)")
+    ax.set_xlabel("evidence: -log10 p (score test, or likelihood ratio of the FE refit)"
+                  if scale == "linear" else "evidence: -log10 p (score test or FE-refit "
+                  "likelihood ratio), logarithmic above the 1 % line")
     ax.legend(fontsize=8, loc="lower right")
-    ax.set_xlim(0, max(ev + [1.0]) * 1.35)
+    top = max(ev + [1.0])
+    if scale == "symlog":
+        ax.set_xscale("symlog", linthresh=thr)
+        ax.set_xlim(0, top * 8)
+        ax.set_xticks([0.0] + [10.0**k for k in range(int(np.ceil(np.log10(thr))),
+                                                      int(np.ceil(np.log10(top * 8))))])
+    else:
+        ax.set_xlim(0, top * 1.35)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path.name

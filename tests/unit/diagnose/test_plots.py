@@ -1,0 +1,25 @@
+"""The diagnosis's ranking figure: its scale shows a flagged candidate beside a far stronger one."""
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from solderpyro.diagnose.plots import evidence_scale, plot_ranking
+
+THR = -np.log10(0.01 / 7)  # the 1 % Bonferroni line of 7 candidates, 2.85
+
+
+def test_the_scale_turns_logarithmic_only_where_a_linear_axis_hides_a_flagged_candidate():
+    """Evidence 20 (flagged: above the line) beside 44,671 is 0.04 % of the axis on a linear
+    scale: logarithmic above the line. Evidence within 100 x the line stays linear."""
+    assert evidence_scale([44671.0, 20.0, 0.0], THR) == "symlog"
+    assert evidence_scale([100.0 * THR, 20.0, 0.0], THR) == "linear"
+    assert evidence_scale([], THR) == "linear"
+
+
+def test_the_ranking_is_drawn_on_either_scale(tmp_path):
+    for top in (44671.0, 40.0):
+        sc = [SimpleNamespace(effect=f"e{k}", evidence=v)
+              for k, v in enumerate([top, 19.5, 0.0])]
+        name = plot_ranking(sc, {s.effect: 0.5 for s in sc}, tmp_path / f"r{top:g}.png")
+        assert (tmp_path / name).stat().st_size > 10_000
