@@ -178,11 +178,7 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
                 continue
             where[s] = len(rows)
             rows.append(ft.x)
-            for j in ft.free:
-                sgn = 1.0 if ft.x[j] + h_all[j] <= hi_a[j] else -1.0
-                xj = ft.x.copy()
-                xj[j] += sgn * h_all[j]
-                rows.append(xj)
+            rows += _step_rows(ft.x, ft.free, h_all, hi_a)
         if not rows:
             break
         V = fun(np.array(rows))
@@ -194,8 +190,8 @@ def lm_fit(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
             r = y - V[i0]
             ft.chi2 = float(((r / sigma) ** 2).sum())
             ft.history.append(ft.chi2)
-            dx = np.array([rows[i0 + 1 + k][j] - ft.x[j] for k, j in enumerate(fr)])
-            J = (V[i0 + 1:i0 + 1 + len(fr)] - V[i0]).T / dx * width[fr]
+            J = _difference_jacobian(V[i0], V[i0 + 1:i0 + 1 + len(fr)], ft.x,
+                                     rows[i0 + 1:i0 + 1 + len(fr)], fr, width)
             if not (np.all(np.isfinite(J)) and np.isfinite(ft.chi2)):
                 continue
             ft.J = J
@@ -249,14 +245,29 @@ def difference_jacobian(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
     x = np.asarray(x, float).reshape(-1)
     lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)
     width = hi_a - lo_a
-    h = rel * width
-    rows = [x]
-    for j in range(len(x)):
+    free = np.arange(len(x))
+    steps = _step_rows(x, free, rel * width, hi_a)
+    V = fun(np.array([x, *steps]))
+    J = _difference_jacobian(V[0], V[1:], x, steps, free, width)
+    return LMFit(x.copy(), float("nan"), free, J if np.all(np.isfinite(J)) else None)
+
+
+def _step_rows(x: np.ndarray, free: np.ndarray, h: np.ndarray, hi: np.ndarray
+               ) -> list[np.ndarray]:
+    """The difference steps of ``x (p,)``: one row per index of ``free``, that parameter
+    moved by ``h`` (forward, or backward where forward would pass ``hi``)."""
+    out = []
+    for j in free:
         xj = x.copy()
-        xj[j] += h[j] if x[j] + h[j] <= hi_a[j] else -h[j]
-        rows.append(xj)
-    V = fun(np.array(rows))
-    dx = np.array([rows[1 + j][j] - x[j] for j in range(len(x))])
-    J = (V[1:] - V[0]).T / dx * width
-    return LMFit(x.copy(), float("nan"), np.arange(len(x)),
-                 J if np.all(np.isfinite(J)) else None)
+        xj[j] += h[j] if x[j] + h[j] <= hi[j] else -h[j]
+        out.append(xj)
+    return out
+
+
+def _difference_jacobian(v0: np.ndarray, v_steps: np.ndarray, x: np.ndarray,
+                         steps: Sequence[np.ndarray], free: np.ndarray, width: np.ndarray
+                         ) -> np.ndarray:
+    """``(n, len(free))`` forward differences on the unit-box scale from the predictions at
+    ``x`` (``v0 (n,)``) and at its :func:`_step_rows` (``v_steps (len(free), n)``)."""
+    dx = np.array([steps[k][j] - x[j] for k, j in enumerate(free)])
+    return (v_steps - v0).T / dx * width[free]
