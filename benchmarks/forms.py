@@ -8,15 +8,22 @@ so the library is not tested against itself.
 ========================  ===================================================================
 form                      differs from the library's effect by
 ========================  ===================================================================
-``modulus_linear``        E(T) = E25 (1 - k (T - 25)), floored at 5 % of E25 (the library:
-                          E25 exp(-k (T - 25)))
-``lag_second_order``      two first-order lags in series, each tau/2 (the library: one lag tau)
+``modulus_linear``        E(T) = E25 (1 - k (T - 25)), floored at 5 % of E25. The library's
+                          family runs from the exponential (its default) to this linear law
+                          (n_E = 1, floored at 1 %): the data must move the form nuisance
+``lag_second_order``      two first-order lags in series, each tau/2: the library's family at
+                          split = 1/2 (its default is one lag, split = 0)
+``lag_third_order``       three first-order lags in series, each tau/3: outside the library's
+                          family (at most two stages)
 ``cte_quadratic``         alpha(T) = alpha25 (1 + c (T - 25) + (c (T - 25))^2 / 2) (the
                           library: linear in T)
 ``stress_free_slow``      stress free at 150 degC, cooled before the cycle by Newton's law
                           (fastest at first) at a mean 1 K/min (the library: a constant rate)
 ``stress_free_moderate``  the same from 100 degC at a mean 2 K/min
 ========================  ===================================================================
+
+Each form has one parameter, its size (the library's form parameters have no truth here and
+are not counted in the coverage).
 
 :func:`form` returns the :class:`~solderpyro.effects.Effect` instance; ``FORMS`` lists them.
 """
@@ -30,10 +37,11 @@ import torch
 
 from solderpyro.effects.base import PreHistory
 from solderpyro.effects.cte_temperature import CteTemperature
-from solderpyro.effects.modulus_temperature import ModulusTemperature
+from solderpyro.effects.modulus_temperature import K_MAX, ModulusTemperature
 from solderpyro.effects.stress_free_temperature import StressFreeTemperature
 from solderpyro.effects.thermal_lag import ThermalLag
 from solderpyro.fem.loading import ThermalCycle
+from solderpyro.params import Box
 
 
 @dataclass(frozen=True)
@@ -42,6 +50,17 @@ class ModulusLinear(ModulusTemperature):
 
     floor: float = 0.05
     form: str = "linear"  # in the run-store hash: never mistaken for the library's runs
+
+    def default_box(self) -> Box:
+        """One parameter, the slope ``k_E`` (1/K): the form is fixed here."""
+        return Box(("k_E",), (0.0,), (K_MAX,), units=("1/K",))
+
+    @property
+    def off(self) -> tuple[float, ...]:
+        return (0.0,)
+
+    def check(self, q: torch.Tensor) -> None:
+        return None
 
     def modulus(self, E: torch.Tensor, T: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         """``(b,)`` MPa."""
@@ -81,10 +100,62 @@ class LagSecondOrder(ThermalLag):
 
     form: str = "second order"
 
+    def default_box(self) -> Box:
+        """One parameter, the total time constant ``tau`` (s): the form is fixed here."""
+        return Box(("tau",), (0.0,), (300.0,), units=("s",))
+
+    @property
+    def off(self) -> tuple[float, ...]:
+        return (0.0,)
+
+    def check(self, q: torch.Tensor) -> None:
+        if bool((q[:, 0] < 0).any()):
+            raise ValueError(f"lag_second_order: tau must be >= 0 s, got {q[:, 0].min():g}")
+
     def temperature(self, T: torch.Tensor, t: float, cycle: ThermalCycle,
                     q: torch.Tensor) -> torch.Tensor:
         """``(b,)`` degC."""
         return T - second_order_lag(cycle, t, q[:, 0])
+
+
+def cascade_lag(cycle: ThermalCycle, t: float, tau: torch.Tensor, stages: int) -> torch.Tensor:
+    """How far ``(b,)`` K ``stages`` equal first-order lags in series, each ``tau / stages``
+    (s), leave the temperature below the program at ``t`` s: the lags ``e_k = T_prog - T_k``
+    solve ``de_1/dt = r - e_1/s``, ``de_k/dt = r - (e_k - e_(k-1))/s``, propagated exactly over
+    each linear segment of the program by the matrix exponential of the system augmented with
+    the constant rate (0 where ``tau`` is 0)."""
+    s = tau / stages
+    pos = s > 0
+    inv = torch.where(pos, 1.0 / torch.where(pos, s, torch.ones_like(s)), torch.zeros_like(s))
+    b, n = len(tau), stages + 1
+    A = torch.zeros(b, n, n, dtype=tau.dtype)
+    for k in range(stages):
+        A[:, k, k] = -inv
+        if k:
+            A[:, k, k - 1] = inv
+        A[:, k, stages] = 1.0  # d e_k / dt gets + r, the last state
+    z = torch.zeros(b, n, dtype=tau.dtype)
+    kn = cycle.breakpoints
+    for ta, tb in zip(kn[:-1], kn[1:], strict=False):
+        if ta >= t:
+            break
+        r = (cycle(tb) - cycle(ta)) / (tb - ta)
+        z = z.clone()
+        z[:, stages] = r
+        z = (torch.matrix_exp(A * (min(t, tb) - ta)) @ z[:, :, None])[:, :, 0]
+    return torch.where(pos, z[:, stages - 1], torch.zeros_like(tau))
+
+
+@dataclass(frozen=True)
+class LagThirdOrder(LagSecondOrder):
+    """The specimen three first-order lags (each ``tau / 3``) behind the program."""
+
+    form: str = "third order"
+
+    def temperature(self, T: torch.Tensor, t: float, cycle: ThermalCycle,
+                    q: torch.Tensor) -> torch.Tensor:
+        """``(b,)`` degC."""
+        return T - cascade_lag(cycle, t, q[:, 0], 3)
 
 
 @dataclass(frozen=True)
@@ -148,6 +219,7 @@ def cooldown_s(rate_K_per_min: float, T_sf: float) -> float:
 FORMS = {
     "modulus_linear": (ModulusLinear(), "modulus_temperature", None),
     "lag_second_order": (LagSecondOrder(), "thermal_lag", None),
+    "lag_third_order": (LagThirdOrder(), "thermal_lag", None),
     "cte_quadratic": (CteQuadratic(), "cte_temperature", None),
     "stress_free_slow": (StressFreeNewton(), "stress_free_temperature",
                          (150.0, cooldown_s(1.0, 150.0))),

@@ -29,11 +29,16 @@ FRACTIONS = (0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 0.9, 1.0)
 
 def _ladder(eff: Any, seed: int) -> np.ndarray:
     """``(len(FRACTIONS), n_p)`` candidate values from "off" toward the box's far side, on the
-    box's unit-cube scale; a multi-parameter effect gets one fixed random direction (seeded)."""
+    box's unit-cube scale. An effect sized by one parameter moves it alone, its form
+    parameters (:attr:`~solderpyro.effects.Effect.nuisance`) held at the library's default
+    form; one sized by several gets one fixed random direction (seeded)."""
     b = eff.params
     off = b.to_unit(torch.as_tensor(eff.off, dtype=torch.float64)).numpy()
     far = np.where(1.0 - off >= off, 1.0, 0.0)
-    if len(off) > 1:
+    if eff.size_index is not None:
+        d = np.zeros_like(off)
+        d[eff.size_index] = far[eff.size_index] - off[eff.size_index]
+    elif len(off) > 1:
         u = np.random.default_rng(seed).uniform(0.3, 1.0, len(off))
         u *= np.random.default_rng(seed + 1).choice([-1.0, 1.0], len(off))
         far = np.where(u > 0, 1.0, 0.0)

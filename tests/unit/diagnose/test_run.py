@@ -21,11 +21,12 @@ TIMES = (600.0, 900.0, 1500.0)
 
 
 def test_fe_runs_through_the_store(tmp_path):
-    torch.set_num_threads(1)
     setup = build(compose(TINY))
     fx = effect_set(("thermal_lag",), TIMES, setup.effect_bounds)
-    theta = torch.tensor([[12.92, 10586.0, 2.04, 0.1, 0.0], [13.5, 10400.0, 2.1, 0.12, 30.0],
-                          [12.92, 10586.0, 2.04, 0.1, 0.0]], dtype=torch.float64)
+    # s0, QR, xi, m, then thermal_lag's tau (s) and split
+    theta = torch.tensor([[12.92, 10586.0, 2.04, 0.1, 0.0, 0.0],
+                          [13.5, 10400.0, 2.1, 0.12, 30.0, 0.25],
+                          [12.92, 10586.0, 2.04, 0.1, 0.0, 0.0]], dtype=torch.float64)
     store = RunStore(tmp_path / "store")
     fe = SpecimenModels(setup, store, batch_size=2)
     a = fe.runs(theta, TIMES, False, fx)
@@ -55,10 +56,9 @@ def test_observation_effects_share_the_fe_run(tmp_path):
     outputs equal the solver's with every effect on."""
     from solderpyro.fem.solver import SpecimenSolver
 
-    torch.set_num_threads(1)
     setup = build(compose(TINY))
     fx = effect_set(("moire_rigid_motion", "thermal_lag"), TIMES, setup.effect_bounds)
-    base = [12.92, 10586.0, 2.04, 0.1, *([0.0] * 6), 20.0]
+    base = [12.92, 10586.0, 2.04, 0.1, *([0.0] * 6), 20.0, 0.25]  # ..., tau, split
     shifted = list(base)
     shifted[4] = 0.2  # moire_c_1: the 600 s image
     theta = torch.tensor([base, shifted], dtype=torch.float64)

@@ -29,9 +29,12 @@ LAYERS = (Layer("copper", "copper", -4.0, 0.0, 4, 0.25, "top"),
 STEP = TimeStepping(dT_max=10.0, dwell_dt0=20.0, dt_max=450.0)
 TIMES = (600.0, 1500.0)
 F64 = torch.float64
-#: an interior point of each effect's box (and of moire's first offset and second rotation)
-INTERIOR = {"modulus_temperature": [3e-3], "stress_free_temperature": [120.0, 3000.0],
-            "thermal_lag": [60.0], "cte_temperature": [1.5e-3],
+#: an interior point of each effect's box (and of moire's first offset and second rotation);
+#: k_E and tau large enough that their form parameters move the small problem's V measurably
+#: (n_E, split: |dy| ~ 4e-2, 1e-1 per unit, > 3x the gradient test's "acts" bound; at
+#: k_E = 3e-3, tau = 60 s they moved it by ~2e-3, below that bound)
+INTERIOR = {"modulus_temperature": [1e-2, 0.6], "stress_free_temperature": [120.0, 3000.0],
+            "thermal_lag": [200.0, 0.3], "cte_temperature": [1.5e-3],
             "moire_rigid_motion": [0.3, -0.2, 20.0, -10.0], "kinematic_hardening": [500.0],
             "copper_plasticity": [10.0]}
 
@@ -76,22 +79,24 @@ def test_registry_contract():
 
 def test_effect_set_columns_and_binding_to_times():
     fx = EffectSet(["thermal_lag", "moire_rigid_motion", "cte_temperature"]).bind([900.0, 600.0])
-    assert fx.names == ("tau", "moire_c_1", "moire_c_2", "moire_w_1", "moire_w_2", "c_alpha")
-    assert fx.off == (0.0,) * 6 and fx.n_params == 6
-    q = torch.arange(12.0).reshape(2, 6)
-    assert [t.shape[1] for t in fx.split(q)] == [1, 4, 1]
-    assert fx.box.units == ("s", "um", "um", "urad", "urad", "1/K")
+    assert fx.names == ("tau", "split", "moire_c_1", "moire_c_2", "moire_w_1", "moire_w_2",
+                        "c_alpha")
+    assert fx.off == (0.0,) * 7 and fx.n_params == 7
+    q = torch.arange(14.0).reshape(2, 7)
+    assert [t.shape[1] for t in fx.split(q)] == [2, 4, 1]
+    assert fx.box.units == ("s", "-", "um", "um", "urad", "urad", "1/K")
     with pytest.raises(ValueError, match="listed twice"):
         EffectSet(["thermal_lag", "thermal_lag"])
     with pytest.raises(ValueError, match="tau must be >= 0"):
-        EffectSet(["thermal_lag"]).check(torch.tensor([[-1.0]]))
+        EffectSet(["thermal_lag"]).check(torch.tensor([[-1.0, 0.0]]))
 
 
 def test_box_overrides_and_errors():
     b = effect_box(["thermal_lag", "moire_rigid_motion"], SEED_TIMES,
                    {"thermal_lag": {"tau": (0.0, 120.0)}, "moire_rigid_motion": {"c": (-2, 2)}})
-    assert b.upper[0] == 120.0 and b.lower[1:5] == (-2.0,) * 4 and b.upper[5:] == (50.0,) * 4
-    with pytest.raises(ValueError, match="no parameter 'taux'; valid: tau"):
+    assert b.upper[0] == 120.0 and b.upper[1] == 0.5  # split keeps its default box
+    assert b.lower[2:6] == (-2.0,) * 4 and b.upper[6:] == (50.0,) * 4
+    with pytest.raises(ValueError, match="no parameter 'taux'; valid: tau, split"):
         EFFECTS["thermal_lag"].with_box({"taux": (0, 1)})
     with pytest.raises(ValueError, match="lower 5 must be < upper 1"):
         EFFECTS["thermal_lag"].with_box({"tau": (5, 1)})
@@ -163,13 +168,13 @@ def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
 # ------------------------------------------------------------------ (c) gradients
 
 #: columns checked (moire: its first offset and its last rotation) and their FD steps
-FD_COLS = {"tau": 0.03, "k_E": 5e-7, "T_sf": 0.016, "cooldown": 0.3, "c_alpha": 3e-7,
-           "moire_c_1": 2e-4,
+FD_COLS = {"tau": 0.03, "split": 5e-5, "k_E": 5e-7, "n_E": 1e-4, "T_sf": 0.016,
+           "cooldown": 0.3, "c_alpha": 3e-7, "moire_c_1": 2e-4,
            "moire_w_2": 1e-2, "C_k": 0.2}
 #: form parameters (Effect.nuisance): at the off values they change nothing, exactly
-FORM_PARAMS = ("cooldown",)
+FORM_PARAMS = ("cooldown", "n_E", "split")
 #: one-sided differences at the off value, which is the box's lower edge for these
-ONE_SIDED = ("tau", "C_k")
+ONE_SIDED = ("tau", "C_k", "n_E", "split")
 #: all effects but copper_plasticity, whose derivative at its off value is 0 (tested apart)
 SMOOTH = tuple(k for k in CONTRACT if k != "copper_plasticity")
 
@@ -182,7 +187,11 @@ def test_effect_gradients_match_finite_differences():
     A fixed random projection of the outputs is differentiated (one backward pass); a wrong
     component of the Jacobian would show in it. Steps ~1e-4 of each box width: the FD
     truncation error is then < 1e-7 relative and the Newton noise (rtol 1e-10) far smaller.
-    C_k = 0 is the box's lower edge as tau = 0 (C_k < 0 is rejected): one-sided there."""
+    C_k = 0 is the box's lower edge as tau = 0 (C_k < 0 is rejected): one-sided there, and so
+    are the form parameters n_E and split, whose off value 0 is their box's lower edge too; at
+    the off row every form parameter (cooldown, n_E, split) must leave V bit for bit unchanged
+    and have a zero autograd derivative (its effect is off), at the interior row it is checked
+    like the others."""
     fx = EffectSet(SMOOTH).bind(TIMES)
     solver = SpecimenSolver(small_problem(), effects=fx)
     q = torch.tensor([fx.off, [v for k in SMOOTH for v in INTERIOR[k]]], dtype=F64)
@@ -209,7 +218,8 @@ def test_effect_gradients_match_finite_differences():
         g = grad[i, c]
         print(f"{name:10s} member {i}: autograd {g.item(): .9e}  FD {fd.item(): .9e}")
         if name in FORM_PARAMS and i == 0:  # a form parameter does nothing where its effect
-            assert fd == 0.0 and g == 0.0   # is off (T_sf = 25: no cool-down to shape)
+            assert ya == y0 and yb == y0    # is off (T_sf = 25: no cool-down to shape; k_E = 0:
+            assert fd == 0.0 and g == 0.0   # no softening; tau = 0: no lag), bit for bit
             continue
         assert fd.abs() > 1e-6 * abs(1.0 / h)  # the effect acts (not a 0 == 0 check)
         assert torch.allclose(g, fd, rtol=1e-5, atol=0.0), (name, i, g, fd)
@@ -248,18 +258,19 @@ def test_model_theta_layout_and_names():
     space = ParameterSpace.seed()
     model = SpecimenModel(small_problem(), space, TIMES, effects=("thermal_lag",
                                                                    "moire_rigid_motion"))
-    assert model.param_names == [*space.names, "tau", "moire_c_1", "moire_c_2", "moire_w_1",
-                                 "moire_w_2"]
-    assert model.n_theta == 9 and model.effect_box.names == tuple(model.param_names[4:])
-    theta = torch.tensor([[12.41, 9400.0, 1.5, 0.303, 30.0, 0.1, 0.2, 5.0, -5.0]])
+    assert model.param_names == [*space.names, "tau", "split", "moire_c_1", "moire_c_2",
+                                 "moire_w_1", "moire_w_2"]
+    assert model.n_theta == 10 and model.effect_box.names == tuple(model.param_names[4:])
+    theta = torch.tensor([[12.41, 9400.0, 1.5, 0.303, 30.0, 0.2, 0.1, 0.2, 5.0, -5.0]])
     V = model(theta)
     # the model's solver simulates the FE-side effect, the Moire offsets act after it: the
     # same operations as a solver with both on (which applies them to its own outputs)
     both = SpecimenSolver(small_problem(), effects=("thermal_lag", "moire_rigid_motion"))
     direct = both.solve(torch.cat([space.full(theta[:, :4]), theta[:, 4:]], 1), TIMES).V
-    assert model.solver.param_names(TIMES) == [*ANAND_NAMES, "tau"]
+    assert model.solver.param_names(TIMES) == [*ANAND_NAMES, "tau", "split"]
     assert V.shape == (1, 2, 2) and torch.equal(V, direct)
-    with pytest.raises(ValueError, match=r"shape \(B, 9\) for s0, QR, xi, m, tau, moire_c_1"):
+    with pytest.raises(ValueError, match=r"shape \(B, 10\) for s0, QR, xi, m, tau, split, "
+                                         r"moire_c_1"):
         model(theta[:, :4])
     with pytest.raises(ValueError, match="tau must be >= 0"):
         model(torch.cat([theta[:, :4], -theta[:, 4:5], theta[:, 5:]], 1))
@@ -275,7 +286,8 @@ def test_config_effects_and_boxes():
                        "effect_box.thermal_lag.tau=[0,120]"]))
     assert s.effects == ("thermal_lag", "moire_rigid_motion")
     assert s.effect_box.names[0] == "tau" and s.effect_box.upper[0] == 120.0
-    assert s.effect_box.dim == 1 + 2 * 7
+    assert s.effect_box.names[1] == "split" and s.effect_box.upper[1] == 0.5
+    assert s.effect_box.dim == 2 + 2 * 7
     with pytest.raises(ValueError, match="config effects: unknown effect 'lag'; valid effects: "
                                          "copper_plasticity, cte_temperature, .*thermal_lag"):
         build(compose(["effects=[lag]"]))
@@ -296,7 +308,7 @@ def test_store_hash_separates_effects_and_records_round_trip(tmp_path):
     boxed = EFFECTS["thermal_lag"].with_box({"tau": (0.0, 60.0)})  # a prior is not an output
     assert config_hash(pr, SEED_TIMES, False, torch.float64, (boxed,)) == h1
     # a DOE with effect parameters: records carry them, and a rerun reuses them
-    names = [*ANAND_NAMES, "tau"]
+    names = [*ANAND_NAMES, "tau", "split"]
     calls = []
 
     def fake(p, times):
@@ -308,7 +320,7 @@ def test_store_hash_separates_effects_and_records_round_trip(tmp_path):
     store = RunStore(tmp_path)
     h = store.register(pr, SEED_TIMES, False, torch.float64, ("thermal_lag",))
     assert store.meta(h)["inputs"]["effects"][0]["__dict__"]  # readable settings in meta.json
-    P = with_anand([[0.0], [30.0], [30.0]])
+    P = with_anand([[0.0, 0.0], [30.0, 0.2], [30.0, 0.2]])
     r = run_doe(fake, store, h, P, SEED_TIMES, names,
                 DoeOptions(progress=False, executor=InProcess(processes=1)))
     assert r.n_computed == 2 and r.V[1, 0, 0] == 30.0 and calls == [2]
@@ -317,9 +329,10 @@ def test_store_hash_separates_effects_and_records_round_trip(tmp_path):
     assert r.n_reused == 3 and calls == [2]
     rec = store.get(h, P[1])
     assert isinstance(rec, RunRecord) and rec.params["tau"] == 30.0 and rec.values == P[1].tolist()
+    assert rec.params["split"] == 0.2
     assert param_hash(P[1]) != param_hash(P[0]) and param_hash(P[0, :9]) != param_hash(P[0])
-    with pytest.raises(ValueError, match=r"shape \(n, 10\)"):
-        run_doe(fake, store, h, P[:, :9], SEED_TIMES, names, DoeOptions(progress=False))
+    with pytest.raises(ValueError, match=r"shape \(n, 11\)"):
+        run_doe(fake, store, h, P[:, :10], SEED_TIMES, names, DoeOptions(progress=False))
 
 
 def test_rebind_params_carries_each_image_to_its_time():
@@ -327,10 +340,10 @@ def test_rebind_params_carries_each_image_to_its_time():
     image was not observed); effects without per-time parameters pass through unchanged."""
     t0, t1 = (600.0, 2700.0), (600.0, 2400.0, 2700.0)
     fx = effect_set(("thermal_lag", "moire_rigid_motion"), t0)
-    q = torch.tensor([[50.0, 0.1, 0.2, 3.0, 4.0]])  # tau, c_1, c_2, w_1, w_2
+    q = torch.tensor([[50.0, 0.3, 0.1, 0.2, 3.0, 4.0]])  # tau, split, c_1, c_2, w_1, w_2
     out = fx.rebind_params(q, t0, t1)
     fx1 = effect_set(("thermal_lag", "moire_rigid_motion"), t1)
     assert out.shape == (1, fx1.n_params)
     got = dict(zip(fx1.names, out[0].tolist(), strict=True))
-    assert got == {"tau": 50.0, "moire_c_1": 0.1, "moire_c_2": 0.0, "moire_c_3": 0.2,
+    assert got == {"tau": 50.0, "split": 0.3, "moire_c_1": 0.1, "moire_c_2": 0.0, "moire_c_3": 0.2,
                    "moire_w_1": 3.0, "moire_w_2": 0.0, "moire_w_3": 4.0}

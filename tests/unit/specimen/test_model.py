@@ -140,9 +140,9 @@ def test_store_path_equals_the_direct_one_and_reuses_runs(tmp_path):
                           effects=("thermal_lag", "moire_rigid_motion"))
     ti, oi = np.array([0, 0, 1, 1, 1]), np.array([0, 1, 0, 1, 1])
     model.set_observations(ti, oi)
-    # s0, QR, xi, m, tau, then c_1, c_2 (um), w_1, w_2 (urad) of the two images
-    base = [12.9, 10586.0, 2.04, 0.2, 30.0, 0.0, 0.0, 0.0, 0.0]
-    moved = [12.9, 10586.0, 2.04, 0.2, 30.0, 0.3, -0.2, 20.0, -10.0]
+    # s0, QR, xi, m, tau, split, then c_1, c_2 (um), w_1, w_2 (urad) of the two images
+    base = [12.9, 10586.0, 2.04, 0.2, 30.0, 0.2, 0.0, 0.0, 0.0, 0.0]
+    moved = [12.9, 10586.0, 2.04, 0.2, 30.0, 0.2, 0.3, -0.2, 20.0, -10.0]
     theta = torch.tensor([base, moved], dtype=F64)
     direct = model.observed(theta).detach()
     model.use_store(StoreUse(RunStore(tmp_path / "store"), batch=4))
@@ -155,9 +155,9 @@ def test_store_path_equals_the_direct_one_and_reuses_runs(tmp_path):
     V2, _ = model.observed_runs(theta)
     assert (t.n_computed, t.n_reused) == (1, 2) and torch.equal(V2, V)
     # the FE-side outputs (what a surrogate learns) and the offsets added after them
-    Vfe, _ = model.fe_observed_runs(theta[:, :5])
+    Vfe, _ = model.fe_observed_runs(theta[:, :6])
     x = model.x_out[torch.as_tensor(oi)]
-    q = theta[1, 5:]
+    q = theta[1, 6:]
     c, w = q[torch.as_tensor(ti)], q[2 + torch.as_tensor(ti)]
     off = c + 1e-3 * w * (x - model.problem.origin[0])
     torch.testing.assert_close(model.offset(q), off, rtol=0, atol=1e-15)
@@ -167,12 +167,12 @@ def test_store_path_equals_the_direct_one_and_reuses_runs(tmp_path):
 
 def test_bad_input_names_the_field(tmp_path):
     model = SpecimenModel(small_problem(), times=TIMES, effects=("thermal_lag",))
-    with pytest.raises(ValueError, match=r"shape \(B, 5\) for s0, QR, xi, m, tau"):
+    with pytest.raises(ValueError, match=r"shape \(B, 6\) for s0, QR, xi, m, tau, split"):
         model(torch.ones(1, 4, dtype=F64))
-    with pytest.raises(ValueError, match=r"shape \(n, 5\)"):
+    with pytest.raises(ValueError, match=r"shape \(n, 6\)"):
         model.runs(torch.ones(1, 3, dtype=F64))
     with pytest.raises(ValueError, match="no observation index"):
-        model.observed(torch.tensor([[12.9, 10586.0, 2.04, 0.2, 30.0]], dtype=F64))
+        model.observed(torch.tensor([[12.9, 10586.0, 2.04, 0.2, 30.0, 0.0]], dtype=F64))
     with pytest.raises(ValueError, match="outside"):
         model.set_observations([0, 2], [0, 0])
     with pytest.raises(ValueError, match="StoreUse.batch"):
