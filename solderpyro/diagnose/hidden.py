@@ -153,7 +153,11 @@ def make_dataset(setup: Any, effect: Any, path: str | Path, field: bool,
             meta["hidden_rms_point_um"] = ",".join(sizes)
         if np.asarray(values).size != fx.n_params:  # per-image values sized at other times
             t_l = _ladder_times(setup)
-            values = effect_set(names, t_l, setup.effect_bounds).rebind_params(
+            fx_l = effect_set(names, t_l, setup.effect_bounds)
+            if np.asarray(values).size != fx_l.n_params:
+                raise ValueError(f"HiddenTruth.values: {np.asarray(values).size} values for "
+                                 f"the {fx.n_params} parameters {', '.join(fx.names)}")
+            values = fx_l.rebind_params(
                 torch.as_tensor(np.asarray(values, float))[None], t_l, times)[0].numpy()
         meta["hidden_values"] = str(dict(zip(fx.names, np.asarray(values).tolist(),
                                              strict=True)))

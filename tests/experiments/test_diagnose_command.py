@@ -29,7 +29,7 @@ def runs(tmp_path_factory):
     d = tmp_path_factory.mktemp("diag")
     setup = build(compose(TINY))
     make_dataset(setup, "thermal_lag", d / "lag.csv", False, TIMES,
-                 truth=HiddenTruth(values=np.array([120.0])))
+                 truth=HiddenTruth(values=np.array([120.0, 0.0])))  # tau s, split
     make_dataset(setup, None, d / "clean.csv", False, TIMES)
     for name in ("lag", "clean"):
         assert main(["calibrate", "--data", str(d / f"{name}.csv"), "--out", str(d / name),
@@ -127,7 +127,7 @@ def test_calibrate_with_the_effect_and_compare(runs):
     assert main(["calibrate", "--data", str(runs / "lag.csv"), "--out", str(out),
                  "--store", str(runs / "store"), *CAL, *TINY, "effects=[thermal_lag]"]) == 0
     rows = [r.split(",")[0] for r in (out / "summary.csv").read_text().splitlines()[1:]]
-    assert rows == ["s0", "QR", "xi", "m", "sigma", "tau"]
+    assert rows == ["s0", "QR", "xi", "m", "sigma", "tau", "split"]
     assert main(["compare", str(runs / "lag"), str(out)]) == 0
     cmp = json.loads((out / "comparison.json").read_text())
     assert cmp["after"]["rms_um"] < cmp["before"]["rms_um"]
@@ -214,9 +214,9 @@ def test_separation_finds_where_two_fits_differ(tmp_path):
     meas = read_measurements(make_dataset(setup, None, tmp_path / "c.csv", False, TIMES))
     cands = ("thermal_lag", "moire_rigid_motion")
     theta = np.array([12.92, 10586.0, 2.04, 0.1])
-    x = np.concatenate([theta, [0.0], np.zeros(6)])
+    x = np.concatenate([theta, [0.0, 0.0], np.zeros(6)])  # ..., tau, split, then Moire
     shifted = x.copy()
-    shifted[5] = 0.2  # moire_c_1 (the 600 s image)
+    shifted[6] = 0.2  # moire_c_1 (the 600 s image)
     fits = {"thermal_lag": {"x": x}, "moire_rigid_motion": {"x": shifted}}
     sep = separation(setup, (), cands, fits, list(cands), meas, 0.05)
     assert {o["measurement"] for o in sep["options"]} == {
