@@ -231,14 +231,19 @@ def evidence_scale(evidence: Sequence[float], threshold: float) -> str:
     return "symlog" if max([*evidence, 0.0]) > 100.0 * threshold else "linear"
 
 
-def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Path) -> str:
+def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Path,
+                 after_sd: dict[str, float] | None = None,
+                 selected: Sequence[str] = ()) -> str:
     """Evidence per candidate effect (bars, best at the top), each labelled with the shape
-    correlation of its fingerprint with the (denoised) residual; logarithmic above the 1 %
-    line where the evidence spans more than it shows linearly (:func:`evidence_scale`).
+    correlation of its fingerprint with the (denoised) residual and, where given, the RMS
+    residual its refit leaves (noise sd); the selected effects' bars in another colour;
+    logarithmic above the 1 % line where the evidence spans more than it shows linearly
+    (:func:`evidence_scale`).
 
     Args:
         scores: ``Score`` list, best first; correlation: effect -> correlation;
-        path: the PNG to write.
+        path: the PNG to write; after_sd: effect -> RMS after its refit, noise sd;
+        selected: the effects the diagnosis selected.
     Returns:
         the file name.
     """
@@ -247,25 +252,32 @@ def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Pat
     thr = -np.log10(0.01 / max(len(names), 1))
     scale = evidence_scale(ev, thr)
     fig, ax = plt.subplots(figsize=(8, 0.42 * len(names) + 1.3), layout="constrained")
-    bars = ax.barh(names, ev, color="C1")
+    bars = ax.barh(names, ev, color=["C0" if n in selected else "C1" for n in names])
     ax.axvline(thr, color="k", ls="--", lw=0.8, label="1 % (Bonferroni)")
+    if any(n in selected for n in names):
+        ax.barh([names[0]], [0.0], color="C0", label="selected")
+    after_sd = after_sd or {}
     for b, n in zip(bars, names, strict=True):
-        if n in correlation:
-            ax.annotate(f"fingerprint r = {correlation[n]:.2f}", (b.get_width(), b.get_y()
-                        + b.get_height() / 2), xytext=(4, 0), textcoords="offset points",
-                        va="center", fontsize=7)
+        label = [f"r = {correlation[n]:.2f}"] if n in correlation else []
+        if after_sd.get(n) is not None:
+            label.append(f"{after_sd[n]:.2f} sd after")
+        if label:
+            ax.annotate(", ".join(label), (b.get_width(), b.get_y() + b.get_height() / 2),
+                        xytext=(4, 0), textcoords="offset points", va="center", fontsize=7)
     ax.set_xlabel("evidence: -log10 p (score test, or likelihood ratio of the FE refit)"
                   if scale == "linear" else "evidence: -log10 p (score test or FE-refit "
                   "likelihood ratio), logarithmic above the 1 % line")
+    ax.set_title("r: fingerprint's shape correlation with the residual; sd after: the RMS "
+                 "its refit leaves, in noise sd", fontsize=8, loc="left")
     ax.legend(fontsize=8, loc="lower right")
     top = max(ev + [1.0])
     if scale == "symlog":
         ax.set_xscale("symlog", linthresh=thr)
-        ax.set_xlim(0, top * 8)
+        ax.set_xlim(0, top * 40)
         ax.set_xticks([0.0] + [10.0**k for k in range(int(np.ceil(np.log10(thr))),
-                                                      int(np.ceil(np.log10(top * 8))))])
+                                                      int(np.ceil(np.log10(top * 40))))])
     else:
-        ax.set_xlim(0, top * 1.35)
+        ax.set_xlim(0, top * 1.5)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path.name

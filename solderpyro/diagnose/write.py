@@ -58,7 +58,10 @@ def figures(d: Path, diag: Diagnosis, meas: Any, fp: Fingerprints, sigma: float,
             sigma, d / "diagnosis_fingerprints.png", cyc, t_end)
     by = {s: corr[s] for s in corr}
     f3 = plots.plot_ranking([SimpleNamespace(effect=r["effect"], evidence=r["evidence"])
-                             for r in diag.ranking], by, d / "diagnosis_ranking.png")
+                             for r in diag.ranking], by, d / "diagnosis_ranking.png",
+                            {r["effect"]: r["rms_after_sd"] for r in diag.ranking
+                             if r.get("rms_after_sd") is not None},
+                            diag.selected)
     return f1, f2, f3
 
 

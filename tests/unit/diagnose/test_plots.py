@@ -23,3 +23,22 @@ def test_the_ranking_is_drawn_on_either_scale(tmp_path):
               for k, v in enumerate([top, 19.5, 0.0])]
         name = plot_ranking(sc, {s.effect: 0.5 for s in sc}, tmp_path / f"r{top:g}.png")
         assert (tmp_path / name).stat().st_size > 10_000
+
+
+def test_the_selected_effects_bars_are_marked(tmp_path):
+    """The selected effect's bar is drawn in the 'selected' colour (matplotlib's C0,
+    #1f77b4), and nothing is when none is selected: counted as pixels within 2/255 of it
+    per channel (anti-aliased edges aside, a bar is thousands)."""
+    import matplotlib.image as mpimg
+
+    sc = [SimpleNamespace(effect=f"e{k}", evidence=v) for k, v in enumerate([900.0, 30.0, 0.0])]
+    blue = np.array([0x1F, 0x77, 0xB4]) / 255.0
+
+    def blue_pixels(selected):
+        name = plot_ranking(sc, {"e0": 0.99}, tmp_path / f"s{len(selected)}.png",
+                            {"e0": 0.98, "e1": 4.1}, selected)
+        img = mpimg.imread(tmp_path / name)[..., :3]
+        return int((np.abs(img - blue) < 2.0 / 255.0).all(-1).sum())
+
+    assert blue_pixels(["e0"]) > 2000
+    assert blue_pixels([]) == 0
