@@ -97,8 +97,10 @@ def lag(cycle: ThermalCycle, t: float, tau: torch.Tensor,
         dt = min(t, tb) - ta
         a1 = torch.where(pos, torch.exp(-dt / t1s), zero)
         a2 = torch.where(two, torch.exp(-dt / t2s), zero)
+        # one stage: a2 = 0 and (a1 - a2) / (t1 - t2) = a1 / (t1 - t2) with t2 = 0, written
+        # with t2 so that the one-sided derivative in the split at 0 is the two stages' one
         g = torch.where(two, _divided_difference(a1, a2, t1s, torch.where(two, t2, zero), dt),
-                        a1 / t1s)
+                        a1 / (t1s - torch.where(two, zero, t2)))
         rt1, rt = r * t1, r * tau
         e1, e = (rt1 + (e1 - rt1) * a1,
                  rt + (e - rt) * a2 + (e1 - rt1) * t1 * g)

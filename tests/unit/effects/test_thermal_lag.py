@@ -239,6 +239,27 @@ def test_derivative_in_split_matches_finite_differences(s0, tau):
     assert (g - fd).abs().max().item() <= 1e-6 * scale
 
 
+@pytest.mark.parametrize("tau", [60.0, 300.0])
+def test_derivative_in_split_at_0_is_the_two_stage_one_sided_derivative(tau):
+    """At split = 0 (one lag, the box's lower edge, where a refit of the form starts) autograd
+    must give the one-sided derivative of the two-stage law, not that of the one-stage formula
+    alone (which misses the second stage's share and is about twice it): against the
+    second-order one-sided difference (-3 f(0) + 4 f(h) - f(2h)) / 2h with h = 1e-6
+    (truncation ~h^2 times the third derivative, ~1e-12 of it; rounding ~eps r tau / h, ~1e-9
+    of it), to 1e-6 of max|d lag/d split|."""
+    g, fd = [], []
+    for t in TIMES[1:]:
+        s = torch.zeros(1, dtype=F64, requires_grad=True)
+        (gi,) = torch.autograd.grad(lag(C, t, torch.tensor([tau], dtype=F64), s).sum(), s)
+        e = _lag(t, tau, [0.0, 1e-6, 2e-6])
+        g.append(gi.item())
+        fd.append(((-3.0 * e[0] + 4.0 * e[1] - e[2]) / 2e-6).item())
+    g, fd = torch.tensor(g), torch.tensor(fd)
+    scale = g.abs().max().item()
+    assert scale > 0.1 * RATE * tau / 5.0  # the form matters where tau is large
+    assert (g - fd).abs().max().item() <= 1e-6 * scale, (g, fd)
+
+
 @pytest.mark.parametrize("split", [0.0, 0.3, 0.5])
 def test_derivative_in_tau_at_tau_0_is_the_program_rate(split):
     """At tau = 0 the lag is 0 and its one-sided derivative in tau is the program's rate at t
