@@ -85,9 +85,11 @@ def lag(cycle: ThermalCycle, t: float, tau: torch.Tensor,
     t1s = torch.where(pos, t1, torch.ones_like(tau))
     two = pos & (t2 > 0)
     t2s = torch.where(two, t2, torch.ones_like(t2))
+    zero = torch.zeros_like(tau)
+    # the second stage where there is one, and (for the one-stage branch below) where not
+    t2_two, t2_one = torch.where(two, t2, zero), torch.where(two, zero, t2)
     e1 = torch.zeros_like(tau)
     e = torch.zeros_like(tau)
-    zero = torch.zeros_like(tau)
     kn, Tk = cycle.times, cycle.temps_C
     for i in range(len(kn) - 1):
         ta, tb = kn[i], kn[i + 1]
@@ -99,8 +101,7 @@ def lag(cycle: ThermalCycle, t: float, tau: torch.Tensor,
         a2 = torch.where(two, torch.exp(-dt / t2s), zero)
         # one stage: a2 = 0 and (a1 - a2) / (t1 - t2) = a1 / (t1 - t2) with t2 = 0, written
         # with t2 so that the one-sided derivative in the split at 0 is the two stages' one
-        g = torch.where(two, _divided_difference(a1, a2, t1s, torch.where(two, t2, zero), dt),
-                        a1 / (t1s - torch.where(two, zero, t2)))
+        g = torch.where(two, _divided_difference(a1, a2, t1s, t2_two, dt), a1 / (t1s - t2_one))
         rt1, rt = r * t1, r * tau
         e1, e = (rt1 + (e1 - rt1) * a1,
                  rt + (e - rt) * a2 + (e1 - rt1) * t1 * g)
