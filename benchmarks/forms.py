@@ -22,8 +22,8 @@ form                      differs from the library's effect by
 ``stress_free_moderate``  the same from 100 degC at a mean 2 K/min
 ========================  ===================================================================
 
-Each form has one parameter, its size (the library's form parameters have no truth here and
-are not counted in the coverage).
+Each form has one parameter, its size (:class:`SizeOnly`: the library's form parameters have
+no truth here, are not in a form's box and are not counted in the coverage).
 
 :func:`form` returns the :class:`~solderpyro.effects.Effect` instance; ``FORMS`` lists them.
 """
@@ -31,91 +31,68 @@ are not counted in the coverage).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
 
-from solderpyro.effects.base import PreHistory
+from solderpyro.effects.base import Effect, PreHistory
 from solderpyro.effects.cte_temperature import CteTemperature
-from solderpyro.effects.modulus_temperature import K_MAX, ModulusTemperature
+from solderpyro.effects.modulus_temperature import ModulusTemperature
 from solderpyro.effects.stress_free_temperature import StressFreeTemperature
 from solderpyro.effects.thermal_lag import ThermalLag
 from solderpyro.fem.loading import ThermalCycle
 from solderpyro.params import Box
 
 
+class SizeOnly:
+    """Mixin (listed before the library effect) for a form that keeps the library effect's
+    size parameter alone: the library's form parameters (:attr:`Effect.nuisance`) have no
+    meaning in a form that fixes its own shape, so they leave its box, its "off" values and
+    any box the config gives (:meth:`with_box` drops them). The library's :meth:`check`
+    sees them at their "off" values."""
+
+    def _kept(self) -> list[int]:
+        lib = super().default_box()  # type: ignore[misc]
+        return [i for i, nm in enumerate(lib.names) if nm not in self.nuisance]  # type: ignore[attr-defined]
+
+    def default_box(self) -> Box:
+        """The library effect's box without its form parameters."""
+        lib, k = super().default_box(), self._kept()  # type: ignore[misc]
+        pick = lambda xs: tuple(xs[i] for i in k) if xs else ()  # noqa: E731
+        return Box(pick(lib.names), pick(lib.lower), pick(lib.upper), pick(lib.log_scale),
+                   pick(lib.units))
+
+    @property
+    def off(self) -> tuple[float, ...]:
+        lib_off = super().off  # type: ignore[misc]
+        return tuple(lib_off[i] for i in self._kept())
+
+    def with_box(self, bounds: Mapping[str, Sequence[float]]) -> Effect:
+        """:meth:`Effect.with_box` without the library's form parameters (an unknown name
+        still raises)."""
+        nuisance = self.nuisance  # type: ignore[attr-defined]
+        return super().with_box(  # type: ignore[misc]
+            {k: v for k, v in bounds.items() if k not in nuisance})
+
+    def check(self, q: torch.Tensor) -> None:
+        """The library's check, the form parameters at their "off" values."""
+        lib_off = torch.tensor(super().off, dtype=q.dtype)  # type: ignore[misc]
+        full = lib_off.expand(len(q), len(lib_off)).clone()
+        full[:, self._kept()] = q
+        super().check(full)  # type: ignore[misc]
+
+
 @dataclass(frozen=True)
-class ModulusLinear(ModulusTemperature):
+class ModulusLinear(SizeOnly, ModulusTemperature):
     """Linear softening ``E25 (1 - k_E (T - T0))``, floored at :attr:`floor` of E25."""
 
     floor: float = 0.05
     form: str = "linear"  # in the run-store hash: never mistaken for the library's runs
 
-    def default_box(self) -> Box:
-        """One parameter, the slope ``k_E`` (1/K): the form is fixed here."""
-        return Box(("k_E",), (0.0,), (K_MAX,), units=("1/K",))
-
-    @property
-    def off(self) -> tuple[float, ...]:
-        return (0.0,)
-
-    def check(self, q: torch.Tensor) -> None:
-        return None
-
     def modulus(self, E: torch.Tensor, T: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         """``(b,)`` MPa."""
         return E * torch.clamp(1.0 - q[:, 0] * (T - self.T0_C), min=self.floor)
-
-
-def second_order_lag(cycle: ThermalCycle, t: float, tau: torch.Tensor) -> torch.Tensor:
-    """How far ``(b,)`` K two first-order lags in series, each of time constant ``tau / 2``
-    (s), leave the temperature below the program ``cycle`` at ``t`` s (closed form per linear
-    segment of the program; 0 where ``tau`` is 0).
-
-    On a segment of rate ``r`` the first stage's lag ``e1`` and the stages' difference ``d``
-    (``e2 = e1 + d``) evolve, with ``s = tau / 2`` and ``a = exp(-dt / s)``, as
-    ``e1 = r s + (e1_0 - r s) a`` and ``d = r s (1 - a) + (e1_0 - r s) (dt / s) a + d_0 a``.
-    """
-    s = tau / 2.0
-    pos = s > 0
-    safe = torch.where(pos, s, torch.ones_like(s))
-    e1 = torch.zeros_like(tau)
-    d = torch.zeros_like(tau)
-    kn = cycle.breakpoints
-    for ta, tb in zip(kn[:-1], kn[1:], strict=False):
-        if ta >= t:
-            break
-        r = (cycle(tb) - cycle(ta)) / (tb - ta)
-        dt = min(t, tb) - ta
-        a = torch.where(pos, torch.exp(-dt / safe), torch.zeros_like(s))
-        rs = r * s
-        e1, d = (rs + (e1 - rs) * a,
-                 rs * (1.0 - a) + (e1 - rs) * (dt / safe) * a + d * a)
-    return torch.where(pos, e1 + d, torch.zeros_like(tau))
-
-
-@dataclass(frozen=True)
-class LagSecondOrder(ThermalLag):
-    """The specimen two first-order lags (each ``tau / 2``) behind the program."""
-
-    form: str = "second order"
-
-    def default_box(self) -> Box:
-        """One parameter, the total time constant ``tau`` (s): the form is fixed here."""
-        return Box(("tau",), (0.0,), (300.0,), units=("s",))
-
-    @property
-    def off(self) -> tuple[float, ...]:
-        return (0.0,)
-
-    def check(self, q: torch.Tensor) -> None:
-        if bool((q[:, 0] < 0).any()):
-            raise ValueError(f"lag_second_order: tau must be >= 0 s, got {q[:, 0].min():g}")
-
-    def temperature(self, T: torch.Tensor, t: float, cycle: ThermalCycle,
-                    q: torch.Tensor) -> torch.Tensor:
-        """``(b,)`` degC."""
-        return T - second_order_lag(cycle, t, q[:, 0])
 
 
 def cascade_lag(cycle: ThermalCycle, t: float, tau: torch.Tensor, stages: int) -> torch.Tensor:
@@ -147,15 +124,16 @@ def cascade_lag(cycle: ThermalCycle, t: float, tau: torch.Tensor, stages: int) -
 
 
 @dataclass(frozen=True)
-class LagThirdOrder(LagSecondOrder):
-    """The specimen three first-order lags (each ``tau / 3``) behind the program."""
+class LagCascade(SizeOnly, ThermalLag):
+    """The specimen :attr:`stages` equal first-order lags (each ``tau / stages``) behind the
+    program (:func:`cascade_lag`)."""
 
-    form: str = "third order"
+    stages: int = 2  # in the run-store hash
 
     def temperature(self, T: torch.Tensor, t: float, cycle: ThermalCycle,
                     q: torch.Tensor) -> torch.Tensor:
         """``(b,)`` degC."""
-        return T - cascade_lag(cycle, t, q[:, 0], 3)
+        return T - cascade_lag(cycle, t, q[:, 0], self.stages)
 
 
 @dataclass(frozen=True)
@@ -216,10 +194,10 @@ def cooldown_s(rate_K_per_min: float, T_sf: float) -> float:
 
 #: form name -> (the effect instance, the library effect it stands for, the hidden values to
 #: use (None: sized by :func:`~solderpyro.diagnose.hidden.hidden_values`))
-FORMS = {
+FORMS: dict[str, tuple[Effect, str, tuple[float, ...] | None]] = {
     "modulus_linear": (ModulusLinear(), "modulus_temperature", None),
-    "lag_second_order": (LagSecondOrder(), "thermal_lag", None),
-    "lag_third_order": (LagThirdOrder(), "thermal_lag", None),
+    "lag_second_order": (LagCascade(stages=2), "thermal_lag", None),
+    "lag_third_order": (LagCascade(stages=3), "thermal_lag", None),
     "cte_quadratic": (CteQuadratic(), "cte_temperature", None),
     "stress_free_slow": (StressFreeNewton(), "stress_free_temperature",
                          (150.0, cooldown_s(1.0, 150.0))),
@@ -228,7 +206,7 @@ FORMS = {
 }
 
 
-def form(name: str) -> tuple[object, str, tuple[float, ...] | None]:
+def form(name: str) -> tuple[Effect, str, tuple[float, ...] | None]:
     """``(effect, library name, hidden values or None)`` of form ``name``.
 
     Raises:

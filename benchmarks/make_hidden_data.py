@@ -21,7 +21,6 @@ Then:  python benchmarks/diagnosis_cases.py --data NAME=DIR/NAME.csv ... --with-
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -82,11 +81,6 @@ def main() -> None:
             made(p, t0)
     for f in a.forms or []:
         eff, _, fixed = form(f)
-        # the config's box of the library effect names its form parameters too; a form has
-        # its size alone, so it takes the box of the parameters it has
-        own = {k: ({p: v for p, v in b.items() if p in eff.params.names} if k == eff.name
-                   else b) for k, b in setup.effect_bounds.items()}
-        setup_f = dataclasses.replace(setup, effect_bounds=own)
         for aset in a.anand:
             truth = ANAND_SETS[aset]
             for size in ([None] if fixed else a.sizes):
@@ -96,8 +90,8 @@ def main() -> None:
                     continue
                 t0 = time.perf_counter()
                 vals = (np.asarray(fixed, float) if fixed else
-                        hidden_values(setup_f, eff, target_rms=size, anand=truth)[0])
-                make_dataset(setup_f, eff, p, field, SEED_TIMES, noise=0.05, seed=a.seed,
+                        hidden_values(setup, eff, target_rms=float(size), anand=truth)[0])
+                make_dataset(setup, eff, p, field, SEED_TIMES, noise=0.05, seed=a.seed,
                              truth=HiddenTruth(vals, truth))
                 made(p, t0)
 

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from solderpyro.effects.base import Effect
 from solderpyro.fem.loading import EXTENDED_TIMES
 
 #: Anand constants of the synthetic truths (the demo's): s0 MPa, QR K, xi, m
@@ -56,13 +57,13 @@ def _ladder_times(setup: Any) -> tuple[float, ...]:
     return tuple(setup.times)
 
 
-def hidden_values(setup: Any, effect: str, target_rms: float = 0.4, seed: int = 0,
+def hidden_values(setup: Any, effect: str | Effect, target_rms: float = 0.4, seed: int = 0,
                   anand: dict[str, float] | None = None) -> tuple[np.ndarray, float]:
     """The effect's hidden parameter values and their RMS change of the point data.
 
     Args:
         setup: typed problem (:func:`solderpyro.config.compose.build`).
-        effect: registry name.
+        effect: registry name, or an effect instance (a benchmark's own form).
         target_rms: the RMS change (um) of V_A, V_B at the extended times to reach (at the
             configured output times when the cycle is shorter than the reference one).
         anand: Anand constants (default :data:`TRUTH`, others from the config).

@@ -254,8 +254,9 @@ def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Pat
     fig, ax = plt.subplots(figsize=(8, 0.42 * len(names) + 1.3), layout="constrained")
     bars = ax.barh(names, ev, color=["C0" if n in selected else "C1" for n in names])
     ax.axvline(thr, color="k", ls="--", lw=0.8, label="1 % (Bonferroni)")
-    if any(n in selected for n in names):
-        ax.barh([names[0]], [0.0], color="C0", label="selected")
+    chosen = [b for b, n in zip(bars, names, strict=True) if n in selected]
+    if chosen:
+        chosen[0].set_label("selected")
     after_sd = after_sd or {}
     for b, n in zip(bars, names, strict=True):
         label = [f"r = {correlation[n]:.2f}"] if n in correlation else []

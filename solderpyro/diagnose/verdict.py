@@ -188,7 +188,9 @@ def unexplained_text(v: VerdictInputs, head: str) -> str:
     if (v.chosen or v.tie) and testable:
         best = np.sqrt(min(testable) / v.n)
         part = (f"; the candidates' best refit leaves {best:.2f} noise sd, above the "
-                f"{EXPLAINED_SD} that would explain it")
+                f"{EXPLAINED_SD} that would explain it" if best > EXPLAINED_SD else
+                f"; the candidates' best refit leaves {best:.2f} noise sd but was not "
+                "selected (its steps are in diagnosis.json)")
     else:
         part = "; no candidate's refit clears the discretization floor"
     return (f"misfit ({head}): the model is missing something none of the candidates "

@@ -7,7 +7,8 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-from forms import FORMS, cascade_lag, second_order_lag  # noqa: E402
+import pytest  # noqa: E402
+from forms import FORMS, LagCascade, ModulusLinear, cascade_lag  # noqa: E402
 
 from solderpyro.effects.thermal_lag import lag  # noqa: E402
 from solderpyro.fem.loading import REFERENCE_CYCLE  # noqa: E402
@@ -19,9 +20,9 @@ RATE = 5.0 / 60.0  # K/s, the reference cycle's ramps
 
 
 def test_the_matrix_exponential_cascade_is_the_library_lag_at_one_and_two_stages():
-    """One stage is the library's first-order lag, two equal stages its split = 1/2 and the
-    benchmark's own closed form: 1e-11 of r tau (the matrix exponential's rounding over the
-    cycle's segments, ~1e-12 of it measured)."""
+    """One stage is the library's first-order lag, two equal stages its split = 1/2 (and
+    the benchmark's second-order form): 1e-11 of r tau (the matrix exponential's rounding
+    over the cycle's segments, ~1e-12 of it measured)."""
     C = REFERENCE_CYCLE
     half = torch.full_like(TAU, 0.5)
     for t in TIMES:
@@ -29,7 +30,8 @@ def test_the_matrix_exponential_cascade_is_the_library_lag_at_one_and_two_stages
         tol = 1e-11 * RATE * float(TAU.max())
         assert (one - lag(C, t, TAU)).abs().max() <= tol, t
         assert (two - lag(C, t, TAU, half)).abs().max() <= tol, t
-        assert (two - second_order_lag(C, t, TAU)).abs().max() <= tol, t
+        form = LagCascade(stages=2).temperature(torch.zeros_like(TAU), t, C, TAU[:, None])
+        assert (form + two).abs().max() <= tol, t
         assert one[0] == 0 and two[0] == 0
 
 
@@ -54,3 +56,19 @@ def test_every_form_has_one_parameter_its_size():
         n = 2 if library == "stress_free_temperature" else 1  # T_sf and its cool-down
         assert eff.params.dim == n, name
         assert fixed is None or len(fixed) == n, name
+
+
+def test_a_form_keeps_its_size_alone_whatever_box_the_config_gives():
+    """The config's box of the library effect names its form parameters too: a form takes the
+    bounds of its own parameter and drops the library's form parameters (a misspelt name
+    still raises); its check is the library's, on the size, the form parameters at "off"."""
+    lag2 = LagCascade(stages=2).with_box({"tau": (0.0, 400.0), "split": (0.0, 0.5)})
+    assert lag2.params.names == ("tau",) and lag2.params.upper == (400.0,)
+    assert lag2.off == (0.0,)
+    with pytest.raises(ValueError, match="tau must be >= 0"):
+        lag2.check(torch.tensor([[-1.0]], dtype=F64))
+    lag2.check(torch.tensor([[120.0]], dtype=F64))
+    mod = ModulusLinear().with_box({"k_E": (0.0, 0.01), "n_E": (0.0, 1.0)})
+    assert mod.params.names == ("k_E",) and mod.params.units == ("1/K",)
+    with pytest.raises(ValueError, match="no parameter 'k'"):
+        ModulusLinear().with_box({"k": (0.0, 0.01)})

@@ -16,6 +16,7 @@ from solderpyro.diagnose.verdict import (
     check,
     headline,
     rank_candidates,
+    unexplained_text,
     verdict,
     where,
 )
@@ -98,3 +99,15 @@ def test_what_the_data_cannot_rule_out_is_added_to_the_verdict(monkeypatch):
     empty = Diagnosis(False, "fits", [], {}, [], [])
     add_cannot_rule_out(empty, [], fx_all)
     assert empty.verdict == "fits" and empty.suggestions == [] and empty.cannot_rule_out == []
+
+
+def test_an_unexplained_verdict_never_says_a_refit_below_the_bar_is_above_it():
+    """"None of the candidates" quotes the best testable refit's RMS; it says "above the 1.5"
+    only when it is (a refit at the noise level that was not selected is named as such)."""
+    def v(chi2):
+        r = SimpleNamespace(refit=SimpleNamespace(ok=True, dof=1, chi2=chi2))
+        return SimpleNamespace(steps=[[r]], n=N, n_cal=2, chosen=("a",), tie=[])
+    high = unexplained_text(v(4.0 * N), "misfit")
+    assert "2.00 noise sd, above the 1.5" in high
+    low = unexplained_text(v(1.1**2 * N), "misfit")
+    assert "1.10 noise sd" in low and "above" not in low and "not selected" in low
