@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from solderpyro.diagnose.decide import (
+    APART_CHI2,
     REFIT_TOL,
     Floor,
     Judged,
@@ -69,6 +70,9 @@ SCOUT_ITERS = 3
 MAX_REFITS = 4
 #: Latin-hypercube starts of the global refits, beside the literature constants
 SPREAD_STARTS = 2
+#: the share of a global refit's half-resolution chi-square held back as a margin when judging
+#: whether it could still overtake the best at full resolution (:attr:`Reach.floor`)
+REACH_REL = 0.1
 
 
 @dataclass
@@ -140,6 +144,32 @@ def layout(setup: Any, run_effects: tuple[str, ...], candidates: tuple[str, ...]
                   np.array(owner, dtype=object), tuple(names))
 
 
+def observed(fe: Any, meas: Any, lay: Layout) -> Any:
+    """``rows (N, n_col) -> (N, n)`` the FE's predictions at the measured values (um; NaN rows
+    where the model failed), every row through ``fe`` (the run store)."""
+    from solderpyro.specimen import observation_index
+
+    idx: dict[str, Any] = {}
+
+    def run(rows: np.ndarray) -> np.ndarray:
+        P = torch.tensor(rows, dtype=torch.float64)
+        res = fe.runs(P, lay.times, lay.field, lay.fx_all)
+        if "ti" not in idx:
+            idx["ti"], idx["oi"] = observation_index(meas, res.times, res.names)
+        V = res.V.numpy()[:, idx["ti"], idx["oi"]]
+        V[~res.ok.numpy()] = np.nan
+        return V
+
+    return run
+
+
+def chi2_at(lay: Layout, fe: Any, meas: Any, sigma: float, rows: np.ndarray) -> np.ndarray:
+    """Chi-square ``(N,)`` of the rows ``(N, n_col)`` through ``fe`` (inf where it failed)."""
+    V = observed(fe, meas, lay)(np.atleast_2d(rows))
+    c2 = (((np.asarray(meas.value_um, float)[None] - V) / sigma) ** 2).sum(1)
+    return np.where(np.isfinite(c2), c2, np.inf)
+
+
 def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,
                models: dict[str, tuple[tuple[str, ...], np.ndarray]],
                iters: int = LM_ITERS, tol: float | None = LM_TOL, rel: float = 1e-3
@@ -155,19 +185,8 @@ def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,
     Returns:
         name -> :class:`~solderpyro.exact.fit.LMFit` (``x`` a full row).
     """
-    from solderpyro.specimen import observation_index
-
     y = np.asarray(meas.value_um, float)
-    idx: dict[str, Any] = {}
-
-    def run(rows: np.ndarray) -> np.ndarray:
-        P = torch.tensor(rows, dtype=torch.float64)
-        res = fe.runs(P, lay.times, lay.field, lay.fx_all)
-        if "ti" not in idx:
-            idx["ti"], idx["oi"] = observation_index(meas, res.times, res.names)
-        V = res.V.numpy()[:, idx["ti"], idx["oi"]]
-        V[~res.ok.numpy()] = np.nan
-        return V
+    run = observed(fe, meas, lay)
 
     names = list(models)
     X0 = np.array([np.clip(models[m][1], lay.lo, lay.hi) for m in names])
@@ -216,8 +235,8 @@ def base_fit(lay: Layout, fe: Any, meas: Any, sigma: float,
 
 
 def refit_candidates(lay: Layout, fe: Any, meas: Any, sigma: float, base_x: np.ndarray,
-                     base_chi2: float, chosen: tuple[str, ...], starts: dict[str, np.ndarray]
-                     ) -> list[Refit]:
+                     base_chi2: float, chosen: tuple[str, ...], starts: dict[str, np.ndarray],
+                     cheap: Any | None = None) -> list[Refit]:
     """Refit ``chosen + (c,)`` for each candidate ``c`` of ``starts`` (see the module docstring).
 
     Args:
@@ -225,14 +244,38 @@ def refit_candidates(lay: Layout, fe: Any, meas: Any, sigma: float, base_x: np.n
         base_chi2: its chi-square; chosen: effects already added (forward steps).
         starts: candidate -> start row ``(n_col,)`` (e.g. ``base_x`` with the candidate at its
             best ladder magnitude).
+        cheap: a cheaper model of the same physics (the half-resolution one), or None. With
+            it, every refit converges there first, and only those :func:`within_reach` of the
+            best (or of the base) go on through ``fe``; the others are the base with the
+            candidate at no gain, or the FE's chi-square at their cheap optimum where that is
+            lower.
     Returns:
         one :class:`~solderpyro.diagnose.decide.Refit` per candidate, in the order of
         ``starts``; ``starts`` counts the retry.
     """
     if not starts:
         return []
-    fits = fit_models(lay, fe, meas, sigma,
-                      {c: (chosen + (c,), x) for c, x in starts.items()})
+    models = {c: (chosen + (c,), x) for c, x in starts.items()}
+    if cheap is None:
+        fits = fit_models(lay, fe, meas, sigma, models)
+    else:
+        pre = fit_models(lay, cheap, meas, sigma, models)
+        names = list(pre)
+        there = dict(zip(names, chi2_at(lay, fe, meas, sigma,
+                                        np.array([pre[c].x for c in names])), strict=True))
+        reach = within_reach({c: Reach(pre[c].chi2, last_gain(pre[c]), float(there[c]))
+                              for c in names}, {"base": base_chi2})
+        fits = {c: LMFit(pre[c].x, float(there[c]), pre[c].free) for c in names
+                if c not in reach}
+        if fits:
+            log.info("diagnose: refits left at their half-resolution optimum, too far behind "
+                     "to matter: %s", ", ".join(f"+{c} {f.chi2:.1f}" for c, f in fits.items()))
+            for c, f in fits.items():
+                if f.chi2 > base_chi2:  # nested: the base (the candidate off) does as well
+                    fits[c] = LMFit(base_x.copy(), base_chi2, f.free)
+        fits.update(fit_models(lay, fe, meas, sigma,
+                               {c: (models[c][0], pre[c].x) for c in names if c in reach}))
+        fits = {c: fits[c] for c in starts}
     out = {c: Refit(chosen + (c,), float(f.chi2), len(lay.cols(c)), f.x, base_chi2)
            for c, f in fits.items()}
     retry = [c for c, r in out.items() if not r.ok and not np.array_equal(starts[c], base_x)]
@@ -312,10 +355,12 @@ def ladder_values(scores: list[Score]) -> dict[str, float]:
 
 
 def forward(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float, first: list[Refit],
-            floor: Floor) -> tuple[list[list[Judged]], tuple[str, ...], list[str]]:
+            floor: Floor, cheap: SpecimenModels | None = None
+            ) -> tuple[list[list[Judged]], tuple[str, ...], list[str]]:
     """The forward steps from the first step's refits
     (:func:`~solderpyro.diagnose.decide.forward_steps`): each next candidate refitted with the
-    chosen ones on, from the chosen model's fit with the candidate where its own refit put it.
+    chosen ones on, from the chosen model's fit with the candidate where its own refit put it
+    (through ``cheap`` first where given: :func:`refit_candidates`).
 
     Returns:
         ``(steps, chosen, tie)``: the judged refits per step; the effects added; the candidates
@@ -331,7 +376,7 @@ def forward(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float, first: lis
             x = cur.x.copy()
             x[lay.cols(c)] = single[c].x[lay.cols(c)]
             st[c] = x
-        nxt = refit_candidates(lay, fe, meas, sigma, cur.x, cur.chi2, chosen, st)
+        nxt = refit_candidates(lay, fe, meas, sigma, cur.x, cur.chi2, chosen, st, cheap)
         log.info("diagnose: forward step, with %s on (chi2 %.1f): %s", " + ".join(chosen),
                  cur.chi2, ", ".join(f"+{r.name} {r.chi2:.1f}{'' if r.ok else ' (failed)'}"
                                      for r in nxt))
@@ -467,26 +512,42 @@ def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
         if name not in best or f.chi2 < best[name][1].chi2:
             best[name] = (label, f)
     if scout_fe is not None:
-        # each best start on to convergence through the cheap model, then one iteration
-        # through the run's own FE (its chi-square is the one the local refit is held to)
+        # each best start on to convergence through the cheap model, then evaluated through
+        # the run's own FE (its chi-square is the one the local refit is held to)
         on = fit_models(lay, scout_fe, meas, sigma, {
             n: (free_of(n), f.x) for n, (_, f) in best.items() if not f.converged})
         log.info("diagnose: global refits' best starts, converged on the half-resolution "
                  "model: %s", ", ".join(f"{n} from {lb} {on[n].chi2 if n in on else f.chi2:.1f}"
                                         for n, (lb, f) in best.items()))
-        at = fit_models(lay, fe, meas, sigma, {
-            n: (free_of(n), on[n].x if n in on else f.x) for n, (_, f) in best.items()},
-            iters=1)
-        best = {n: (lb, at[n]) for n, (lb, _) in best.items()}
+        cheap = {n: (on[n] if n in on else f) for n, (_, f) in best.items()}
+        # each model through the run's own FE at its cheap optimum: one run each
+        names = list(cheap)
+        there = dict(zip(names, chi2_at(lay, fe, meas, sigma,
+                                        np.array([cheap[n].x for n in names])), strict=True))
+        bounds = {n: Reach(cheap[n].chi2, last_gain(cheap[n]), float(there[n]))
+                  for n in names if n != "baseline"}
+        best = {n: (lb, LMFit(cheap[n].x.copy(), float(there[n]), cheap[n].free))
+                for n, (lb, _) in best.items()}
+        reach = within_reach(bounds, {n: r.chi2 for n, r in done.items()})
+    else:
+        reach = {n for n in best if n != "baseline"}
     go_on: dict[str, tuple[tuple[str, ...], np.ndarray]] = {}
+    behind = []
     for name, (_, f) in best.items():
         held = done.get(name)
         if held is not None and held.chi2 <= f.chi2:
             continue  # the local refit is already better than any scout
         if name == "baseline" and f.chi2 >= base["chi2"]:
             continue
+        if name != "baseline" and name not in reach:
+            behind.append(f"{name} {f.chi2:.1f}")
+            continue
         if not f.converged:
             go_on[name] = (free_of(name), f.x)
+    if behind:
+        log.info("diagnose: global refits left at their half-resolution optimum (chi2 "
+                 "through the run's own FE there), too far behind the best to overtake it: %s",
+                 ", ".join(behind))
     more = fit_models(lay, fe, meas, sigma, go_on) if go_on else {}
     fin = {name: (label, more.get(name, f)) for name, (label, f) in best.items()}
     nb = dict(base)
@@ -506,14 +567,70 @@ def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
         if held is not None and held.chi2 <= r.chi2:
             r = dataclasses.replace(held, base_chi2=float(nb["chi2"]),
                                     starts=held.starts + n_starts)
-        if not r.ok and nb.get("global"):
-            # nested in the better base: with the effect off it is that base (LR 0)
+        if not r.ok and (nb.get("global") or c not in reach):
+            # nested in the (better) base: with the effect off it is that base (LR 0); a refit
+            # left at its cheap optimum for being out of reach gains nothing more at best
             r = Refit((c,), float(nb["chi2"]), r.dof, lay.row(nb["x"][:lay.n_cal]),
                       float(nb["chi2"]), starts=r.starts)
         first.append(r)
     log.info("diagnose: global refits (base chi2 %.1f): %s", nb["chi2"], ", ".join(
         f"{r.name} {r.chi2:.1f}{'' if r.ok else ' (failed)'}" for r in first))
     return nb, first
+
+
+@dataclass(frozen=True)
+class Reach:
+    """One global refit where its half-resolution stage ended (chi-squares against the noise).
+
+    Attributes:
+        cheap: at the cheap model's optimum, by the cheap model.
+        gain: that fit's last iteration's gain (below ``LM_TOL`` where it converged; an
+            unconverged fit may still gain about this much per iteration).
+        full: the run's own FE at the same point (an upper bound of the model's optimum
+            there).
+    """
+
+    cheap: float
+    gain: float
+    full: float
+
+    @property
+    def floor(self) -> float:
+        """A lower bound of what the model could reach through the run's own FE in the
+        :data:`LM_ITERS` iterations it would be given: the cheap optimum, less twice the
+        resolution's change there (the FE's optimum cannot lie below the cheap model's by much
+        more than the two models differ near it), less :data:`LM_ITERS` times the last gain,
+        less :data:`REACH_REL` of it."""
+        shift = abs(self.full - self.cheap)
+        return (1.0 - REACH_REL) * self.cheap - 2.0 * shift - LM_ITERS * self.gain
+
+
+def last_gain(f: LMFit) -> float:
+    """The chi-square gained by a fit's last accepted iteration (0 without two)."""
+    h = f.history
+    return float(max(h[-2] - h[-1], 0.0)) if len(h) >= 2 else 0.0
+
+
+def within_reach(refits: dict[str, Reach], local: dict[str, float]) -> set[str]:
+    """The candidates whose global refit goes on to convergence through the run's own FE.
+
+    The lead is the best chi-square already reached through the FE (the candidates' cheap
+    optima evaluated by it, their local refits ``local``). A candidate whose
+    :attr:`Reach.floor` lies more than :data:`~solderpyro.diagnose.decide.APART_CHI2` (the tie
+    margin) above the lead can neither overtake it nor tie with it: converging it would not
+    change the verdict, and its reported chi-square (the FE's at its cheap optimum) is an
+    upper bound.
+
+    Args:
+        refits: candidate -> its :class:`Reach`.
+        local: candidate -> chi-square of its local refit from the base point.
+    Returns:
+        the names of ``refits`` within reach.
+    """
+    if not refits:
+        return set()
+    lead = min([r.full for r in refits.values()] + list(local.values()))
+    return {n for n, r in refits.items() if r.floor <= lead + APART_CHI2}
 
 
 def base_starts(setup: Any, info: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool

@@ -166,11 +166,19 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         steps, chosen, tie = linearised_steps(scores, mf.chi2, n, lay.n_cal, sigma, floor,
                                               n_cand)
     elif base is not None:
-        with cost.stage("profile_refits"):
-            first = (first_refits(lay, fe, meas, sigma, base, scores, screened)
-                     if screened else [])
-            steps, chosen, tie = forward(lay, fe, meas, sigma, first, floor)
         faces = on_faces(base["x"][:setup.space.dim], setup.space)
+        first = []
+        if faces:
+            # the global refits come next in any case, and start every candidate from the
+            # base point too: no local refits before them
+            log.info("diagnose: the base fit presses %s against the box's faces: every "
+                     "candidate is refitted from several starts", ", ".join(
+                         f.name for f in faces))
+        else:
+            with cost.stage("profile_refits"):
+                first = (first_refits(lay, fe, meas, sigma, base, scores, screened)
+                         if screened else [])
+                steps, chosen, tie = forward(lay, fe, meas, sigma, first, floor)
         if needs_global(bool(faces), base["chi2"], n, lay.n_cal,
                         settled(steps, chosen, tie, n, sigma, floor)):
             with cost.stage("global_refits"):
@@ -179,7 +187,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
                 cost.fe_also(scout)
                 base, first = global_refits(lay, fe, meas, sigma, base, scores, first, scout)
                 base_chi2 = base["chi2"]
-                steps, chosen, tie = forward(lay, fe, meas, sigma, first, floor)
+                steps, chosen, tie = forward(lay, fe, meas, sigma, first, floor, scout)
             freed = freeing(first, base_chi2, setup.space, len(faces)) if faces else []
         fits = first_fits(base, first)
     with cost.stage("verdict"):

@@ -22,11 +22,15 @@ from solderpyro.diagnose.decide import Floor, explained, needs_global, settled
 from solderpyro.diagnose.faces import on_faces
 from solderpyro.diagnose.refits import (
     Layout,
+    Reach,
     base_fit,
     first_refits,
     forward,
     global_refits,
     ladder_values,
+    last_gain,
+    refit_candidates,
+    within_reach,
 )
 from solderpyro.params import Box
 
@@ -160,3 +164,38 @@ def test_a_cheap_model_ranks_the_starts_and_the_own_fe_reaches_the_same_optimum(
         assert g.chi2 == pytest.approx(r.chi2, abs=4 * LM_TOL)
         np.testing.assert_allclose(g.x[:2], r.x[:2], atol=1e-3 * (B_MAX - 0.5))
     assert cheap.rows > 0 and own.rows < alone.rows
+    # the forward steps through the cheap model first decide as those through the own FE
+    assert forward(lay, own, meas, SIGMA, got, Floor(), cheap)[1:] == \
+        forward(lay, alone, meas, SIGMA, ref, Floor())[1:] == (("right",), [])
+    # a next candidate refitted beside the chosen one ends where the own FE alone puts it
+    right = next(g for g in got if g.name == "right")
+    st = {"decoy": right.x.copy()}
+    a = refit_candidates(lay, alone, meas, SIGMA, right.x, right.chi2, ("right",), st)[0]
+    b = refit_candidates(lay, own, meas, SIGMA, right.x, right.chi2, ("right",), st, cheap)[0]
+    assert b.ok and b.chi2 == pytest.approx(a.chi2, abs=4 * LM_TOL)
+
+
+def test_only_refits_that_could_overtake_or_tie_with_the_best_go_on_at_full_resolution():
+    """The lead is the best chi-square reached through the FE. A refit whose half-resolution
+    optimum, less twice the resolution's change there, 15 times its last gain and 10 %, still
+    lies more than the tie margin above the lead is left where it is; one still gaining fast,
+    or whose resolution change is large, or that sits within the margin, goes on."""
+    lead = Reach(cheap=2100.0, gain=0.1, full=2140.0)
+    far = Reach(cheap=450_000.0, gain=0.3, full=450_800.0)
+    gaining = Reach(cheap=450_000.0, gain=30_000.0, full=450_800.0)
+    near = Reach(cheap=2300.0, gain=0.2, full=2330.0)
+    shifted = Reach(cheap=3000.0, gain=0.2, full=3500.0)
+    got = within_reach({"lead": lead, "far": far, "gaining": gaining, "near": near,
+                        "shifted": shifted}, {})
+    assert got == {"lead", "near", "gaining", "shifted"}
+    # near: 0.9 * 2300 - 60 - 3 = 2007 <= 2140 + 6; shifted: 2700 - 1000 - 3 = 1697;
+    # gaining: 405,000 - 1,600 - 450,000 < 0; far: 405,000 - 1,600 - 4.5 > 2146
+    assert far.floor > lead.full + 6.0 and near.floor < lead.full
+    # a local refit from the base point can be the lead
+    assert within_reach({"near": near}, {"x": 1000.0}) == set()
+
+
+def test_last_gain_is_what_the_last_accepted_iteration_took():
+    f = SimpleNamespace(history=[100.0, 40.0, 38.5])
+    assert last_gain(f) == pytest.approx(1.5)
+    assert last_gain(SimpleNamespace(history=[7.0])) == 0.0
