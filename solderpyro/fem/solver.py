@@ -69,6 +69,7 @@ from solderpyro.fem.operators import (
 )
 from solderpyro.fem.points import PointEvaluator
 from solderpyro.fem.problem import Problem
+from solderpyro.fem.record import SolderRecorder
 from solderpyro.fem.stepping import SDIRK_GAMMA, TimeLoop
 from solderpyro.fem.thermo import N_ANAND, MemberStep, ThermoFields
 from solderpyro.materials.integrate import PointState
@@ -300,7 +301,8 @@ class SpecimenSolver:
         return 1e3 * (u @ self.Hobs.T + off)
 
     # ------------------------------------------------------------------ time loop
-    def solve(self, params: torch.Tensor, times, progress: bool = False) -> SolveResult:
+    def solve(self, params: torch.Tensor, times, progress: bool = False,
+              recorder: SolderRecorder | None = None) -> SolveResult:
         """Run the thermal cycle for a batch of Anand parameter sets (and effect parameters).
 
         Args:
@@ -310,9 +312,14 @@ class SpecimenSolver:
                 are differentiable with respect to every column.
             times: output times, s (each in ``(0, cycle end]``).
             progress: show a tqdm bar over the time steps.
+            recorder: gathers the solder's stress, inelastic strain and work at every grid
+                step (:mod:`solderpyro.fem.record`); its fields are ``extra["solder"]``.
         Returns:
             :class:`SolveResult` with ``V`` of shape ``(B, n_time, n_out)`` in um. With an
             effect that simulates a pre-history, V is relative to the state at t = 0.
+        Raises:
+            ValueError: a ``recorder`` with an elasto-plastic copper band (its members are
+                solved on two discretisations).
         """
         times = sorted(float(t) for t in times)
         params, grid, t_zero = self._prepare(params, times)
@@ -321,14 +328,21 @@ class SpecimenSolver:
         native = self.newton.native_linalg() and not (params.requires_grad
                                                       and torch.is_grad_enabled())
         with _native.kernel_threads() if native else contextlib.nullcontext():
-            return self._solve(params, grid, times, t_zero, progress, extra)
+            return self._solve(params, grid, times, t_zero, progress, extra, recorder)
 
-    def _solve(self, params, grid, times, t_zero, progress, extra) -> SolveResult:
+    def _solve(self, params, grid, times, t_zero, progress, extra,
+               recorder: SolderRecorder | None = None) -> SolveResult:
         """:meth:`solve` after validation (``_prepare``): the time loop(s) and the outputs."""
         try:
             loop = TimeLoop(self)
             if self.banded is None:
-                res = loop.run(params, grid, times, t_zero, progress)
+                res = loop.run(params, grid, times, t_zero, progress, recorder)
+                if recorder is not None:
+                    extra["solder"] = recorder.finish(res.alive)
+            elif recorder is not None:
+                raise ValueError("recorder: the solder's fields are not recorded with an "
+                                 "elasto-plastic copper band (copper_plasticity): solve "
+                                 "without it")
             else:
                 res = loop.run_split(params, grid, times, t_zero, progress, extra)
             out = res.V

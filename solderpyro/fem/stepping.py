@@ -108,10 +108,13 @@ class TimeLoop:
         return (scatter(u1, ub, idx), scatter_state(st1, sb, idx),
                 scatter(ok, okb, idx))
 
-    def run(self, params, grid, times, t_zero: bool, progress: bool) -> Outputs:
+    def run(self, params, grid, times, t_zero: bool, progress: bool,
+            recorder: Any = None) -> Outputs:
         """The time loop over ``grid`` (s) for ``params`` ``(B, 9 + n_eff)``, V recorded at
         ``times``; ``t_zero``: V relative to t = 0 (a pre-history precedes it). The solver's
-        ``peak`` receives the probe's largest stress ``(B,)`` MPa (None without a probe)."""
+        ``peak`` receives the probe's largest stress ``(B,)`` MPa (None without a probe).
+        ``recorder`` (a :class:`~solderpyro.fem.record.SolderRecorder` or None) takes the end
+        of every grid step."""
         slv = self.solver
         b = params.shape[0]
         cyc = slv.problem.cycle
@@ -134,6 +137,8 @@ class TimeLoop:
             from tqdm.auto import tqdm
             it = tqdm(it, desc=f"FE cycle (B={b})", unit="step")
         outs = []
+        if recorder is not None:
+            recorder.start(slv, b)
         for k in it:
             t0, t1 = float(grid[k - 1]), float(grid[k])
             idx = torch.nonzero(alive).squeeze(1)
@@ -153,6 +158,8 @@ class TimeLoop:
             u, st = scatter(u, u_a, idx), scatter_state(st, st_a, idx)
             alive = alive.clone()
             alive[idx] = ok
+            if recorder is not None:
+                recorder.step(t1, u, st, self.thermo_at(t1, params))
             if peak is not None:
                 peak = torch.maximum(peak, slv.probe.peak_vm(u, self.thermo_at(t1, params)))
             if t_zero and t1 == 0.0:  # the Moire reference image: V relative to this state;
