@@ -136,7 +136,8 @@ def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, 
         "first_is_hidden": bool(dg["ranking"]) and dg["ranking"][0]["effect"] in
         hidden.split("+"),
         "diagnose_timing": dg.get("timing", {}).get("total"), "wall_s": wall}
-    if recalibrate and rec["selected"] and not rec["tie"]:
+    if recalibrate and rec["selected"]:
+        # a tie after the selection is about what remains: the advice is the selection
         rec.update(_recalibrate(csv_p, base, w / "with", rec["selected"], store, truth, wall))
     elif recalibrate and rec["tie"]:
         # The verdict names no winner; a user tries each tied effect, as its advice says.
@@ -144,8 +145,8 @@ def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, 
             e: _recalibrate(csv_p, base, w / f"with_{e}", [e], store, truth, wall)
             for e in rec["tie"][0]}
     eff = [e for e in hidden.split("+") if e != "none"]
-    tried = ([rec["selected"]] if rec["selected"] and not rec["tie"] else []) + \
-        ([[e] for e in rec["tie"][0]] if rec["tie"] else [])
+    tried = ([rec["selected"]] if rec["selected"] else []) + \
+        ([[e] for e in rec["tie"][0]] if rec["tie"] and not rec["selected"] else [])
     if recalibrate and with_hidden and eff and eff not in tried:
         # "after adding the hidden effect": what a user who knows the effect does, also
         # where the data cannot tell it from the others (the point data)

@@ -171,13 +171,24 @@ def explained_text(v: VerdictInputs, head: str) -> tuple[str, list[str]]:
 
 
 def tie_text(v: VerdictInputs, head: str) -> tuple[str, list[str]]:
-    """Verdict and suggestion where tied candidates each explain the misfit."""
-    pre = f"with {' + '.join(v.chosen)} on, " if v.chosen else ""
-    text = (f"misfit ({head}). {pre}the data cannot tell apart: {', '.join(v.tie)} "
-            f"(their refits differ by less than chi2 {APART_CHI2:.1f}, a likelihood "
-            "ratio of 20; each explains it); do not pick one on these data")
-    return text, ["measure where the candidates differ (see 'separation' in "
-                  "diagnosis.json): the full-field V or more times"]
+    """Verdict and suggestions where tied candidates each explain the misfit (with the chosen
+    effects on, where a forward step tied: those are the selection, the tie is about what
+    remains after them)."""
+    measure = ("measure where the candidates differ (see 'separation' in diagnosis.json): "
+               "the full-field V or more times")
+    if not v.chosen:
+        return (f"misfit ({head}). The data cannot tell apart: {', '.join(v.tie)} (their "
+                f"refits differ by less than chi2 {APART_CHI2:.1f}, a likelihood ratio of "
+                "20; each explains it); do not pick one on these data"), [measure]
+    on = " + ".join(v.chosen)
+    fin = np.sqrt(final_chi2(v) / v.n)
+    text = (f"misfit ({head}). Best explanation: {on}: the RMS falls to {fin * v.sigma:.3g} "
+            f"um = {fin:.2f} noise sd. What remains with it on, the data cannot attribute: "
+            f"{', '.join(v.tie)} each take it up (their refits differ by less than chi2 "
+            f"{APART_CHI2:.1f}); a remainder this small may be {on}'s form differing from "
+            "the library's rather than another effect")
+    return text, ["recalibrate with it: solderpyro calibrate ... effects=[" + ",".join(v.chosen)
+                  + "]", measure]
 
 
 def unexplained_text(v: VerdictInputs, head: str) -> str:
@@ -271,7 +282,11 @@ def verdict(v: VerdictInputs) -> Diagnosis:
     diag = Diagnosis(bad, text, ranking, check(v), [v.tie] if v.tie else [], suggestions)
     diag.faces = [f.to_json() for f in v.faces]
     diag.failed = failed
-    diag.selected = list(v.chosen) if ok_expl else []  # an unexplained misfit names nothing
+    # an unexplained misfit names nothing; a tie after chosen effects keeps them when they
+    # explain the misfit on their own
+    keep = ok_expl or (bool(v.chosen) and flag is True
+                       and explained(final_chi2(v), v.n, v.sigma, v.floor))
+    diag.selected = list(v.chosen) if keep else []
     diag.explained = flag
     diag.floor = v.floor.to_json()
     diag.steps = [[{"effects": list(j.refit.effects), "chi2": j.refit.chi2,

@@ -27,23 +27,25 @@ JT = np.column_stack([np.ones(N), X])
 SIG = {"a": np.sin(3 * np.pi * X), "b": np.exp(-((X - 0.3) / 0.05) ** 2)}
 
 
-def _inputs(y: np.ndarray, sigma: float) -> VerdictInputs:
+def _inputs(y: np.ndarray, sigma: float, sig: dict | None = None) -> VerdictInputs:
+    SIG_ = SIG if sig is None else sig
+
     def chi2(cols):
         A = np.column_stack(cols)
         r = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
         return float(r @ r) / sigma**2
 
     base = chi2([JT])
-    first = [Refit((e,), chi2([JT, SIG[e][:, None]]), 1, np.zeros(0), base) for e in SIG]
+    first = [Refit((e,), chi2([JT, SIG_[e][:, None]]), 1, np.zeros(0), base) for e in SIG_]
 
     def nxt(cur, chosen, others):
-        return [Refit((*chosen, c), chi2([JT, *[SIG[e][:, None] for e in (*chosen, c)]]), 1,
+        return [Refit((*chosen, c), chi2([JT, *[SIG_[e][:, None] for e in (*chosen, c)]]), 1,
                       np.zeros(0), cur.chi2) for c in others]
 
-    steps, chosen, tie = forward_steps(first, nxt, N, 2, sigma, Floor(), len(SIG))
+    steps, chosen, tie = forward_steps(first, nxt, N, 2, sigma, Floor(), len(SIG_))
     w = np.full(N, 1 / sigma**2)
     r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
-    scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in SIG]
+    scores = [score_test(e, r, JT, SIG_[e][:, None], w) for e in SIG_]
     pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
     return VerdictInputs(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen, tie,
                          base, 2, Floor())
@@ -111,3 +113,23 @@ def test_an_unexplained_verdict_never_says_a_refit_below_the_bar_is_above_it():
     assert "2.00 noise sd, above the 1.5" in high
     low = unexplained_text(v(1.1**2 * N), "misfit")
     assert "1.10 noise sd" in low and "above" not in low and "not selected" in low
+
+
+def test_a_tie_after_a_selected_effect_keeps_the_selection():
+    """The strong effect a explains the misfit on its own (within 1.5 noise sd); what remains
+    with it on (a alone leaves 1.34 noise sd, 0.2 bump amplitude), two nearly identical bumps
+    take up alike: the verdict selects a, says
+    the data cannot attribute the remainder, and advises recalibrating with a."""
+    rng = np.random.default_rng(1)
+    sigma = 0.05
+    bump = np.exp(-((X - 0.6) / 0.05) ** 2)
+    sig = {"a": np.sin(3 * np.pi * X), "b": bump,
+           "c": np.exp(-((X - 0.6005) / 0.05) ** 2)}
+    y = JT @ np.array([1.0, 2.0]) + 0.3 * sig["a"] + 0.2 * bump \
+        + sigma * rng.standard_normal(N)
+    v = _inputs(y, sigma, sig)
+    assert v.chosen == ("a",) and sorted(v.tie) == ["b", "c"]
+    dg = verdict(v)
+    assert dg.selected == ["a"] and dg.explained is True
+    assert "Best explanation: a" in dg.verdict and "cannot attribute" in dg.verdict
+    assert dg.suggestions[0].endswith("effects=[a]")
