@@ -261,12 +261,9 @@ def refit_candidates(lay: Layout, fe: Any, meas: Any, sigma: float, base_x: np.n
     else:
         pre = fit_models(lay, cheap, meas, sigma, models)
         names = list(pre)
-        there = dict(zip(names, chi2_at(lay, fe, meas, sigma,
-                                        np.array([pre[c].x for c in names])), strict=True))
-        reach = within_reach({c: Reach(pre[c].chi2, last_gain(pre[c]), float(there[c]))
-                              for c in names}, {"base": base_chi2})
-        fits = {c: LMFit(pre[c].x, float(there[c]), pre[c].free) for c in names
-                if c not in reach}
+        full, bounds = through_own_fe(lay, fe, meas, sigma, pre)
+        reach = within_reach(bounds, {"base": base_chi2})
+        fits = {c: f for c, f in full.items() if c not in reach}
         if fits:
             log.info("diagnose: refits left at their half-resolution optimum, too far behind "
                      "to matter: %s", ", ".join(f"+{c} {f.chi2:.1f}" for c, f in fits.items()))
@@ -520,14 +517,9 @@ def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
                  "model: %s", ", ".join(f"{n} from {lb} {on[n].chi2 if n in on else f.chi2:.1f}"
                                         for n, (lb, f) in best.items()))
         cheap = {n: (on[n] if n in on else f) for n, (_, f) in best.items()}
-        # each model through the run's own FE at its cheap optimum: one run each
-        names = list(cheap)
-        there = dict(zip(names, chi2_at(lay, fe, meas, sigma,
-                                        np.array([cheap[n].x for n in names])), strict=True))
-        bounds = {n: Reach(cheap[n].chi2, last_gain(cheap[n]), float(there[n]))
-                  for n in names if n != "baseline"}
-        best = {n: (lb, LMFit(cheap[n].x.copy(), float(there[n]), cheap[n].free))
-                for n, (lb, _) in best.items()}
+        full, bounds = through_own_fe(lay, fe, meas, sigma, cheap)
+        bounds.pop("baseline", None)
+        best = {n: (lb, full[n]) for n, (lb, _) in best.items()}
         reach = within_reach(bounds, {n: r.chi2 for n, r in done.items()})
     else:
         reach = {n for n in best if n != "baseline"}
@@ -609,6 +601,23 @@ def last_gain(f: LMFit) -> float:
     """The chi-square gained by a fit's last accepted iteration (0 without two)."""
     h = f.history
     return float(max(h[-2] - h[-1], 0.0)) if len(h) >= 2 else 0.0
+
+
+def through_own_fe(lay: Layout, fe: Any, meas: Any, sigma: float, cheap: dict[str, LMFit]
+                   ) -> tuple[dict[str, LMFit], dict[str, Reach]]:
+    """Fits ended on the cheap model, each evaluated once through the run's own FE (one batched
+    solve of one row per fit).
+
+    Returns:
+        ``(full, bounds)``: per name, the fit at its cheap optimum with the FE's chi-square
+        (not converged there), and its :class:`Reach`.
+    """
+    names = list(cheap)
+    there = chi2_at(lay, fe, meas, sigma, np.array([cheap[n].x for n in names]))
+    full = {n: LMFit(cheap[n].x.copy(), float(c), cheap[n].free)
+            for n, c in zip(names, there, strict=True)}
+    bounds = {n: Reach(cheap[n].chi2, last_gain(cheap[n]), full[n].chi2) for n in names}
+    return full, bounds
 
 
 def within_reach(refits: dict[str, Reach], local: dict[str, float]) -> set[str]:
