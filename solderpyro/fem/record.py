@@ -104,10 +104,12 @@ class SolderRecorder:
         n_s, tkw = solver.n_s, solver.tkw
         shape = (b, *solver.wdet[:n_s].shape)
         self._state = {
-            "solver": solver, "t_prev": None, "sig": torch.zeros(*shape, 4, **tkw),
+            "solver": solver, "sig": torch.zeros(*shape, 4, **tkw),
             "eps_p": torch.zeros(*shape, 4, **tkw), "W": torch.zeros(shape, **tkw),
             "p": torch.zeros(shape, **tkw), "vm": torch.zeros(shape, **tkw),
-            "tau": torch.zeros(shape, **tkw), "at": {}, "t": [], "h_sig": [], "h_ep": []}
+            "tau": torch.zeros(shape, **tkw), "at": {}, "t": [], "h_sig": [], "h_ep": [],
+            "e_i": torch.tensor([p[0] for p in self.points], dtype=torch.long),
+            "q_i": torch.tensor([p[1] for p in self.points], dtype=torch.long)}
 
     def stress(self, u: torch.Tensor, st: PointState, th: Any) -> torch.Tensor:
         """The solder's Mandel stress ``(b, n_e, n_qp, 4)`` MPa at displacements ``u``
@@ -141,11 +143,9 @@ class SolderRecorder:
             if abs(t1 - tm) < 1e-9:
                 s["at"][tm] = (s["W"].clone(), s["p"].clone())
         if self.points:
-            e_i = torch.tensor([p[0] for p in self.points])
-            q_i = torch.tensor([p[1] for p in self.points])
             s["t"].append(t1)
-            s["h_sig"].append(sig[:, e_i, q_i])
-            s["h_ep"].append(ep[:, e_i, q_i])
+            s["h_sig"].append(sig[:, s["e_i"], s["q_i"]])
+            s["h_ep"].append(ep[:, s["e_i"], s["q_i"]])
 
     def finish(self, alive: torch.Tensor) -> SolderFields:
         """The fields of the solve; NaN for members that failed (``alive`` ``(B,)`` False).
