@@ -24,7 +24,7 @@ from solderpyro.version import __version__
 log = logging.getLogger("solderpyro")
 
 #: Commands whose model comes from the configs (they take overrides and ``--config-dir``).
-CONFIG_COMMANDS = ("simulate", "demo", "calibrate", "sweep", "sensitivity")
+CONFIG_COMMANDS = ("simulate", "demo", "calibrate", "sweep", "sensitivity", "predict")
 
 #: The defaults the calibration flags' help shows, equal to the fields of
 #: :class:`~solderpyro.config.settings.CalibrationSettings` (a test checks it): the settings
@@ -375,6 +375,48 @@ def cmd_diagnose(a, overrides) -> int:
     return 0
 
 
+def _point(spec: str) -> tuple[str, tuple[float, float]]:
+    """``--point [NAME=]X,Y`` (mm) -> ``(name, (x, y))``."""
+    name, _, xy = spec.rpartition("=")
+    try:
+        x, y = (float(v) for v in xy.split(","))
+    except ValueError:
+        raise UsageError(f"--point must be [NAME=]X,Y in mm, got {spec!r}") from None
+    return (name or f"({x:g}, {y:g})"), (x, y)
+
+
+def cmd_predict(a, overrides) -> int:
+    if a.draws < 1:
+        raise UsageError(f"--draws must be >= 1, got {a.draws}")
+    _need_file("RUN_DIR", Path(a.run_dir) / "run.json", "run record (not a run directory)")
+    points = dict(_point(p) for p in a.point) if a.point else None
+    from solderpyro.config.compose import build, compose
+    from solderpyro.config.rundir import RunDir
+
+    info = RunDir.read(a.run_dir, ("run.json",)).info
+    _usage(build, _usage(compose, [*info.overrides, *overrides]))  # a bad override: exit 2
+    from solderpyro.predict import predict
+
+    if a.layer_mm is not None and not a.layer_mm > 0:
+        raise UsageError(f"--layer-mm must be > 0 mm, got {a.layer_mm}")
+    pred = predict(a.run_dir, overrides, n_draws=a.draws, points=points, out=a.out,
+                   progress=not a.quiet, layer_mm=a.layer_mm)
+    out = Path(a.out) if a.out else Path(a.run_dir) / "prediction"
+    n_c = len(pred.cycle_ends)
+    print(f"\nthe solder over {len(pred.fields.ok)} posterior draws, cycle {n_c} of {n_c} "
+          f"(median [95 % band], share of the band from the constants):")
+    for (q, r, c), b in pred.bands.items():
+        if c in (n_c, 0) and r in ("upper_interface", "lower_interface", "max"):
+            share = (f"{100 * b.constants_share:5.1f} %" if b.constants_share == b.constants_share
+                     else "  n/a (too few draws)")
+            print(f"  {q:9s} {r:16s} {b.median:10.4g} [{b.lo:.4g}, {b.hi:.4g}]  {share}")
+    for n in pred.notes:
+        print(f"note: {n}")
+    print(f"\ntable:  {out / 'prediction.csv'}\nindex:  {out / 'index.html'} (open in a "
+          "browser)")
+    return 0
+
+
 def cmd_sensitivity(a, overrides) -> int:
     from solderpyro.analysis.sensitivity import (
         SensitivitySettings,
@@ -520,7 +562,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in (_add_simulate_command, _add_demo_command, _add_example_command,
                 _add_koh_command, _add_calibrate_command, _add_sweep_command,
-                _add_diagnose_command, _add_sensitivity_command, _add_compare_command):
+                _add_diagnose_command, _add_sensitivity_command, _add_compare_command,
+                _add_predict_command):
         add(sub, common)
     return p
 
@@ -655,6 +698,28 @@ def _add_diagnose_command(sub: argparse._SubParsersAction, common) -> None:
     _add_cluster(g)
 
 
+def _add_predict_command(sub: argparse._SubParsersAction, common) -> None:
+    """The ``predict`` sub-command's arguments (the solder's fields at posterior draws)."""
+    p = sub.add_parser("predict", parents=[common], help="stresses, inelastic strains and the "
+                       "inelastic strain energy density per cycle in the solder, with 95 %% "
+                       "bands, from a calibration's posterior; on its own specimen and cycle, "
+                       "or on another assembly and cycle given as config overrides (e.g. "
+                       "specimen=die_attach mesh=die_attach loading=jedec_m40_125); writes "
+                       "RUN_DIR/prediction/ (CSV, ArviZ, figures, index.html)")
+    p.add_argument("run_dir", help="a run directory written by 'solderpyro calibrate'")
+    p.add_argument("--draws", type=int, default=200, help="posterior draws to solve, spread "
+                   "evenly through the run's draws (default 200)")
+    p.add_argument("--point", action="append", default=[], metavar="[NAME=]X,Y",
+                   help="a history point in the solder, mm (repeatable; default: the free "
+                   "end on the upper interface and at mid-thickness, and mid-length)")
+    p.add_argument("--layer-mm", type=float, default=None, help="thickness of the interface "
+                   "layers the inelastic work is averaged over, mm (default: a quarter of the "
+                   "solder's thickness)")
+    p.add_argument("--out", default=None, help="output directory (default RUN_DIR/prediction;"
+                   " its fields/ keeps the solved draws, which a rerun reads)")
+    _add_config_dir(p)
+
+
 def _add_sensitivity_command(sub: argparse._SubParsersAction, common) -> None:
     """The ``sensitivity`` sub-command's arguments (the Anand constants ranked by influence)."""
     v = sub.add_parser("sensitivity", parents=[common], help="rank the nine Anand constants "
@@ -724,7 +789,8 @@ def main(argv: list[str] | None = None) -> int:
     _setup_logging(a)
     cmds = {"simulate": cmd_simulate, "demo": cmd_demo, "example": cmd_example,
             "koh": cmd_koh, "calibrate": cmd_calibrate, "diagnose": cmd_diagnose,
-            "sensitivity": cmd_sensitivity, "compare": cmd_compare, "sweep": cmd_sweep}
+            "sensitivity": cmd_sensitivity, "compare": cmd_compare, "sweep": cmd_sweep,
+            "predict": cmd_predict}
     try:
         overrides = _split_overrides(rest)
         if getattr(a, "config_dir", None) is not None:

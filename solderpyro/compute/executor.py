@@ -183,14 +183,13 @@ def _can_fork() -> bool:
     return sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods()
 
 
-def _child_solve(conn: Any, solver: Any, P: torch.Tensor, times: Sequence[float],
-                 names: Sequence[str]) -> None:
-    """A forked part of :func:`solve_split`: solve ``P`` on one thread, send the records (or
-    ``("error", message)``) back."""
+def _child_run(conn: Any, fn: Any, P: torch.Tensor) -> None:
+    """A forked part of :func:`split_rows`: ``fn(P)`` on one thread, its result (or
+    ``("error", message)``) sent back."""
     torch.set_num_threads(1)
     try:
-        msg: Any = solve_batch(solver, P, times, names)
-    except BaseException as e:  # noqa: BLE001 - reported to the parent, which solves it
+        msg: Any = ("ok", fn(P))
+    except BaseException as e:  # noqa: BLE001 - reported to the parent, which runs it
         msg = ("error", f"{type(e).__name__}: {e}")
     try:
         conn.send(msg)
@@ -198,44 +197,38 @@ def _child_solve(conn: Any, solver: Any, P: torch.Tensor, times: Sequence[float]
         conn.close()
 
 
-def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Sequence[str],
-                processes: int) -> list[RunRecord]:
-    """Solve one batch ``P (b, 9 + n_eff)`` split over ``processes`` processes of one thread
-    each: this one and forked copies of it (Linux), at least :data:`MIN_PART` members apiece;
-    records in row order, as :func:`solve_batch` gives them.
+def split_rows(fn: Any, P: torch.Tensor, processes: int, on_cpu: bool = True,
+               what: str = "an FE batch") -> list[Any]:
+    """``fn`` on the rows of ``P`` ``(b, k)`` split over ``processes`` processes of one thread
+    each: this one and forked copies of it (Linux), at least :data:`MIN_PART` rows apiece.
 
-    Why: the FE's batched solve gains little from a second thread (10.4 against 9.1 runs/s at
-    b = 64 on this 2-core machine, BENCHMARKS.md), so the in-process default left a core
-    idle; split in two, batches of 2-64 runs ran 1.25-1.8x faster (``benchmarks/bench_fe.py
-    --split``). A member's result does not depend on its batch (~1e-15 um).
-    Nothing is lost when a forked part fails (it died, or raised): this process solves that
-    part itself, and says so.
+    Returns ``[fn(P[part]) for part in parts]``, the parts in row order (contiguous). Runs
+    ``fn(P)`` whole where a split is not possible or not worth it (fewer rows than two parts,
+    ``on_cpu`` False: CUDA does not survive fork; no fork; a daemonic process). Nothing is lost
+    when a forked part fails (it died, or raised): this process runs that part itself, and
+    says so (``what`` names the work in the warning).
     """
     parts = min(int(processes), len(P) // MIN_PART)
-    tkw = getattr(solver, "tkw", None)
-    on_cpu = not isinstance(tkw, dict) or torch.device(tkw.get("device", "cpu")).type == "cpu"
     import multiprocessing as mp
 
-    # a CUDA solve is never forked (CUDA does not survive fork) and fills its device anyway; a
-    # daemonic process (a Dask worker, a pool's) may not have children, and shares the cores
+    # a daemonic process (a Dask worker, a pool's) may not have children, and shares the cores
     # with its siblings already
     if parts < 2 or not on_cpu or not _can_fork() or mp.current_process().daemon:
-        return solve_batch(solver, P, times, names)
+        return [fn(P)]
 
     ctx = mp.get_context("fork")
     idx = list(torch.arange(len(P)).tensor_split(parts))
     kids = []
     for rows in idx[1:]:
         r, w = ctx.Pipe(duplex=False)
-        proc = ctx.Process(target=_child_solve, args=(w, solver, P[rows], times, names),
-                           daemon=True)
+        proc = ctx.Process(target=_child_run, args=(w, fn, P[rows]), daemon=True)
         proc.start()
         w.close()
         kids.append((proc, r, rows))
     prev = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        out = list(solve_batch(solver, P[idx[0]], times, names))
+        out = [fn(P[idx[0]])]
     except BaseException:
         for proc, r, _ in kids:  # none is waited for: stop them (a full pipe would block one)
             proc.kill()
@@ -252,12 +245,33 @@ def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Seq
         finally:
             r.close()
         proc.join()
-        if isinstance(msg, tuple):
-            log.warning("a forked part of an FE batch (%d runs) failed (%s); solved here",
-                        len(rows), msg[1])
-            msg = solve_batch(solver, P[rows], times, names)
-        out += msg
+        if msg[0] == "error":
+            log.warning("a forked part of %s (%d rows) failed (%s); run here", what, len(rows),
+                        msg[1])
+            out.append(fn(P[rows]))
+        else:
+            out.append(msg[1])
     return out
+
+
+def solve_split(solver: Any, P: torch.Tensor, times: Sequence[float], names: Sequence[str],
+                processes: int) -> list[RunRecord]:
+    """Solve one batch ``P (b, 9 + n_eff)`` split over ``processes`` processes of one thread
+    each (:func:`split_rows`); records in row order, as :func:`solve_batch` gives them.
+
+    Why: the FE's batched solve gains little from a second thread (10.4 against 9.1 runs/s at
+    b = 64 on this 2-core machine, BENCHMARKS.md), so the in-process default left a core
+    idle; split in two, batches of 2-64 runs ran 1.25-1.8x faster (``benchmarks/bench_fe.py
+    --split``). A member's result does not depend on its batch (~1e-15 um).
+    A CUDA solve is never forked (it fills its device anyway).
+    """
+    tkw = getattr(solver, "tkw", None)
+    on_cpu = not isinstance(tkw, dict) or torch.device(tkw.get("device", "cpu")).type == "cpu"
+
+    def part(p: torch.Tensor) -> list[RunRecord]:
+        return solve_batch(solver, p, times, names)
+
+    return [r for recs in split_rows(part, P, processes, on_cpu) for r in recs]
 
 
 class InProcess:

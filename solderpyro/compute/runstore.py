@@ -75,8 +75,11 @@ def _canon(obj: Any, depth: int = 0) -> Any:
     if isinstance(obj, (torch.dtype, torch.device, os.PathLike)):
         return str(obj)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        # a field may say when it is left out (``metadata["omit_in_hash"](obj)``): one added
+        # later, at the value that means what the class did without it, keeps old hashes
         return {"__type__": _qualname(type(obj)),
-                **{f.name: _canon(getattr(obj, f.name), d) for f in dataclasses.fields(obj)}}
+                **{f.name: _canon(getattr(obj, f.name), d) for f in dataclasses.fields(obj)
+                   if not f.metadata.get("omit_in_hash", lambda o: False)(obj)}}
     if isinstance(obj, (tuple, list)):
         return [_canon(v, d) for v in obj]
     if isinstance(obj, dict):

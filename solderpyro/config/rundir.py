@@ -4,10 +4,12 @@ read back (every command and stage goes through :class:`RunDir`).
 Files (names fixed: older run directories and users' scripts read them):
 
 - ``run.json``: :class:`RunInfo`, the run's record (how it was asked for, the settings, the
-  parameter box, the surrogate, the design's summary, the checks, the stage timings, which
-  posterior is reported). ``schema`` is its version (:data:`SCHEMA`); a file without it is
-  version 1, the same keys without ``schema``. A newer schema, or a required key missing, is
-  an error naming the file and the key (:class:`RunDirError`).
+  parameter box, the alloy and source of its materials file, the surrogate, the design's
+  summary, the checks, the stage timings, which posterior is reported). ``schema`` is its
+  version (:data:`SCHEMA`); a file without it is version 1, the same keys without ``schema``.
+  A newer schema, or a required key missing, is an error naming the file and the key
+  (:class:`RunDirError`). Optional keys (``data``, ``exact``, ``alloy``, the surrogate's) are
+  written only where set and read as absent (None) where a file has none.
 - ``data.csv``: the measurements (:mod:`solderpyro.io.measurements`, exact round trip).
 - ``draws.npz``: :class:`Draws`, the reported posterior's flat draws and its predictive.
 - ``posterior.nc``: the surrogate's NUTS posterior (ArviZ InferenceData), ``summary.csv``: the
@@ -28,7 +30,9 @@ from typing import Any
 
 import numpy as np
 
-#: the version of ``run.json`` this code writes; it reads 1 (no ``schema`` key) up to this
+#: the version of ``run.json`` this code writes; it reads 1 (no ``schema`` key) up to this. A
+#: new optional key keeps the version: a reader of the same version keeps a key it does not know
+#: in ``RunInfo.extra`` and writes it back unchanged
 SCHEMA = 2
 RUN_JSON = "run.json"
 DATA_CSV = "data.csv"
@@ -68,6 +72,41 @@ class SurrogateRecord:
     inputs: Any = None
     inputs_T_C: Any = None
     inputs_rate: Any = None
+
+
+@dataclass(frozen=True)
+class AlloyRecord:
+    """The solder a run calibrated: its materials file's ``alloy`` entry (``run.json``'s
+    ``alloy``, ``{"name": ..., "source": ...}``).
+
+    Attributes:
+        name: the alloy, e.g. ``Sn37Pb`` or ``SAC305``.
+        source: where the materials file's constants come from (a citation).
+    """
+
+    name: str
+    source: str
+
+    def to_json(self) -> dict[str, str]:
+        """``{"name": ..., "source": ...}``."""
+        return {"name": self.name, "source": self.source}
+
+    @classmethod
+    def from_json(cls, obj: Any, path: str | Path = RUN_JSON) -> AlloyRecord:
+        """Read ``run.json``'s ``alloy`` object.
+
+        Raises:
+            RunDirError: not an object with string ``name`` and ``source`` (naming ``path``
+                and the key).
+        """
+        if not isinstance(obj, dict):
+            raise RunDirError(f"{path}: key 'alloy' must be an object with 'name' and "
+                              f"'source', got {obj!r}")
+        for key in ("name", "source"):
+            if not isinstance(obj.get(key), str):
+                raise RunDirError(f"{path}: key 'alloy.{key}' must be a string, got "
+                                  f"{obj.get(key)!r}")
+        return cls(obj["name"], obj["source"])
 
 
 @dataclass
@@ -136,8 +175,10 @@ class RunInfo:
         design: :class:`DesignSummary`. checks: :class:`Checks`.
         timing_s: seconds per stage. trust: the trust line. posterior: the reported
             posterior (``"surrogate"``, ``"fe-exact"``, ``"fe-best-fit"``).
-        exact: the FE-exact step's record, or None. extra: any other key of ``run.json``
-            (kept as it is). schema: the version read (written as :data:`SCHEMA`).
+        exact: the FE-exact step's record, or None. alloy: the solder of the materials file
+            the run started from (:class:`AlloyRecord`), or None where the file has no
+            ``alloy`` entry or ``run.json`` no ``alloy`` key. extra: any other key of
+            ``run.json`` (kept as it is). schema: the version read (written as :data:`SCHEMA`).
     """
 
     parameters: list[str]
@@ -160,6 +201,7 @@ class RunInfo:
     trust: str = ""
     posterior: str = "surrogate"
     exact: dict[str, Any] | None = None
+    alloy: AlloyRecord | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     schema: int = SCHEMA
 
@@ -171,7 +213,7 @@ class RunInfo:
 
     def to_json(self) -> dict[str, Any]:
         """The JSON object of ``run.json`` (schema :data:`SCHEMA`; the keys of version 1 plus
-        ``schema``; ``data``, ``exact`` and the surrogate's keys only where set)."""
+        ``schema``; ``data``, ``exact``, ``alloy`` and the surrogate's keys only where set)."""
         out: dict[str, Any] = {"schema": SCHEMA, "overrides": list(self.overrides)}
         if self.data is not None:
             out["data"] = self.data
@@ -185,6 +227,8 @@ class RunInfo:
                    timing_s=self.timing_s, trust=self.trust, posterior=self.posterior)
         if self.exact is not None:
             out["exact"] = self.exact
+        if self.alloy is not None:
+            out["alloy"] = self.alloy.to_json()
         out.update(parameters=list(self.parameters), lower=list(self.lower),
                    upper=list(self.upper), sigma_known=self.sigma_known,
                    effects=list(self.effects), times_s=list(self.times_s),
@@ -199,7 +243,8 @@ class RunInfo:
         Raises:
             RunDirError: not a JSON object, a ``schema`` that is not an integer in
                 1..:data:`SCHEMA`, a missing key of :data:`REQUIRED`, or a key of the wrong
-                type (each message names ``path`` and the key).
+                type (each message names ``path`` and the key). A missing ``alloy`` (or
+                ``null``) reads as None.
         """
         if not isinstance(obj, dict):
             raise RunDirError(f"{path}: expected a JSON object, got {type(obj).__name__}")
@@ -229,8 +274,10 @@ class RunInfo:
             sur = SurrogateRecord(**{f: d.pop(k, None) for k, f in SURROGATE_KEYS.items()})
         checks = Checks(d.pop("fe_check", None) or {}, d.pop("discretization", None) or {},
                         d.pop("loo_rmse_rel", None), d.pop("loo_coverage95", None))
+        raw_alloy = d.pop("alloy", None)
+        alloy = None if raw_alloy is None else AlloyRecord.from_json(raw_alloy, path)
         simple = {f.name for f in fields(cls)} - {"surrogate", "checks", "design", "extra",
-                                                  "schema"}
+                                                  "schema", "alloy"}
         kw = {k: d.pop(k) for k in list(d) if k in simple}
         for k in ("overrides", "settings", "timing_s"):
             if kw.get(k) is None:
@@ -240,7 +287,8 @@ class RunInfo:
         kw["trust"] = str(kw.get("trust") or "")
         sk = kw["sigma_known"]
         kw["sigma_known"] = None if sk is None else float(sk)
-        return cls(**kw, surrogate=sur, design=design, checks=checks, extra=d, schema=schema)
+        return cls(**kw, surrogate=sur, design=design, checks=checks, alloy=alloy, extra=d,
+                   schema=schema)
 
 
 @dataclass

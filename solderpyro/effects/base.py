@@ -140,6 +140,10 @@ class Effect:
     #: its size; the data may inform them, and the diagnosis's screen varies the size alone,
     #: with these at "off" (:attr:`size_index`)
     nuisance: ClassVar[tuple[str, ...]] = ()
+    #: whether the effect belongs to the solder or the materials (True: it carries over when
+    #: a calibration's constants predict another assembly or cycle) rather than to the
+    #: specimen, its history, the chamber or the measurement (False: it is left out there)
+    transfers: ClassVar[bool] = False
     box: Box | None = field(default=None, compare=False, repr=False,
                             metadata={"prior": True})
 

@@ -32,6 +32,7 @@ class CteTemperature(Effect):
 
     name = "cte_temperature"
     seam = "material laws (thermal strain)"
+    transfers = True
     T0_C: float = 25.0
 
     def default_box(self) -> Box:

@@ -33,6 +33,7 @@ class KinematicHardening(Effect):
 
     name = "kinematic_hardening"
     seam = "material law (solder)"
+    transfers = True
 
     def default_box(self) -> Box:
         return Box(("C_k",), (0.0,), (2000.0,), units=("MPa",))

@@ -69,6 +69,7 @@ class ModulusTemperature(Effect):
 
     name = "modulus_temperature"
     seam = "material law (solder)"
+    transfers = True
     nuisance = ("n_E",)
     T0_C: float = 25.0
 

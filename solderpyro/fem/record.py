@@ -18,7 +18,8 @@ state). Mandel vectors ``(xx, yy, zz, sqrt2 xy)``, so ``a . b = a : b``.
   eps_p,n)``), read at the marks (times on the grid, e.g. the cycles' ends): a cycle's
   ``Delta W`` is the difference of two marks;
 * the equivalent inelastic strain ``p = sum sqrt(2/3) |Delta eps_p|`` at the marks;
-* the largest von Mises stress and the largest ``|sigma_xy|`` over the solve (MPa);
+* the largest von Mises stress and the largest ``|sigma_xy|`` over the solve (MPa), and the
+  largest equivalent inelastic strain rate (1/s, a grid step's ``Delta p / Delta t``);
 * at chosen Gauss points, the histories of ``sigma`` and ``eps_p`` at every grid step.
 
 Sub-steps and SDIRK stages are inside a grid step and not seen: the trapezoid's error is of
@@ -64,6 +65,8 @@ class SolderFields:
         eps_p_eq: ``(B, K, n_e, n_qp)`` equivalent inelastic strain from the start.
         vm_max, tau_max: ``(B, n_e, n_qp)`` the largest von Mises stress and ``|sigma_xy|``
             over the grid steps, MPa.
+        rate_max: ``(B, n_e, n_qp)`` 1/s, the largest equivalent inelastic strain rate over
+            the grid steps (a step's mean).
         t: ``(S,)`` s, the grid steps' ends; sigma, eps_p: ``(B, S, n_p, 4)`` Mandel stress
             (MPa) and inelastic strain at the history points.
         weight: ``(n_e, n_qp)`` mm^2 per unit depth, each Gauss point's share of the solder's
@@ -76,6 +79,7 @@ class SolderFields:
     eps_p_eq: torch.Tensor
     vm_max: torch.Tensor
     tau_max: torch.Tensor
+    rate_max: torch.Tensor
     t: torch.Tensor
     sigma: torch.Tensor
     eps_p: torch.Tensor
@@ -99,15 +103,17 @@ class SolderRecorder:
     points: tuple[tuple[int, int], ...] = ()
     _state: dict[str, Any] = field(default_factory=dict, repr=False)
 
-    def start(self, solver: Any, b: int) -> None:
-        """Reset for a solve of ``b`` members by ``solver``."""
+    def start(self, solver: Any, b: int, t_start: float = 0.0) -> None:
+        """Reset for a solve of ``b`` members by ``solver`` whose time grid starts at
+        ``t_start`` s."""
         n_s, tkw = solver.n_s, solver.tkw
         shape = (b, *solver.wdet[:n_s].shape)
         self._state = {
             "solver": solver, "sig": torch.zeros(*shape, 4, **tkw),
             "eps_p": torch.zeros(*shape, 4, **tkw), "W": torch.zeros(shape, **tkw),
             "p": torch.zeros(shape, **tkw), "vm": torch.zeros(shape, **tkw),
-            "tau": torch.zeros(shape, **tkw), "at": {}, "t": [], "h_sig": [], "h_ep": [],
+            "tau": torch.zeros(shape, **tkw), "rate": torch.zeros(shape, **tkw),
+            "t_prev": float(t_start), "at": {}, "t": [], "h_sig": [], "h_ep": [],
             "e_i": torch.tensor([p[0] for p in self.points], dtype=torch.long),
             "q_i": torch.tensor([p[1] for p in self.points], dtype=torch.long)}
 
@@ -135,15 +141,19 @@ class SolderRecorder:
         ep = st.eps_p[:, :n]
         dep = ep - s["eps_p"]
         s["W"] = s["W"] + 0.5 * ((s["sig"] + sig) * dep).sum(-1)
-        s["p"] = s["p"] + math.sqrt(2.0 / 3.0) * dep.norm(dim=-1)
+        dp = math.sqrt(2.0 / 3.0) * dep.norm(dim=-1)
+        s["p"] = s["p"] + dp
+        if t1 > s["t_prev"]:
+            s["rate"] = torch.maximum(s["rate"], dp / (t1 - s["t_prev"]))
+        s["t_prev"] = t1
         s["vm"] = torch.maximum(s["vm"], von_mises(sig))
         s["tau"] = torch.maximum(s["tau"], shear_xy(sig).abs())
         s["sig"], s["eps_p"] = sig, ep.clone()
         for tm in self.marks:
             if abs(t1 - tm) < 1e-9:
                 s["at"][tm] = (s["W"].clone(), s["p"].clone())
+        s["t"].append(t1)
         if self.points:
-            s["t"].append(t1)
             s["h_sig"].append(sig[:, s["e_i"], s["q_i"]])
             s["h_ep"].append(ep[:, s["e_i"], s["q_i"]])
 
@@ -173,7 +183,7 @@ class SolderRecorder:
         P = stack([s["at"][tm][1] for tm in self.marks], (b, 0, *s["W"].shape[1:]))
         return SolderFields(
             torch.tensor(self.marks, **slv.tkw), dead(W), dead(P), dead(s["vm"]),
-            dead(s["tau"]), torch.tensor(s["t"], **slv.tkw),
+            dead(s["tau"]), dead(s["rate"]), torch.tensor(s["t"], **slv.tkw),
             dead(stack(s["h_sig"], (b, 0, n_p, 4))), dead(stack(s["h_ep"], (b, 0, n_p, 4))),
             slv.wdet[:slv.n_s].clone(), gauss_points(slv))
 

@@ -138,7 +138,7 @@ class TimeLoop:
             it = tqdm(it, desc=f"FE cycle (B={b})", unit="step")
         outs = []
         if recorder is not None:
-            recorder.start(slv, b)
+            recorder.start(slv, b, float(grid[0]))
         for k in it:
             t0, t1 = float(grid[k - 1]), float(grid[k])
             idx = torch.nonzero(alive).squeeze(1)

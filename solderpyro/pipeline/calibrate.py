@@ -28,7 +28,14 @@ from solderpyro.calibration.intervals import with_intervals
 from solderpyro.calibration.mcmc import WarmStart, format_summary, thin_index, write_summary
 from solderpyro.calibration.predictive import Bands
 from solderpyro.config.compose import Setup
-from solderpyro.config.rundir import Checks, DesignSummary, RunDir, RunInfo, SurrogateRecord
+from solderpyro.config.rundir import (
+    AlloyRecord,
+    Checks,
+    DesignSummary,
+    RunDir,
+    RunInfo,
+    SurrogateRecord,
+)
 from solderpyro.config.settings import CalibrationSettings
 from solderpyro.design.loop import StageClock, spread_indices
 from solderpyro.io.measurements import Measurements
@@ -167,6 +174,7 @@ class RunOutputs:
         s, cp, loop = self.settings, self.cp, self.loop
         space, sg = cp.space, s.surrogate
         asked = dict(self.record or {})
+        alloy = self.setup.alloy
         return RunInfo(
             list(space.names), list(space.lower), list(space.upper), list(cp.effects),
             cp.priors.sigma_known, [float(t) for t in self.meas.times()],
@@ -179,7 +187,7 @@ class RunOutputs:
             checks=Checks(self.checked.result, self.disc, float(self.loo.rmse_rel),
                           float(self.loo.coverage95)),
             timing_s=self.clock.seconds, trust=trust, posterior=kind, exact=ex_info or None,
-            extra=asked)
+            alloy=None if alloy is None else AlloyRecord(alloy.name, alloy.source), extra=asked)
 
     def notes(self, trust: str, saved: bool, ex_info: dict[str, Any] | None) -> list[str]:
         """The report's notes: ``trust``, the design, the FE and discretization checks, and

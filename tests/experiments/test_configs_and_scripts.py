@@ -26,9 +26,13 @@ def _group_options():
             yield f"{group.name}={f.stem}" if group.name != "experiment" else f"+x={f.stem}"
 
 
+#: options that need another group's matching option (a mesh has rows per layer name)
+PAIRED = {"specimen=die_attach": ["mesh=die_attach"], "mesh=die_attach": ["specimen=die_attach"]}
+
+
 @pytest.mark.parametrize("override", [o for o in _group_options() if not o.startswith("+x")])
 def test_every_group_option_composes(override):
-    setup = build(compose([override]))
+    setup = build(compose([override, *PAIRED.get(override, [])]))
     assert setup.problem.mesh.nx >= 1 and len(setup.times) >= 1
 
 
@@ -150,6 +154,9 @@ def test_demo_command_runs_tiny(tmp_path):
     info = json.loads((cal / "run.json").read_text())
     des = info["design"]
     assert "fe_best_fit" not in info and "local_region" not in info
+    # the materials preset the run started from (table3.yaml's alloy entry)
+    assert info["alloy"]["name"] == setup.alloy.name == "Sn37Pb"
+    assert info["alloy"]["source"] == setup.alloy.source
     assert info["settings"]["design"]["budget"] == 22
     assert info["settings"]["exact"]["mode"] == "off"
     assert isinstance(info["trust"], str) and info["trust"]

@@ -344,10 +344,10 @@ def test_a_batch_split_over_forked_processes_gives_the_whole_batchs_runs(monkeyp
     def dies(conn, *args):
         os._exit(3)
 
-    monkeypatch.setattr(exe, "_child_solve", dies)
+    monkeypatch.setattr(exe, "_child_run", dies)
     with caplog.at_level("WARNING", logger="solderpyro.compute.executor"):
         again = exe.solve_split(solver, P, SEED_TIMES, names, 2)
-    assert "failed" in caplog.text and "solved here" in caplog.text
+    assert "failed" in caplog.text and "run here" in caplog.text
     for a, b in zip(whole, again, strict=True):
         np.testing.assert_allclose(b.V, a.V, rtol=0, atol=tol)
 

@@ -333,3 +333,26 @@ def test_records_are_readable_by_the_other_users_of_a_shared_store(tmp_path):
     import solderpyro.compute.runstore as rs
 
     assert p.stat().st_mode & 0o777 == 0o666 & ~rs._UMASK
+
+
+def test_fields_at_their_meaning_free_values_leave_the_hash_as_it_was():
+    """Layer ends, x spans and repeated cycles are left out of config_hash at the values that
+    mean what the classes did without them (runs stored before stay reusable): the reference
+    case's hash is the one stores already hold, and each field, once set, changes it."""
+    from solderpyro.compute.runstore import config_hash
+    from solderpyro.config.compose import build, compose
+    from solderpyro.fem.loading import ThermalCycle
+
+    s = build(compose([]))
+    h = config_hash(s.problem, s.times, False, torch.float64, ())
+    assert h == "698db24ce5fc30f4"  # the reference case's hash in existing run stores
+    lay = list(s.problem.layers)
+    lay[1] = dataclasses.replace(lay[1], x1=15.0)
+    p1 = dataclasses.replace(s.problem, layers=tuple(lay))
+    cyc = s.problem.cycle
+    two = ThermalCycle(cyc.times + tuple(t + cyc.end for t in cyc.times[1:]),
+                       cyc.temps_C + cyc.temps_C[1:], (cyc.end, 2 * cyc.end))
+    p2 = dataclasses.replace(s.problem, cycle=two)
+    p3 = dataclasses.replace(s.problem, cycle=ThermalCycle(two.times, two.temps_C))
+    hashes = {config_hash(p, s.times, False, torch.float64, ()) for p in (p1, p2, p3)}
+    assert h not in hashes and len(hashes) == 3

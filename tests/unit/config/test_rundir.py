@@ -11,6 +11,7 @@ import pytest
 from solderpyro.config.rundir import (
     RUN_JSON,
     SCHEMA,
+    AlloyRecord,
     Checks,
     DesignSummary,
     Draws,
@@ -115,6 +116,8 @@ def test_a_run_json_without_schema_is_version_1(tmp_path) -> None:
     (lambda d: d.update(schema="2"), "'schema'"),
     (lambda d: d.update(points="A"), "'points'"),
     (lambda d: d.update(design=[1]), "'design'"),
+    (lambda d: d.update(alloy="SAC305"), "'alloy'"),
+    (lambda d: d.update(alloy={"name": "SAC305"}), "'alloy.source'"),
 ])
 def test_a_missing_key_or_unknown_schema_names_the_file_and_the_key(tmp_path, edit,
                                                                     key) -> None:
@@ -125,6 +128,26 @@ def test_a_missing_key_or_unknown_schema_names_the_file_and_the_key(tmp_path, ed
     with pytest.raises(RunDirError) as err:
         RunDir.read(tmp_path)
     assert str(tmp_path / RUN_JSON) in str(err.value) and key in str(err.value)
+
+
+def test_the_alloy_round_trips_and_is_optional(tmp_path) -> None:
+    """``alloy`` (the materials file's solder and source) is written where set and read back;
+    a run.json without it (older runs, a materials file without ``alloy``) reads as None, and
+    the file keeps the same schema."""
+    alloy = AlloyRecord("SAC305", "M. Motalab et al., ITherm 2012, 910-922")
+    RunDir(tmp_path, _info(alloy=alloy)).write()
+    raw = json.loads((tmp_path / RUN_JSON).read_text())
+    assert raw["alloy"] == {"name": "SAC305", "source": "M. Motalab et al., ITherm 2012, 910-922"}
+    assert raw["schema"] == SCHEMA
+    back = RunDir.read(tmp_path).info
+    assert back.alloy == alloy and back == _info(alloy=alloy) and "alloy" not in back.extra
+    for edit in (lambda d: d.pop("alloy"), lambda d: d.update(alloy=None)):
+        edit(raw)
+        (tmp_path / RUN_JSON).write_text(json.dumps(raw))
+        assert RunDir.read(tmp_path).info == _info()
+    RunDir(tmp_path, _info()).write()
+    assert "alloy" not in json.loads((tmp_path / RUN_JSON).read_text())
+    assert RunDir.read(tmp_path).info.alloy is None
 
 
 def test_missing_files_and_non_json_are_named(tmp_path) -> None:
