@@ -718,6 +718,7 @@ def _add_predict_command(sub: argparse._SubParsersAction, common) -> None:
     p.add_argument("--out", default=None, help="output directory (default RUN_DIR/prediction;"
                    " its fields/ keeps the solved draws, which a rerun reads)")
     _add_config_dir(p)
+    _add_cluster(p)
 
 
 def _add_sensitivity_command(sub: argparse._SubParsersAction, common) -> None:

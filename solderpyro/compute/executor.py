@@ -18,6 +18,10 @@ sensitivity DOE) reaches the solver through :func:`solderpyro.compute.store.run_
   elsewhere. A batch whose workers died ``distributed.scheduler.allowed-failures + 1`` times
   comes back as failed members with that reason and is *not* stored, so a rerun tries again.
 
+Work that is not a run record (``predict``'s solves with the solder's fields recorded) goes
+through :meth:`InProcess.map` / :meth:`DaskExecutor.map`: a function of a batch's rows,
+split over this machine's cores or one Dask task per batch; the caller keeps what comes back.
+
 Choose the executor for a block of code with :func:`use_executor` (a context variable, so
 threads and nested calls see the right one)::
 
@@ -161,6 +165,18 @@ def _task(key: str, blob: bytes, P: torch.Tensor, times: list[float], names: lis
             log.warning("worker could not write the run store %s (%s); the client will",
                         store_root, e)
     return recs, stored, dt
+
+
+def _map_task(blob: bytes, P: torch.Tensor) -> Any:
+    """One Dask task of :meth:`DaskExecutor.map`: the pickled function on ``P``, one thread."""
+    import cloudpickle
+
+    torch.set_num_threads(1)
+    return cloudpickle.loads(blob)(P)
+
+
+def _on_cpu(t: torch.Tensor) -> bool:
+    return t.device.type == "cpu"
 
 
 #: the fewest members a forked part of a batch gets (:func:`solve_split`): even a 2-run batch
@@ -308,6 +324,16 @@ class InProcess:
             recs = solve_split(solver, P, times, names, procs)
             yield BatchOutcome(recs, False, time.perf_counter() - t0)
 
+    def map(self, fn: Any, batches: Sequence[torch.Tensor], what: str = "a batch"
+            ) -> Iterator[tuple[int, list[Any]]]:
+        """``fn`` on each batch ``(b_i, k)`` in turn, split over ``processes`` one-thread
+        processes (:func:`split_rows`): yields ``(i, [fn(part) for part in its parts])`` as
+        each batch ends (any work a caller hands out in batches, e.g. ``predict``'s recorded
+        solves; ``what`` names it in warnings)."""
+        procs = self.processes or local_cores()
+        for i, P in enumerate(batches):
+            yield i, split_rows(fn, P, procs, _on_cpu(P), what)
+
     def describe(self) -> str:
         """A short label of where the batches run (for progress bars and logs)."""
         return "in-process"
@@ -451,6 +477,36 @@ class DaskExecutor:
                                                   f"retries it"), False, lost=True)
                     continue
                 yield BatchOutcome(recs, stored, dt)
+        finally:
+            for f in futs:
+                f.release()
+
+    def map(self, fn: Any, batches: Sequence[torch.Tensor], what: str = "a batch"
+            ) -> Iterator[tuple[int, list[Any]]]:
+        """One task per batch ``(b_i, k)`` running ``fn`` (cloudpickled, one thread per
+        worker): yields ``(i, [fn(batch)])`` as tasks complete (not in batch order).
+
+        Raises:
+            RuntimeError: naming the batch whose workers died on every attempt (``what``
+                names the work); what completed before was yielded.
+        """
+        import cloudpickle
+        from distributed import as_completed
+        from distributed.scheduler import KilledWorker
+
+        if not batches:
+            return
+        blob = cloudpickle.dumps(fn)
+        futs = {self.client.submit(_map_task, blob, P, pure=False, retries=self.retries): i
+                for i, P in enumerate(batches)}
+        try:
+            for fut in as_completed(list(futs)):
+                i = futs[fut]
+                try:
+                    yield i, [fut.result()]
+                except KilledWorker as e:
+                    raise RuntimeError(f"{what} {i}: its worker died on every attempt ({e}); "
+                                       "a rerun tries it again") from None
         finally:
             for f in futs:
                 f.release()

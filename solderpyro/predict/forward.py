@@ -108,43 +108,50 @@ def chunk_key(signature: str, theta: np.ndarray) -> str:
 
 def solve_draws(model: Any, marks: tuple[float, ...], points: tuple[tuple[int, int], ...],
                 theta: np.ndarray, cache: Path, signature: str, chunk: int = CHUNK,
-                processes: int | None = None,
                 on_chunk: Callable[[int, int, float, bool], None] | None = None) -> Fields:
-    """The fields at every draw ``theta`` ``(N, n_theta)``, chunk by chunk, each chunk read
-    from ``cache`` when a run before solved it, else solved and written there at once.
+    """The fields at every draw ``theta`` ``(N, n_theta)``, chunk by chunk: each chunk read
+    from ``cache`` when a run before solved it, else solved on the current executor
+    (:func:`~solderpyro.compute.executor.current_executor`: this machine's cores, or one Dask
+    task per chunk) and written there as soon as it is done.
 
     Args:
         model: the target's :class:`~solderpyro.specimen.SpecimenModel`.
         marks, points: as :class:`~solderpyro.fem.record.SolderRecorder` takes them.
         signature: what the fields depend on besides the rows (configuration, marks, points).
         chunk: draws per batched solve.
-        processes: one-thread processes per chunk (default: this machine's cores).
-        on_chunk: called ``(done, total, seconds, from_cache)`` after each chunk.
+        on_chunk: called ``(draws done, total, seconds, from_cache)`` after each chunk.
     """
-    from solderpyro.compute.executor import local_cores, split_rows
+    from solderpyro.compute.executor import current_executor
 
     cache.mkdir(parents=True, exist_ok=True)
-    procs = processes or local_cores()
-    on_cpu = torch.device(model.device).type == "cpu"
-    parts = []
     n = len(theta)
-    for j in range(0, n, chunk):
-        rows = theta[j:j + chunk]
-        path = cache / f"chunk-{chunk_key(signature, rows)}.npz"
-        t0 = time.perf_counter()
-        got = None
+    rows = [theta[j:j + chunk] for j in range(0, n, chunk)]
+    paths = [cache / f"chunk-{chunk_key(signature, r)}.npz" for r in rows]
+    parts: list[Fields | None] = [None] * len(rows)
+    done = 0
+    for i, path in enumerate(paths):
         if path.exists():
             try:
-                got = Fields.load(path)
+                parts[i] = Fields.load(path)
             except (OSError, ValueError, KeyError) as e:
                 log.warning("cached chunk %s unreadable (%s): solved again", path, e)
-        hit = got is not None
-        if got is None:
-            P = torch.as_tensor(rows, dtype=model.dtype, device=model.device)
-            got = Fields.concat(split_rows(lambda p: solve_fields(model, marks, points, p),
-                                           P, procs, on_cpu, what="a prediction's chunk"))
-            got.save(path)
-        parts.append(got)
+        if parts[i] is not None:
+            done += len(rows[i])
+            if on_chunk is not None:
+                on_chunk(done, n, 0.0, True)
+    todo = [i for i, p in enumerate(parts) if p is None]
+    batches = [torch.as_tensor(rows[i], dtype=model.dtype, device=model.device) for i in todo]
+
+    def solve(p: torch.Tensor) -> Fields:
+        return solve_fields(model, marks, points, p)
+
+    t0 = time.perf_counter()
+    for k, got in current_executor().map(solve, batches, what="a prediction's chunk"):
+        i = todo[k]
+        f = Fields.concat(got)
+        f.save(paths[i])
+        parts[i] = f
+        done += len(rows[i])
         if on_chunk is not None:
-            on_chunk(min(j + chunk, n), n, time.perf_counter() - t0, hit)
-    return Fields.concat(parts)
+            on_chunk(done, n, time.perf_counter() - t0, False)
+    return Fields.concat([p for p in parts if p is not None])

@@ -125,8 +125,9 @@ def _arviz(pred: Any, out: Path) -> None:
         v = getattr(f, q).reshape(len(f.ok), -1).max(1)
         preds[q] = np.where(f.ok, v, np.nan)[None]
     n_c = len(pred.cycle_ends)
+    cycles = {"cycle": np.arange(1, n_c + 1)}
     idata = az.from_dict(posterior=post, predictions=preds, pred_dims=dims,
-                         pred_coords={"cycle": np.arange(1, n_c + 1)})
+                         pred_coords=cycles, coords=cycles)
     idata.to_netcdf(str(out / "predictions.nc"))
 
 
@@ -214,6 +215,8 @@ def _histories(pred: Any, out: Path, plt: Any) -> tuple[str, str]:
     n_p = len(pred.points)
     fig, axs = plt.subplots(n_p, 3, figsize=(12, 2.6 * n_p), squeeze=False, sharex=True)
     th = f.t / 3600.0
+    cyc = pred.target.setup.problem.cycle
+    temps = np.array([cyc(float(t)) for t in f.t])
     for j, h in enumerate(pred.points):
         for k, (qn, unit, x) in enumerate(_history_quantities(f, j)):
             lo, med, hi = _quant(x)
@@ -223,6 +226,10 @@ def _histories(pred: Any, out: Path, plt: Any) -> tuple[str, str]:
             ax.set_ylabel(f"{qn.replace('_', ' ')}, {unit}" if unit != "1" else
                           qn.replace("_", " "), fontsize=8)
             if k == 0:
+                tx = ax.twinx()
+                tx.plot(th, temps, color="0.65", lw=0.8)
+                tx.set_ylabel("temperature, degC", fontsize=7, color="0.5")
+                tx.tick_params(labelsize=7, colors="0.5")
                 ax.set_title(f"{h.name} (x {h.at[0]:.3g}, y {h.at[1]:.3g} mm)", fontsize=9,
                              loc="left")
     for ax in axs[-1]:
