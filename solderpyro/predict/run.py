@@ -214,7 +214,7 @@ def predict(run_dir: str | Path, overrides: Sequence[str] = (), n_draws: int = N
     t_cal = target.temperature_range(run_setup, draws["theta"], tuple(names))
     t_tgt = target.temperature_range(tgt_setup, rows, tgt.names)
     rate = {"target": bands[("rate_max", "max", 0)].median}
-    rate["calibration"] = (_calibration_rate(run_setup, tgt, rows, names)
+    rate["calibration"] = (_calibration_rate(run_setup, tgt, rows)
                            if tgt.transfer else rate["target"])
     if t_tgt[0] < t_cal[0] - 0.5 or t_tgt[1] > t_cal[1] + 0.5:
         notes.append(f"the target's temperatures ({t_tgt[0]:g} to {t_tgt[1]:g} degC) leave "
@@ -279,7 +279,7 @@ def _cell(g: np.ndarray) -> float:
     return float(np.diff(x).max()) if len(x) > 1 else 0.0
 
 
-def _calibration_rate(run_setup: Any, tgt: Target, rows: np.ndarray, names: list[str]) -> float:
+def _calibration_rate(run_setup: Any, tgt: Target, rows: np.ndarray) -> float:
     """The largest equivalent inelastic strain rate (1/s) in the calibration's own specimen
     and cycle at the median of the draws (its effects kept as the target keeps them)."""
     from solderpyro.predict.forward import solve_fields
