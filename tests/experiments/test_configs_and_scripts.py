@@ -131,6 +131,8 @@ def _stored(store: Path) -> dict[str, np.ndarray]:
             for p in store.glob("*/runs/*.json")}
 
 
+# slow (3 min on CI's two cores): CI's wheel smoke runs the same demo from the installed wheel
+@pytest.mark.slow
 def test_demo_command_runs_tiny(tmp_path):
     """Simulate, then calibrate on synthetic data by the adaptive design (design.csv holds
     every FE run it made, the run store every FE run at all); `calibrate` on the same data and
@@ -372,6 +374,8 @@ def test_calibrate_full_field_tiny(tmp_path):
     assert "<table>" in html and 'src="fig10_predictive.png"' in html
 
 
+# slow (2 min on CI's two cores): a benchmark script's plumbing, not the product's
+@pytest.mark.slow
 def test_hidden_effect_case_script_runs_tiny(tmp_path):
     """The walkthrough script: hidden thermal lag -> calibrate -> diagnose -> add -> compare.
     Three output times (6 values): with TINY's two, the 4 values leave the candidates no
