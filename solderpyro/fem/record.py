@@ -68,7 +68,8 @@ class SolderFields:
         rate_max: ``(B, n_e, n_qp)`` 1/s, the largest equivalent inelastic strain rate over
             the grid steps (a step's mean).
         t: ``(S,)`` s, the grid steps' ends; sigma, eps_p: ``(B, S, n_p, 4)`` Mandel stress
-            (MPa) and inelastic strain at the history points.
+            (MPa) and inelastic strain at the history points; p_hist: ``(B, S, n_p)`` their
+            equivalent inelastic strain accumulated from the start.
         weight: ``(n_e, n_qp)`` mm^2 per unit depth, each Gauss point's share of the solder's
             area (quadrature weight times the Jacobian); xy: ``(n_e, n_qp, 2)`` mm, their
             positions.
@@ -83,6 +84,7 @@ class SolderFields:
     t: torch.Tensor
     sigma: torch.Tensor
     eps_p: torch.Tensor
+    p_hist: torch.Tensor
     weight: torch.Tensor
     xy: torch.Tensor
 
@@ -113,7 +115,7 @@ class SolderRecorder:
             "eps_p": torch.zeros(*shape, 4, **tkw), "W": torch.zeros(shape, **tkw),
             "p": torch.zeros(shape, **tkw), "vm": torch.zeros(shape, **tkw),
             "tau": torch.zeros(shape, **tkw), "rate": torch.zeros(shape, **tkw),
-            "t_prev": float(t_start), "at": {}, "t": [], "h_sig": [], "h_ep": [],
+            "t_prev": float(t_start), "at": {}, "t": [], "h_sig": [], "h_ep": [], "h_p": [],
             "e_i": torch.tensor([p[0] for p in self.points], dtype=torch.long),
             "q_i": torch.tensor([p[1] for p in self.points], dtype=torch.long)}
 
@@ -156,6 +158,7 @@ class SolderRecorder:
         if self.points:
             s["h_sig"].append(sig[:, s["e_i"], s["q_i"]])
             s["h_ep"].append(ep[:, s["e_i"], s["q_i"]])
+            s["h_p"].append(s["p"][:, s["e_i"], s["q_i"]])
 
     def finish(self, alive: torch.Tensor) -> SolderFields:
         """The fields of the solve; NaN for members that failed (``alive`` ``(B,)`` False).
@@ -185,7 +188,7 @@ class SolderRecorder:
             torch.tensor(self.marks, **slv.tkw), dead(W), dead(P), dead(s["vm"]),
             dead(s["tau"]), dead(s["rate"]), torch.tensor(s["t"], **slv.tkw),
             dead(stack(s["h_sig"], (b, 0, n_p, 4))), dead(stack(s["h_ep"], (b, 0, n_p, 4))),
-            slv.wdet[:slv.n_s].clone(), gauss_points(slv))
+            dead(stack(s["h_p"], (b, 0, n_p))), slv.wdet[:slv.n_s].clone(), gauss_points(slv))
 
 
 def gauss_points(solver: Any) -> torch.Tensor:

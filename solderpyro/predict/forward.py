@@ -41,7 +41,8 @@ class Fields:
             inelastic strain at the ``K`` marks.
         vm_max, tau_max: ``(N, n_e, n_qp)`` MPa; rate_max: ``(N, n_e, n_qp)`` 1/s.
         t: ``(S,)`` s; sigma, eps_p: ``(N, S, n_p, 4)`` Mandel stress (MPa) and inelastic
-            strain histories at the history points.
+            strain histories at the history points; p_hist: ``(N, S, n_p)`` their accumulated
+            equivalent inelastic strain.
     """
 
     theta: np.ndarray
@@ -56,6 +57,7 @@ class Fields:
     t: np.ndarray
     sigma: np.ndarray
     eps_p: np.ndarray
+    p_hist: np.ndarray
 
     @classmethod
     def concat(cls, parts: list[Fields]) -> Fields:
@@ -96,7 +98,7 @@ def solve_fields(model: Any, marks: tuple[float, ...], points: tuple[tuple[int, 
     ok = a(res.ok.to(torch.float64)) > 0.5
     return Fields(a(theta), ok, np.array([str(r) for r in res.reasons]), a(res.V), a(f.work),
                   a(f.eps_p_eq), a(f.vm_max), a(f.tau_max), a(f.rate_max), a(f.t), a(f.sigma),
-                  a(f.eps_p))
+                  a(f.eps_p), a(f.p_hist))
 
 
 def chunk_key(signature: str, theta: np.ndarray) -> str:

@@ -8,7 +8,8 @@
   of the band due to the Anand constants, draws counted, unit, what it is;
 - ``prediction_draws.csv``: each draw's parameters and its last cycle's quantities;
 - ``histories.csv``: per history point and grid time, the median and band of the von Mises
-  and shear stress and the inelastic shear strain;
+  and shear stress, the inelastic shear strain and the accumulated equivalent inelastic
+  strain;
 - ``predictions.nc``: ArviZ InferenceData, the draws' parameters as ``posterior`` and every
   quantity per draw as ``predictions`` (chain 1, draw N);
 - figures: ``prediction_maps.png`` (the last cycle's inelastic work over the joint: median
@@ -96,8 +97,9 @@ def _history_quantities(f: Any, j: int) -> list[tuple[str, str, np.ndarray]]:
     vm = np.where(ok, von_mises(sig).numpy(), np.nan)
     tau = np.where(ok, shear_xy(sig).numpy(), np.nan)
     gam = np.where(ok, math.sqrt(2.0) * f.eps_p[:, :, j, 3], np.nan)
+    p = np.where(ok, f.p_hist[:, :, j], np.nan)
     return [("von_mises", "MPa", vm), ("sigma_xy", "MPa", tau),
-            ("inelastic_shear_strain", "1", gam)]
+            ("inelastic_shear_strain", "1", gam), ("equivalent_inelastic_strain", "1", p)]
 
 
 def _quant(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -213,7 +215,7 @@ def _cycles(pred: Any, out: Path, plt: Any) -> tuple[str, str]:
 def _histories(pred: Any, out: Path, plt: Any) -> tuple[str, str]:
     f = pred.fields
     n_p = len(pred.points)
-    fig, axs = plt.subplots(n_p, 3, figsize=(12, 2.6 * n_p), squeeze=False, sharex=True)
+    fig, axs = plt.subplots(n_p, 4, figsize=(15, 2.6 * n_p), squeeze=False, sharex=True)
     th = f.t / 3600.0
     cyc = pred.target.setup.problem.cycle
     temps = np.array([cyc(float(t)) for t in f.t])

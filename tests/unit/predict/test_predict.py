@@ -71,6 +71,13 @@ def test_predict_at_one_draw_equals_a_direct_fe_run(tmp_path):
     got = pred.bands[("dW", "upper_interface", 1)].median
     assert direct > 0
     assert abs(got - direct) <= 1e-9 * direct
+    # each history point's accumulated equivalent inelastic strain never falls and ends at
+    # the field's value there at the cycle's end
+    f = pred.fields
+    assert np.all(np.diff(f.p_hist[0], axis=0) >= 0)
+    for j, h in enumerate(pred.points):
+        e, q = h.index
+        assert f.p_hist[0, -1, j] == f.eps_p_eq[0, -1, e, q] > 0
     # the whole joint's average lies between the two interface rows' and the largest value
     j = pred.bands[("dW", "joint", 1)].median
     assert j <= pred.bands[("dW", "max", 1)].median
