@@ -150,7 +150,7 @@ def predict(run_dir: str | Path, overrides: Sequence[str] = (), n_draws: int = N
     from solderpyro.config.compose import build, compose
     from solderpyro.design.loop import spread_indices
     from solderpyro.diagnose.load import load_run
-    from solderpyro.fem.record import gauss_points, nearest_points
+    from solderpyro.fem.record import nearest_points
     from solderpyro.predict import forward, quantities, target, write
 
     if theta is None and (not isinstance(n_draws, int) or n_draws < 1):
@@ -178,7 +178,7 @@ def predict(run_dir: str | Path, overrides: Sequence[str] = (), n_draws: int = N
     marks, pre = _marks(model)
     pts = dict(points) if points is not None else default_points(tgt_setup.problem)
     idx = nearest_points(model.solver, list(pts.values())) if pts else ()
-    g = gauss_points(model.solver).cpu().numpy()
+    regs, weight, g = solder_regions(model, layer_mm)
     hist = [HistoryPoint(k, (float(v[0]), float(v[1])), (float(g[i, q, 0]), float(g[i, q, 1])),
                          (i, q))
             for (k, v), (i, q) in zip(pts.items(), idx, strict=True)]
@@ -202,7 +202,6 @@ def predict(run_dir: str | Path, overrides: Sequence[str] = (), n_draws: int = N
     if bad:
         why = sorted({str(r) for r in f.reasons if r})
         notes.append(f"{bad} of {len(f.ok)} draws failed to solve and are left out ({why[0]})")
-    regs, weight, _ = solder_regions(model, layer_mm)
     per, dW = cycle_quantities(f, pre, regs, weight)
     k = run_setup.space.n_theta
     consts, others = rows[:, :k], rows[:, k:]
