@@ -113,6 +113,38 @@ def bars(records: list[dict]) -> dict:
             "loop_cases_timed": len(loops)}
 
 
+def case_record(case: Path, data: Path) -> dict:
+    """One case's row from its directory (``base``, the ``with*`` recalibrations) and its
+    data CSV (the truth)."""
+    hidden, truth = _truth(data)
+    rec = {"case": case.name, "hidden": hidden, "base": _run(case / "base")}
+    dj = case / "base" / "diagnosis.json"
+    if dj.exists():
+        dg = json.loads(dj.read_text())
+        rec["selected"] = dg.get("selected")
+        rec["misfit"] = dg.get("misfit")
+        rec["verdict"] = dg.get("verdict")
+        rec["tie"] = dg.get("indistinguishable") or []
+        rec["diagnose_seconds"] = round((dg.get("timing") or {}).get(
+            "total", {}).get("seconds", 0)) or None
+    rec["sigma_um"] = RunDir.read(case / "base").info.sigma_known
+    withs = sorted(p for p in case.iterdir()
+                   if p.name.startswith("with") and (p / "summary.csv").exists())
+    for w in withs or [case / "base"]:
+        cov = _covered(w, truth)
+        r = _run(w)
+        cmp = w / "comparison.json"
+        if cmp.exists():
+            c = json.loads(cmp.read_text())
+            r["compare_rms_um"] = [round(c["before"]["rms_um"], 4),
+                                   round(c["after"]["rms_um"], 4)]
+        r["covered"] = f"{sum(cov.values())}/{len(cov)}"
+        r["missed"] = [k for k, v in cov.items() if not v]
+        r["truths"] = list(cov)
+        rec[w.name] = r
+    return rec
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("work")
@@ -122,32 +154,7 @@ def main() -> None:
     a = ap.parse_args()
     out = []
     for case in sorted(p for p in Path(a.work).iterdir() if (p / "base" / RUN_JSON).exists()):
-        hidden, truth = _truth(Path(a.data_dir) / f"{case.name}.csv")
-        rec = {"case": case.name, "hidden": hidden, "base": _run(case / "base")}
-        dj = case / "base" / "diagnosis.json"
-        if dj.exists():
-            dg = json.loads(dj.read_text())
-            rec["selected"] = dg.get("selected")
-            rec["misfit"] = dg.get("misfit")
-            rec["tie"] = dg.get("indistinguishable") or []
-            rec["diagnose_seconds"] = round((dg.get("timing") or {}).get(
-                "total", {}).get("seconds", 0)) or None
-        rec["sigma_um"] = RunDir.read(case / "base").info.sigma_known
-        withs = sorted(p for p in case.iterdir()
-                       if p.name.startswith("with") and (p / "summary.csv").exists())
-        runs = withs or [case / "base"]
-        for w in runs:
-            cov = _covered(w, truth)
-            r = _run(w)
-            cmp = w / "comparison.json"
-            if cmp.exists():
-                c = json.loads(cmp.read_text())
-                r["compare_rms_um"] = [round(c["before"]["rms_um"], 4),
-                                       round(c["after"]["rms_um"], 4)]
-            r["covered"] = f"{sum(cov.values())}/{len(cov)}"
-            r["missed"] = [k for k, v in cov.items() if not v]
-            r["truths"] = list(cov)
-            rec[w.name] = r
+        rec = case_record(case, Path(a.data_dir) / f"{case.name}.csv")
         out.append(rec)
         print(json.dumps(rec))
     b = bars(out)

@@ -1,0 +1,181 @@
+"""The diagnosis benchmark on physics in forms other than the library's, case by case.
+
+Every case is a dataset the finer FE makes (``mesh=fine``, 2 K / 150 s steps, noise 0.05 um,
+the 31 x 18 grid plus A and B, its own noise seed) with hidden effects in the forms of
+benchmarks/forms.py, then the loop a user runs with default flags
+(:func:`diagnosis_cases.run_case`: calibrate, diagnose, recalibrate with the selection,
+compare), each case with its own FE run store so its wall times are those of a fresh user.
+
+The plan (:func:`plan`): each sized form at three sizes (0.2, 0.4, 1.2 um RMS change of the
+point data) and three sets of Anand constants (the seed's, an interior one, one near the box's
+faces); the two residual-stress forms at each set; two-effect cases; ten clean datasets (the
+three sets in turn). Cases run in an interleaved order, so the first N of them are a fair
+sample of all; ``--cases N`` runs the next N not yet finished, ``--parallel K`` K at a time (one
+thread each). Each case's record is written as it ends to ``WORK/records/NAME.json`` (a rerun
+skips it); the bars over every finished case (:func:`cases_table.bars`) go to ``--out``.
+
+Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2]
+       [--out benchmarks/results/forms_benchmark.json] [--list]
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+#: Anand sets in turn (see make_hidden_data.ANAND_SETS)
+SETS = ("truth", "interior", "near_faces")
+#: the forms sized by the RMS change they make, and their sizes (um)
+SIZED = ("modulus_linear", "lag_second_order", "lag_third_order", "cte_quadratic")
+SIZES = (0.2, 0.4, 1.2)
+#: forms at their own fixed values
+FIXED = ("stress_free_slow", "stress_free_moderate")
+#: two hidden effects: ((form, size), (form, size)) at a set
+PAIRS = (
+    (("modulus_linear", 0.4), ("lag_second_order", 1.2), "truth"),
+    (("stress_free_moderate", None), ("lag_second_order", 0.4), "interior"),
+    (("cte_quadratic", 0.4), ("modulus_linear", 1.2), "near_faces"),
+    (("lag_third_order", 0.4), ("modulus_linear", 0.2), "truth"),
+)
+CLEAN = 10
+
+
+@dataclass(frozen=True)
+class Case:
+    """One dataset: its hidden forms with sizes (None: the form's fixed values), its Anand
+    set and noise seed."""
+
+    name: str
+    forms: tuple[tuple[str, float | None], ...]
+    anand: str
+    seed: int
+
+
+def plan() -> list[Case]:
+    """Every case, interleaved: round k takes the k-th case of each group in turn."""
+    groups: list[list[Case]] = []
+    for f in SIZED:
+        # a Latin square: every three cases hold each size and each set once
+        groups.append([Case(f"{f}_{SIZES[(j + r) % 3]:g}_{a}", ((f, SIZES[(j + r) % 3]),),
+                            a, 0) for r in range(3) for j, a in enumerate(SETS)])
+    groups.append([Case(f"{f}_{a}", ((f, None),), a, 0) for a in SETS for f in FIXED])
+    groups.append([Case("+".join(f"{f}_{'fixed' if s is None else f'{s:g}'}" for f, s in fs)
+                        + f"_{a}", fs, a, 0) for *fs, a in PAIRS])  # type: ignore[misc]
+    groups.append([Case(f"clean_{SETS[i % 3]}_s{i}", (), SETS[i % 3], i)
+                   for i in range(CLEAN)])
+    out: list[Case] = []
+    for k in range(max(len(g) for g in groups)):
+        out += [g[k] for g in groups if k < len(g)]
+    # one noise seed per dataset
+    return [Case(c.name, c.forms, c.anand, c.seed if not c.forms else 100 + i)
+            for i, c in enumerate(out)]
+
+
+def make_data(case: Case, path: Path) -> float:
+    """The case's CSV by the finer FE (kept when there); returns the seconds it took."""
+    if path.exists():
+        return 0.0
+    import numpy as np
+    from forms import form
+    from make_hidden_data import ANAND_SETS, FINE
+
+    from solderpyro.config.compose import build, compose
+    from solderpyro.diagnose.hidden import HiddenTruth, hidden_values, make_dataset
+    from solderpyro.fem.loading import SEED_TIMES
+
+    t0 = time.perf_counter()
+    setup = build(compose(FINE))
+    truth = ANAND_SETS[case.anand]
+    effs, vals = [], []
+    for name, size in case.forms:
+        eff, _, fixed = form(name)
+        effs.append(eff)
+        vals.append(np.asarray(fixed, float) if size is None else
+                    hidden_values(setup, eff, target_rms=size, anand=truth)[0])
+    tmp = path.with_suffix(".tmp.csv")
+    make_dataset(setup, tuple(effs) or None, tmp, True, SEED_TIMES, noise=0.05,
+                 seed=case.seed, truth=HiddenTruth(
+                     np.concatenate(vals) if vals else None, truth))
+    tmp.replace(path)
+    return round(time.perf_counter() - t0, 1)
+
+
+def run(case: Case, work: str) -> dict:
+    """Make the data and run the loop of one case; its record (also written to
+    ``WORK/records/NAME.json``)."""
+    from diagnosis_cases import run_case
+
+    w = Path(work)
+    data = w / "data" / f"{case.name}.csv"
+    data.parent.mkdir(parents=True, exist_ok=True)
+    made = make_data(case, data)
+    t0 = time.perf_counter()
+    try:
+        rec = run_case(case.name, {case.name: str(data)}, {}, str(w / "cases"),
+                       str(w / "cases" / case.name / "store"), recalibrate=True)
+    except Exception as e:  # noqa: BLE001 - the benchmark records a failed case and goes on
+        rec = {"case": case.name, "error": f"{type(e).__name__}: {e}"}
+    rec.update({"anand_set": case.anand, "forms": case.forms, "seed": case.seed,
+                "data_s": made, "case_s": round(time.perf_counter() - t0, 1)})
+    out = w / "records" / f"{case.name}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(rec, indent=1) + "\n")
+    return rec
+
+
+def summarize(work: Path, out: Path) -> dict:
+    """The bars over every finished case (from the run directories, as cases_table reads
+    them), with each case's record, to ``out``."""
+    from cases_table import bars, case_record
+
+    recs = sorted((json.loads(p.read_text()) for p in (work / "records").glob("*.json")),
+                  key=lambda r: r["case"])
+    rows = [{**case_record(work / "cases" / r["case"], work / "data" / f"{r['case']}.csv"),
+             "forms": r["forms"], "anand_set": r["anand_set"], "seed": r["seed"]}
+            for r in recs if "error" not in r]
+    res = {"command": "python benchmarks/forms_benchmark.py " + str(work),
+           "threads_per_case": 1, "bars": bars(rows), "cases": rows,
+           "errors": [r for r in recs if "error" in r]}
+    out.write_text(json.dumps(res, indent=1) + "\n")
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("work")
+    ap.add_argument("--cases", type=int, default=None, help="run the next N pending cases")
+    ap.add_argument("--parallel", type=int, default=2)
+    ap.add_argument("--out", default="benchmarks/results/forms_benchmark.json")
+    ap.add_argument("--list", action="store_true")
+    a = ap.parse_args()
+    work = Path(a.work).resolve()
+    cases = plan()
+    done = {p.stem for p in (work / "records").glob("*.json")}
+    todo = [c for c in cases if c.name not in done]
+    if a.list:
+        for c in cases:
+            print(("done  " if c.name in done else "      ") + c.name)
+        print(f"{len(done)} of {len(cases)} done")
+        return
+    todo = todo[:a.cases] if a.cases is not None else todo
+    os.environ["OMP_NUM_THREADS"] = "1"
+    with cf.ProcessPoolExecutor(a.parallel) as ex:
+        futs = {ex.submit(run, c, str(work)): c for c in todo}
+        for f in cf.as_completed(futs):
+            r = f.result()
+            print(json.dumps({k: r.get(k) for k in ("case", "hidden", "selected", "explained",
+                                                     "error", "case_s")}), flush=True)
+    if (work / "records").exists():
+        print(json.dumps(summarize(work, Path(a.out))["bars"]))
+
+
+if __name__ == "__main__":
+    main()
