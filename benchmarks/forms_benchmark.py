@@ -7,14 +7,15 @@ benchmarks/forms.py, then the loop a user runs with default flags
 compare), each case with its own FE run store so its wall times are those of a fresh user.
 
 The plan (:func:`plan`): each sized form at three sizes (0.2, 0.4, 1.2 um RMS change of the
-point data) and three sets of Anand constants (the seed's, an interior one, one near the box's
-faces); the two residual-stress forms at each set; two-effect cases; ten clean datasets (the
-three sets in turn). Cases run in an interleaved order, so the first N of them are a fair
-sample of all; ``--cases N`` runs the next N not yet finished, ``--parallel K`` K at a time (one
-thread each). Each case's record is written as it ends to ``WORK/records/NAME.json`` (a rerun
+point data) crossed with three sets of Anand constants (the seed's, an interior one, one near
+the box's faces) as a Latin square (each size once, each set once; ``--full``: all nine); the
+two residual-stress forms at each set; two-effect cases; ten clean datasets (the three sets
+in turn). Cases run in an interleaved order, so the first N of them are a fair sample of all;
+``--cases N`` runs the next N not yet finished, ``--parallel K`` K at a time (one thread
+each). Each case's record is written as it ends to ``WORK/records/NAME.json`` (a rerun
 skips it); the bars over every finished case (:func:`cases_table.bars`) go to ``--out``.
 
-Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2]
+Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2] [--full]
        [--out benchmarks/results/forms_benchmark.json] [--list]
 """
 
@@ -59,13 +60,18 @@ class Case:
     seed: int
 
 
-def plan() -> list[Case]:
-    """Every case, interleaved: round k takes the k-th case of each group in turn."""
+def plan(full: bool = False) -> list[Case]:
+    """Every case, interleaved: round k takes the k-th case of each group in turn.
+
+    Args:
+        full: every size at every set for the sized forms (default: one Latin square).
+    """
     groups: list[list[Case]] = []
     for f in SIZED:
-        # a Latin square: every three cases hold each size and each set once
+        # Latin squares: every three cases hold each size and each set once
         groups.append([Case(f"{f}_{SIZES[(j + r) % 3]:g}_{a}", ((f, SIZES[(j + r) % 3]),),
-                            a, 0) for r in range(3) for j, a in enumerate(SETS)])
+                            a, 0) for r in range(3 if full else 1)
+                       for j, a in enumerate(SETS)])
     groups.append([Case(f"{f}_{a}", ((f, None),), a, 0) for a in SETS for f in FIXED])
     groups.append([Case("+".join(f"{f}_{'fixed' if s is None else f'{s:g}'}" for f, s in fs)
                         + f"_{a}", fs, a, 0) for *fs, a in PAIRS])  # type: ignore[misc]
@@ -154,10 +160,11 @@ def main() -> None:
     ap.add_argument("--cases", type=int, default=None, help="run the next N pending cases")
     ap.add_argument("--parallel", type=int, default=2)
     ap.add_argument("--out", default="benchmarks/results/forms_benchmark.json")
+    ap.add_argument("--full", action="store_true", help="all nine size x set cases per form")
     ap.add_argument("--list", action="store_true")
     a = ap.parse_args()
     work = Path(a.work).resolve()
-    cases = plan()
+    cases = plan(a.full)
     done = {p.stem for p in (work / "records").glob("*.json")}
     todo = [c for c in cases if c.name not in done]
     if a.list:

@@ -153,7 +153,8 @@ def observed(fe: Any, meas: Any, lay: Layout) -> Any:
 
     def run(rows: np.ndarray) -> np.ndarray:
         P = torch.tensor(rows, dtype=torch.float64)
-        res = fe.runs(P, lay.times, lay.field, lay.fx_all)
+        # each row with the run's effects and only the candidates it switches on
+        res = fe.runs(P, lay.times, lay.field, lay.fx_all, keep=len(lay.run_effects))
         if "ti" not in idx:
             idx["ti"], idx["oi"] = observation_index(meas, res.times, res.names)
         V = res.V.numpy()[:, idx["ti"], idx["oi"]]

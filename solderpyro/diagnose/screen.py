@@ -104,7 +104,7 @@ def fe_jacobians(lay: Layout, theta: np.ndarray, fe: SpecimenModels | None = Non
     log.info("diagnose: %d FE rows (%d draws x %d Jacobian columns, %d ladder runs, "
              "candidates: %s)", len(rows) + len(lad_rows), len(theta), len(cols.names), n_lad,
              ", ".join(candidates) or "none")
-    res = fe.runs(P, times, field, fx_all, progress=progress)
+    res = fe.runs(P, times, field, fx_all, progress=progress, keep=len(run_effects))
     V = res.V.numpy()
     if not bool(res.ok.all()):
         bad = [r for r in res.reasons if r]

@@ -31,7 +31,7 @@ def refit_predictions(setup: Any, run_effects: tuple[str, ...], candidates: tupl
     fx_all = effect_set(tuple(run_effects) + tuple(candidates), times, setup.effect_bounds)
     names = list(fits)
     X = torch.tensor(np.array([fits[m]["x"] for m in names]), dtype=torch.float64)
-    res = fe.runs(X, times, field, fx_all)
+    res = fe.runs(X, times, field, fx_all, keep=len(run_effects))
     ti, oi = observation_index(meas, res.times, res.names)
     V = res.V.numpy()
     return {m: V[k][ti, oi] for k, m in enumerate(names) if res.ok[k]}

@@ -541,10 +541,62 @@ class SpecimenModels:
         return self.models[key]
 
     def runs(self, theta: torch.Tensor, times: Sequence[float], field: bool,
-             effects: EffectSet | None = None, progress: bool = False) -> ModelRuns:
+             effects: EffectSet | None = None, progress: bool = False,
+             keep: int | None = None) -> ModelRuns:
         """:meth:`SpecimenModel.runs` of that configuration's model at ``theta
-        (n, space.n_theta + n_eff)``."""
-        return self.get(times, field, effects).runs(theta, progress)
+        (n, space.n_theta + n_eff)``.
+
+        Args:
+            keep: None: every row is solved with all of ``effects``. An int: the first
+                ``keep`` effects always, each later one only in the rows where its parameters
+                are not all at their "off" values (:attr:`~solderpyro.effects.Effect.off`, the
+                baseline, where an effect changes nothing): the rows are grouped by the effects
+                they switch on and each group is solved by its own model. A candidate's
+                machinery costs even at "off" (every candidate of the diagnosis together
+                doubled the CPU time of a batch of the reference case), so a set of many
+                candidates, most of them off in any row, is solved this way.
+        """
+        if keep is None or effects is None or len(effects) <= keep:
+            return self.get(times, field, effects).runs(theta, progress)
+        return self._pruned(theta, times, field, effects, keep, progress)
+
+    def _pruned(self, theta: torch.Tensor, times: Sequence[float], field: bool,
+                effects: EffectSet, keep: int, progress: bool) -> ModelRuns:
+        """:meth:`runs` with the effects after the first ``keep`` solved only where on."""
+        n_a = theta.shape[1] - effects.n_params
+        cols, n = [], n_a
+        for e in effects.effects:
+            cols.append(np.arange(n, n + e.n_params))
+            n += e.n_params
+        th = theta.detach().cpu().numpy()
+        on = np.ones((len(th), len(effects)), bool)
+        for k, e in enumerate(effects.effects[keep:], keep):
+            on[:, k] = np.any(th[:, cols[k]] != np.asarray(e.off, float)[None], axis=1)
+        groups: dict[tuple[bool, ...], list[int]] = {}
+        for i, row in enumerate(map(tuple, on)):
+            groups.setdefault(row, []).append(i)
+        parts: dict[tuple[bool, ...], ModelRuns] = {}
+        for g, idx in groups.items():
+            sub = [k for k in range(len(effects)) if g[k]]
+            use = np.concatenate([np.arange(n_a), *[cols[k] for k in sub]]).astype(int)
+            fx = EffectSet([effects.effects[k] for k in sub]) if sub else None
+            parts[g] = self.get(times, field, fx).runs(
+                theta[torch.as_tensor(idx)][:, torch.as_tensor(use)], progress)
+        first = next(iter(parts.values()))
+        V = torch.full((len(th), *first.V.shape[1:]), float("nan"), dtype=first.V.dtype)
+        ok = torch.zeros(len(th), dtype=torch.bool)
+        reasons = [""] * len(th)
+        for g, idx in groups.items():
+            r, ix = parts[g], torch.as_tensor(idx)
+            if r.times != first.times or r.names != first.names:
+                raise RuntimeError("SpecimenModels.runs: the effect groups' outputs differ "
+                                   f"({r.names[:3]}... at {r.times} against {first.times})")
+            V[ix], ok[ix] = r.V, r.ok
+            for j, i in enumerate(idx):
+                reasons[i] = r.reasons[j]
+        return ModelRuns(V, ok, reasons, first.times, first.names,
+                         sum(r.n_computed for r in parts.values()),
+                         sum(r.n_reused for r in parts.values()))
 
     @property
     def computed(self) -> int:

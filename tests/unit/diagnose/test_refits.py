@@ -51,7 +51,7 @@ class ToyFE:
 
     names = tuple(f"p{i}" for i in range(len(X)))
 
-    def runs(self, P: torch.Tensor, times, field, fx) -> SimpleNamespace:
+    def runs(self, P: torch.Tensor, times, field, fx, keep=None) -> SimpleNamespace:
         V = torch.as_tensor(toy_model(P.numpy()))[:, None, :]
         return SimpleNamespace(V=V, ok=torch.ones(len(P), dtype=torch.bool), times=(0.0,),
                                names=self.names)
@@ -131,7 +131,7 @@ class CheapToyFE(ToyFE):
     def __init__(self) -> None:
         self.rows = 0
 
-    def runs(self, P: torch.Tensor, times, field, fx) -> SimpleNamespace:
+    def runs(self, P: torch.Tensor, times, field, fx, keep=None) -> SimpleNamespace:
         self.rows += len(P)
         out = super().runs(P, times, field, fx)
         out.V = out.V + torch.as_tensor(3.0 * SIGMA * X**3)[None, None, :]
@@ -142,7 +142,7 @@ class CountedToyFE(ToyFE):
     def __init__(self) -> None:
         self.rows = 0
 
-    def runs(self, P: torch.Tensor, times, field, fx) -> SimpleNamespace:
+    def runs(self, P: torch.Tensor, times, field, fx, keep=None) -> SimpleNamespace:
         self.rows += len(P)
         return super().runs(P, times, field, fx)
 

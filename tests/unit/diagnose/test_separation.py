@@ -37,7 +37,7 @@ class FakeFE:
     def __init__(self, ok=(True, True, True)):
         self.ok, self.calls = ok, []
 
-    def runs(self, rows, times, field, fx):
+    def runs(self, rows, times, field, fx, keep=None):
         self.calls.append((rows.shape, tuple(times), field, fx))
         T = len(times)
         V = np.zeros((3, T, len(NAMES)))
