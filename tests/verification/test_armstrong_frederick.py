@@ -217,11 +217,12 @@ def test_step_convergence_with_recovery():
     halving), the lagged recovery at first order (1.5x to 2.7x: its lag error is O(dt)), and
     the default steps are within 0.015 um of the finest level for gamma_k = 50 (measured
     0.0075 um; the extrapolated error of the default is ~0.01 um, docs/verification.md),
-    against the 0.05 um Moire noise. Refining only the step caps and the first step after a rate change (the
-    convention of benchmarks/convergence.py), with the growth ratio 1.5 kept, changes V by
-    < 0.005 um at gamma_k = 50 (measured 0.0015 um): that convention leaves the lag error of
-    the geometric runs after each rate change (step/time ~ 1/3) in place, so it understates
-    the error of this first-order term, which is why the whole grid is refined here."""
+    against the 0.05 um Moire noise. Refining only the step caps and the first step after a
+    rate change (the convention of benchmarks/convergence.py), with the growth ratio 1.5 kept,
+    changes V by < 0.005 um at gamma_k = 50 (measured 0.0015 um): that convention leaves the
+    lag error of the geometric runs after each rate change (step/time ~ 1/3) in place, so it
+    understates the error of this first-order term, which is why the whole grid is refined
+    here."""
     q = [[1000.0, 0.0], [1000.0, 50.0], [1000.0, 200.0]]
     V = {}
     for sc in (1, 2, 4):
