@@ -20,6 +20,9 @@ form                      differs from the library's effect by
 ``stress_free_slow``      stress free at 150 degC, cooled before the cycle by Newton's law
                           (fastest at first) at a mean 1 K/min (the library: a constant rate)
 ``stress_free_moderate``  the same from 100 degC at a mean 2 K/min
+``kinematic_af``          an Armstrong-Frederick back stress with a fixed recovery gamma_k = 50
+                          (saturating at C_k / 50), sized by C_k: the library's family at
+                          gamma_k = 50 (its default is Prager, gamma_k = 0)
 ========================  ===================================================================
 
 Each form has one parameter, its size (:class:`SizeOnly`: the library's form parameters have
@@ -38,6 +41,7 @@ import torch
 
 from solderpyro.effects.base import Effect, PreHistory
 from solderpyro.effects.cte_temperature import CteTemperature
+from solderpyro.effects.kinematic_hardening import KinematicHardening
 from solderpyro.effects.modulus_temperature import ModulusTemperature
 from solderpyro.effects.stress_free_temperature import StressFreeTemperature
 from solderpyro.effects.thermal_lag import ThermalLag
@@ -93,6 +97,19 @@ class ModulusLinear(SizeOnly, ModulusTemperature):
     def modulus(self, E: torch.Tensor, T: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         """``(b,)`` MPa."""
         return E * torch.clamp(1.0 - q[:, 0] * (T - self.T0_C), min=self.floor)
+
+
+@dataclass(frozen=True)
+class KinematicAF(SizeOnly, KinematicHardening):
+    """Armstrong-Frederick back stress with the fixed recovery :attr:`gamma_k` (saturation at
+    ``C_k / gamma_k``), sized by ``C_k`` alone."""
+
+    gamma_k: float = 50.0  # in the run-store hash: never mistaken for the library's runs
+
+    def back_stress_recovery(self, gamma_k: torch.Tensor | None,
+                             q: torch.Tensor) -> torch.Tensor:
+        """``(b,)``: :attr:`gamma_k` for every member (dimensionless)."""
+        return torch.full((q.shape[0],), self.gamma_k, dtype=q.dtype, device=q.device)
 
 
 def cascade_lag(cycle: ThermalCycle, t: float, tau: torch.Tensor, stages: int) -> torch.Tensor:
@@ -203,6 +220,7 @@ FORMS: dict[str, tuple[Effect, str, tuple[float, ...] | None]] = {
                          (150.0, cooldown_s(1.0, 150.0))),
     "stress_free_moderate": (StressFreeNewton(), "stress_free_temperature",
                              (100.0, cooldown_s(2.0, 100.0))),
+    "kinematic_af": (KinematicAF(), "kinematic_hardening", None),
 }
 
 

@@ -240,6 +240,20 @@ class EffectSet:
             C_k = e.back_stress_modulus(C_k, qe)
         return C_k
 
+    @property
+    def recovery(self) -> bool:
+        """Whether an effect gives the solder's back stress a dynamic recovery (the state then
+        carries the lagged rate ``p_rate``)."""
+        return any(_overrides(e, "back_stress_recovery") for e in self.effects)
+
+    def back_stress_recovery(self, q: torch.Tensor) -> torch.Tensor | None:
+        """Armstrong-Frederick recovery ``(b,)`` (dimensionless) of the solder's back stress per
+        member, or None (none: the Prager law)."""
+        gamma_k = None
+        for e, qe in zip(self.effects, self.split(q), strict=True):
+            gamma_k = e.back_stress_recovery(gamma_k, qe)
+        return gamma_k
+
     def plastic_band(self) -> PlasticBand | None:
         """The one elasto-plastic band of a linear material, or None."""
         for e in self.effects:

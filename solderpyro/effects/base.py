@@ -13,6 +13,7 @@ initial state          :meth:`Effect.stress_free` + :meth:`Effect.pre_history` (
                        + :meth:`Effect.cooldown` (each member's cool-down in it)
 material law           :meth:`Effect.thermal_strain`, :meth:`Effect.modulus`,
                        :meth:`Effect.back_stress_modulus` (solder back stress),
+                       :meth:`Effect.back_stress_recovery` (its dynamic recovery),
                        :meth:`Effect.plastic_band` + :meth:`Effect.yield_stress` (a band of
                        a linear region made elasto-plastic)
 observation operator   :meth:`Effect.observe` (on the solver's V after the FE solve)
@@ -249,6 +250,13 @@ class Effect:
         """Prager modulus ``(b,)`` MPa of the solder's back stress (``dX = 2/3 C_k deps_p``),
         from the baseline's ``C_k`` (None: no back stress, the isotropic Anand model)."""
         return C_k
+
+    def back_stress_recovery(self, gamma_k: torch.Tensor | None,
+                             q: torch.Tensor) -> torch.Tensor | None:
+        """Armstrong-Frederick recovery ``(b,)`` (dimensionless) of the solder's back stress
+        (``dX = 2/3 C_k deps_p - gamma_k X dp``), from the baseline's ``gamma_k`` (None: no
+        recovery, the Prager law)."""
+        return gamma_k
 
     def plastic_band(self) -> PlasticBand | None:
         """A band of a linear material made elasto-plastic (a setting), or None."""

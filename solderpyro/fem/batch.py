@@ -74,6 +74,7 @@ def scatter(full, part, idx, inplace=False):
 def scatter_state(full: PointState, part: PointState, idx, inplace=False) -> PointState:
     """:func:`scatter` field by field of a :class:`PointState`."""
     X = None if full.X is None else scatter(full.X, part.X, idx, inplace)
+    r = None if full.p_rate is None else scatter(full.p_rate, part.p_rate, idx, inplace)
     return PointState(scatter(full.eps_p, part.eps_p, idx, inplace),
                       scatter(full.s, part.s, idx, inplace),
-                      scatter(full.eps_zz, part.eps_zz, idx, inplace), X)
+                      scatter(full.eps_zz, part.eps_zz, idx, inplace), X, r)

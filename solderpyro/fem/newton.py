@@ -340,7 +340,8 @@ class NewtonStep:
         p, T1 = ms.p, ms.th
         needs_grad = torch.is_grad_enabled() and (
             p.requires_grad or u.requires_grad or st.s.requires_grad
-            or (st.X is not None and st.X.requires_grad))
+            or (st.X is not None and st.X.requires_grad)
+            or (st.p_rate is not None and st.p_rate.requires_grad))
         fext = (T1.eps_lin @ self.ops.G).expand(u.shape[0], -1)  # (b, n_r)
         ps = self.problem.plane == "stress"
         with torch.no_grad():

@@ -21,7 +21,13 @@ from solderpyro.fem.band import BandData, band_update
 from solderpyro.fem.problem import AnandSolder, SolderStep
 from solderpyro.fem.thermo import N_ANAND, MemberStep
 from solderpyro.materials.elastic import IP, ZZ, condense_zz
-from solderpyro.materials.integrate import PointInputs, PointState, Tangent3D, full_strain
+from solderpyro.materials.integrate import (
+    PointInputs,
+    PointState,
+    Tangent3D,
+    full_strain,
+    lagged_prager,
+)
 
 
 @dataclass
@@ -46,15 +52,17 @@ def col_zz(C3):
 def split_state(st: PointState, n: int) -> tuple[PointState, PointState]:
     """The solder's (first ``n`` elements) and the band's part of a state ``(b, n_e, n_qp)``."""
     X = (None, None) if st.X is None else (st.X[:, :n], st.X[:, n:])
-    return (PointState(st.eps_p[:, :n], st.s[:, :n], st.eps_zz[:, :n], X[0]),
-            PointState(st.eps_p[:, n:], st.s[:, n:], st.eps_zz[:, n:], X[1]))
+    r = (None, None) if st.p_rate is None else (st.p_rate[:, :n], st.p_rate[:, n:])
+    return (PointState(st.eps_p[:, :n], st.s[:, :n], st.eps_zz[:, :n], X[0], r[0]),
+            PointState(st.eps_p[:, n:], st.s[:, n:], st.eps_zz[:, n:], X[1], r[1]))
 
 
 def cat_state(a: PointState, b: PointState) -> PointState:
-    """Inverse of :func:`split_state` (the band keeps a zero back stress)."""
+    """Inverse of :func:`split_state` (the band keeps a zero back stress and lagged rate)."""
     X = None if a.X is None else torch.cat([a.X, torch.zeros_like(b.eps_p)], 1)
+    r = None if a.p_rate is None else torch.cat([a.p_rate, torch.zeros_like(b.s)], 1)
     return PointState(torch.cat([a.eps_p, b.eps_p], 1), torch.cat([a.s, b.s], 1),
-                      torch.cat([a.eps_zz, b.eps_zz], 1), X)
+                      torch.cat([a.eps_zz, b.eps_zz], 1), X, r)
 
 
 class PointEvaluator:
@@ -87,7 +95,8 @@ class PointEvaluator:
 
     def _solder_step(self, step: MemberStep, **kw) -> SolderStep:
         """The solder law's :class:`~solderpyro.fem.problem.SolderStep` of ``step``."""
-        return SolderStep(step.th.T, self.problem.T_ref_C, step.dt, C_k=step.th.C_k, **kw)
+        return SolderStep(step.th.T, self.problem.T_ref_C, step.dt, C_k=step.th.C_k,
+                          gamma_k=step.th.gamma_k, **kw)
 
     def material(self, u, ezz, st, step: MemberStep, guess=None, tangent=True, C3_fixed=None,
                  condense=True):
@@ -137,10 +146,11 @@ class PointEvaluator:
         sol = self.solder
         if (self.band is not None or type(sol).update is not AnandSolder.update
                 or self.tkw["device"].type != "cpu"
-                or not _native.usable(u, ezz, st.eps_p, st.s, st.X, step.p, guess)):
+                or not _native.usable(u, ezz, st.eps_p, st.s, st.X, st.p_rate, step.p,
+                                      guess)):
             return None
         th = step.th
-        if not _native.usable(*(a for a in (th.T, th.eps_th, th.E, th.C_k))):
+        if not _native.usable(*(a for a in (th.T, th.eps_th, th.E, th.C_k, th.gamma_k))):
             return None
         T0 = self.problem.T_ref_C  # what AnandSolder.update passes to return_map_3d
         eps_th = th.eps_th if th.per_member else sol.thermal_strain(th.T, T0)
@@ -148,12 +158,13 @@ class PointEvaluator:
         C_k = th.C_k
         if C_k is not None and not isinstance(C_k, torch.Tensor) and C_k == 0:
             C_k = None
-        inputs = PointInputs(th.T + 273.15, step.dt, eps_th, E, sol.nu, C_k)
+        inputs = PointInputs(th.T + 273.15, step.dt, eps_th, E, sol.nu, C_k, th.gamma_k)
+        st, inputs, carry = lagged_prager(st, inputs)  # Armstrong-Frederick: (a X_n, a C_k)
         sig_ip, szz, eps_p, s, X, dep, x, tg, f = _native.solder_eval(
             u, ezz if self.layer.plane_stress else None, self.layer, st,
             step.p[:, None, None, :N_ANAND], inputs, guess)
         ezz_out = ezz.clone() if ezz is not None else torch.zeros_like(szz)
-        st1 = PointState(eps_p, s, ezz_out, X)
+        st1 = PointState(eps_p, s, ezz_out, X, dep / step.dt if carry else None)
         return sig_ip, None, szz, Tangent3D(*tg), st1, dep, x, f
 
     def _material_band(self, u, ezz, st, step: MemberStep, guess, tangent, C3_fixed, condense):

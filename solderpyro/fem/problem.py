@@ -54,6 +54,9 @@ class SolderStep(NamedTuple):
         C_k: Prager modulus of a back stress (MPa), float or ``(b, 1, 1)``, or None (none);
             the state then carries the back stress ``X``
             (:mod:`solderpyro.materials.kinematic`).
+        gamma_k: Armstrong-Frederick recovery of that back stress (dimensionless), float or
+            ``(b, 1, 1)``, or None (none: Prager); the state then carries the lagged rate
+            ``p_rate``.
     """
 
     T_C: Any
@@ -62,6 +65,7 @@ class SolderStep(NamedTuple):
     eps_th: Any = None
     E: Any = None
     C_k: Any = None
+    gamma_k: Any = None
 
 
 @dataclass(frozen=True)
@@ -84,8 +88,8 @@ class AnandSolder(Elastic):
         Args:
             eps: ``(b, n_e, n_qp, 4)`` total strain (Mandel); state: start-of-step state;
             p: ``(b, 1, 1, 9)`` Anand constants; step: the step's :class:`SolderStep`
-                (temperatures degC, dt s, optional per-member thermal strain, modulus and
-                Prager modulus); guess, tangent: as in ``return_map_3d``.
+                (temperatures degC, dt s, optional per-member thermal strain, modulus, Prager
+                modulus and recovery); guess, tangent: as in ``return_map_3d``.
         """
         from solderpyro.materials.integrate import PointInputs, return_map_3d
 
@@ -95,7 +99,8 @@ class AnandSolder(Elastic):
         E = step.E
         if E is None:
             E = self.modulus(step.T_C)
-        inputs = PointInputs(step.T_C + 273.15, step.dt, eps_th, E, self.nu, step.C_k)
+        inputs = PointInputs(step.T_C + 273.15, step.dt, eps_th, E, self.nu, step.C_k,
+                             step.gamma_k)
         return return_map_3d(eps, state, p, inputs, guess=guess, tangent=tangent)
 
 

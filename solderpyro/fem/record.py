@@ -1,8 +1,8 @@
 """What happens inside the solder during a solve: its stress, inelastic strain and work.
 
 The time loop keeps only the Gauss-point state (the inelastic strain ``eps_p``, Anand's ``s``,
-the out-of-plane strain, a back stress); the solder's stress is not stored. It is recovered
-exactly at the end of every grid step from that state and the displacements:
+the out-of-plane strain, a back stress and its lagged rate); the solder's stress is not stored.
+It is recovered exactly at the end of every grid step from that state and the displacements:
 
     sigma = K tr(e) m + 2 G dev(e),   e = eps(u) - eps_p - eps_th m,
 

@@ -82,8 +82,10 @@ class TimeLoop:
                                du0=None if du0 is None else g * du0, gid=gid)
         k = (1.0 - g) / g
         X2 = None if sa.X is None else (sa.X if st.X is None else st.X + k * (sa.X - st.X))
+        # the second stage's Armstrong-Frederick recovery is lagged on the first stage's rate
+        # (the latest one; extrapolating a rate like the state could make it negative)
         st2 = PointState(st.eps_p + k * (sa.eps_p - st.eps_p), st.s + k * (sa.s - st.s),
-                         sa.eps_zz, X2)
+                         sa.eps_zz, X2, sa.p_rate)
         ub, sb, okb, db = step(ua, st2, p, self.thermo_at(t1, p), g * h, du0=k * (ua - u),
                                gid=gid)
         return ub, sb, oka & okb, torch.maximum(da, db)
@@ -120,8 +122,9 @@ class TimeLoop:
         cyc = slv.problem.cycle
         u = torch.zeros(b, slv.n_r, **slv.tkw)
         kin = slv.fx is not None and slv.fx.kinematic
+        rec = slv.fx is not None and slv.fx.recovery
         st = initial_state((b, *slv.wdet.shape), params[:, 0, None, None], kinematic=kin,
-                           **slv.tkw)
+                           recovery=rec, **slv.tkw)
         if slv.band is not None:  # the band's s is its equivalent plastic strain
             st.s[:, slv.n_s:] = 0.0
         peak = None if slv.probe is None else torch.zeros(b, **slv.tkw)

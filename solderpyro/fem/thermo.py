@@ -1,7 +1,8 @@
 """The step's inputs of a batched solve: temperature-dependent fields at one instant.
 
 :class:`StepThermo` holds the temperature, the solder's free thermal strain and modulus, the
-linear materials' thermal strains and, with effects, the solder's Prager modulus and a band's
+linear materials' thermal strains and, with effects, the solder's Prager modulus and its
+Armstrong-Frederick recovery and a band's
 thermal strain and yield stress; :class:`ThermoFields` computes it at a time of the thermal
 cycle, shared by the batch in the baseline model and per member through the bound effects
 (:class:`~solderpyro.effects.EffectSet`). :class:`MemberStep` bundles it with the members'
@@ -32,6 +33,8 @@ class StepThermo:
         eps_lin: free thermal strains of the linear materials, ``(n_mat,)`` or ``(b, n_mat)``.
         per_member: whether the fields are per batch member (then :meth:`index` selects rows).
         C_k: the solder's Prager modulus ``(b, 1, 1)`` MPa, or None (no back stress).
+        gamma_k: the Armstrong-Frederick recovery of that back stress ``(b, 1, 1)``
+            (dimensionless), or None (none: Prager).
         band: ``(eps_th, sigma_y)``, each ``(b, 1, 1)``, of an elasto-plastic band's material
             (free thermal strain, yield stress MPa), or None (no band).
     """
@@ -43,6 +46,7 @@ class StepThermo:
     per_member: bool = False
     C_k: Any = None
     band: Any = None
+    gamma_k: Any = None
 
     def index(self, idx) -> StepThermo:
         """The inputs of the members ``idx`` (itself when shared by the batch)."""
@@ -50,7 +54,8 @@ class StepThermo:
             return self
         return StepThermo(self.T[idx], self.eps_th[idx], self.E[idx], self.eps_lin[idx], True,
                           None if self.C_k is None else self.C_k[idx],
-                          None if self.band is None else tuple(a[idx] for a in self.band))
+                          None if self.band is None else tuple(a[idx] for a in self.band),
+                          None if self.gamma_k is None else self.gamma_k[idx])
 
     def rows(self, idx) -> StepThermo:
         """:meth:`index` for sorted, unique member indices ``idx``; itself (no copy) when they
@@ -129,6 +134,7 @@ class ThermoFields:
         eps_th = fx.thermal_strain(self.solder, T, T_ref, q)
         E = fx.modulus(self.solder, T, q)
         C_k = fx.back_stress_modulus(q)  # (b,) or None
+        gamma_k = fx.back_stress_recovery(q)  # (b,) or None
         band = None
         if self.band_material is not None:
             eb = fx.thermal_strain(mats[self.band_material], T, T_ref, q)
@@ -136,4 +142,5 @@ class ThermoFields:
             assert sy is not None
             band = (eb[:, None, None], sy[:, None, None])
         return StepThermo(T[:, None, None], eps_th[:, None, None], E[:, None, None], eps_lin,
-                          True, None if C_k is None else C_k[:, None, None], band)
+                          True, None if C_k is None else C_k[:, None, None], band,
+                          None if gamma_k is None else gamma_k[:, None, None])

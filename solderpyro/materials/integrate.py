@@ -21,7 +21,12 @@ Optional linear (Prager) kinematic hardening, ``C_k`` (MPa) of :class:`PointInpu
 stress ``X`` of :class:`PointState`: the flow is driven by ``xi = dev(sigma) - X`` and the return
 above runs on ``xi`` with ``3G`` replaced by ``3G + C_k`` (derivation in :mod:`.kinematic`).
 ``C_k = None`` and ``X = None`` is the isotropic model; ``C_k = 0`` gives the same numbers to the
-last bit.
+last bit. Optional Armstrong-Frederick recovery of that back stress, ``gamma_k`` of
+:class:`PointInputs` and the lagged equivalent inelastic strain rate ``p_rate`` of
+:class:`PointState`: the step is the Prager return with ``X_n -> a X_n`` and ``C_k -> a C_k``,
+``a = 1/(1 + gamma_k*p_rate*dt)`` fixed by the previous step (:func:`lagged_prager`; derivation,
+and why lagged, in :mod:`.kinematic`); ``gamma_k = None`` or 0 is the Prager update to the last
+bit.
 
 On the CPU in float64 without autograd, :func:`return_map_3d` runs the same algorithm point by
 point in C (:mod:`solderpyro._native`, compiled at first use; ``SOLDERPYRO_NATIVE=0`` or no
@@ -33,6 +38,7 @@ Shapes: strains and stresses are Mandel 4-vectors ``(..., 4)`` = (xx, yy, zz, sq
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -78,22 +84,28 @@ class PointState:
         eps_zz: total out-of-plane strain (plane stress; zero in plane strain), ``(...)``.
         X: back stress (deviatoric), MPa, Mandel ``(..., 4)``; ``None`` means zero (no kinematic
             hardening so far). Optional, so ``PointState(eps_p, s, eps_zz)`` keeps working.
+        p_rate: equivalent inelastic strain rate of the last step, ``sqrt(2/3)|Delta eps_p| /
+            dt`` (1/s), ``(...)``: what the Armstrong-Frederick recovery of the next step is
+            lagged on (:func:`lagged_prager`); ``None`` means zero (no recovery so far).
     """
 
     eps_p: torch.Tensor
     s: torch.Tensor
     eps_zz: torch.Tensor
     X: torch.Tensor | None = None
+    p_rate: torch.Tensor | None = None
 
     def index(self, idx) -> PointState:
         """The state of the points ``idx`` (any torch index of the leading dimensions)."""
         return PointState(self.eps_p[idx], self.s[idx], self.eps_zz[idx],
-                          None if self.X is None else self.X[idx])
+                          None if self.X is None else self.X[idx],
+                          None if self.p_rate is None else self.p_rate[idx])
 
     def detach(self) -> PointState:
         """The same state cut from the autograd graph."""
         return PointState(self.eps_p.detach(), self.s.detach(), self.eps_zz.detach(),
-                          None if self.X is None else self.X.detach())
+                          None if self.X is None else self.X.detach(),
+                          None if self.p_rate is None else self.p_rate.detach())
 
 
 class PointInputs(NamedTuple):
@@ -108,6 +120,8 @@ class PointInputs(NamedTuple):
         nu: Poisson's ratio.
         C_k: Prager kinematic hardening modulus, MPa, or None / 0 for none (see
             :mod:`.kinematic`).
+        gamma_k: Armstrong-Frederick recovery of that back stress (dimensionless,
+            ``dX = (2/3) C_k deps_p - gamma_k X dp``), or None / 0 for none (Prager).
     """
 
     T: Any
@@ -116,15 +130,18 @@ class PointInputs(NamedTuple):
     E: Any
     nu: Any
     C_k: Any = None
+    gamma_k: Any = None
 
 
 def initial_state(shape: tuple[int, ...], s0: torch.Tensor, *, kinematic: bool = False,
-                  **tkw) -> PointState:
+                  recovery: bool = False, **tkw) -> PointState:
     """Virgin state: zero strains, ``s = s0`` broadcast to ``shape``; with ``kinematic`` also a
-    zero back stress ``X`` ``(*shape, 4)`` (else ``X = None``, which the update reads as zero)."""
+    zero back stress ``X`` ``(*shape, 4)`` (else ``X = None``, which the update reads as zero),
+    with ``recovery`` a zero lagged rate ``p_rate`` ``shape`` (else None, read as zero)."""
     return PointState(torch.zeros(*shape, 4, **tkw), torch.broadcast_to(s0, shape).clone(),
                       torch.zeros(shape, **tkw),
-                      torch.zeros(*shape, 4, **tkw) if kinematic else None)
+                      torch.zeros(*shape, 4, **tkw) if kinematic else None,
+                      torch.zeros(shape, **tkw) if recovery else None)
 
 
 class _Trial:
@@ -398,22 +415,25 @@ def return_map_3d(eps, state: PointState, p, inputs: PointInputs, guess=None, ta
         state: start-of-step :class:`PointState` with leading shape ``(...)``.
         p: Anand constants ``(..., 9)`` (broadcastable), ANAND_NAMES order.
         inputs: the step's :class:`PointInputs` (temperature K, step s, free thermal strain,
-            E MPa, nu, Prager modulus ``C_k`` MPa or None), broadcastable to ``(...)`` (e.g.
-            ``(b, 1, 1)`` per batch member in the FE). With ``C_k`` the back stress is
-            ``state.X`` (None = zero); the new state carries ``X`` whenever ``C_k`` or
-            ``state.X`` is given. See :mod:`.kinematic`.
+            E MPa, nu, Prager modulus ``C_k`` MPa or None, Armstrong-Frederick recovery
+            ``gamma_k`` or None), broadcastable to ``(...)`` (e.g. ``(b, 1, 1)`` per batch
+            member in the FE). With ``C_k`` the back stress is ``state.X`` (None = zero); the
+            new state carries ``X`` whenever ``C_k`` or ``state.X`` is given, and the step's
+            equivalent inelastic strain rate ``p_rate = dep/dt`` whenever ``gamma_k`` or
+            ``state.p_rate`` is given (:func:`lagged_prager`). See :mod:`.kinematic`.
         guess: optional ``(..., 2)`` warm start ``(zeta, s)`` from a nearby solve.
         tangent: whether to compute the 3-D consistent tangent; ``"factored"`` returns it as a
             :class:`Tangent3D` instead of a ``(..., 4, 4)`` tensor.
     Returns:
         ``(sigma (..., 4), new_state, C (..., 4, 4) or None, dep (...), x (..., 2))``; ``x`` is
         the detached solution ``(zeta, s)`` for warm starts. With autograd on, outputs carry
-        exact first derivatives with respect to every input, ``C_k`` and ``state.X`` included
-        (one Newton step with the graph).
+        exact first derivatives with respect to every input, ``C_k``, ``gamma_k``,
+        ``state.X`` and ``state.p_rate`` included (one Newton step with the graph).
     """
+    state, inputs, carry = lagged_prager(state, inputs)
     if (_native.usable(eps, state.eps_p, state.s, state.X, p, *inputs, guess)
             and torch.broadcast_shapes(eps.shape[:-1], state.s.shape) == eps.shape[:-1]):
-        return _return_map_native(eps, state, p, inputs, guess, tangent)
+        return _return_map_native(eps, state, p, inputs, guess, tangent, carry)
     shape = eps.shape[:-1]
     tkw = dict(dtype=eps.dtype, device=eps.device)
     T, eps_th, K, G, p = _moduli(shape, tkw, inputs, p)
@@ -461,13 +481,47 @@ def return_map_3d(eps, state: PointState, p, inputs: PointInputs, guess=None, ta
     if X is not None:
         sigma = sigma + X
     dep = torch.exp(tr.log_qtr - torch.log(3.0 * Gk) + _logsigmoid(-zeta))
-    return sigma, PointState(state.eps_p + deps_p, s, eps[..., ZZ], X), C, dep, x
+    return sigma, PointState(state.eps_p + deps_p, s, eps[..., ZZ], X,
+                             dep / inputs.dt if carry else None), C, dep, x
 
 
-def _return_map_native(eps, state: PointState, p, inputs: PointInputs, guess, tangent):
+def lagged_prager(state: PointState,
+                  inputs: PointInputs) -> tuple[PointState, PointInputs, bool]:
+    """The Prager step that a step with Armstrong-Frederick recovery is (:mod:`.kinematic`).
+
+    With the recovery factor ``a = 1/(1 + gamma_k*p_rate*dt)`` ``(...)`` of the start-of-step
+    lagged rate ``state.p_rate`` (1/s) and the step ``inputs.dt`` (s), the backward-Euler
+    Armstrong-Frederick update is the Prager update of ``X_n -> a X_n`` (MPa, ``(..., 4)``) and
+    ``C_k -> a C_k`` (MPa).
+
+    Args:
+        state: start-of-step :class:`PointState` (``X``, ``p_rate`` optional).
+        inputs: the step's :class:`PointInputs` (``C_k``, ``gamma_k`` optional).
+    Returns:
+        ``(state', inputs', carry)``: the Prager step's start state and inputs (``gamma_k``
+        None), and whether the new state is to carry ``p_rate`` (``gamma_k`` given, or
+        ``state.p_rate`` given). Without recovery to apply (``gamma_k`` or ``C_k`` None or a
+        plain 0, or ``p_rate`` None: the virgin state) ``X`` and ``C_k`` are passed on
+        untouched; a zero tensor ``gamma_k`` gives ``a = 1`` exactly, so the Prager numbers to
+        the last bit either way.
+    """
+    g, Ck = inputs.gamma_k, inputs.C_k
+    given = g is not None and (isinstance(g, torch.Tensor) or g != 0)
+    carry = given or state.p_rate is not None
+    inputs = inputs._replace(gamma_k=None)
+    if (not given or state.p_rate is None or Ck is None
+            or (not isinstance(Ck, torch.Tensor) and Ck == 0)):
+        return state, inputs, carry
+    a = 1.0 / (1.0 + g * state.p_rate * inputs.dt)
+    X = None if state.X is None else a[..., None] * state.X
+    return dataclasses.replace(state, X=X), inputs._replace(C_k=a * Ck), carry
+
+
+def _return_map_native(eps, state: PointState, p, inputs: PointInputs, guess, tangent, carry):
     """:func:`return_map_3d` without autograd through the fused C kernel
     (:func:`solderpyro._native.anand_update`): the same algorithm point by point, the same
-    outputs to rounding."""
+    outputs to rounding. ``state`` and ``inputs`` are those of :func:`lagged_prager`
+    (``carry``: the new state carries ``p_rate = dep/dt``)."""
     C_k = inputs.C_k
     if C_k is not None and not isinstance(C_k, torch.Tensor) and C_k == 0:
         inputs = inputs._replace(C_k=None)  # as _kinematic_modulus: a plain 0 is none
@@ -478,7 +532,8 @@ def _return_map_native(eps, state: PointState, p, inputs: PointInputs, guess, ta
         C = Tangent3D(*tan)
         if tangent != "factored":
             C = C.full()
-    return sigma, PointState(eps_p, s, eps[..., ZZ], X), C, dep, x
+    st1 = PointState(eps_p, s, eps[..., ZZ], X, dep / inputs.dt if carry else None)
+    return sigma, st1, C, dep, x
 
 
 def _kinematic_modulus(C_k, shape, tkw):
@@ -537,8 +592,9 @@ def anand_update(eps_ip, state: PointState, p, inputs: PointInputs, plane="stres
     with torch.no_grad():
         ezz = ezz_predictor(eps_ip.detach(), state.detach(), torch.as_tensor(inputs.eps_th),
                             inputs.E, inputs.nu)
-        C_k = inputs.C_k
-        fixed = inputs._replace(C_k=C_k.detach()) if isinstance(C_k, torch.Tensor) else inputs
+        fixed = inputs._replace(**{k: v.detach() for k, v in (("C_k", inputs.C_k),
+                                                              ("gamma_k", inputs.gamma_k))
+                                   if isinstance(v, torch.Tensor)})
         for _ in range(iters):
             sig, _, C, _, guess = return_map_3d(full_strain(eps_ip.detach(), ezz),
                                                 state.detach(), p.detach(), fixed, guess)

@@ -300,12 +300,14 @@ def test_moire_offset_and_rotation_per_image_are_exact():
 
 def test_kinematic_hardening_fe_stages_follow_the_gauss_point_law():
     """Each backward-Euler stage of the FE solve, members with C_k = 0, 300 and 2000 MPa in one
-    batch: replaying the Gauss-point law with back stress (return_map_3d with the member's own
-    C_k) from the stage's start state on the FE's converged strain gives the FE's end state
-    (back stress, inelastic strain, resistance: 1e-9 relative), and SDIRK2's second stage
-    starts from the back stress extrapolated like the inelastic strain,
-    X* = X0 + (1-gamma)/gamma (X1 - X0) (1e-13 MPa). So the back stress is carried between
-    steps and stages, and each member's C_k reaches its own points."""
+    batch (the last with Armstrong-Frederick recovery gamma_k = 100): replaying the Gauss-point
+    law with back stress (return_map_3d with the member's own C_k and gamma_k) from the stage's
+    start state on the FE's converged strain gives the FE's end state (back stress, inelastic
+    strain, resistance, lagged rate: 1e-9 relative), and SDIRK2's second stage starts from the
+    back stress extrapolated like the inelastic strain, X* = X0 + (1-gamma)/gamma (X1 - X0)
+    (1e-13 MPa), with the first stage's rate as its lagged rate (exactly). So the back stress
+    and the rate are carried between steps and stages, and each member's C_k and gamma_k reach
+    its own points."""
     solver = SpecimenSolver(small_problem(), effects=("kinematic_hardening",))
     calls, step = [], solver.step
 
@@ -315,7 +317,7 @@ def test_kinematic_hardening_fe_stages_follow_the_gauss_point_law():
         return out
 
     solver.step = record  # type: ignore[method-assign]
-    P = rows([[0.0], [300.0], [2000.0]])
+    P = rows([[0.0, 0.0], [300.0, 0.0], [2000.0, 100.0]])
     res = solver.solve(P, [600.0, 1500.0])
     assert bool(res.ok.all()) and len(calls) % 2 == 0 and len(calls) > 20
     nu, k = solver.solder.nu, (1.0 - SDIRK_GAMMA) / SDIRK_GAMMA
@@ -324,13 +326,16 @@ def test_kinematic_hardening_fe_stages_follow_the_gauss_point_law():
         if Ck is None:  # a sub-step of some members: not in this test's reference cycle
             continue
         full = full_strain(solver.points.strain(u1), st1.eps_zz)
-        inputs = PointInputs(T1.T + 273.15, dt, T1.eps_th, T1.E, nu, Ck[:, None, None])
+        inputs = PointInputs(T1.T + 273.15, dt, T1.eps_th, T1.E, nu, Ck[:, None, None],
+                             P[:, 10, None, None])
         _, ref, *_ = return_map_3d(full, st0, p[:, None, None, :9], inputs)
-        for a, b in ((ref.X, st1.X), (ref.eps_p, st1.eps_p), (ref.s, st1.s)):
+        for a, b in ((ref.X, st1.X), (ref.eps_p, st1.eps_p), (ref.s, st1.s),
+                     (ref.p_rate, st1.p_rate)):
             assert (a - b).abs().max() <= 1e-9 * b.abs().max() + 1e-15, j
         if j % 2 == 1:  # stage 2 of a step: its start extrapolates stage 1
             s0, s1 = calls[j - 1][0], calls[j - 1][2]
             assert torch.allclose(st0.X, s0.X + k * (s1.X - s0.X), rtol=0, atol=1e-13)
+            assert torch.equal(st0.p_rate, s1.p_rate)
     X = calls[-1][2].X
     assert X[0].abs().max() == 0.0 and X[1].abs().max() > 0.1 and X[2].abs().max() > 0.5
 
@@ -341,7 +346,7 @@ def test_kinematic_hardening_stiff_limit_is_the_elastic_solder():
     1/C_k: 1e6 -> 1e8 MPa shrinks it ~100-fold, to < 1e-3 um, while the baseline (C_k = 0)
     creeps by > 0.3 um."""
     V = SpecimenSolver(small_problem(), effects=("kinematic_hardening",)).solve(
-        rows([[0.0], [1e6], [1e8]]), TIMES).V
+        rows([[0.0, 0.0], [1e6, 0.0], [1e8, 0.0]]), TIMES).V
     V_el = SpecimenSolver(small_problem()).solve(anand_tensor(ELASTIC, dtype=F64)[None],
                                                  TIMES).V[0]
     gap = [(V[i] - V_el).abs().max().item() for i in range(3)]
