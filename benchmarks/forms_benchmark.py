@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 #: Anand sets in turn (see make_hidden_data.ANAND_SETS)
 SETS = ("truth", "interior", "near_faces")
 #: the forms sized by the RMS change they make, and their sizes (um)
-SIZED = ("modulus_linear", "lag_second_order", "lag_third_order", "cte_quadratic")
+SIZED = ("modulus_linear", "lag_second_order", "lag_third_order", "cte_quadratic", "kinematic_af")
 SIZES = (0.2, 0.4, 1.2)
 #: forms at their own fixed values
 FIXED = ("stress_free_slow", "stress_free_moderate")
