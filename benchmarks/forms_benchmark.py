@@ -16,7 +16,8 @@ each). Each case's record is written as it ends to ``WORK/records/NAME.json`` (a
 skips it); the bars over every finished case (:func:`cases_table.bars`) go to ``--out``.
 
 Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2] [--full]
-       [--out benchmarks/results/forms_benchmark.json] [--list]
+       [--out benchmarks/results/forms_benchmark.json] [--list] [--summary]
+(the figure: the ``--out`` path with ``.png``)
 """
 
 from __future__ import annotations
@@ -154,6 +155,60 @@ def summarize(work: Path, out: Path) -> dict:
     return res
 
 
+def figure(res: dict, path: Path) -> None:
+    """``path`` (png): per case, the loop's wall seconds by stage against the 5-minute bar
+    (left), and per parameter whether the reported 95 % interval of the run a user ends with
+    holds the truth (right; the row's label says what the diagnosis selected and the error
+    after, in noise sd)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from cases_table import final_runs
+
+    rows = res["cases"]
+    params = sorted({k for r in rows for f in final_runs(r) for k in f.get("truths", [])},
+                    key=lambda k: (("s0", "QR", "xi", "m", k).index(k), k))
+    h = 0.32 * len(rows) + 1.6
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, h), width_ratios=(1, 1.3),
+                                  sharey=True)
+    labels = []
+    for i, r in enumerate(rows):
+        finals = final_runs(r)
+        parts = [("calibrate", r["base"].get("seconds") or 0.0),
+                 ("diagnose", r.get("diagnose_seconds") or 0.0),
+                 ("recalibrate", sum(f.get("seconds") or 0.0 for f in finals
+                                     if f is not r["base"]))]
+        left = 0.0
+        for (name, v), c in zip(parts, ("#8da0cb", "#fc8d62", "#66c2a5"), strict=True):
+            ax.barh(i, v, left=left, color=c, label=name if i == 0 else None)
+            left += v
+        for f in finals:
+            for k in f.get("truths", []):
+                ax2.scatter(params.index(k), i, marker="o" if k not in f["missed"] else "x",
+                            color="#1a9850" if k not in f["missed"] else "#d73027", s=40)
+        sel = "+".join(r.get("selected") or []) or ("tie" if r.get("tie") else "none")
+        rms = [f["compare_rms_um"][1] / r["sigma_um"] for f in finals
+               if f.get("compare_rms_um") and r.get("sigma_um")]
+        labels.append(f"{r['case']}  [{sel}{f', {rms[0]:.2f} sd' if rms else ''}]")
+    ax.axvline(300.0, color="k", ls="--", lw=1, label="5 min")
+    ax.set_yticks(range(len(rows)), labels, fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xlabel("loop wall time, s (one thread per case)")
+    ax.legend(fontsize=7, loc="lower right")
+    ax2.set_xticks(range(len(params)), params, rotation=60, fontsize=7)
+    ax2.set_xlim(-0.5, len(params) - 0.5)
+    b = res["bars"]
+    ax2.set_title(f"truth inside the reported 95 % interval (o) or not (x): "
+                  f"{b['coverage'][0]} of {b['coverage'][1]}", fontsize=9)
+    ax.set_title(f"selected {b['selected'][0]} of {b['selected'][1]}; clean flagged "
+                 f"{b['false_alarms'][0]} of {b['false_alarms'][1]}; loop median "
+                 f"{b['loop_s_median']} s", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("work")
@@ -162,6 +217,8 @@ def main() -> None:
     ap.add_argument("--out", default="benchmarks/results/forms_benchmark.json")
     ap.add_argument("--full", action="store_true", help="all nine size x set cases per form")
     ap.add_argument("--list", action="store_true")
+    ap.add_argument("--summary", action="store_true",
+                    help="only the bars and the figure of the finished cases")
     a = ap.parse_args()
     work = Path(a.work).resolve()
     cases = plan(a.full)
@@ -172,7 +229,7 @@ def main() -> None:
             print(("done  " if c.name in done else "      ") + c.name)
         print(f"{len(done)} of {len(cases)} done")
         return
-    todo = todo[:a.cases] if a.cases is not None else todo
+    todo = [] if a.summary else todo[:a.cases] if a.cases is not None else todo
     os.environ["OMP_NUM_THREADS"] = "1"
     with cf.ProcessPoolExecutor(a.parallel) as ex:
         futs = {ex.submit(run, c, str(work)): c for c in todo}
@@ -181,7 +238,9 @@ def main() -> None:
             print(json.dumps({k: r.get(k) for k in ("case", "hidden", "selected", "explained",
                                                      "error", "case_s")}), flush=True)
     if (work / "records").exists():
-        print(json.dumps(summarize(work, Path(a.out))["bars"]))
+        res = summarize(work, Path(a.out))
+        figure(res, Path(a.out).with_suffix(".png"))
+        print(json.dumps(res["bars"]))
 
 
 if __name__ == "__main__":
