@@ -81,7 +81,7 @@ def test_observation_effects_share_the_fe_run(tmp_path):
     np.testing.assert_allclose(out.V.numpy(), ref.V.numpy(), rtol=1e-10, atol=1e-10)
 
 
-def test_candidates_at_off_are_left_out_of_a_row(tmp_path):
+def test_candidates_at_off_are_left_out_of_a_row(tmp_path, monkeypatch):
     """``runs(..., keep=k)`` solves each row with the first ``k`` effects and only the later
     ones it switches on: the outputs equal those of one solve with every effect on (an effect
     at "off" changes nothing: the difference is round-off, ~1e-13 um on 16 um displacements of
@@ -99,13 +99,22 @@ def test_candidates_at_off_are_left_out_of_a_row(tmp_path):
     theta = torch.tensor([a + off, a + sf, a + kin, [13.5, 10400.0, 2.1, 0.12] + off],
                          dtype=torch.float64)
     theta[:, 4] = 30.0  # the kept effect (tau, s) on in every row
+    import solderpyro.specimen.model as model_mod
+
     store = RunStore(tmp_path / "store")
     fe = SpecimenModels(setup, store)
+    monkeypatch.setattr(model_mod, "POOL_ROWS", 1)  # every group its own solve
     pruned = fe.runs(theta, TIMES, False, fx, keep=1)
     assert pruned.ok.all() and fe.computed == 4
     assert len(fe.models) == 3  # the lag alone; with the stress-free temperature; with C_k
     full = SpecimenModels(setup).runs(theta, TIMES, False, fx)
     np.testing.assert_allclose(pruned.V.numpy(), full.V.numpy(), rtol=0, atol=1e-10)
+    # small groups pooled: one solve with every effect any of them switches on
+    monkeypatch.setattr(model_mod, "POOL_ROWS", 16)
+    pooled_fe = SpecimenModels(setup)
+    pooled = pooled_fe.runs(theta, TIMES, False, fx, keep=1)
+    assert len(pooled_fe.models) == 1 and pooled_fe.computed == 4
+    np.testing.assert_allclose(pooled.V.numpy(), full.V.numpy(), rtol=0, atol=1e-10)
     lag = effect_set(("thermal_lag",), TIMES, setup.effect_bounds)
     assert len(store.records(config_hash(setup.problem, TIMES, False, setup.dtype,
                                          effects=lag))) == 2
