@@ -219,6 +219,7 @@ def _compare_posteriors(fast, ref, names, probs=(0.025, 0.5, 0.975)):
             assert abs(qa - qb) < TOL * se, ("quantile", nm, p, qa, qb, se)
 
 
+@pytest.mark.slow  # ~75-115 s: the default suite stays near 20 minutes
 def test_joint_fast_matches_pyro_on_seed_example():
     """The seed's full joint with 10 runs and 11 observations (t, sigma, sigma_c, theta, beta):
     mean and 2.5 / 50 / 97.5 % quantiles of every parameter agree with Pyro's NUTS."""

@@ -73,6 +73,7 @@ def test_a_parameter_the_data_do_not_see_spans_the_box():
         profile_intervals(fun, box, y, SIGMA, S, np.full(len(S), np.nan))
 
 
+@pytest.mark.slow  # ~75-115 s: the default suite stays near 20 minutes
 def test_wilks_coverage_on_a_nonlinear_ridge():
     """y = a b x + a x^2 (a b and a tied by the data along a curved ridge on the log-a box):
     over 600 noise replications the 95 % profile interval of each parameter holds the truth
