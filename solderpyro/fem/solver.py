@@ -26,7 +26,8 @@ to the nine constants of each member. They enter through :class:`~solderpyro.eff
 only (temperature history, stress-free temperature and pre-history, thermal strains, solder
 modulus, the solder's back stress, an elasto-plastic band of a linear region, observation), so
 temperature and thermal strains become per-member tensors; the solver core never names an
-effect. A back stress adds ``X`` to the Gauss-point state. A plastic band
+effect. A back stress adds ``X`` to the Gauss-point state, and its Armstrong-Frederick
+recovery the last step's inelastic strain rate ``p_rate``. A plastic band
 (:mod:`solderpyro.fem.band`) needs a second discretisation whose retained system includes the
 band: it is built once, and each member is solved on it only if its band may yield, else on the
 baseline one. Without effects the solver runs the baseline path unchanged.
