@@ -64,6 +64,14 @@ def final_runs(rec: dict) -> list[dict]:
     return tied or [rec["base"]]
 
 
+def loop_seconds(rec: dict) -> list[tuple[str, float | None]]:
+    """A case's loop by stage: ``[("calibrate", s), ("diagnose", s), ("recalibrate", s)
+    per run a user ends with]`` (None where not timed)."""
+    return [("calibrate", rec["base"].get("seconds")), ("diagnose", rec.get("diagnose_seconds")),
+            *[("recalibrate", f.get("seconds")) for f in final_runs(rec)
+              if f is not rec["base"]]]
+
+
 def bars(records: list[dict]) -> dict:
     """The hidden-effect benchmark's figures over ``records`` (one per case, as :func:`main`
     makes them).
@@ -100,10 +108,9 @@ def bars(records: list[dict]) -> dict:
                 c[1] += 1
             if f.get("compare_rms_um") and r.get("sigma_um"):
                 rms.append(f["compare_rms_um"][1] / r["sigma_um"])
-        parts = [r["base"].get("seconds"), r.get("diagnose_seconds"),
-                 *[f.get("seconds") for f in finals if f is not r["base"]]]
-        if all(p is not None for p in parts):
-            loops.append(sum(parts))
+        parts = loop_seconds(r)
+        if all(v is not None for _, v in parts):
+            loops.append(sum(v for _, v in parts))
     inside, of = sum(c[0] for c in per.values()), sum(c[1] for c in per.values())
     return {"cases": len(records), "selected": [sel, len(hid)], "named": [named, len(hid)],
             "false_alarms": [alarms, len(clean)], "coverage": [inside, of],

@@ -164,7 +164,7 @@ def figure(res: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from cases_table import final_runs
+    from cases_table import final_runs, loop_seconds
 
     rows = res["cases"]
     params = sorted({k for r in rows for f in final_runs(r) for k in f.get("truths", [])},
@@ -173,16 +173,16 @@ def figure(res: dict, path: Path) -> None:
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, h), width_ratios=(1, 1.3),
                                   sharey=True)
     labels = []
+    colours = {"calibrate": "#8da0cb", "diagnose": "#fc8d62", "recalibrate": "#66c2a5"}
+    shown: set[str] = set()
     for i, r in enumerate(rows):
         finals = final_runs(r)
-        parts = [("calibrate", r["base"].get("seconds") or 0.0),
-                 ("diagnose", r.get("diagnose_seconds") or 0.0),
-                 ("recalibrate", sum(f.get("seconds") or 0.0 for f in finals
-                                     if f is not r["base"]))]
         left = 0.0
-        for (name, v), c in zip(parts, ("#8da0cb", "#fc8d62", "#66c2a5"), strict=True):
-            ax.barh(i, v, left=left, color=c, label=name if i == 0 else None)
-            left += v
+        for name, v in loop_seconds(r):
+            ax.barh(i, v or 0.0, left=left, color=colours[name],
+                    label=None if name in shown else name)
+            shown.add(name)
+            left += v or 0.0
         for f in finals:
             for k in f.get("truths", []):
                 ax2.scatter(params.index(k), i, marker="o" if k not in f["missed"] else "x",

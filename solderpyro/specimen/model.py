@@ -574,34 +574,30 @@ class SpecimenModels:
                 effects: EffectSet, keep: int, progress: bool) -> ModelRuns:
         """:meth:`runs` with the effects after the first ``keep`` solved only where on."""
         n_a = theta.shape[1] - effects.n_params
-        cols, n = [], n_a
-        for e in effects.effects:
-            cols.append(np.arange(n, n + e.n_params))
-            n += e.n_params
-        th = theta.detach().cpu().numpy()
-        on = np.ones((len(th), len(effects)), bool)
+        blocks = effects.split(theta[:, n_a:])  # (n, n_p) per effect
+        on = np.ones((len(theta), len(effects)), bool)
         for k, e in enumerate(effects.effects[keep:], keep):
-            on[:, k] = np.any(th[:, cols[k]] != np.asarray(e.off, float)[None], axis=1)
+            off = torch.as_tensor(e.off, dtype=theta.dtype, device=theta.device)
+            on[:, k] = (blocks[k] != off).any(1).cpu().numpy()
         groups: dict[tuple[bool, ...], list[int]] = {}
         for i, row in enumerate(map(tuple, on)):
             groups.setdefault(row, []).append(i)
         small = [g for g, idx in groups.items() if len(idx) < POOL_ROWS]
         if len(small) > 1:  # solved together, with every effect any of them switches on
             pool = tuple(bool(v) for v in np.any(np.array(small), axis=0))
-            rows = sorted(i for g in small for i in groups.pop(g))
-            groups.setdefault(pool, []).extend(rows)
-            groups[pool].sort()
+            pooled = [i for g in small for i in groups.pop(g)]
+            groups[pool] = sorted(groups.get(pool, []) + pooled)
         parts: dict[tuple[bool, ...], ModelRuns] = {}
         for g, idx in groups.items():
             sub = [k for k in range(len(effects)) if g[k]]
-            use = np.concatenate([np.arange(n_a), *[cols[k] for k in sub]]).astype(int)
             fx = EffectSet([effects.effects[k] for k in sub]) if sub else None
-            parts[g] = self.get(times, field, fx).runs(
-                theta[torch.as_tensor(idx)][:, torch.as_tensor(use)], progress)
+            ix = torch.as_tensor(idx)
+            rows = torch.cat([theta[ix, :n_a], *[blocks[k][ix] for k in sub]], 1)
+            parts[g] = self.get(times, field, fx).runs(rows, progress)
         first = next(iter(parts.values()))
-        V = torch.full((len(th), *first.V.shape[1:]), float("nan"), dtype=first.V.dtype)
-        ok = torch.zeros(len(th), dtype=torch.bool)
-        reasons = [""] * len(th)
+        V = torch.full((len(theta), *first.V.shape[1:]), float("nan"), dtype=first.V.dtype)
+        ok = torch.zeros(len(theta), dtype=torch.bool)
+        reasons = [""] * len(theta)
         for g, idx in groups.items():
             r, ix = parts[g], torch.as_tensor(idx)
             if r.times != first.times or r.names != first.names:
