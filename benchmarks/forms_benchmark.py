@@ -14,6 +14,10 @@ in turn). Cases run in an interleaved order, so the first N of them are a fair s
 ``--cases N`` runs the next N not yet finished, ``--parallel K`` K at a time (one thread
 each). Each case's record is written as it ends to ``WORK/records/NAME.json`` (a rerun
 skips it); the bars over every finished case (:func:`cases_table.bars`) go to ``--out``.
+The cases already in ``--out`` count as finished too and are kept there, so the benchmark
+spans machines whose WORK does not persist: commit the results file and the next run goes on
+from it (``--fresh``: start over). Each case records the commit it ran (``git rev-parse`` of
+this checkout, or ``$BENCH_COMMIT`` for a snapshot without .git) and the machine's load.
 
 Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2] [--full]
        [--out benchmarks/results/forms_benchmark.json] [--list] [--summary]
@@ -26,6 +30,7 @@ import argparse
 import concurrent.futures as cf
 import json
 import os
+import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -131,24 +136,45 @@ def run(case: Case, work: str) -> dict:
     except Exception as e:  # noqa: BLE001 - the benchmark records a failed case and goes on
         rec = {"case": case.name, "error": f"{type(e).__name__}: {e}"}
     rec.update({"anand_set": case.anand, "forms": case.forms, "seed": case.seed,
-                "data_s": made, "case_s": round(time.perf_counter() - t0, 1)})
+                "data_s": made, "case_s": round(time.perf_counter() - t0, 1),
+                "commit": commit(), "load_1min": round(os.getloadavg()[0], 2)})
     out = w / "records" / f"{case.name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rec, indent=1) + "\n")
     return rec
 
 
-def summarize(work: Path, out: Path) -> dict:
-    """The bars over every finished case (from the run directories, as cases_table reads
-    them), with each case's record, to ``out``."""
+def commit() -> str | None:
+    """The commit the benchmark runs: ``$BENCH_COMMIT``, else ``git rev-parse`` of this
+    checkout (None outside one)."""
+    if os.environ.get("BENCH_COMMIT"):
+        return os.environ["BENCH_COMMIT"]
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent,
+                              capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def earlier(out: Path) -> list[dict]:
+    """The case rows of an earlier results file at ``out`` (none when there is none)."""
+    return json.loads(out.read_text()).get("cases", []) if out.exists() else []
+
+
+def summarize(work: Path, out: Path, keep: list[dict]) -> dict:
+    """The bars over every finished case, with each case's row, to ``out``: the cases in
+    WORK (from their run directories, as cases_table reads them) and the rows ``keep`` of
+    cases WORK does not hold (an earlier results file's)."""
     from cases_table import bars, case_record
 
     recs = sorted((json.loads(p.read_text()) for p in (work / "records").glob("*.json")),
-                  key=lambda r: r["case"])
+                  key=lambda r: r["case"]) if (work / "records").exists() else []
     rows = [{**case_record(work / "cases" / r["case"], work / "data" / f"{r['case']}.csv"),
-             "forms": r["forms"], "anand_set": r["anand_set"], "seed": r["seed"]}
+             **{k: r.get(k) for k in ("forms", "anand_set", "seed", "commit", "load_1min")}}
             for r in recs if "error" not in r]
-    res = {"command": "python benchmarks/forms_benchmark.py " + str(work),
+    here = {r["case"] for r in rows}
+    rows = sorted(rows + [r for r in keep if r["case"] not in here], key=lambda r: r["case"])
+    res = {"command": "python benchmarks/forms_benchmark.py WORK",
            "parallel_cases": 2, "bars": bars(rows), "cases": rows,
            "errors": [r for r in recs if "error" in r]}
     out.write_text(json.dumps(res, indent=1) + "\n")
@@ -216,13 +242,16 @@ def main() -> None:
     ap.add_argument("--parallel", type=int, default=2)
     ap.add_argument("--out", default="benchmarks/results/forms_benchmark.json")
     ap.add_argument("--full", action="store_true", help="all nine size x set cases per form")
+    ap.add_argument("--fresh", action="store_true",
+                    help="ignore the cases already in --out (start the benchmark over)")
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--summary", action="store_true",
                     help="only the bars and the figure of the finished cases")
     a = ap.parse_args()
     work = Path(a.work).resolve()
     cases = plan(a.full)
-    done = {p.stem for p in (work / "records").glob("*.json")}
+    keep = [] if a.fresh else earlier(Path(a.out))
+    done = {p.stem for p in (work / "records").glob("*.json")} | {r["case"] for r in keep}
     todo = [c for c in cases if c.name not in done]
     if a.list:
         for c in cases:
@@ -237,8 +266,8 @@ def main() -> None:
             r = f.result()
             print(json.dumps({k: r.get(k) for k in ("case", "hidden", "selected", "explained",
                                                      "error", "case_s")}), flush=True)
-    if (work / "records").exists():
-        res = summarize(work, Path(a.out))
+    if (work / "records").exists() or keep:
+        res = summarize(work, Path(a.out), keep)
         figure(res, Path(a.out).with_suffix(".png"))
         print(json.dumps(res["bars"]))
 
