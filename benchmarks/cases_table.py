@@ -79,12 +79,15 @@ def bars(records: list[dict]) -> dict:
     Returns:
         ``selected``: cases with a hidden effect whose diagnosis selected every hidden effect,
         of those cases; ``named``: the same, counting a tie that names them (the verdict then
-        advises recalibrating with each); ``false_alarms``: clean cases (hidden "none") with a
-        selection, a tie or a misfit flagged, of the clean cases; ``coverage``: truths inside
-        the 95 % intervals of the runs a user ends with (:func:`final_runs`), overall and per
-        parameter (``[inside, of]``); ``rms_after_sd_max``: the largest error after them in
-        noise sd (``compare``; None where not run); ``loop_s_median``: the median over cases
-        of calibrate + diagnose + recalibrate seconds (each tied recalibration counted).
+        advises recalibrating with each); ``caveat``: of the cases with a hidden effect where
+        the model fits (nothing selected, no misfit), those whose verdict says the data cannot
+        rule out every hidden effect (:mod:`solderpyro.diagnose.ruleout`); ``false_alarms``:
+        clean cases (hidden "none") with a selection, a tie or a misfit flagged, of the clean
+        cases; ``coverage``: truths inside the 95 % intervals of the runs a user ends with
+        (:func:`final_runs`), overall and per parameter (``[inside, of]``);
+        ``rms_after_sd_max``: the largest error after them in noise sd (``compare``; None
+        where not run); ``loop_s_median``: the median over cases of calibrate + diagnose +
+        recalibrate seconds (each tied recalibration counted).
     """
     hid = [r for r in records if r["hidden"] != "none"]
     clean = [r for r in records if r["hidden"] == "none"]
@@ -95,6 +98,8 @@ def bars(records: list[dict]) -> dict:
     sel = sum(has(r, r.get("selected") or []) for r in hid)
     named = sum(has(r, r.get("selected") or []) or has(r, (r.get("tie") or [[]])[0])
                 for r in hid)
+    fits = [r for r in hid if not r.get("selected") and not r.get("misfit")]
+    caveat = sum(has(r, r.get("cannot_rule_out") or []) for r in fits)
     alarms = sum(bool(r.get("selected") or r.get("tie") or r.get("misfit")) for r in clean)
     per: dict[str, list[int]] = {}
     rms = []
@@ -113,6 +118,7 @@ def bars(records: list[dict]) -> dict:
             loops.append(sum(v for _, v in parts))
     inside, of = sum(c[0] for c in per.values()), sum(c[1] for c in per.values())
     return {"cases": len(records), "selected": [sel, len(hid)], "named": [named, len(hid)],
+            "caveat": [caveat, len(fits)],
             "false_alarms": [alarms, len(clean)], "coverage": [inside, of],
             "coverage_per_parameter": per,
             "rms_after_sd_max": round(max(rms), 3) if rms else None,
@@ -132,6 +138,7 @@ def case_record(case: Path, data: Path) -> dict:
         rec["misfit"] = dg.get("misfit")
         rec["verdict"] = dg.get("verdict")
         rec["tie"] = dg.get("indistinguishable") or []
+        rec["cannot_rule_out"] = [r["effect"] for r in dg.get("cannot_rule_out") or []]
         rec["diagnose_seconds"] = round((dg.get("timing") or {}).get(
             "total", {}).get("seconds", 0)) or None
     rec["sigma_um"] = RunDir.read(case / "base").info.sigma_known

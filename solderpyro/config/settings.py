@@ -115,8 +115,10 @@ class ExactSettings:
 
     ``mode``: ``"auto"`` runs them when the design stops on its budget with the FE still
     disagreeing with the surrogate; ``"on"`` always; ``"off"`` never. ``runs`` FE runs per
-    round, ``rounds`` rounds, a ``profile``-point chi-square profile along the ridge (0:
-    none), ``profile_ci``: the 95 % profile-likelihood intervals through the FE after it:
+    round, ``rounds`` rounds and up to ``extra_rounds`` more while its weights are not
+    reliable (ESS < 50 or Pareto k-hat > 0.7: a round of 64 runs costs far less than the
+    profile intervals that would follow), a ``profile``-point chi-square profile along the
+    ridge (0: none), ``profile_ci``: the 95 % profile-likelihood intervals through the FE after it:
     ``"auto"`` only where its posterior is not reliable (a reliable FE-exact posterior already
     gives the intervals; the profiles take many minutes of FE runs), ``"on"`` always,
     ``"off"`` never (true/false, as older run records hold it, read as on/off)."""
@@ -124,6 +126,7 @@ class ExactSettings:
     mode: str = "auto"
     runs: int = 64
     rounds: int = 3
+    extra_rounds: int = 3
     profile: int = 9
     profile_ci: str = "auto"
 
@@ -202,6 +205,8 @@ class CalibrationSettings:
         if ex.runs < 2 or ex.rounds < 1 or ex.profile < 0 or ex.profile == 1:
             raise ValueError(f"exact: need runs >= 2, rounds >= 1 and profile = 0 or >= 2, got "
                              f"runs={ex.runs}, rounds={ex.rounds}, profile={ex.profile}")
+        if ex.extra_rounds < 0:
+            raise ValueError(f"exact.extra_rounds must be >= 0, got {ex.extra_rounds}")
         if self.batch < 1:
             raise ValueError(f"batch must be >= 1, got {self.batch}")
         if self.discretization not in DISCRETIZATION_MODES:

@@ -202,7 +202,9 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
                 found = cannot_rule_out(
                     y, V[0], J[0][:, group(fej["cols"], "theta")], sigma, lad, Constants(
                         list(fej["cols"].names[:lay.n_cal]), lay.lo[:lay.n_cal],
-                        lay.hi[:lay.n_cal], dr["theta"], intervals))
+                        lay.hi[:lay.n_cal], dr["theta"], intervals),
+                    {e.name: float(e.off[k]) for e in lay.fx_all.effects
+                     if (k := e.size_index) is not None})
                 add_cannot_rule_out(diag, found, lay.fx_all)
     if diag.indistinguishable and fits is not None:
         with cost.stage("separation"):

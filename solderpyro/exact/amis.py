@@ -357,6 +357,9 @@ class AmisOptions:
             so far (one per ``2 (d + 2)`` effective samples), sharing half of its mass: the
             freedom to take a shape the first proposal's components cannot.
         df: degrees of freedom of those new components.
+        extra_rounds: after the ``rounds`` asked for, up to this many more while the result
+            is not :attr:`AMISResult.reliable` (ESS still short, or k-hat high): the effective
+            sample size roughly doubles per round once the proposal has found the target.
     """
 
     seed: int = 0
@@ -364,10 +367,13 @@ class AmisOptions:
     inflate: float = 1.2
     max_new: int = 4
     df: float = 5.0
+    extra_rounds: int = 0
 
     def __post_init__(self) -> None:
         if not 0 <= self.defensive < 1:
             raise ValueError(f"amis: defensive must lie in [0, 1), got {self.defensive}")
+        if self.extra_rounds < 0:
+            raise ValueError(f"amis: extra_rounds must be >= 0, got {self.extra_rounds}")
 
 
 def amis(log_target: Callable[[np.ndarray], tuple[np.ndarray, dict]], q0: TMixture, n: int,
@@ -384,8 +390,9 @@ def amis(log_target: Callable[[np.ndarray], tuple[np.ndarray, dict]], q0: TMixtu
             :data:`SD_MAX`.
         q0: the first proposal (e.g. fitted to a surrogate's posterior draws, widened).
         n: samples per round (one call of ``log_target`` per round).
-        rounds: number of rounds (``rounds * n`` target evaluations at most).
-        options: seed, defensive share and adaptation (:class:`AmisOptions`).
+        rounds: number of rounds (``(rounds + options.extra_rounds) * n`` target evaluations
+            at most).
+        options: seed, defensive share, adaptation and extra rounds (:class:`AmisOptions`).
         in_support: ``u (m, d) -> (m,) bool``; default the unit cube.
         on_round: called with the result so far after every round (e.g. to save it).
     Returns:
@@ -407,7 +414,8 @@ def amis(log_target: Callable[[np.ndarray], tuple[np.ndarray, dict]], q0: TMixtu
     log_z: list[float] = []
     q = adapted = q0 = _cap(q0)
     res: AMISResult | None = None
-    for r in range(rounds):
+    last = rounds + opt.extra_rounds - 1
+    for r in range(last + 1):
         u, lz = _sample_inside(q, n, rng, support)
         lp, ex = log_target(u)
         lp = np.where(np.isfinite(lp), lp, -np.inf)
@@ -428,7 +436,7 @@ def amis(log_target: Callable[[np.ndarray], tuple[np.ndarray, dict]], q0: TMixtu
                         "components": len(q.weights)})
         if on_round is not None:
             on_round(res)
-        if r == rounds - 1:
+        if r == last or (r >= rounds - 1 and res.reliable):
             break
         if not np.isfinite(lw_s).any():  # the target failed everywhere so far: widen
             adapted = _cap(TMixture(adapted.weights, adapted.means, adapted.covs * 4.0,

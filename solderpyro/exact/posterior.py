@@ -357,6 +357,8 @@ class ExactSampling:
 
     Attributes:
         n: samples per AMIS round (one ``fun`` call each); rounds: AMIS rounds.
+        extra_rounds: up to this many more while the weights are not reliable
+            (:attr:`AmisOptions.extra_rounds <solderpyro.exact.amis.AmisOptions>`).
         seed: random seed (AMIS and the resampling).
         n_draws: resampled draws returned (systematic resampling of the weights).
         on_round: called with the :class:`~solderpyro.exact.amis.AMISResult` so far after
@@ -368,6 +370,7 @@ class ExactSampling:
     seed: int = 0
     n_draws: int = 1000
     on_round: Callable[[AMISResult], None] | None = None
+    extra_rounds: int = 0
 
 
 def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
@@ -404,8 +407,9 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
         ll, _ = log_marginal_sigma(ssr, n_obs, sigma_known, sigma_max)
         return ll - coords.log_det(X), {"V": V, "ssr": ssr}
 
-    res = amis(log_target, q0, n, rounds, AmisOptions(seed=seed), in_support=coords.inside,
-               on_round=options.on_round)
+    res = amis(log_target, q0, n, rounds,
+               AmisOptions(seed=seed, extra_rounds=options.extra_rounds),
+               in_support=coords.inside, on_round=options.on_round)
     if not np.isfinite(res.log_w).any():
         raise RuntimeError(f"exact_posterior: the model failed at all {len(res.u)} samples")
     w = res.weights()

@@ -611,8 +611,9 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
     Returns what is reported at the end."""
     cp, s = w.cp, w.settings
     ex_s = s.exact
-    log.info("exact: the FE-exact posterior, %d rounds of %d FE runs after a best fit%s",
-             ex_s.rounds, ex_s.runs, f" and a {ex_s.profile}-point profile"
+    log.info("exact: the FE-exact posterior, %d rounds of %d FE runs (up to %d more while its "
+             "weights are not reliable) after a best fit%s", ex_s.rounds, ex_s.runs,
+             ex_s.extra_rounds, f" and a {ex_s.profile}-point profile"
              if ex_s.profile >= 2 else "")
     try:
         ex, ex_info = run_fe_exact(cp, s, w.loop.draws.posterior[0], w.checked)
@@ -633,8 +634,9 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
         rep = adopt_exact(w, rep, ex, ex_info)
     else:
         msg = (f"the FE-exact posterior is not reliable (ESS {ex_info['ess']:.0f}, Pareto "
-               f"k-hat {ex_info['khat']:.2f}; needs k-hat <= 0.7 and ESS >= 50): summary.csv "
-               f"stays the surrogate's; a larger calibration.exact.runs or more rounds")
+               f"k-hat {ex_info['khat']:.2f} after {len(ex_info['rounds'])} rounds; needs k-hat "
+               f"<= 0.7 and ESS >= 50): summary.csv stays the surrogate's; a larger "
+               f"calibration.exact.runs or extra_rounds")
         log.warning(msg)
         rep = replace(rep, problems=[*rep.problems, msg], trust=(
             "neither posterior: the design's budget ran out with the FE "
@@ -672,7 +674,8 @@ def run_fe_exact(cp: CalibrationProblem, s: CalibrationSettings, post: Any,
     return fe_exact(cp.observed, coords, y, pr, draws, starts, ExactRun(
         ex_s.runs, ex_s.rounds, ex_s.profile, s.seed, len(draws),
         stop_if_misfit=ex_s.mode == "auto",
-        noise_sd=pr.sigma_known or float(post.flat("sigma").median())))
+        noise_sd=pr.sigma_known or float(post.flat("sigma").median()),
+        extra_rounds=ex_s.extra_rounds))
 
 
 def save_exact(out: Path, ex: Any, ex_rows: list[dict], names: Any) -> None:

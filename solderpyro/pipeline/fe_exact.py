@@ -33,7 +33,8 @@ class ExactRun:
     """The settings of one FE-exact posterior (:func:`fe_exact`).
 
     Attributes:
-        n: FE runs per AMIS round; rounds: AMIS rounds.
+        n: FE runs per AMIS round; rounds: AMIS rounds; extra_rounds: up to this many more
+            while the weights are not reliable.
         n_profile: grid points of the chi-square profile along the weakest direction (0: no
             profile).
         seed: random seed; n_draws: posterior draws kept.
@@ -49,6 +50,7 @@ class ExactRun:
     lm_iters: int = 4
     stop_if_misfit: bool = False
     noise_sd: float | None = None
+    extra_rounds: int = 0
 
 
 def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
@@ -133,7 +135,8 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
         log.info("exact: AMIS round %d: %d samples, ESS %.1f, Pareto k-hat %.2f (%d FE runs "
                  "so far)", len(r.history), h["n"], h["ess"], h["khat"], n_fe[0])
 
-    amis_run = ExactSampling(n, rounds, seed=seed, n_draws=n_draws, on_round=on_round)
+    amis_run = ExactSampling(n, rounds, seed=seed, n_draws=n_draws, on_round=on_round,
+                             extra_rounds=run.extra_rounds)
     ex = exact_posterior(counted, coords, y, q0, amis_run, priors.sigma_known, priors.sigma_max,
                          prof)
     r = ex.result

@@ -38,3 +38,20 @@ def test_bars_count_selections_ties_alarms_and_the_runs_a_user_ends_with():
     assert b["rms_after_sd_max"] == round(0.051 / 0.05, 3)
     # loops: 200 + 100 + 50, 300 + 10 + 30 + 40, 100 + 5: median 350
     assert b["loop_s_median"] == 350 and b["loop_cases_timed"] == 3
+
+
+def test_a_fitting_model_counts_as_caveated_only_where_the_hidden_effect_is_named():
+    """Two hidden-effect cases where the model fits: one whose verdict cannot rule out the
+    hidden effect, one that names another; a misfit case and a clean case do not count."""
+    recs = [
+        {"hidden": "kin", "selected": [], "misfit": False, "cannot_rule_out": ["sf", "kin"],
+         "base": _run(60, ["m"], ["m"])},
+        {"hidden": "lag", "selected": [], "misfit": False, "cannot_rule_out": ["kin"],
+         "base": _run(60, ["m"])},
+        {"hidden": "cte", "selected": [], "misfit": True, "cannot_rule_out": [],
+         "base": _run(60, ["m"])},
+        {"hidden": "none", "selected": [], "misfit": False, "cannot_rule_out": ["kin"],
+         "base": _run(60, ["m"])},
+    ]
+    b = bars(recs)
+    assert b["caveat"] == [1, 2] and b["selected"] == [0, 3]

@@ -91,3 +91,31 @@ def test_a_shift_past_the_box_is_clipped_and_says_so():
     mean_a, moved_a, clipped = out[0]["moves"]["a"]
     assert clipped and moved_a == lower[0]
     assert "the box's edge" in describe(out[0], "k", "MPa")
+
+
+def test_below_a_rejected_first_rung_the_boundary_magnitude_is_found():
+    """A signature the constants mimic in part (0.3 J[:, 1]) plus a part they cannot (e):
+    at magnitude 1 the rise is far past 3.84, so the rung alone says nothing; with "off" at
+    0 the magnitude where the rise reaches 3.84 is found (the rise is exactly quadratic in
+    it here), and the mimicked part at that magnitude moves b outside its interval."""
+    j, theta0, v0, y, lower, upper, draws, intervals = _case()
+    e = np.zeros(N)
+    e[::2], e[1::2] = 1.0, -1.0
+    e -= j @ np.linalg.lstsq(j, e, rcond=None)[0]
+    e /= np.linalg.norm(e)
+    sig = 10.0 * SIGMA * e + 3.0 * j[:, 1]  # per unit magnitude
+    lad = {"part": (np.array([1.0]), (v0 + sig)[None, :])}
+    c = consts(lower, upper, draws, intervals)
+    assert cannot_rule_out(y, v0, j, SIGMA, lad, c) == []  # the rung is rejected
+    out = cannot_rule_out(y, v0, j, SIGMA, lad, c, offs={"part": 0.0})
+    assert len(out) == 1 and out[0]["outside"] == ["b"]
+    t = out[0]["value"]
+    # brute force: the rise at t, by refitting the constants exactly (least squares, the box
+    # prior negligible), is 0.999 x 3.84, and b moves by 3 t less what it absorbs (all of it)
+    r0, r1 = y - v0, y - v0 - t * sig
+    chi = [float(np.sum((r - j @ np.linalg.lstsq(j, r, rcond=None)[0]) ** 2)) / SIGMA**2
+           for r in (r0, r1)]
+    assert chi[1] - chi[0] == pytest.approx(0.999 * REJECT, rel=1e-3)
+    assert out[0]["chi2_rise"] == pytest.approx(0.999 * REJECT, abs=2e-3)
+    mean_b, moved_b, _ = out[0]["moves"]["b"]
+    assert moved_b == pytest.approx(mean_b - 3.0 * t, abs=1e-3)

@@ -153,3 +153,24 @@ def test_amis_matches_the_grid_posterior_from_a_poor_start():
             # Monte Carlo sd of a weighted quantile: sqrt(q (1 - q) / ESS) / density there
             dens = np.interp(ref, g, pk) / dg
             assert abs(est - ref) < 4 * math.sqrt(q * (1 - q) / ess) / dens, (k, q, est, ref)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_extra_rounds_run_until_the_weights_are_reliable_and_no_further(seed):
+    """From the same poor start with 60 samples a round, one round is never reliable (ESS
+    2-7); extra rounds go on exactly until the first reliable one (seeds 0-7 reach it after
+    6-8 rounds) and stop there; without them AMIS stops after the rounds asked for."""
+    q0 = TMixture.single(np.array([0.75, 0.35]), np.diag([0.05, 0.01]) ** 2, df=5.0)
+
+    def target(u):
+        return _banana_logp(u), {}
+
+    one = amis(target, q0, 60, 1, AmisOptions(seed=seed))
+    assert len(one.history) == 1 and not one.reliable
+    res = amis(target, q0, 60, 1, AmisOptions(seed=seed, extra_rounds=10))
+    assert res.reliable, res.history
+    h = res.history
+    assert all(r["ess"] < 50 or r["khat"] > 0.7 for r in h[:-1]), h
+    assert len(h) <= 11 and len(res.u) == 60 * len(h)
+    with pytest.raises(ValueError, match="extra_rounds"):
+        AmisOptions(extra_rounds=-1)
