@@ -11,6 +11,8 @@ through the FE.
 
 import dataclasses
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -18,7 +20,6 @@ import torch
 from solderpyro.fem.loading import SEED_TIMES, TimeStepping
 from solderpyro.fem.problem import Problem
 from solderpyro.fem.solver import SpecimenSolver
-from solderpyro.materials.anand import saturation
 from solderpyro.materials.integrate import PointInputs, _solve_s, anand_update, initial_state
 from solderpyro.materials.kinematic import (
     back_stress_closed_form,
@@ -26,6 +27,9 @@ from solderpyro.materials.kinematic import (
     flow_stress_closed_form,
 )
 from solderpyro.params import LIU2008, WANG2001, anand_tensor
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from shear_points import constant_rate_cases, shear  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64
@@ -38,27 +42,6 @@ CASES = [(WANG2001, 25, 1e-4, 3000.0, 50.0, 0.6), (WANG2001, 125, 1e-6, 500.0, 1
          (LIU2008, 75, 1e-5, 1000.0, 200.0, 0.5), (LIU2008, 75, 1e-5, 1000.0, 200.0, 1.8),
          (LIU2008, 125, 1e-4, 20000.0, 200.0, 0.5), (WANG2001, 25, 1e-4, 0.0, 50.0, 0.6)]
 NS = (50, 100, 200, 400, 800)  # steps to eps_end: the step halved four times
-
-
-def _shear(gamma):
-    """In-plane Mandel strain ``(n, 3)`` of pure shear with engineering strains ``gamma (n,)``."""
-    z = torch.zeros_like(gamma)
-    return torch.stack([z, z, gamma / math.sqrt(2.0)], -1)
-
-
-def _cases():
-    ps, T, rate, Ck, gk, eps_end = [], [], [], [], [], []
-    for base, TC, r, ck, g, f in CASES:
-        _, s_star = saturation(torch.tensor(r), torch.tensor(TC + 273.15),
-                               anand_tensor(base=base))
-        p = anand_tensor({"s0": f * s_star.item()}, base=base)
-        ps.append(p)
-        T.append(TC + 273.15)
-        rate.append(r)
-        Ck.append(ck)
-        gk.append(g)
-        eps_end.append(0.6 * s_star.item() / p[5].item())  # about half way to saturation
-    return torch.stack(ps), *(torch.tensor(v) for v in (T, rate, Ck, gk, eps_end))
 
 
 def discrete_back_stress(n, h, Ck, gk):
@@ -94,7 +77,7 @@ def _drive_constant_rate(n, p, T, rate, Ck, gk, eps_end):
         X = Ck * h if k == 1 else (X + Ck * h) / (1.0 + gk * h)
         target = c_flow * s + X
         gamma = target / (math.sqrt(3.0) * G) + math.sqrt(3.0) * k * h
-        sig, st, _, dep, _ = anand_update(_shear(gamma), st, p,
+        sig, st, _, dep, _ = anand_update(shear(gamma), st, p,
                                           PointInputs(T, dt, 0.0, E, NU, Ck, gk), "strain",
                                           tangent=False)
         q = equivalent(sig)
@@ -120,7 +103,7 @@ def test_constant_rate_flow_stress_converges_to_the_closed_form_at_first_order()
     slack, plus 1e-9 of sigma_eq for the solves. The member with C_k = 0 equals the isotropic
     update bit for bit whatever gamma_k.
     """
-    p, T, rate, Ck, gk, eps_end = _cases()
+    p, T, rate, Ck, gk, eps_end = constant_rate_cases(CASES)
     exact = flow_stress_closed_form(eps_end, rate, T, p, Ck, gk)
     errs, worst = [], torch.zeros(3)
     for n in NS:

@@ -5,14 +5,18 @@
 """
 
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
-from solderpyro.materials.anand import saturation
 from solderpyro.materials.integrate import PointInputs, _solve_s, anand_update, initial_state
 from solderpyro.materials.kinematic import equivalent, flow_stress_closed_form, strain_equivalent
 from solderpyro.params import LIU2008, WANG2001, anand_tensor
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from shear_points import constant_rate_cases, shear  # noqa: E402
 
 E, NU = 32000.0, 0.35
 G = E / (2.0 * (1.0 + NU))
@@ -20,26 +24,6 @@ G = E / (2.0 * (1.0 + NU))
 CASES = [(WANG2001, 25, 1e-4, 3000.0, 0.6), (WANG2001, 125, 1e-6, 500.0, 0.6),
          (LIU2008, 75, 1e-5, 1000.0, 0.5), (LIU2008, 75, 1e-5, 1000.0, 1.8),
          (LIU2008, 125, 1e-4, 20000.0, 0.5), (WANG2001, 25, 1e-4, 0.0, 0.6)]
-
-
-def _shear(gamma):
-    """In-plane Mandel strain ``(n, 3)`` of pure shear with engineering strains ``gamma (n,)``."""
-    z = torch.zeros_like(gamma)
-    return torch.stack([z, z, gamma / math.sqrt(2.0)], -1)
-
-
-def _cases():
-    ps, T, rate, Ck, eps_end = [], [], [], [], []
-    for base, TC, r, ck, f in CASES:
-        _, s_star = saturation(torch.tensor(r), torch.tensor(TC + 273.15),
-                               anand_tensor(base=base))
-        p = anand_tensor({"s0": f * s_star.item()}, base=base)
-        ps.append(p)
-        T.append(TC + 273.15)
-        rate.append(r)
-        Ck.append(ck)
-        eps_end.append(0.6 * s_star.item() / p[5].item())  # about half way to saturation
-    return torch.stack(ps), *(torch.tensor(v) for v in (T, rate, Ck, eps_end))
 
 
 def _drive_constant_rate(n, p, T, rate, Ck, eps_end):
@@ -63,7 +47,7 @@ def _drive_constant_rate(n, p, T, rate, Ck, eps_end):
         s, _, _ = _solve_s(L, c, s.clone(), s.clone(), p)
         target = c_flow * s + Ck * k * h
         gamma = target / (math.sqrt(3.0) * G) + math.sqrt(3.0) * k * h
-        sig, st, _, dep, _ = anand_update(_shear(gamma), st, p,
+        sig, st, _, dep, _ = anand_update(shear(gamma), st, p,
                                           PointInputs(T, dt, 0.0, E, NU, Ck), "strain",
                                           tangent=False)
         q = equivalent(sig)
@@ -84,7 +68,7 @@ def test_constant_rate_flow_stress_matches_closed_form():
     exact); Richardson extrapolation of n = 50, 100, 200 steps removes O(h) and O(h^2) and must
     meet the closed form to 1e-6 (measured ~5e-9). C_k from 0 to 20000 MPa, s0 < s* and > s*.
     """
-    p, T, rate, Ck, eps_end = _cases()
+    p, T, rate, Ck, eps_end = constant_rate_cases(CASES)
     (q1, e1), (q2, e2), (q4, e4) = (_drive_constant_rate(n, p, T, rate, Ck, eps_end)
                                     for n in (50, 100, 200))
     err = torch.maximum(torch.maximum(e1, e2), e4)
@@ -104,13 +88,13 @@ def _solve_rate(st, p, T, dt, Ck, gamma_n, bracket, h, iters=200):
     lo, hi = bracket
     for _ in range(iters):
         mid = 0.5 * (lo + hi)
-        _, _, _, dep, _ = anand_update(_shear(gamma_n + mid), st, p,
+        _, _, _, dep, _ = anand_update(shear(gamma_n + mid), st, p,
                                        PointInputs(T, dt, 0.0, E, NU, Ck), "stress",
                                        tangent=False)
         lo, hi = torch.where(dep > h, lo, mid), torch.where(dep > h, mid, hi)
         if bool(((hi - lo).abs() <= 4e-16 * hi.abs()).all()):
             break
-    sig, st1, _, dep, _ = anand_update(_shear(gamma_n + 0.5 * (lo + hi)), st, p,
+    sig, st1, _, dep, _ = anand_update(shear(gamma_n + 0.5 * (lo + hi)), st, p,
                                        PointInputs(T, dt, 0.0, E, NU, Ck), "stress",
                                        tangent=False)
     return math.sqrt(1.5) * sig[:, 3], dep, st1.s
@@ -133,7 +117,7 @@ def test_bauschinger_offset_is_twice_back_stress(TC):
     st = initial_state((len(Ck),), p[0], kinematic=True)
     for k in range(1, 41):
         gamma_n = torch.full_like(Ck, 1e-3 * dt * k)
-        sig, st, _, dep, _ = anand_update(_shear(gamma_n), st, p,
+        sig, st, _, dep, _ = anand_update(shear(gamma_n), st, p,
                                           PointInputs(T, dt, 0.0, E, NU, Ck), "stress")
     ep = strain_equivalent(st.eps_p)
     assert torch.allclose(equivalent(st.X), Ck * ep, rtol=1e-13, atol=0)  # proportional
