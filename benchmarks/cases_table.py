@@ -28,6 +28,9 @@ from diagnosis_cases import _covered, _truth  # noqa: E402
 
 from solderpyro.config.rundir import RUN_JSON, RunDir  # noqa: E402
 
+#: the calibrated Anand constants (every other truth is an effect's parameter)
+ANAND = ("s0", "QR", "xi", "m")
+
 
 def _run(d: Path) -> dict:
     info = RunDir.read(d).info
@@ -84,7 +87,9 @@ def bars(records: list[dict]) -> dict:
         rule out every hidden effect (:mod:`solderpyro.diagnose.ruleout`); ``false_alarms``:
         clean cases (hidden "none") with a selection, a tie or a misfit flagged, of the clean
         cases; ``coverage``: truths inside the 95 % intervals of the runs a user ends with
-        (:func:`final_runs`), overall and per parameter (``[inside, of]``);
+        (:func:`final_runs`), overall and per parameter (``[inside, of]``), and over the
+        Anand constants alone (``coverage_constants``: an effect's size in a form other than
+        the library's is a different quantity from the library parameter that stands for it);
         ``rms_after_sd_max``: the largest error after them in noise sd (``compare``; None
         where not run); ``loop_s_median``: the median over cases of calibrate + diagnose +
         recalibrate seconds (each tied recalibration counted).
@@ -117,9 +122,11 @@ def bars(records: list[dict]) -> dict:
         if all(v is not None for _, v in parts):
             loops.append(sum(v for _, v in parts))
     inside, of = sum(c[0] for c in per.values()), sum(c[1] for c in per.values())
+    anand = [c for k, c in per.items() if k in ANAND]
     return {"cases": len(records), "selected": [sel, len(hid)], "named": [named, len(hid)],
             "caveat": [caveat, len(fits)],
             "false_alarms": [alarms, len(clean)], "coverage": [inside, of],
+            "coverage_constants": [sum(c[0] for c in anand), sum(c[1] for c in anand)],
             "coverage_per_parameter": per,
             "rms_after_sd_max": round(max(rms), 3) if rms else None,
             "loop_s_median": round(statistics.median(loops)) if loops else None,

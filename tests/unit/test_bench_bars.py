@@ -35,6 +35,7 @@ def test_bars_count_selections_ties_alarms_and_the_runs_a_user_ends_with():
     # lag: 2 of 3; tie: 2 of 2 and 0 of 2; clean base: 2 of 2
     assert b["coverage"] == [6, 9]
     assert b["coverage_per_parameter"] == {"s0": [2, 4], "m": [3, 4], "tau": [1, 1]}
+    assert b["coverage_constants"] == [5, 8]
     assert b["rms_after_sd_max"] == round(0.051 / 0.05, 3)
     # loops: 200 + 100 + 50, 300 + 10 + 30 + 40, 100 + 5: median 350
     assert b["loop_s_median"] == 350 and b["loop_cases_timed"] == 3
