@@ -99,6 +99,25 @@ def unprofilable(n_params: int, n_values: int) -> str | None:
             "flat profiles); measure more values or calibrate fewer parameters")
 
 
+#: the most calibrated parameters whose profile intervals ``calibration.exact.profile_ci=auto``
+#: computes (:data:`PROFILE_RUNS` FE runs each): past it the profiles take longer than the rest
+#: of the calibration many times over (16 parameters, three effects with the Moire offsets, on
+#: the forms benchmark: about 7,200 FE runs, an hour on 2 cores)
+PROFILE_AUTO_MAX = 8
+#: FE runs a parameter's profile takes, about (docs/calibration.md)
+PROFILE_RUNS = 450
+
+
+def too_costly_to_profile(n_params: int) -> str:
+    """Why ``profile_ci=auto`` computes no profile intervals of ``n_params`` parameters (more
+    than :data:`PROFILE_AUTO_MAX`), or "" where it does."""
+    if n_params <= PROFILE_AUTO_MAX:
+        return ""
+    return (f"the profile intervals were not computed: {n_params} parameters would take about "
+            f"{PROFILE_RUNS * n_params:,} FE runs (calibration.exact.profile_ci=on or "
+            "--profile-ci computes them)")
+
+
 @dataclass
 class Reported:
     """What a calibration reports at one stage: its summary rows, predictive, problems and
@@ -638,10 +657,17 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
                f"<= 0.7 and ESS >= 50): summary.csv stays the surrogate's; a larger "
                f"calibration.exact.runs or extra_rounds")
         log.warning(msg)
-        rep = replace(rep, problems=[*rep.problems, msg], trust=(
+        costly = too_costly_to_profile(cp.space.dim) if ex_s.profile_ci == "auto" else ""
+        rep = replace(rep, problems=[*rep.problems, msg, *([costly] if costly else [])],
+                      trust=(
             "neither posterior: the design's budget ran out with the FE "
             "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
-            "--budget; the profile intervals (profile_ci.csv) are the FE's own"))
+            "--budget; " + (costly if costly else
+                            "the profile intervals (profile_ci.csv) are the FE's own")))
+        if costly:
+            log.warning("exact: %s", costly)
+            w.write(rep, ex, ex_info, ex_rows)
+            return rep
     w.write(rep, ex, ex_info, ex_rows)
     if ex_s.profile_ci == "off":
         return rep

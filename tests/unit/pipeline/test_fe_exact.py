@@ -99,3 +99,14 @@ def test_profile_intervals_are_not_attempted_where_every_profile_is_flat():
     assert msg is not None and "12 parameters on 8 values" in msg
     assert unprofilable(9, 8) is not None
     assert unprofilable(5, 8) is None and unprofilable(8, 8) is None
+
+
+def test_automatic_profile_intervals_stop_where_they_would_cost_thousands_of_fe_runs():
+    """Eight parameters (four constants and two two-parameter effects) are profiled by
+    default; sixteen (three effects with the Moire offsets) would take about 7,200 FE runs and
+    are not, and the reason names how to ask for them."""
+    from solderpyro.pipeline.calibrate import PROFILE_RUNS, too_costly_to_profile
+
+    assert too_costly_to_profile(6) == "" and too_costly_to_profile(8) == ""
+    msg = too_costly_to_profile(16)
+    assert f"{16 * PROFILE_RUNS:,} FE runs" in msg and "--profile-ci" in msg
