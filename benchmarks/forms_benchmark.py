@@ -13,7 +13,8 @@ two residual-stress forms at each set; two-effect cases; ten clean datasets (the
 in turn). Cases run in an interleaved order, so the first N of them are a fair sample of all;
 ``--cases N`` runs the next N not yet finished, ``--parallel K`` K at a time (one thread
 each). Each case's record is written as it ends to ``WORK/records/NAME.json`` (a rerun
-skips it); the bars over every finished case (:func:`cases_table.bars`) go to ``--out``.
+skips it, and a case stopped part way keeps the stages it finished); the bars over every
+finished case (:func:`cases_table.bars`) go to ``--out``.
 The cases already in ``--out`` count as finished too and are kept there, so the benchmark
 spans machines whose WORK does not persist: commit the results file and the next run goes on
 from it (``--fresh``: start over). Each case records the commit it ran (``git rev-parse`` of
@@ -132,7 +133,8 @@ def run(case: Case, work: str) -> dict:
     t0 = time.perf_counter()
     try:
         rec = run_case(case.name, {case.name: str(data)}, {}, str(w / "cases"),
-                       str(w / "cases" / case.name / "store"), recalibrate=True)
+                       str(w / "cases" / case.name / "store"), recalibrate=True,
+                       keep_diagnosis=True)
     except Exception as e:  # noqa: BLE001 - the benchmark records a failed case and goes on
         rec = {"case": case.name, "error": f"{type(e).__name__}: {e}"}
     rec.update({"anand_set": case.anand, "forms": case.forms, "seed": case.seed,
