@@ -110,3 +110,29 @@ def test_automatic_profile_intervals_stop_where_they_would_cost_thousands_of_fe_
     assert too_costly_to_profile(6) == "" and too_costly_to_profile(8) == ""
     msg = too_costly_to_profile(16)
     assert f"{16 * PROFILE_RUNS:,} FE runs" in msg and "--profile-ci" in msg
+
+
+class _Sliver(UnitCoords):
+    """The unit cube, but only a sliver of it (|u_a - u_b| < 1e-6) counts as inside: a box
+    that the best fit's Laplace spread barely reaches, as the flow-stress coordinates' box does
+    at a corner of the Anand constants."""
+
+    def inside(self, w: np.ndarray) -> np.ndarray:
+        w = np.atleast_2d(w)
+        return super().inside(w) & (np.abs(w[:, 0] - w[:, 1]) < 1e-6)
+
+
+def test_a_best_fit_whose_spread_barely_reaches_inside_the_box_still_reports_intervals():
+    """The line's least-squares optimum (5, 4) lies outside the box [0, 2]^2: the fit ends at
+    its corner, and hardly any Laplace draw lands inside the sliver. The draws are then clipped
+    to the box: every one inside it, the intervals holding the corner, none of them empty."""
+    from solderpyro.pipeline.fe_exact import BestFitOptions, best_fit_posterior
+
+    y = 5.0 + 4.0 * S
+    fit = best_fit_posterior(_fun, _Sliver(BOX), np.array([1.5, 1.5]), y, 0.05,
+                             BestFitOptions(n_draws=500, seed=0))
+    np.testing.assert_allclose(fit.x, [2.0, 2.0], atol=1e-9)
+    assert len(fit.theta) >= 500 and np.isfinite(fit.theta).all()
+    assert (fit.theta >= 0.0).all() and (fit.theta <= 2.0).all()
+    for r in fit.rows[:2]:
+        assert r["q2.5"] <= 2.0 <= r["q97.5"] and r["lo95"] <= 2.0 <= r["hi95"]
