@@ -198,7 +198,7 @@ def figure(res: dict, path: Path) -> None:
     params = sorted({k for r in rows for f in final_runs(r) for k in f.get("truths", [])},
                     key=lambda k: (("s0", "QR", "xi", "m", k).index(k), k))
     h = 0.32 * len(rows) + 1.6
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(14, h), width_ratios=(1, 1.3),
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(16, h), width_ratios=(1, 1.3),
                                   sharey=True)
     labels = []
     colours = {"calibrate": "#8da0cb", "diagnose": "#fc8d62", "recalibrate": "#66c2a5"}
