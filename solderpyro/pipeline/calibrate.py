@@ -649,6 +649,8 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
         return rep
     ex_rows = exact_rows(ex, rep.rows)
     save_exact(w.out, ex, ex_rows, cp.space.names)
+    costly = (too_costly_to_profile(cp.space.dim)
+              if ex_s.profile_ci == "auto" and not ex.reliable else "")
     if ex.reliable:
         rep = adopt_exact(w, rep, ex, ex_info)
     else:
@@ -657,19 +659,16 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
                f"<= 0.7 and ESS >= 50): summary.csv stays the surrogate's; a larger "
                f"calibration.exact.runs or extra_rounds")
         log.warning(msg)
-        costly = too_costly_to_profile(cp.space.dim) if ex_s.profile_ci == "auto" else ""
+        if costly:
+            log.warning("exact: %s", costly)
         rep = replace(rep, problems=[*rep.problems, msg, *([costly] if costly else [])],
                       trust=(
             "neither posterior: the design's budget ran out with the FE "
             "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
-            "--budget; " + (costly if costly else
+            "--budget; " + (costly or
                             "the profile intervals (profile_ci.csv) are the FE's own")))
-        if costly:
-            log.warning("exact: %s", costly)
-            w.write(rep, ex, ex_info, ex_rows)
-            return rep
     w.write(rep, ex, ex_info, ex_rows)
-    if ex_s.profile_ci == "off":
+    if ex_s.profile_ci == "off" or costly:
         return rep
     if ex_s.profile_ci == "auto" and ex.reliable:
         log.info("exact: profile intervals not computed: the FE-exact posterior is reliable "

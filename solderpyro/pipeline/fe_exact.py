@@ -399,11 +399,10 @@ def best_fit_posterior(fun: Any, coords: Any, x_best: np.ndarray, y: np.ndarray,
     scale = float(np.sqrt(max(best.chi2 / max(n - d, 1), 1.0)))
     J = best.jacobian_unit(space.lower, space.upper, space.log_scale)
     w0 = coords.to_w(best.x[None])[0]
-    cov = (laplace_cov_w(J, coords, best.x, noise_sd * scale) if J is not None
-           else np.eye(d) * 0.25)
-    rng = np.random.default_rng(seed)
-    if not np.isfinite(cov).all():
+    cov = laplace_cov_w(J, coords, best.x, noise_sd * scale) if J is not None else None
+    if cov is None or not np.isfinite(cov).all():
         cov = np.eye(d) * 0.25
+    rng = np.random.default_rng(seed)
     L = np.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * np.eye(d))
     theta = np.empty((0, d))
     for _ in range(BEST_FIT_ROUNDS):
@@ -414,14 +413,15 @@ def best_fit_posterior(fun: Any, coords: Any, x_best: np.ndarray, y: np.ndarray,
     if len(theta) < n_draws // 10:
         # a fit in a corner that the Gaussian barely reaches inside the box (the moderate
         # residual stress in the Newton form: not one of 4,000 draws inside): its draws
-        # clipped to the box, the mass on the faces the data push against
-        x = coords.from_w(w)
-        x = x[np.isfinite(x).all(1)]
-        extra = np.clip(x, space.lower, space.upper)[:n_draws - len(theta)]
-        theta = np.concatenate([theta, extra, best.x[None]])
+        # clipped to the box, the mass on the faces the data push against, and the fit itself
+        # (a draw even where no clipped one has a preimage)
         log.warning("exact: the FE's best fit sits where its Laplace spread barely reaches "
                     "inside the box (%d of %d draws): the draws are clipped to the box",
-                    len(theta) - len(extra) - 1, BEST_FIT_ROUNDS * 4 * n_draws)
+                    len(theta), BEST_FIT_ROUNDS * 4 * n_draws)
+        x = coords.from_w(w)
+        x = x[np.isfinite(x).all(1)]
+        theta = np.concatenate([theta, np.clip(x, space.lower, space.upper)[:n_draws - len(theta)],
+                                best.x[None]])
     sig = np.full(len(theta), noise_sd * scale)
     rows = [{"parameter": nm,
              "q2.5": min(float(np.quantile(theta[:, k], 0.025)), float(best.x[k])),
