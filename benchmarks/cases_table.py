@@ -82,9 +82,11 @@ def bars(records: list[dict]) -> dict:
     Returns:
         ``selected``: cases with a hidden effect whose diagnosis selected every hidden effect,
         of those cases; ``named``: the same, counting a tie that names them (the verdict then
-        advises recalibrating with each); ``caveat``: of the cases with a hidden effect where
-        the model fits (nothing selected, no misfit), those whose verdict says the data cannot
-        rule out every hidden effect (:mod:`solderpyro.diagnose.ruleout`); ``false_alarms``:
+        advises recalibrating with each); ``caveat``: of the cases with a hidden effect not all
+        selected (and no tie naming them), those where the selection and what the verdict says
+        the data cannot rule out name every hidden effect together (the model fits and
+        :mod:`solderpyro.diagnose.ruleout` names it, or the selected effects leave constants on
+        the box's faces that it frees); ``false_alarms``:
         clean cases (hidden "none") with a selection, a tie or a misfit flagged, of the clean
         cases; ``coverage``: truths inside the 95 % intervals of the runs a user ends with
         (:func:`final_runs`), overall and per parameter (``[inside, of]``), and over the
@@ -103,8 +105,10 @@ def bars(records: list[dict]) -> dict:
     sel = sum(has(r, r.get("selected") or []) for r in hid)
     named = sum(has(r, r.get("selected") or []) or has(r, (r.get("tie") or [[]])[0])
                 for r in hid)
-    fits = [r for r in hid if not r.get("selected") and not r.get("misfit")]
-    caveat = sum(has(r, r.get("cannot_rule_out") or []) for r in fits)
+    unnamed = [r for r in hid if not (has(r, r.get("selected") or [])
+                                      or has(r, (r.get("tie") or [[]])[0]))]
+    caveat = sum(has(r, (r.get("selected") or []) + (r.get("cannot_rule_out") or []))
+                 for r in unnamed)
     alarms = sum(bool(r.get("selected") or r.get("tie") or r.get("misfit")) for r in clean)
     per: dict[str, list[int]] = {}
     rms = []
@@ -124,7 +128,7 @@ def bars(records: list[dict]) -> dict:
     inside, of = sum(c[0] for c in per.values()), sum(c[1] for c in per.values())
     anand = [c for k, c in per.items() if k in ANAND]
     return {"cases": len(records), "selected": [sel, len(hid)], "named": [named, len(hid)],
-            "caveat": [caveat, len(fits)],
+            "caveat": [caveat, len(unnamed)],
             "false_alarms": [alarms, len(clean)], "coverage": [inside, of],
             "coverage_constants": [sum(c[0] for c in anand), sum(c[1] for c in anand)],
             "coverage_per_parameter": per,

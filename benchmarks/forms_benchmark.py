@@ -216,9 +216,9 @@ def figure(res: dict, path: Path) -> None:
                 ax2.scatter(params.index(k), i, marker="o" if k not in f["missed"] else "x",
                             color="#1a9850" if k not in f["missed"] else "#d73027", s=40)
         cro = r.get("cannot_rule_out") or []
-        sel = "+".join(r.get("selected") or []) or ("tie" if r.get("tie") else "none" + (
+        sel = ("+".join(r.get("selected") or []) or ("tie" if r.get("tie") else "none")) + (
             f"; caveat: {cro[0]}" + (f" +{len(cro) - 1}" if len(cro) > 1 else "")
-            if cro else ""))
+            if cro and not r.get("tie") else "")
         rms = [f["compare_rms_um"][1] / r["sigma_um"] for f in finals
                if f.get("compare_rms_um") and r.get("sigma_um")]
         labels.append(f"{r['case']}  [{sel}{f', {rms[0]:.2f} sd' if rms else ''}]")
@@ -233,7 +233,7 @@ def figure(res: dict, path: Path) -> None:
     ax2.set_title(f"truth inside the reported 95 % interval (o) or not (x): "
                   f"{b['coverage'][0]} of {b['coverage'][1]}\n(Anand constants "
                   f"{b['coverage_constants'][0]} of {b['coverage_constants'][1]})", fontsize=9)
-    ax.set_title(f"selected {b['selected'][0]} of {b['selected'][1]} (a fitting model's "
+    ax.set_title(f"selected {b['selected'][0]} of {b['selected'][1]} (of the others, the "
                  f"caveat names it: {b['caveat'][0]} of {b['caveat'][1]});\nclean flagged "
                  f"{b['false_alarms'][0]} of {b['false_alarms'][1]}; loop median "
                  f"{b['loop_s_median']} s", fontsize=9)

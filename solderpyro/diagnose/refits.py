@@ -49,6 +49,7 @@ from solderpyro.diagnose.decide import (
     judge,
     saturates,
 )
+from solderpyro.diagnose.faces import NEAR_SHARE, on_faces
 from solderpyro.diagnose.stats import Score
 from solderpyro.exact.fit import LMFit, LMOptions, lm_fit
 from solderpyro.specimen import SpecimenModels
@@ -380,8 +381,13 @@ def forward(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float, first: lis
                                      for r in nxt))
         return nxt
 
+    space = lay.setup.space
+
+    def faces_of(r: Refit) -> tuple[str, ...]:
+        return tuple(f.name for f in on_faces(r.x[:space.dim], space, NEAR_SHARE))
+
     return forward_steps(first, refit_next, len(meas.value_um), lay.n_cal, sigma, floor,
-                         len(lay.candidates))
+                         len(lay.candidates), faces_of)
 
 
 def first_fits(base: dict[str, Any], first: list[Refit]) -> dict[str, dict[str, Any]]:

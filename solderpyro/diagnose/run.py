@@ -159,7 +159,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     chosen: tuple[str, ...] = ()
     tie: list[str] = []
     faces: list[Face] = []
-    freed: list[str] = []
+    freed: list[tuple[str, tuple[str, ...]]] = []
     screened = to_refit(scores, n_cand, remains(base_chi2, n, lay.n_cal), MAX_REFITS,
                         MIN_IDENTIFIABLE, n - lay.n_cal)
     if not refit:  # the linearised statistics stand in for the refits
@@ -188,7 +188,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
                 base, first = global_refits(lay, fe, meas, sigma, base, scores, first, scout)
                 base_chi2 = base["chi2"]
                 steps, chosen, tie = forward(lay, fe, meas, sigma, first, floor, scout)
-            freed = freeing(first, base_chi2, setup.space, len(faces)) if faces else []
+            freed = freeing(first, base_chi2, setup.space, faces) if faces else []
         fits = first_fits(base, first)
     with cost.stage("verdict"):
         diag = verdict(VerdictInputs(mf, pc, scores, per_draw, sigma, steps, chosen, tie,

@@ -67,9 +67,9 @@ class VerdictInputs:
     floor: Floor
     #: the Anand constants the base fit presses against the box's faces
     faces: tuple[Face, ...] = ()
-    #: candidates that, refitted, fit as well with fewer constants on faces
-    #: (:func:`~solderpyro.diagnose.faces.freeing`)
-    freeing: tuple[str, ...] = ()
+    #: candidates that, refitted, fit as well with fewer constants on faces, each with the
+    #: constants it moves off them (:func:`~solderpyro.diagnose.faces.freeing`)
+    freeing: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
     @property
     def n(self) -> int:
@@ -166,8 +166,28 @@ def explained_text(v: VerdictInputs, head: str) -> tuple[str, list[str]]:
             f"{chosen[0]})")
     if len(chosen) > 1:
         text += "; found in forward steps: " + " then ".join(chosen)
-    return text, ["recalibrate with it: solderpyro calibrate ... effects=["
-                  + ",".join(chosen) + "]"]
+    suggestions = ["recalibrate with it: solderpyro calibrate ... effects=[" + ",".join(chosen)
+                   + "]"]
+    freeing = still_freeing(v)
+    if freeing:
+        text += (f"; but with {' + '.join(chosen)} on, constants still press the faces of the "
+                 "prior box, and " + "; ".join(
+                     f"{j.refit.name} fits as well (chi2 {j.refit.chi2 - c:+.1f}) and moves "
+                     f"{', '.join(j.frees)} off them" for j in freeing)
+                 + ": the data cannot tell whether it is present too")
+        suggestions += ["recalibrate with effects=[" + ",".join((*chosen, j.refit.name))
+                        + "] too: its intervals admit it" for j in freeing]
+    return text, suggestions
+
+
+def still_freeing(v: VerdictInputs) -> list[Judged]:
+    """The candidates that, refitted with the chosen effects on, fit as well and move off the
+    faces constants the chosen effects' refit leaves on them
+    (:func:`~solderpyro.diagnose.decide.mark_freeing`), best fit first."""
+    if not v.chosen or not v.steps:
+        return []
+    return sorted((j for j in v.steps[-1] if j.frees and j.refit.name not in v.chosen),
+                  key=lambda j: j.refit.chi2)
 
 
 def tie_text(v: VerdictInputs, head: str) -> tuple[str, list[str]]:
@@ -272,10 +292,11 @@ def verdict(v: VerdictInputs) -> Diagnosis:
         text = (faces_text(list(v.faces), not remains(v.base_chi2, v.n, v.n_cal)) + "; "
                 + text)
         if v.freeing:
-            text += ("; refitted with " + " or ".join(v.freeing) + ", the constants leave the "
-                     "faces at a fit as good or better")
+            text += "; at a fit as good or better, " + "; ".join(
+                f"refitted with {c}, {', '.join(freed)} "
+                f"leave{'s' if len(freed) == 1 else ''} the faces" for c, freed in v.freeing)
             suggestions += [f"recalibrate with effects=[{c}] to see the constants if it is "
-                            "present" for c in v.freeing if c not in v.chosen]
+                            "present" for c, _ in v.freeing if c not in v.chosen]
         else:
             suggestions.append("no candidate frees the constants: widen the prior box where "
                                "the physics allows, or suspect physics outside the library")
@@ -292,7 +313,19 @@ def verdict(v: VerdictInputs) -> Diagnosis:
     diag.steps = [[{"effects": list(j.refit.effects), "chi2": j.refit.chi2,
                     "base_chi2": j.refit.base_chi2, "lr": j.refit.lr, "dof": j.refit.dof,
                     "p_value": j.p_value, "ok": j.refit.ok, "flagged": j.flagged,
-                    **j.size.to_json()} for j in st] for st in v.steps]
+                    "frees": list(j.frees), **j.size.to_json()} for j in st]
+                  for st in v.steps]
+    if ok_expl:
+        diag.cannot_rule_out = [
+            {"effect": j.refit.name, "with": list(v.chosen), "frees": list(j.frees),
+             "chi2_rise": j.refit.chi2 - final_chi2(v), "outside": list(j.frees),
+             "text": (f"{j.refit.name}, refitted with {' + '.join(v.chosen)} on, fits the data "
+                      f"as well (chi2 {j.refit.chi2 - final_chi2(v):+.1f}) and moves "
+                      f"{', '.join(j.frees)} off the faces of the prior box where "
+                      f"{' + '.join(v.chosen)} alone leaves "
+                      f"{'it' if len(j.frees) == 1 else 'them'}: the constants at the faces "
+                      f"hold only if {j.refit.name} is absent")}
+            for j in still_freeing(v)]
     return diag
 
 

@@ -126,10 +126,13 @@ def write(d: Path, diag: Diagnosis, pc: PredictiveCheck, sigma: float,
         lines += ["", "Cannot be told apart from these data: "
                   + "; ".join(", ".join(g) for g in diag.indistinguishable)]
     if diag.cannot_rule_out:
-        lines += ["", "## What the data cannot rule out", "",
-                  "The model fits, yet these effects fit as well at the magnitudes named "
-                  "(the constants refitted, linearised): the intervals assume they are "
-                  "absent.", ""] + [f"- {r['text']}." for r in diag.cannot_rule_out]
+        intro = ("The selected effects explain the misfit, yet these fit as well with them "
+                 "on (FE refits): the constants their refit leaves on the box's faces assume "
+                 "they are absent." if diag.selected else
+                 "The model fits, yet these effects fit as well at the magnitudes named "
+                 "(the constants refitted, linearised): the intervals assume they are absent.")
+        lines += ["", "## What the data cannot rule out", "", intro, ""] + [
+            f"- {r['text']}." for r in diag.cannot_rule_out]
     lines += ["", "## Suggestions", ""] + ([f"- {s}" for s in diag.suggestions] or ["- none"])
     if diag.timing:
         lines += [""] + cost_lines(diag.timing)

@@ -41,9 +41,11 @@ def test_bars_count_selections_ties_alarms_and_the_runs_a_user_ends_with():
     assert b["loop_s_median"] == 350 and b["loop_cases_timed"] == 3
 
 
-def test_a_fitting_model_counts_as_caveated_only_where_the_hidden_effect_is_named():
-    """Two hidden-effect cases where the model fits: one whose verdict cannot rule out the
-    hidden effect, one that names another; a misfit case and a clean case do not count."""
+def test_a_case_counts_as_caveated_only_where_selection_and_caveat_name_every_hidden_effect():
+    """Hidden-effect cases not selected: where the model fits, one whose verdict cannot rule out
+    the hidden effect, one that names another; a misfit case naming nothing; a two-effect case
+    with one selected and the other named by the caveat. A selected case and a clean case are
+    not among those counted."""
     recs = [
         {"hidden": "kin", "selected": [], "misfit": False, "cannot_rule_out": ["sf", "kin"],
          "base": _run(60, ["m"], ["m"])},
@@ -53,6 +55,10 @@ def test_a_fitting_model_counts_as_caveated_only_where_the_hidden_effect_is_name
          "base": _run(60, ["m"])},
         {"hidden": "none", "selected": [], "misfit": False, "cannot_rule_out": ["kin"],
          "base": _run(60, ["m"])},
+        {"hidden": "sf+lag", "selected": ["lag"], "misfit": True, "cannot_rule_out": ["sf"],
+         "base": _run(60, ["m"])},
+        {"hidden": "lag", "selected": ["lag"], "misfit": True, "cannot_rule_out": [],
+         "base": _run(60, ["m"])},
     ]
     b = bars(recs)
-    assert b["caveat"] == [1, 2] and b["selected"] == [0, 3]
+    assert b["caveat"] == [2, 4] and b["selected"] == [1, 5]

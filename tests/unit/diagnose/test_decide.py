@@ -16,6 +16,7 @@ from solderpyro.diagnose.decide import (
     forward_steps,
     judge,
     rank,
+    remains,
 )
 from solderpyro.diagnose.stats import misfit, predictive_check, score_test
 
@@ -243,3 +244,73 @@ def test_the_chosen_refit_is_found_where_it_was_added_when_a_later_step_adds_not
     assert chosen_refit(steps, ()) is None
     # 2,250 on 2,240 values at sigma 1: RMS 1.0 noise sd, explained
     assert settled(steps, ("A",), [], 2240, 1.0, Floor())
+
+
+def _boxed(y, sigma, effects, base_chi2, upper):
+    """Exact refit of offset + slope (each boxed in [0, upper]: the calibrated constants with
+    faces) + ``effects``: bounded least squares is the converged fit."""
+    from scipy.optimize import lsq_linear
+
+    A = np.column_stack([JT, *[SIG[e][:, None] for e in effects]])
+    lo = np.r_[0.0, 0.0, np.full(len(effects), -np.inf)]
+    hi = np.r_[upper, np.full(len(effects), np.inf)]
+    f = lsq_linear(A, y, bounds=(lo, hi), tol=1e-12)
+    r = y - A @ f.x
+    return Refit(tuple(effects), float(r @ r) / sigma**2, 1, f.x, base_chi2)
+
+
+def test_constants_left_on_the_faces_after_the_chosen_effect_name_the_candidate_that_frees_them():
+    """A fit at the noise level with constants on their box's faces is not the whole answer.
+    Effect a is large; effect e (a ramp with a slight curvature) is small and almost an offset
+    plus a slope, so with a alone the offset and the slope take e up and stop at their faces
+    (upper bounds 1.1 and 2; the truths 0.95 and 1.85 plus e's 0.16), and no misfit remains. One
+    more step refits e with a on: the fit is as good (better by a likelihood ratio far below
+    significance) and both constants leave the faces, so e is marked as freeing them, and not
+    added (the data cannot tell). Without the faces looked at, with one constant on a face
+    only (the offset's bound out of reach), or on data without e (both inside), there is no
+    such step. The data are the expected ones (noise-free: with noise the near-degenerate
+    a + e fit scatters across the box, and whether it leaves the faces with it)."""
+    from solderpyro.diagnose.decide import MIN_PRESSED
+
+    assert MIN_PRESSED == 2
+    SIG["e"] = 1.0 + X + 0.02 * X**2
+    try:
+        sigma = 0.2
+        upper = np.array([1.1, 2.0])
+
+        def faces_of(r, up=upper):
+            return tuple(nm for nm, v, h in zip(("offset", "slope"), r.x[:2], up, strict=True)
+                         if v >= 0.95 * h)
+
+        def run(y, faces, up=upper):
+            base = _boxed(y, sigma, (), np.inf, up).chi2
+            first = [_boxed(y, sigma, (c,), base, up) for c in ("a", "e")]
+
+            def nxt(cur, chosen, others):
+                return [_boxed(y, sigma, (*chosen, c), cur.chi2, up) for c in others]
+            return first, forward_steps(first, nxt, N, 2, sigma, Floor(), 2, faces)
+
+        y = JT @ np.array([0.95, 1.85]) + 1.0 * SIG["a"] + 0.16 * SIG["e"]
+        first, (steps, chosen, tie) = run(y, faces_of)
+        a_alone = first[0]
+        assert faces_of(a_alone) == ("offset", "slope")
+        assert not remains(a_alone.chi2, N, 3)  # no misfit left
+        assert chosen == ("a",) and tie == [] and len(steps) == 2
+        named = next(j for j in steps[1] if j.refit.name == "e")
+        assert named.frees == ("offset", "slope") and faces_of(named.refit) == ()
+        assert np.allclose(named.refit.x[:2], [0.95, 1.85], atol=1e-6)  # back at the truth
+        assert not named.significant
+        # the faces not looked at: no further step
+        steps_n, chosen_n, _ = run(y, None)[1]
+        assert chosen_n == ("a",) and len(steps_n) == 1
+        # one constant on a face (the offset's bound out of reach): no further step
+        up1 = np.array([5.0, 2.0])
+        first1, (steps1, chosen1, _) = run(y, lambda r: faces_of(r, up1), up1)
+        assert faces_of(first1[0], up1) == ("slope",)
+        assert chosen1 == ("a",) and len(steps1) == 1
+        # data without e, the constants inside their box: a alone, no further step
+        y0 = JT @ np.array([0.9, 1.5]) + 1.0 * SIG["a"]
+        first0, (steps0, chosen0, _) = run(y0, faces_of)
+        assert faces_of(first0[0]) == () and chosen0 == ("a",) and len(steps0) == 1
+    finally:
+        del SIG["e"]
