@@ -18,6 +18,7 @@ from scipy.stats import chi2 as _chi2
 from solderpyro.diagnose.decide import (
     APART_CHI2,
     EXPLAINED_SD,
+    LATER_SHARE,
     Floor,
     Judged,
     chosen_refit,
@@ -180,6 +181,19 @@ def explained_text(v: VerdictInputs, head: str) -> tuple[str, list[str]]:
     return text, suggestions
 
 
+def partial_absorber(v: VerdictInputs) -> Judged | None:
+    """The flagged candidate of the step after the chosen effects that took up most of what
+    they left, where none took up enough to be added
+    (:func:`~solderpyro.diagnose.decide.takes_up_what_remains`); None otherwise."""
+    if not v.chosen or not v.steps or v.tie:
+        return None
+    last = v.steps[-1]
+    if any(j.refit.name == v.chosen[-1] or j.frees for j in last):
+        return None
+    fl = [j for j in last if j.flagged and j.size.systematic_share is not None]
+    return max(fl, key=lambda j: j.refit.lr) if fl else None
+
+
 def still_freeing(v: VerdictInputs) -> list[Judged]:
     """The candidates that, refitted with the chosen effects on, fit as well and move off the
     faces constants the chosen effects' refit leaves on them
@@ -257,6 +271,12 @@ def outcome(v: VerdictInputs, bad: bool, ranking: list[dict[str, Any]]
             v.first[c].refit.dof for c in v.chosen if c in v.first)):
         text += (" (a misfit within the noise-sd bound remains significant on "
                  f"{n} values)")
+        partial = partial_absorber(v)
+        if partial is not None:
+            text += (f"; the best further candidate, {partial.refit.name}, takes up only "
+                     f"{partial.size.systematic_share:.0%} of it (a second effect that is "
+                     f"present takes up at least {LATER_SHARE:.0%}): what remains may be "
+                     f"{v.chosen[-1]}'s form differing from the library's")
     untestable = [s.effect for s in v.scores if saturates(s.dof, n - v.n_cal)]
     if bad and untestable:  # the verdict covers the candidates these data can test, only
         text += ("; not testable on these data (with the calibrated parameters they would "

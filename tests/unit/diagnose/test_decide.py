@@ -314,3 +314,39 @@ def test_constants_left_on_the_faces_after_the_chosen_effect_name_the_candidate_
         assert faces_of(first0[0]) == () and chosen0 == ("a",) and len(steps0) == 1
     finally:
         del SIG["e"]
+
+
+def test_a_later_candidate_that_takes_up_only_part_of_what_remains_is_not_added():
+    """Effect a's form differs from the library's: the data carry a plus a form error of two
+    cosines, of which candidate c has one. With a on, c removes about half of the systematic
+    misfit left (a significant likelihood ratio that clears the floor): it is not added
+    (LATER_SHARE), and the verdict says what remains may be a's form. The same data with c's
+    signature itself in place of the form error: c removes all of it and is added."""
+    from solderpyro.diagnose.decide import LATER_SHARE
+    from solderpyro.diagnose.verdict import VerdictInputs, verdict
+
+    rng = np.random.default_rng(6)
+    sigma = 0.05
+    noise = sigma * rng.standard_normal(N)
+    form = 0.045 * (SIG["c"] + np.cos(11 * np.pi * X))
+    y = JT @ np.array([1.0, 2.0]) + 0.3 * SIG["a"] + form + noise
+    base, first = _first(y, sigma, ["a", "c"])
+    steps, chosen, tie = forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), 2)
+    later = next(j for j in steps[1] if j.refit.name == "c")
+    assert later.flagged and 0.3 < later.size.systematic_share < LATER_SHARE
+    assert chosen == ("a",) and tie == []
+    w = np.full(N, 1 / sigma**2)
+    r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
+    scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in ("a", "c")]
+    pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
+    dg = verdict(VerdictInputs(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen,
+                               tie, base, 2, Floor()))
+    assert dg.selected == ["a"] and dg.explained is True
+    assert "the best further candidate, c, takes up only" in dg.verdict
+    assert "may be a's form differing" in dg.verdict
+    # a second effect that is present takes up nearly all that remains: added
+    y2 = JT @ np.array([1.0, 2.0]) + 0.3 * SIG["a"] + 0.06 * SIG["c"] + noise
+    base2, first2 = _first(y2, sigma, ["a", "c"])
+    steps2, chosen2, _ = forward_steps(first2, _next(y2, sigma), N, 2, sigma, Floor(), 2)
+    assert chosen2 == ("a", "c")
+    assert next(j for j in steps2[1] if j.refit.name == "c").size.systematic_share > 0.9
