@@ -108,6 +108,20 @@ PROFILE_AUTO_MAX = 8
 PROFILE_RUNS = 450
 
 
+def unreliable_trust(costly: str, profile_ci: str) -> str:
+    """The trust line where the design's budget ran out and the FE-exact posterior's weights
+    are not reliable: what to do, and what the profile intervals are (``costly``: why they
+    are not computed, :func:`too_costly_to_profile`, or ""; ``profile_ci``: the setting)."""
+    if costly:
+        profiles = costly
+    elif profile_ci == "off":
+        profiles = "the profile intervals are not computed (calibration.exact.profile_ci=off)"
+    else:
+        profiles = "the profile intervals (profile_ci.csv) are the FE's own"
+    return ("neither posterior: the design's budget ran out with the FE disagreeing, and the "
+            "FE-exact posterior's weights are not reliable; raise --budget; " + profiles)
+
+
 def too_costly_to_profile(n_params: int) -> str:
     """Why ``profile_ci=auto`` computes no profile intervals of ``n_params`` parameters (more
     than :data:`PROFILE_AUTO_MAX`), or "" where it does."""
@@ -662,11 +676,7 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
         if costly:
             log.warning("exact: %s", costly)
         rep = replace(rep, problems=[*rep.problems, msg, *([costly] if costly else [])],
-                      trust=(
-            "neither posterior: the design's budget ran out with the FE "
-            "disagreeing, and the FE-exact posterior's weights are not reliable; raise "
-            "--budget; " + (costly or
-                            "the profile intervals (profile_ci.csv) are the FE's own")))
+                      trust=unreliable_trust(costly, ex_s.profile_ci))
     w.write(rep, ex, ex_info, ex_rows)
     if ex_s.profile_ci == "off" or costly:
         return rep

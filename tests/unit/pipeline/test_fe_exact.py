@@ -112,6 +112,19 @@ def test_automatic_profile_intervals_stop_where_they_would_cost_thousands_of_fe_
     assert f"{16 * PROFILE_RUNS:,} FE runs" in msg and "--profile-ci" in msg
 
 
+def test_the_unreliable_trust_line_names_profile_intervals_only_where_they_are_computed():
+    """With unreliable FE-exact weights the trust line points to profile_ci.csv only where the
+    profiles run: not with profile_ci=off, and with the reason where they would cost too
+    much."""
+    from solderpyro.pipeline.calibrate import too_costly_to_profile, unreliable_trust
+
+    assert "profile_ci.csv" in unreliable_trust("", "auto")
+    off = unreliable_trust("", "off")
+    assert "profile_ci.csv" not in off and "profile_ci=off" in off
+    costly = too_costly_to_profile(16)
+    assert unreliable_trust(costly, "auto").endswith(costly)
+
+
 class _Sliver(UnitCoords):
     """The unit cube, but only a sliver of it (|u_a - u_b| < 1e-6) counts as inside: a box
     that the best fit's Laplace spread barely reaches, as the flow-stress coordinates' box does
