@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from solderpyro.calibration.intervals import weighted_quantiles, with_intervals
+from solderpyro.calibration.intervals import likelihood_hull, weighted_quantiles, with_intervals
 from solderpyro.exact.amis import (
     AmisOptions,
     AMISResult,
@@ -428,6 +428,10 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
     rows.append({"parameter": "sigma", "q2.5": float(qs[0]), "median": float(qs[1]),
                  "mean": float(sig.mean()), "q97.5": float(qs[2])})
     rows = with_intervals(rows, X, coords.space, weights=w)
+    # every sample the FE's likelihood does not reject stays inside the reported intervals
+    ll, _ = log_marginal_sigma(res.extra["ssr"], n_obs, sigma_known, sigma_max)
+    inside = np.isfinite(res.log_w) & np.isfinite(ll)
+    rows = likelihood_hull(rows, X[inside], ll[inside], coords.space)
     return ExactPosterior(tuple(coords.space.names) + ("sigma",), res, X, X[idx], sig,
                           res.extra["V"][idx], rows, profile)
 

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import predict_observation_model
-from solderpyro.calibration.intervals import with_intervals
+from solderpyro.calibration.intervals import likelihood_hull, with_intervals
 from solderpyro.calibration.mcmc import WarmStart, format_summary, thin_index, write_summary
 from solderpyro.calibration.predictive import Bands
 from solderpyro.config.compose import Setup
@@ -65,7 +65,7 @@ from solderpyro.pipeline.fe_exact import (
 from solderpyro.pipeline.model_form import model_form_stage
 from solderpyro.pipeline.outputs import (
     SpecimenCalibration,
-    loo_log_likelihood,
+    log_likelihoods,
     observation_coords,
     posterior_draws,
     save_run,
@@ -389,8 +389,9 @@ def calibrate_specimen(setup: Setup, meas: Measurements, out: str | Path,
     clock("fe_check")
     if not checked.result["ok"]:
         problems = [*problems, fe_misfit_message(checked.result)]
-    rows = summary_rows(post, checked.draws, setup, cp.space)
-    bands = save_posterior(cp, post, inp, s.seed, out)
+    bands, pick, loglik = save_posterior(cp, post, inp, s.seed, out)
+    rows = likelihood_hull(summary_rows(post, checked.draws, setup, cp.space),
+                           checked.draws[pick], loglik, cp.space)
     # a model whose own FE best fit misfits (loop.reason "misfit") gets no FE-exact posterior
     full_exact = s.exact.mode == "on" or (
         s.exact.mode == "auto" and loop.reason == "budget" and not loop.rounds[-1].fe_ok)
@@ -507,18 +508,25 @@ def summary_rows(post: Any, draws: np.ndarray, setup: Setup, space: Any) -> list
     return rows
 
 
-def save_posterior(cp: CalibrationProblem, post: Any, inp: Any, seed: int, out: Path) -> Bands:
+def save_posterior(cp: CalibrationProblem, post: Any, inp: Any, seed: int, out: Path
+                   ) -> tuple[Bands, np.ndarray, np.ndarray]:
     """posterior.nc: the surrogate posterior with the data, the predictive and the pointwise
     log-likelihood at the same ``PREDICTIVE_DRAWS`` draws (az.plot_ppc, az.loo, az.compare on
-    the file). Returns the predictive (um)."""
+    the file).
+
+    Returns:
+        the predictive (um); the draws' flat indices into ``(chain, draw)`` ``(k,)``; the
+        data's joint log-likelihood there ``(k,)`` nats (:func:`~.outputs.log_likelihoods`).
+    """
     n_draw = next(iter(post.samples.values())).shape[1]
     pick_pp = torch.as_tensor(thin_index(post.n_chains, n_draw, PREDICTIVE_DRAWS))
     bands = predict_observation_model(post, inp, None, seed=seed, index=pick_pp)
+    loo, joint = log_likelihoods(post, inp, pick_pp)
     post.save(out / "posterior.nc", predictive={
         "y": cp.y.numpy(), "index": pick_pp.numpy(), "observed": bands.obs_draws.numpy(),
-        "log_likelihood": loo_log_likelihood(post, inp, pick_pp).numpy(),
+        "log_likelihood": loo.numpy(),
         "coords": observation_coords(cp.meas, cp.y.shape[0])})
-    return bands
+    return bands, pick_pp.numpy(), joint.numpy()
 
 
 def misfit_stage(cp: CalibrationProblem, s: CalibrationSettings, out: Path, loop: Any,

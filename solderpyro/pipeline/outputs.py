@@ -123,10 +123,24 @@ def mvn_loo_log_likelihood(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tenso
     Returns:
         ``(..., n)`` nats.
     """
+    return mvn_log_likelihoods(y, mean, cov)[0]
+
+
+def mvn_log_likelihoods(y: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`mvn_loo_log_likelihood` and the joint log density ``log N(y; mean, cov)`` from the
+    same Cholesky factor.
+
+    Returns:
+        ``(loo (..., n), joint (...))`` nats.
+    """
     chol = torch.linalg.cholesky(cov)
     prec = torch.cholesky_inverse(chol)
-    g = (prec @ (y - mean).unsqueeze(-1))[..., 0]
-    return _loo_terms(g, prec.diagonal(dim1=-2, dim2=-1))
+    r = y - mean
+    g = (prec @ r.unsqueeze(-1))[..., 0]
+    logdet = 2.0 * torch.log(chol.diagonal(dim1=-2, dim2=-1)).sum(-1)
+    return (_loo_terms(g, prec.diagonal(dim1=-2, dim2=-1)),
+            _joint(r, g, logdet))
 
 
 def lowrank_loo_log_likelihood(y: torch.Tensor, mean: torch.Tensor, factor: torch.Tensor,
@@ -140,6 +154,17 @@ def lowrank_loo_log_likelihood(y: torch.Tensor, mean: torch.Tensor, factor: torc
     Returns:
         ``(..., n)`` nats.
     """
+    return lowrank_log_likelihoods(y, mean, factor, diag)[0]
+
+
+def lowrank_log_likelihoods(y: torch.Tensor, mean: torch.Tensor, factor: torch.Tensor,
+                            diag: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`lowrank_loo_log_likelihood` and the joint log density, its log-determinant by
+    the matrix determinant lemma ``log|C| = sum log d + log|I + F^T D^-1 F|``.
+
+    Returns:
+        ``(loo (..., n), joint (...))`` nats.
+    """
     dinv = 1.0 / diag
     a = dinv.unsqueeze(-1) * factor  # D^-1 F (..., n, k)
     k = factor.shape[-1]
@@ -149,7 +174,13 @@ def lowrank_loo_log_likelihood(y: torch.Tensor, mean: torch.Tensor, factor: torc
     b = torch.linalg.solve_triangular(lk, a.transpose(-1, -2), upper=False)  # (..., k, n)
     r = y - mean
     g = dinv * r - (b.transpose(-1, -2) @ (b @ r.unsqueeze(-1)))[..., 0]
-    return _loo_terms(g, dinv - b.square().sum(-2))
+    logdet = torch.log(diag).sum(-1) + 2.0 * torch.log(lk.diagonal(dim1=-2, dim2=-1)).sum(-1)
+    return _loo_terms(g, dinv - b.square().sum(-2)), _joint(r, g, logdet)
+
+
+def _joint(r: torch.Tensor, g: torch.Tensor, logdet: torch.Tensor) -> torch.Tensor:
+    """``log N(r; 0, C)`` from ``g = C^-1 r`` and ``log|C|``."""
+    return -_HALF_LOG_2PI * r.shape[-1] - 0.5 * logdet - 0.5 * (r * g).sum(-1)
 
 
 def _loo_terms(g: torch.Tensor, prec_diag: torch.Tensor) -> torch.Tensor:
@@ -159,33 +190,44 @@ def _loo_terms(g: torch.Tensor, prec_diag: torch.Tensor) -> torch.Tensor:
 def loo_log_likelihood(post: Posterior, inp: Any, index: torch.Tensor) -> torch.Tensor:
     """``(k, n_obs)`` leave-one-out predictive log densities ``log p(y_i | y_-i, theta)`` of the
     data ``inp.y_obs`` at the posterior draws ``index`` (flat indices into ``(chain, draw)``),
-    under the likelihood the sampler saw (:func:`~solderpyro.calibration.koh.observation_model`:
-    the emulator's mean and code covariance, low-rank for a PCA surrogate, plus ``sigma^2 I``
-    and the discrepancy's covariance where it is modelled), nats. For ``az.loo`` on
-    ``posterior.nc`` (the module docstring).
+    nats: :func:`log_likelihoods`' first part. For ``az.loo`` on ``posterior.nc`` (the module
+    docstring)."""
+    return log_likelihoods(post, inp, index)[0]
+
+
+def log_likelihoods(post: Posterior, inp: Any, index: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The leave-one-out and the joint log-likelihood of the data ``inp.y_obs`` at the
+    posterior draws ``index`` (flat indices into ``(chain, draw)``), under the likelihood the
+    sampler saw (:func:`~solderpyro.calibration.koh.observation_model`: the emulator's mean and
+    code covariance, low-rank for a PCA surrogate, plus ``sigma^2 I`` and the discrepancy's
+    covariance where it is modelled), from one factorization per draw.
 
     Args:
         post: the surrogate posterior (its ``raw`` unit-cube sites). inp: its
             :class:`~solderpyro.calibration.koh.ObsInputs`. index: ``(k,)``.
+    Returns:
+        ``(loo (k, n_obs), joint (k,))`` nats.
     """
     y = inp.y_obs
-    out = []
+    loo, joint = [], []
     with torch.no_grad():
         for i in torch.as_tensor(index).tolist():
             t = inp.theta_box.from_unit(_raw_draw(post, SITE_T, i))
             sigma = _raw_draw(post, SITE_SIGMA, i)
             lr = None if inp.discrepancy else emulator_lowrank(inp.emulator, t)
             if lr is not None:
-                out.append(lowrank_loo_log_likelihood(y, lr[0], lr[1], lr[2] + sigma.square()))
-                continue
-            mean, cov = inp.emulator(t)
-            kd = None
-            if inp.discrepancy:
-                kd = _raw_draw(post, SITE_SIGMA_D, i).square() * gaussian(
-                    inp.u_x, inp.u_x, _raw_draw(post, SITE_CORR_D, i))
-            out.append(mvn_loo_log_likelihood(y, mean,
-                                              observation_covariance(inp, cov, sigma, kd)))
-    return torch.stack(out)
+                a, b = lowrank_log_likelihoods(y, lr[0], lr[1], lr[2] + sigma.square())
+            else:
+                mean, cov = inp.emulator(t)
+                kd = None
+                if inp.discrepancy:
+                    kd = _raw_draw(post, SITE_SIGMA_D, i).square() * gaussian(
+                        inp.u_x, inp.u_x, _raw_draw(post, SITE_CORR_D, i))
+                a, b = mvn_log_likelihoods(y, mean, observation_covariance(inp, cov, sigma, kd))
+            loo.append(a)
+            joint.append(b)
+    return torch.stack(loo), torch.stack(joint)
 
 
 def _raw_draw(post: Posterior, site: str, i: int) -> torch.Tensor:

@@ -150,7 +150,12 @@ def _warnings(d: Path, diag: dict | None, cmp: dict | None) -> list[str]:
 
 
 def _summary_rows(d: Path) -> list[list[str]]:
-    from solderpyro.calibration.intervals import CENTRAL, MODEL_FORM, reported_interval
+    from solderpyro.calibration.intervals import (
+        CENTRAL,
+        LIKELIHOOD,
+        MODEL_FORM,
+        reported_interval,
+    )
 
     p = d / "summary.csv"
     if not p.is_file():
@@ -162,6 +167,7 @@ def _summary_rows(d: Path) -> list[list[str]]:
             face = r.get("interval") not in (None, "", CENTRAL)
             kind = r.get("interval")
             note = (" (95 % widened for model-form error)" if kind == MODEL_FORM
+                    else " (95 % widened to the likelihood's range)" if kind == LIKELIHOOD
                     else f" (95 % from its {kind})" if face else "")
             out.append([r["parameter"] + note,
                         _num(lo), _num(r["median"]), _num(hi),

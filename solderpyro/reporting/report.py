@@ -15,7 +15,13 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 
-from solderpyro.calibration.intervals import CENTRAL, LOWER_FACE, MODEL_FORM, UPPER_FACE
+from solderpyro.calibration.intervals import (
+    CENTRAL,
+    LIKELIHOOD,
+    LOWER_FACE,
+    MODEL_FORM,
+    UPPER_FACE,
+)
 from solderpyro.config.rundir import RunDir
 from solderpyro.io.measurements import Measurements
 from solderpyro.reporting.plots import plot_traces, plot_validation
@@ -73,7 +79,8 @@ def _interval_cell(r: dict) -> str:
     if "lo95" not in r:
         return "–"
     mark = {LOWER_FACE: " (from the lower face)", UPPER_FACE: " (to the upper face)",
-            MODEL_FORM: " (widened for model-form error)"}
+            MODEL_FORM: " (widened for model-form error)",
+            LIKELIHOOD: " (widened to the likelihood's range)"}
     return (f"[{float(r['lo95']):.4g}, {float(r['hi95']):.4g}]"
             f"{mark.get(str(r.get('interval')), '')}")
 
@@ -189,6 +196,13 @@ def write(rep: CalibrationReport) -> Path:
                   + "; ".join(f"{r['parameter']} from its {r['interval']}" for r in faces)
                   + "). A face that is a physical limit is a result; one that is only the "
                   "box's edge says the box may be too narrow."]
+    ridge = [r["parameter"] for r in rows if r.get("interval") == LIKELIHOOD]
+    if ridge:
+        lines += ["", "The 95 % intervals of " + ", ".join(ridge) + " are widened to every "
+                  "posterior draw the likelihood does not reject (its log-likelihood within "
+                  "1.92 of the best draw's, the 95 % profile-likelihood bound): along a ridge "
+                  "the data leave open, the prior box's volume, not the data, ends the "
+                  "credible interval. The columns 2.5 % to 97.5 % are the posterior's own."]
     widened = [r["parameter"] for r in rows if r.get("interval") == MODEL_FORM]
     if widened:
         lines += ["", "A misfit remains at the FE's best fit, so the 95 % intervals of "

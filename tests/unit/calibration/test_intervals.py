@@ -159,3 +159,53 @@ def test_weighted_quantiles_match_repeated_samples():
     assert abs(weighted_quantiles(x, np.ones(4), (0.5,))[0] - 2.5) < 1e-12
     # weight 3 on 4.0 (as if it were drawn three times) moves the median to 4.0's side
     assert weighted_quantiles(x, np.array([1.0, 1.0, 1.0, 3.0]), (0.5,))[0] > 3.0
+
+
+def _rows(theta: np.ndarray, box: Box) -> list[dict]:
+    q = np.quantile(theta, [0.025, 0.975], axis=0)
+    return with_intervals([{"parameter": nm, "q2.5": q[0, k], "q97.5": q[1, k]}
+                           for k, nm in enumerate(box.names)], theta, box)
+
+
+def test_the_likelihood_hull_leaves_a_normal_posterior_alone():
+    """Draws of a 3-d normal posterior (flat prior, correlated) and their exact log-likelihood:
+    no draw whose log-likelihood is within 1.92 of the best lies beyond 1.96 sd in any
+    parameter (its own term alone is 1.92 there), so no interval widens beyond
+    LIKELIHOOD_GAIN."""
+    from solderpyro.calibration.intervals import LIKELIHOOD, likelihood_hull
+
+    rng = np.random.default_rng(3)
+    cov = np.array([[1.0, 0.6, 0.2], [0.6, 1.0, 0.3], [0.2, 0.3, 1.0]])
+    x = rng.multivariate_normal(np.zeros(3), cov, size=4000)
+    ll = -0.5 * np.einsum("ij,jk,ik->i", x, np.linalg.inv(cov), x)
+    box = Box(("a", "b", "c"), (-10.0,) * 3, (10.0,) * 3, (False,) * 3)
+    rows = _rows(x, box)
+    out = likelihood_hull(rows, x, ll, box)
+    assert [r["interval"] for r in out] == [r["interval"] for r in rows]
+    assert all(r["interval"] != LIKELIHOOD for r in out)
+    assert [(r["lo95"], r["hi95"]) for r in out] == [(r["lo95"], r["hi95"]) for r in rows]
+
+
+def test_the_likelihood_hull_holds_the_low_end_of_a_ridge_the_prior_volume_leaves_out():
+    """A ridge the data leave open: the likelihood is flat in a over [0, 1] (b is what the data
+    measure), while the draws pile toward a = 1 (density 4 a^3, as the box's volume along a
+    ridge makes them). The central interval starts near a = 0.4 and misses a truth at 0.2;
+    the hull holds every draw, down to the smallest (about 0.03 for 3,000 draws)."""
+    from solderpyro.calibration.intervals import LIKELIHOOD, likelihood_hull
+
+    rng = np.random.default_rng(4)
+    n = 3000
+    a = rng.random(n) ** 0.25  # density 4 a^3 on [0, 1]
+    b = 0.5 + 0.01 * rng.standard_normal(n)
+    x = np.column_stack([a, b])
+    ll = -0.5 * ((b - 0.5) / 0.01) ** 2
+    box = Box(("a", "b"), (0.0, 0.0), (1.0, 1.0), (False, False))
+    rows = _rows(x, box)
+    assert rows[0]["lo95"] > 0.3  # the credible interval misses a = 0.2
+    out = likelihood_hull(rows, x, ll, box)
+    assert out[0]["interval"] == LIKELIHOOD
+    keep = ll >= ll.max() - 1.92
+    assert out[0]["lo95"] == pytest.approx(a[keep].min(), abs=0) and out[0]["lo95"] < 0.2
+    assert out[1] == rows[1]  # b's interval is the data's: unchanged
+    with pytest.raises(ValueError, match="likelihood_hull"):
+        likelihood_hull(rows, x, ll[:-1], box)
