@@ -50,6 +50,19 @@ def _next(y, sigma):
     return f
 
 
+def _verdict(y, sigma, names, steps, chosen, tie, base):
+    """The verdict on the linear toy: the score tests at the calibrated fit, a predictive
+    check that passes, the judged steps."""
+    from solderpyro.diagnose.verdict import VerdictInputs, verdict
+
+    w = np.full(N, 1 / sigma**2)
+    r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
+    scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in names]
+    pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
+    return verdict(VerdictInputs(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen,
+                                 tie, base, 2, Floor())), scores
+
+
 def test_floor_is_the_mean_square_each_candidate_removes_from_the_discretization_difference():
     """Noise-free 'fine' data = coarse model + a discretization term d: the baseline floor is
     |P d|^2 / n and a candidate's is the squared projection of P d on P J_e over n (closed
@@ -88,8 +101,6 @@ def test_a_failed_refit_is_never_ranked_or_chosen_whatever_its_score():
     """A refit that ended above its base chi-square (a stalled LM) is judged failed: it is left
     out of the ranking and the forward steps, even though its score test is the largest; the
     verdict lists it under 'failed'."""
-    from solderpyro.diagnose.verdict import VerdictInputs, verdict
-
     rng = np.random.default_rng(1)
     sigma = 0.05
     y = JT @ np.array([1.0, 2.0]) + 0.3 * SIG["b"] + sigma * rng.standard_normal(N)
@@ -98,13 +109,8 @@ def test_a_failed_refit_is_never_ranked_or_chosen_whatever_its_score():
     assert not first[1].ok and first[1].lr == 0.0
     steps, chosen, tie = forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), 2)
     assert [j.refit.name for j in rank(steps[0])] == ["a"] and "b" not in chosen
-    w = np.full(N, 1 / sigma**2)
-    r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
-    scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in ("a", "b")]
+    dg, scores = _verdict(y, sigma, ("a", "b"), steps, chosen, tie, base)
     assert scores[1].statistic > scores[0].statistic  # the screen prefers the failed one
-    pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
-    dg = verdict(VerdictInputs(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen,
-                               tie, base, 2, Floor()))
     assert [e["effect"] for e in dg.ranking] == ["a"]
     assert [e["effect"] for e in dg.failed] == ["b"] and dg.failed[0]["refit"] == "failed"
     assert "b" not in dg.selected and "Best explanation: b" not in dg.verdict
@@ -149,20 +155,13 @@ def test_a_misfit_no_candidate_describes_is_called_unexplained():
     """A model-form misfit (a kink no candidate has) that candidate a explains a little of:
     a is significant and clears a zero floor, but leaves > EXPLAINED_SD noise sd, so the
     verdict names no effect, flags none, and says so."""
-    from solderpyro.diagnose.verdict import VerdictInputs, verdict
-
     rng = np.random.default_rng(4)
     sigma = 0.05
     y = (JT @ np.array([1.0, 2.0]) + 2.0 * np.abs(X - 0.62) ** 0.5
          + sigma * rng.standard_normal(N))
     base, first = _first(y, sigma, ["a", "b"])
     steps, chosen, tie = forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), 2)
-    w = np.full(N, 1 / sigma**2)
-    r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
-    scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in ("a", "b")]
-    pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
-    dg = verdict(VerdictInputs(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen,
-                               tie, base, 2, Floor()))
+    dg, _ = _verdict(y, sigma, ("a", "b"), steps, chosen, tie, base)
     assert dg.misfit and dg.explained is False and dg.selected == []
     assert "none of the candidates" in dg.verdict and "Best explanation" not in dg.verdict
     assert not any(e["flagged"] for e in dg.ranking)
@@ -323,8 +322,6 @@ def test_a_later_candidate_that_takes_up_only_part_of_what_remains_is_not_added(
     (LATER_SHARE), and the verdict says what remains may be a's form. The same data with c's
     signature itself in place of the form error: c removes all of it and is added."""
     from solderpyro.diagnose.decide import LATER_SHARE
-    from solderpyro.diagnose.verdict import VerdictInputs, verdict
-
     rng = np.random.default_rng(6)
     sigma = 0.05
     noise = sigma * rng.standard_normal(N)
@@ -335,12 +332,7 @@ def test_a_later_candidate_that_takes_up_only_part_of_what_remains_is_not_added(
     later = next(j for j in steps[1] if j.refit.name == "c")
     assert later.flagged and 0.3 < later.size.systematic_share < LATER_SHARE
     assert chosen == ("a",) and tie == []
-    w = np.full(N, 1 / sigma**2)
-    r = y - JT @ np.linalg.lstsq(JT, y, rcond=None)[0]
-    scores = [score_test(e, r, JT, SIG[e][:, None], w) for e in ("a", "c")]
-    pc = predictive_check(y, np.tile(y, (20, 1)), np.full(20, sigma))
-    dg = verdict(VerdictInputs(misfit(r, JT, w), pc, scores, [scores], sigma, steps, chosen,
-                               tie, base, 2, Floor()))
+    dg, _ = _verdict(y, sigma, ("a", "c"), steps, chosen, tie, base)
     assert dg.selected == ["a"] and dg.explained is True
     assert "the best further candidate, c, takes up only" in dg.verdict
     assert "may be a's form differing" in dg.verdict
