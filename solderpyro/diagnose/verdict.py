@@ -276,7 +276,7 @@ def outcome(v: VerdictInputs, bad: bool, ranking: list[dict[str, Any]]
             text += (f"; the best further candidate, {partial.refit.name}, takes up only "
                      f"{partial.size.systematic_share:.0%} of it (a second effect that is "
                      f"present takes up at least {LATER_SHARE:.0%}): what remains may be "
-                     f"{v.chosen[-1]}'s form differing from the library's")
+                     f"the form of {' or '.join(v.chosen)} differing from the library's")
     untestable = [s.effect for s in v.scores if saturates(s.dof, n - v.n_cal)]
     if bad and untestable:  # the verdict covers the candidates these data can test, only
         text += ("; not testable on these data (with the calibrated parameters they would "

@@ -335,7 +335,7 @@ def test_a_later_candidate_that_takes_up_only_part_of_what_remains_is_not_added(
     dg, _ = _verdict(y, sigma, ("a", "c"), steps, chosen, tie, base)
     assert dg.selected == ["a"] and dg.explained is True
     assert "the best further candidate, c, takes up only" in dg.verdict
-    assert "may be a's form differing" in dg.verdict
+    assert "may be the form of a differing" in dg.verdict
     # a second effect that is present takes up nearly all that remains: added
     y2 = JT @ np.array([1.0, 2.0]) + 0.3 * SIG["a"] + 0.06 * SIG["c"] + noise
     base2, first2 = _first(y2, sigma, ["a", "c"])
