@@ -238,7 +238,7 @@ def figure(res: dict, path: Path) -> None:
                  f"{b['false_alarms'][0]} of {b['false_alarms'][1]}; loop median "
                  f"{b['loop_s_median']} s", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # the longest case labels whole
     plt.close(fig)
 
 
