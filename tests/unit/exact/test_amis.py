@@ -174,3 +174,21 @@ def test_extra_rounds_run_until_the_weights_are_reliable_and_no_further(seed):
     assert len(h) <= 11 and len(res.u) == 60 * len(h)
     with pytest.raises(ValueError, match="extra_rounds"):
         AmisOptions(extra_rounds=-1)
+
+
+def test_extra_rounds_are_not_spent_on_weights_that_cannot_become_reliable():
+    """A target no proposal can match (its log density independent noise of sd 30 at every
+    sample): the ESS stays near 1, which doubling per round cannot bring to 50 in the three
+    extra rounds, so none runs; on_course is that doubling rule."""
+    from solderpyro.exact.amis import on_course
+
+    rng = np.random.default_rng(0)
+    q0 = TMixture.single(np.array([0.5, 0.5]), np.diag([0.1, 0.1]) ** 2, df=5.0)
+
+    def target(u):
+        return 30.0 * rng.standard_normal(len(u)), {}
+
+    res = amis(target, q0, 60, 3, AmisOptions(seed=1, extra_rounds=3))
+    assert res.history[-1]["ess"] < 50.0 / 8.0
+    assert len(res.history) == 3 and not res.reliable
+    assert on_course(6.25, 3) and not on_course(6.2, 3) and on_course(50.0, 0)

@@ -110,6 +110,9 @@ def test_automatic_profile_intervals_stop_where_they_would_cost_thousands_of_fe_
     assert too_costly_to_profile(6) == "" and too_costly_to_profile(8) == ""
     msg = too_costly_to_profile(16)
     assert f"{16 * PROFILE_RUNS:,} FE runs" in msg and "--profile-ci" in msg
+    # a misfit remains (model-form intervals): no automatic profiles, whatever the count
+    msg = too_costly_to_profile(6, model_form=True)
+    assert "misfit remains" in msg and "--profile-ci" in msg
 
 
 def test_the_unreliable_trust_line_names_profile_intervals_only_where_they_are_computed():
