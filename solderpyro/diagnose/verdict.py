@@ -336,17 +336,24 @@ def verdict(v: VerdictInputs) -> Diagnosis:
                     "frees": list(j.frees), **j.size.to_json()} for j in st]
                   for st in v.steps]
     if ok_expl:
-        diag.cannot_rule_out = [
-            {"effect": j.refit.name, "with": list(v.chosen), "frees": list(j.frees),
-             "chi2_rise": j.refit.chi2 - final_chi2(v), "outside": list(j.frees),
-             "text": (f"{j.refit.name}, refitted with {' + '.join(v.chosen)} on, fits the data "
-                      f"as well (chi2 {j.refit.chi2 - final_chi2(v):+.1f}) and moves "
-                      f"{', '.join(j.frees)} off the faces of the prior box where "
-                      f"{' + '.join(v.chosen)} alone leaves "
+        diag.cannot_rule_out = freeing_caveats(v)
+    return diag
+
+
+def freeing_caveats(v: VerdictInputs) -> list[dict[str, Any]]:
+    """``cannot_rule_out`` entries of the candidates that free the faces after the chosen
+    effects (:func:`still_freeing`): ``effect``, ``with`` (the chosen), ``frees`` and
+    ``outside`` (the constants it moves off the faces), ``chi2_rise`` against the chosen
+    effects' refit, ``text``."""
+    on, c = " + ".join(v.chosen), final_chi2(v)
+    return [{"effect": j.refit.name, "with": list(v.chosen), "frees": list(j.frees),
+             "chi2_rise": j.refit.chi2 - c, "outside": list(j.frees),
+             "text": (f"{j.refit.name}, refitted with {on} on, fits the data as well (chi2 "
+                      f"{j.refit.chi2 - c:+.1f}) and moves {', '.join(j.frees)} off the faces "
+                      f"of the prior box where {on} alone leaves "
                       f"{'it' if len(j.frees) == 1 else 'them'}: the constants at the faces "
                       f"hold only if {j.refit.name} is absent")}
             for j in still_freeing(v)]
-    return diag
 
 
 def where(meas: Any, fp: Fingerprints, sigma: float) -> str:
