@@ -37,9 +37,9 @@ The rules, as the diagnosis states them:
   faces, the constants may still be compensating something: the other flagged candidates are
   refitted with the chosen ones, and each that fits as well (within :data:`APART_CHI2`) while
   moving some of those constants off the faces is named (:func:`mark_freeing`), never added:
-  the data cannot tell whether it is present. On moderate residual stress plus a second-order lag, the lag alone fitted at
-  0.99 noise sd with xi, s0, Q/R at or near their bounds; with the residual stress on too the
-  fit was as good and s0, Q/R moved well inside the box.
+  the data cannot tell whether it is present. On moderate residual stress plus a second-order
+  lag, the lag alone fitted at 0.99 noise sd with xi, s0, Q/R at or near their bounds; with
+  the residual stress on too the fit was as good and s0, Q/R moved well inside the box.
 * **Explained or not.** The selected effects explain the misfit when the RMS they leave is at
   most :data:`EXPLAINED_SD` noise sd (above the baseline floor). Otherwise the verdict says the
   model misses something none of the candidates describes, and names none.
