@@ -342,3 +342,24 @@ def test_a_later_candidate_that_takes_up_only_part_of_what_remains_is_not_added(
     steps2, chosen2, _ = forward_steps(first2, _next(y2, sigma), N, 2, sigma, Floor(), 2)
     assert chosen2 == ("a", "c")
     assert next(j for j in steps2[1] if j.refit.name == "c").size.systematic_share > 0.9
+
+
+def test_a_candidate_that_frees_one_pressed_constant_alone_is_not_named():
+    """With s0 and Q/R pressed at the chosen effects' refit, a candidate whose refit fits as
+    well but moves only Q/R off its face is a weakly identified constant moving, not the ridge
+    (MIN_PRESSED): not marked; one that moves both is, and one that fits worse by more than
+    APART_CHI2 is not."""
+    from solderpyro.diagnose.decide import mark_freeing
+
+    cur = Refit(("lag",), 2200.0, 2, np.array([25.0, 13000.0]), 260000.0)
+    faces = {"one": ("s0",), "both": (), "worse": ()}
+
+    def faces_of(r):
+        return faces[r.name]
+
+    refits = [Refit(("lag", "one"), 2195.0, 1, np.zeros(2), 2200.0),
+              Refit(("lag", "both"), 2199.0, 2, np.zeros(2), 2200.0),
+              Refit(("lag", "worse"), 2200.0 + APART_CHI2 + 0.1, 2, np.zeros(2), 2200.0)]
+    judged = judge(refits, N, 6, 0.05, Floor(), 3)
+    out = {j.refit.name: j.frees for j in mark_freeing(judged, cur, ("s0", "QR"), faces_of)}
+    assert out == {"one": (), "both": ("s0", "QR"), "worse": ()}
