@@ -25,7 +25,10 @@ The rules, as the diagnosis states them:
   ``floor.json`` beside this module). A candidate is *flagged* only when its mean-square
   reduction exceeds :data:`FLOOR_MARGIN` times its floor, however small its p.
 * **Forward steps.** The best flagged candidate is added; if a misfit remains, the others that
-  cleared the floor are refitted with it, and so on while one clears the floor again and
+  cleared the floor are refitted with it (every other candidate, flagged or not, where what
+  remains is above :data:`EXPLAINED_SD`: a signature the base fit masked can take up the rest
+  once the first effect is on; the quadratic CTE's refit at the box's corner stayed at
+  c_alpha 0 beside a linear modulus at 1.2 um), and so on while one clears the floor again and
   removes most of what remains (:data:`LATER_SHARE`): a second effect that is present takes up
   nearly all of the misfit the first leaves, while a candidate that only absorbs part of the
   first effect's form error (its law differing from the library's) would be added otherwise.
@@ -419,7 +422,11 @@ def forward_steps(first: list[Refit], refit_next: Any, n: int, n_params: int, si
     while added and not tie and len(chosen) < MAX_STEPS:
         cur = next(j.refit for j in steps[-1] if j.refit.name == chosen[-1])
         n_par = n_params + sum(j.refit.dof for j in steps[0] if j.refit.name in chosen)
-        others = [j.refit.name for j in steps[-1] if j.flagged and j.refit.name not in chosen]
+        if explained(cur.chi2, n, sigma, floor):
+            others = [j.refit.name for j in steps[-1]
+                      if j.flagged and j.refit.name not in chosen]
+        else:  # every candidate of the first step, flagged there or not
+            others = [j.refit.name for j in steps[0] if j.refit.name not in chosen]
         pressed = faces_of(cur) if faces_of is not None else ()
         misfit = remains(cur.chi2, n, n_par)
         if not others or not (misfit or len(pressed) >= MIN_PRESSED):

@@ -363,3 +363,23 @@ def test_a_candidate_that_frees_one_pressed_constant_alone_is_not_named():
     judged = judge(refits, N, 6, 0.05, Floor(), 3)
     out = {j.refit.name: j.frees for j in mark_freeing(judged, cur, ("s0", "QR"), faces_of)}
     assert out == {"one": (), "both": ("s0", "QR"), "worse": ()}
+
+
+def test_where_the_first_effect_leaves_an_unexplained_misfit_every_candidate_is_tried_with_it():
+    """Data with a large effect a and an effect b whose first-step refit stayed at the base
+    (as the quadratic CTE's global refit did at the box's corner beside a 1.2 um modulus law:
+    LR 0, not flagged). a alone leaves far more than EXPLAINED_SD, so b is refitted with a on
+    all the same, takes up what remains and is added; had a explained the misfit, unflagged
+    candidates would not be refitted."""
+    rng = np.random.default_rng(7)
+    sigma = 0.05
+    y = (JT @ np.array([1.0, 2.0]) + 0.5 * SIG["a"] + 0.4 * SIG["b"]
+         + sigma * rng.standard_normal(N))
+    base, first = _first(y, sigma, ["a", "b", "c"])
+    first[1] = Refit(("b",), base, 1, np.zeros(0), base)  # stayed at the base: LR 0
+    steps, chosen, tie = forward_steps(first, _next(y, sigma), N, 2, sigma, Floor(), 3)
+    assert not next(j for j in steps[0] if j.refit.name == "b").flagged
+    assert np.sqrt(first[0].chi2 / N) > 1.5  # a alone does not explain the misfit
+    assert chosen == ("a", "b") and tie == []
+    # c, unflagged at the first step and not present, was refitted too but not added
+    assert {j.refit.name for j in steps[1]} == {"b", "c"}
