@@ -56,6 +56,8 @@ from solderpyro.specimen import SpecimenModels
 
 log = logging.getLogger("solderpyro")
 
+#: the label of the global refits' start at the base fit
+BASE_POINT = "the base point"
 #: stop a fit once an iteration gains less than this chi-square (its sampling sd on 2,240
 #: values is 67; APART_CHI2 is 6)
 LM_TOL = 0.5
@@ -504,7 +506,7 @@ def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
         if c not in done:  # never refitted from the base point: that start too
             x = x_b.copy()
             x[lay.cols(c)] = effect_start(lay, c, ladder)
-            models[f"{c}|the base point"] = ((c,), x)
+            models[f"{c}|{BASE_POINT}"] = ((c,), x)
     log.info("diagnose: global refits: the base model and %d candidates from %d starts each "
              "(%d fits, %d iterations each%s before the best start of each goes on)",
              len(order), len(starts), len(models), SCOUT_ITERS,
@@ -517,9 +519,24 @@ def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
             best[name] = (label, f)
     if scout_fe is not None:
         # each best start on to convergence through the cheap model, then evaluated through
-        # the run's own FE (its chi-square is the one the local refit is held to)
-        on = fit_models(lay, scout_fe, meas, sigma, {
-            n: (free_of(n), f.x) for n, (_, f) in best.items() if not f.converged})
+        # the run's own FE (its chi-square is the one the local refit is held to); where the
+        # base point led the scouting, the best start across the box goes on too (a base fit
+        # already at the noise level leads any start still on its way after a few
+        # iterations, and from it an effect the constants absorbed goes back to "off")
+        away: dict[str, tuple[str, LMFit]] = {}
+        for key, f in scout.items():
+            name, label = key.split("|", 1)
+            if (best[name][0] == BASE_POINT and label != BASE_POINT
+                    and (name not in away or f.chi2 < away[name][1].chi2)):
+                away[name] = (label, f)
+        todo = {n: (free_of(n), f.x) for n, (_, f) in best.items() if not f.converged}
+        todo.update({f"{n}|away": (free_of(n), f.x) for n, (_, f) in away.items()})
+        on = fit_models(lay, scout_fe, meas, sigma, todo)
+        for n, (lb, f) in away.items():
+            here = on.get(n, best[n][1])
+            if on[f"{n}|away"].chi2 < here.chi2:
+                best[n] = (lb, f)
+                on[n] = on[f"{n}|away"]
         log.info("diagnose: global refits' best starts, converged on the half-resolution "
                  "model: %s", ", ".join(f"{n} from {lb} {on[n].chi2 if n in on else f.chi2:.1f}"
                                         for n, (lb, f) in best.items()))
