@@ -416,7 +416,7 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
     rng = np.random.default_rng(seed + 7)
     pos = (rng.random() + np.arange(n_draws)) / n_draws  # systematic resampling
     idx = np.minimum(np.searchsorted(np.cumsum(w), pos), len(w) - 1)
-    _, draw_sigma = log_marginal_sigma(res.extra["ssr"], n_obs, sigma_known, sigma_max)
+    ll, draw_sigma = log_marginal_sigma(res.extra["ssr"], n_obs, sigma_known, sigma_max)
     sig = draw_sigma(idx, rng)
     X = coords.from_w(res.u)
     rows = []
@@ -429,7 +429,6 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
                  "mean": float(sig.mean()), "q97.5": float(qs[2])})
     rows = with_intervals(rows, X, coords.space, weights=w)
     # every sample the FE's likelihood does not reject stays inside the reported intervals
-    ll, _ = log_marginal_sigma(res.extra["ssr"], n_obs, sigma_known, sigma_max)
     inside = np.isfinite(res.log_w) & np.isfinite(ll)
     rows = likelihood_hull(rows, X[inside], ll[inside], coords.space)
     return ExactPosterior(tuple(coords.space.names) + ("sigma",), res, X, X[idx], sig,

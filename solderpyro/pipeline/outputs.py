@@ -8,7 +8,7 @@ step fails.
 
 ``posterior.nc``'s ``log_likelihood`` group holds, per kept draw, the leave-one-out predictive
 log density ``log p(y_i | y_-i, theta)`` of each observation under the sampled likelihood
-``y ~ N(mu(theta), C(theta))`` (:func:`loo_log_likelihood`): the KOH likelihood is one
+``y ~ N(mu(theta), C(theta))`` (:func:`log_likelihoods`): the KOH likelihood is one
 correlated normal (the surrogate's code covariance couples the observations), so its pointwise
 terms are the non-factorized ones of Buerkner, Gabry & Vehtari (2021, "Efficient leave-one-out
 cross-validation for Bayesian non-factorized normal and Student-t models", Comput. Stat. 36),
@@ -185,14 +185,6 @@ def _joint(r: torch.Tensor, g: torch.Tensor, logdet: torch.Tensor) -> torch.Tens
 
 def _loo_terms(g: torch.Tensor, prec_diag: torch.Tensor) -> torch.Tensor:
     return -_HALF_LOG_2PI + 0.5 * torch.log(prec_diag) - 0.5 * g.square() / prec_diag
-
-
-def loo_log_likelihood(post: Posterior, inp: Any, index: torch.Tensor) -> torch.Tensor:
-    """``(k, n_obs)`` leave-one-out predictive log densities ``log p(y_i | y_-i, theta)`` of the
-    data ``inp.y_obs`` at the posterior draws ``index`` (flat indices into ``(chain, draw)``),
-    nats: :func:`log_likelihoods`' first part. For ``az.loo`` on ``posterior.nc`` (the module
-    docstring)."""
-    return log_likelihoods(post, inp, index)[0]
 
 
 def log_likelihoods(post: Posterior, inp: Any, index: torch.Tensor
