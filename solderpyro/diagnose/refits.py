@@ -513,22 +513,20 @@ def global_refits(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float,
              "" if scout_fe is None else " on the half-resolution model")
     scout = fit_models(lay, scout_fe or fe, meas, sigma, models, iters=SCOUT_ITERS)
     best: dict[str, tuple[str, LMFit]] = {}
+    spread: dict[str, tuple[str, LMFit]] = {}  # each model's best start across the box
     for key, f in scout.items():
         name, label = key.split("|", 1)
         if name not in best or f.chi2 < best[name][1].chi2:
             best[name] = (label, f)
+        if label != BASE_POINT and (name not in spread or f.chi2 < spread[name][1].chi2):
+            spread[name] = (label, f)
     if scout_fe is not None:
         # each best start on to convergence through the cheap model, then evaluated through
         # the run's own FE (its chi-square is the one the local refit is held to); where the
         # base point led the scouting, the best start across the box goes on too (a base fit
         # already at the noise level leads any start still on its way after a few
         # iterations, and from it an effect the constants absorbed goes back to "off")
-        away: dict[str, tuple[str, LMFit]] = {}
-        for key, f in scout.items():
-            name, label = key.split("|", 1)
-            if (best[name][0] == BASE_POINT and label != BASE_POINT
-                    and (name not in away or f.chi2 < away[name][1].chi2)):
-                away[name] = (label, f)
+        away = {n: spread[n] for n, (lb, _) in best.items() if lb == BASE_POINT and n in spread}
         todo = {n: (free_of(n), f.x) for n, (_, f) in best.items() if not f.converged}
         todo.update({f"{n}|away": (free_of(n), f.x) for n, (_, f) in away.items()})
         on = fit_models(lay, scout_fe, meas, sigma, todo)
