@@ -102,11 +102,12 @@ def bars(records: list[dict]) -> dict:
     def has(r: dict, names: list[str]) -> bool:
         return set(r["hidden"].split("+")) <= set(names)
 
+    def is_named(r: dict) -> bool:  # selected, or named by a tie
+        return has(r, r.get("selected") or []) or has(r, (r.get("tie") or [[]])[0])
+
     sel = sum(has(r, r.get("selected") or []) for r in hid)
-    named = sum(has(r, r.get("selected") or []) or has(r, (r.get("tie") or [[]])[0])
-                for r in hid)
-    unnamed = [r for r in hid if not (has(r, r.get("selected") or [])
-                                      or has(r, (r.get("tie") or [[]])[0]))]
+    named = sum(is_named(r) for r in hid)
+    unnamed = [r for r in hid if not is_named(r)]
     caveat = sum(has(r, (r.get("selected") or []) + (r.get("cannot_rule_out") or []))
                  for r in unnamed)
     alarms = sum(bool(r.get("selected") or r.get("tie") or r.get("misfit")) for r in clean)
