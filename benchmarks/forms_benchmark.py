@@ -11,8 +11,10 @@ point data) crossed with three sets of Anand constants (the seed's, an interior 
 the box's faces) as a Latin square (each size once, each set once; ``--full``: all nine); the
 two residual-stress forms at each set; two-effect cases; ten clean datasets (the three sets
 in turn). Cases run in an interleaved order, so the first N of them are a fair sample of all;
-``--cases N`` runs the next N not yet finished, ``--parallel K`` K at a time (one thread
-each). Each case's record is written as it ends to ``WORK/records/NAME.json`` (a rerun
+``--cases N`` runs the next N not yet finished, ``--parallel K`` K at a time (the cores
+shared among them: one thread each on 2 cores at K = 2, both at K = 1); ``--rerun A,B``
+runs the named cases again (their earlier run directories move to ``WORK/old``). Each
+case's record is written as it ends to ``WORK/records/NAME.json`` (a rerun
 skips it, and a case stopped part way keeps the stages it finished); the bars over every
 finished case (:func:`cases_table.bars`) go to ``--out``.
 The cases already in ``--out`` count as finished too and are kept there, so the benchmark
@@ -21,7 +23,8 @@ from it (``--fresh``: start over). Each case records the commit it ran (``git re
 this checkout, or ``$BENCH_COMMIT`` for a snapshot without .git) and the machine's load.
 
 Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2] [--full]
-       [--out benchmarks/results/forms_benchmark.json] [--list] [--summary]
+       [--rerun NAME,NAME] [--out benchmarks/results/forms_benchmark.json] [--list]
+       [--summary]
 (the figure: the ``--out`` path with ``.png``)
 """
 
@@ -139,7 +142,8 @@ def run(case: Case, work: str) -> dict:
         rec = {"case": case.name, "error": f"{type(e).__name__}: {e}"}
     rec.update({"anand_set": case.anand, "forms": case.forms, "seed": case.seed,
                 "data_s": made, "case_s": round(time.perf_counter() - t0, 1),
-                "commit": commit(), "load_1min": round(os.getloadavg()[0], 2)})
+                "commit": commit(), "load_1min": round(os.getloadavg()[0], 2),
+                "threads": int(os.environ.get("OMP_NUM_THREADS", "0")) or None})
     out = w / "records" / f"{case.name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(rec, indent=1) + "\n")
@@ -172,12 +176,13 @@ def summarize(work: Path, out: Path, keep: list[dict]) -> dict:
     recs = sorted((json.loads(p.read_text()) for p in (work / "records").glob("*.json")),
                   key=lambda r: r["case"]) if (work / "records").exists() else []
     rows = [{**case_record(work / "cases" / r["case"], work / "data" / f"{r['case']}.csv"),
-             **{k: r.get(k) for k in ("forms", "anand_set", "seed", "commit", "load_1min")}}
+             **{k: r.get(k) for k in ("forms", "anand_set", "seed", "commit", "load_1min",
+                                      "threads")}}
             for r in recs if "error" not in r]
     here = {r["case"] for r in rows}
     rows = sorted(rows + [r for r in keep if r["case"] not in here], key=lambda r: r["case"])
     res = {"command": "python benchmarks/forms_benchmark.py WORK",
-           "parallel_cases": 2, "bars": bars(rows), "cases": rows,
+           "bars": bars(rows), "cases": rows,
            "errors": [r for r in recs if "error" in r]}
     out.write_text(json.dumps(res, indent=1) + "\n")
     return res
@@ -225,7 +230,7 @@ def figure(res: dict, path: Path) -> None:
     ax.axvline(300.0, color="k", ls="--", lw=1, label="5 min")
     ax.set_yticks(range(len(rows)), labels, fontsize=7)
     ax.invert_yaxis()
-    ax.set_xlabel("loop wall time, s (cases run two at a time on the 2 cores)")
+    ax.set_xlabel("loop wall time, s (on 2 cores; most cases two at a time, one core each)")
     ax.legend(fontsize=7, loc="lower right")
     ax2.set_xticks(range(len(params)), params, rotation=60, fontsize=7)
     ax2.set_xlim(-0.5, len(params) - 0.5)
@@ -251,6 +256,8 @@ def main() -> None:
     ap.add_argument("--full", action="store_true", help="all nine size x set cases per form")
     ap.add_argument("--fresh", action="store_true",
                     help="ignore the cases already in --out (start the benchmark over)")
+    ap.add_argument("--rerun", default="", metavar="NAME,NAME",
+                    help="run these cases again (their run directories move to WORK/old)")
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--summary", action="store_true",
                     help="only the bars and the figure of the finished cases")
@@ -258,6 +265,17 @@ def main() -> None:
     work = Path(a.work).resolve()
     cases = plan(a.full)
     keep = [] if a.fresh else earlier(Path(a.out))
+    again = [nm for nm in a.rerun.split(",") if nm]
+    unknown = sorted(set(again) - {c.name for c in cases})
+    if unknown:
+        raise SystemExit(f"--rerun: no case named {', '.join(unknown)} (--list lists them)")
+    for nm in again:  # nothing is deleted: the earlier run moves aside
+        old = work / "old" / time.strftime("%Y%m%d-%H%M%S")
+        for src in (work / "cases" / nm, work / "records" / f"{nm}.json"):
+            if src.exists():
+                old.mkdir(parents=True, exist_ok=True)
+                src.rename(old / src.name)
+    keep = [r for r in keep if r["case"] not in again]
     done = {p.stem for p in (work / "records").glob("*.json")} | {r["case"] for r in keep}
     todo = [c for c in cases if c.name not in done]
     if a.list:
@@ -266,7 +284,8 @@ def main() -> None:
         print(f"{len(done)} of {len(cases)} done")
         return
     todo = [] if a.summary else todo[:a.cases] if a.cases is not None else todo
-    os.environ["OMP_NUM_THREADS"] = "1"
+    # the cores shared among the cases at once (torch and the FE's thread pool read it)
+    os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // max(a.parallel, 1)))
     with cf.ProcessPoolExecutor(a.parallel) as ex:
         futs = {ex.submit(run, c, str(work)): c for c in todo}
         for f in cf.as_completed(futs):

@@ -106,7 +106,7 @@ def fe_exact(fun: Any, coords: Any, y_obs: torch.Tensor, priors: Priors,
                  space.names, best.x, strict=True)), n_fe[0], coords.name)
     # the misfit rule in units of the noise (sig is the RMS at a start when sigma is unknown)
     c2_noise = float(best.chi2) * (sig / (noise_sd or sig)) ** 2
-    best_info = {"x": best.x.tolist(), "chi2": best.chi2,
+    best_info = {"x": best.x.tolist(), "chi2": best.chi2, "ssr_um2": float(best.chi2 * sig**2),
                  "rms_over_sigma": float(np.sqrt(c2_noise / y.size))}
     if stop_if_misfit and misfits(c2_noise, y.size):
         why = (f"the FE's own best fit misfits the data (chi2 {c2_noise:.0f} on {y.size} "

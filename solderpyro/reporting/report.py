@@ -219,7 +219,7 @@ def write(rep: CalibrationReport) -> Path:
     ex_info = rep.run.info.exact
     if rep.exact is not None and rep.exact.rows and ex_info:
         lines += _exact_section(rep.exact, ex_info, rep.run.info.parameters, save,
-                                _truth(meas))
+                                _truth(meas), rep.run.info.posterior)
     lines += ["", "## Figures", ""]
     if (out / "design.png").exists():  # the adaptive design's rounds (solderpyro.design)
         lines += ["![adaptive design: marginals per round, stopping rule, where the runs went]"
@@ -283,10 +283,12 @@ def _truth(meas: Measurements) -> dict[str, float] | None:
 
 
 def _exact_section(exact: ExactReport, info: dict[str, Any], names: list[str], save: Any,
-                   truth: dict[str, float] | None = None) -> list[str]:
+                   truth: dict[str, float] | None = None, reported: str = "surrogate"
+                   ) -> list[str]:
     """The report's lines on the FE-exact posterior (``info``: the run's FE-exact record;
     ``names``: the parameters), and its figure (``save(fig, name)``); ``truth``: true values
-    drawn in the figure (synthetic data)."""
+    drawn in the figure (synthetic data); ``reported``: the kind of summary.csv
+    (:attr:`~solderpyro.config.rundir.RunInfo.posterior`)."""
     from solderpyro.reporting.plots import plot_exact
 
     ex, rows = exact.posterior, exact.rows
@@ -304,8 +306,10 @@ def _exact_section(exact: ExactReport, info: dict[str, Any], names: list[str], s
     verdict = (f"Kish ESS {info['ess']:.0f}, Pareto k-hat {info['khat']:.2f}: "
                + ("**reliable; `summary.csv` is this posterior** (the surrogate's is in "
                   "`summary_surrogate.csv`)." if info["reliable"] else
-                  "**not reliable** (k-hat > 0.7 or ESS < 50): `summary.csv` stays the "
-                  "surrogate's; run more rounds (`--exact-rounds`) or more runs per round."))
+                  "**not reliable** (k-hat > 0.7 or ESS < 50): `summary.csv` is "
+                  + ("the FE's own best fit" if reported == "fe-best-fit" else
+                     "the surrogate's")
+                  + "; run more rounds (`--exact-rounds`) or more runs per round."))
     lines = ["", "## FE-exact posterior", "", how, "", verdict, "",
              "| parameter | FE-exact 2.5 / 50 / 97.5 % | surrogate 2.5 / 50 / 97.5 % |",
              "|---|---|---|"]
