@@ -187,8 +187,10 @@ def fit_models(lay: Layout, fe: Any, meas: Any, sigma: float,
             row ``(n_col,)``, physical units).
         iters, tol, rel: of :class:`~solderpyro.exact.fit.LMOptions`.
     Returns:
-        name -> :class:`~solderpyro.exact.fit.LMFit` (``x`` a full row).
+        name -> :class:`~solderpyro.exact.fit.LMFit` (``x`` a full row); empty for no models.
     """
+    if not models:  # e.g. every scouted start already converged
+        return {}
     y = np.asarray(meas.value_um, float)
     run = observed(fe, meas, lay)
 

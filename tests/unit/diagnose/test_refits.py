@@ -199,3 +199,20 @@ def test_last_gain_is_what_the_last_accepted_iteration_took():
     f = SimpleNamespace(history=[100.0, 40.0, 38.5])
     assert last_gain(f) == pytest.approx(1.5)
     assert last_gain(SimpleNamespace(history=[7.0])) == 0.0
+
+
+
+def test_global_refits_whose_scouted_starts_all_converged_go_on(toy, monkeypatch):
+    """Scouting long enough for every start to converge leaves nothing to converge on the
+    cheap model: the refits go on (no empty batch through the FE) and end where the own FE
+    alone puts them."""
+    import solderpyro.diagnose.refits as refits
+    from solderpyro.diagnose.refits import LM_TOL
+
+    lay, _, meas, base, scores = toy
+    monkeypatch.setattr(refits, "SCOUT_ITERS", refits.LM_ITERS)
+    _, ref = global_refits(lay, CountedToyFE(), meas, SIGMA, base, scores, [])
+    _, got = global_refits(lay, CountedToyFE(), meas, SIGMA, base, scores, [],
+                           scout_fe=CheapToyFE())
+    for r, g in zip(ref, got, strict=True):
+        assert g.chi2 == pytest.approx(r.chi2, abs=4 * LM_TOL)
