@@ -94,7 +94,10 @@ def bars(records: list[dict]) -> dict:
         the library's is a different quantity from the library parameter that stands for it);
         ``rms_after_sd_max``: the largest error after them in noise sd (``compare``; None
         where not run); ``loop_s_median``: the median over cases of calibrate + diagnose +
-        recalibrate seconds (each tied recalibration counted).
+        recalibrate seconds (each tied recalibration counted); ``loop_s_by_threads``: that
+        median per thread count a case ran with (``threads``; a case without one ran on one
+        thread), ``{threads: [median, cases]}``: two cases at a time on 2 cores run one
+        thread each, one case alone both.
     """
     hid = [r for r in records if r["hidden"] != "none"]
     clean = [r for r in records if r["hidden"] == "none"]
@@ -114,6 +117,7 @@ def bars(records: list[dict]) -> dict:
     per: dict[str, list[int]] = {}
     rms = []
     loops = []
+    by_threads: dict[str, list[float]] = {}
     for r in records:
         finals = final_runs(r)
         for f in finals:
@@ -126,6 +130,7 @@ def bars(records: list[dict]) -> dict:
         parts = loop_seconds(r)
         if all(v is not None for _, v in parts):
             loops.append(sum(v for _, v in parts))
+            by_threads.setdefault(str(r.get("threads") or 1), []).append(loops[-1])
     inside, of = sum(c[0] for c in per.values()), sum(c[1] for c in per.values())
     anand = [c for k, c in per.items() if k in ANAND]
     return {"cases": len(records), "selected": [sel, len(hid)], "named": [named, len(hid)],
@@ -135,7 +140,9 @@ def bars(records: list[dict]) -> dict:
             "coverage_per_parameter": per,
             "rms_after_sd_max": round(max(rms), 3) if rms else None,
             "loop_s_median": round(statistics.median(loops)) if loops else None,
-            "loop_cases_timed": len(loops)}
+            "loop_cases_timed": len(loops),
+            "loop_s_by_threads": {k: [round(statistics.median(v)), len(v)]
+                                  for k, v in sorted(by_threads.items())}}
 
 
 def case_record(case: Path, data: Path) -> dict:

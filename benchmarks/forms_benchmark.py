@@ -24,7 +24,7 @@ this checkout, or ``$BENCH_COMMIT`` for a snapshot without .git) and the machine
 
 Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2] [--full]
        [--rerun NAME,NAME] [--out benchmarks/results/forms_benchmark.json] [--list]
-       [--summary]
+       [--summary] [--table]
 (the figure: the ``--out`` path with ``.png``)
 """
 
@@ -247,6 +247,34 @@ def figure(res: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def table(res: dict) -> str:
+    """BENCHMARKS.md's per-case table of a results file's rows ``res["cases"]`` (markdown):
+    what was selected (or the caveat), the error after, the truths outside the reported
+    intervals, the loop's seconds by stage, and where and how the case ran."""
+    from cases_table import final_runs, loop_seconds
+
+    out = ["| case | selected (or the caveat) | RMS after (noise sd) | truths outside the 95 % "
+           "intervals | loop s: calibrate + diagnose + recalibrate | commit, threads, load |",
+           "|---|---|---|---|---|---|"]
+    for r in res["cases"]:
+        fin = final_runs(r)
+        sel = "+".join(r.get("selected") or []) or (
+            "tie " + "/".join(r["tie"][0]) if r.get("tie") else "none")
+        if r.get("cannot_rule_out") and not r.get("tie"):
+            sel += " (cannot rule out " + ", ".join(r["cannot_rule_out"]) + ")"
+        rms = [f"{f['compare_rms_um'][1] / r['sigma_um']:.2f}" for f in fin
+               if f.get("compare_rms_um")]
+        miss = [m for f in fin for m in f.get("missed", [])]
+        tot = sum(len(f.get("truths") or []) for f in fin)
+        parts = loop_seconds(r)
+        ls = " + ".join(str(round(v)) if v is not None else "-" for _, v in parts)
+        out.append(f"| {r['case']} | {sel} | {', '.join(rms) or '-'} | "
+                   f"{', '.join(miss) or 'none'} (of {tot}) | {ls} = "
+                   f"{round(sum(v or 0 for _, v in parts))} | {r.get('commit')}, "
+                   f"{r.get('threads') or 1}, {r.get('load_1min')} |")
+    return "\n".join(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("work")
@@ -261,7 +289,12 @@ def main() -> None:
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--summary", action="store_true",
                     help="only the bars and the figure of the finished cases")
+    ap.add_argument("--table", action="store_true",
+                    help="print BENCHMARKS.md's per-case table of --out and stop")
     a = ap.parse_args()
+    if a.table:
+        print(table(json.loads(Path(a.out).read_text())))
+        return
     work = Path(a.work).resolve()
     cases = plan(a.full)
     keep = [] if a.fresh else earlier(Path(a.out))

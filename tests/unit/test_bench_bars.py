@@ -39,6 +39,10 @@ def test_bars_count_selections_ties_alarms_and_the_runs_a_user_ends_with():
     assert b["rms_after_sd_max"] == round(0.051 / 0.05, 3)
     # loops: 200 + 100 + 50, 300 + 10 + 30 + 40, 100 + 5: median 350
     assert b["loop_s_median"] == 350 and b["loop_cases_timed"] == 3
+    assert b["loop_s_by_threads"] == {"1": [350, 3]}  # no thread count: one thread
+    recs[0]["threads"] = 2  # that case alone on 2 cores
+    # the others: 380 and 105, median 242.5 (Python rounds half to even)
+    assert bars(recs)["loop_s_by_threads"] == {"1": [242, 2], "2": [350, 1]}
 
 
 def test_a_case_counts_as_caveated_only_where_selection_and_caveat_name_every_hidden_effect():
