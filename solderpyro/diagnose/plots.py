@@ -233,17 +233,19 @@ def evidence_scale(evidence: Sequence[float], threshold: float) -> str:
 
 def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Path,
                  after_sd: dict[str, float] | None = None,
-                 selected: Sequence[str] = ()) -> str:
+                 selected: Sequence[str] = (), caveat: Sequence[str] = ()) -> str:
     """Evidence per candidate effect (bars, best at the top), each labelled with the shape
     correlation of its fingerprint with the (denoised) residual and, where given, the RMS
-    residual its refit leaves (noise sd); the selected effects' bars in another colour;
-    logarithmic above the 1 % line where the evidence spans more than it shows linearly
-    (:func:`evidence_scale`).
+    residual its refit leaves (noise sd); the selected effects' bars in another colour, and
+    those the data cannot rule out (``caveat``: they fit as well and would move the constants)
+    hatched and named so, whatever their evidence; logarithmic above the 1 % line where the
+    evidence spans more than it shows linearly (:func:`evidence_scale`).
 
     Args:
         scores: ``Score`` list, best first; correlation: effect -> correlation;
         path: the PNG to write; after_sd: effect -> RMS after its refit, noise sd;
-        selected: the effects the diagnosis selected.
+        selected: the effects the diagnosis selected; caveat: the effects its verdict
+            cannot rule out.
     Returns:
         the file name.
     """
@@ -257,11 +259,20 @@ def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Pat
     chosen = [b for b, n in zip(bars, names, strict=True) if n in selected]
     if chosen:
         chosen[0].set_label("selected")
+    open_ = [(b, n) for b, n in zip(bars, names, strict=True)
+             if n in caveat and n not in selected]
+    for k, (b, _) in enumerate(open_):
+        b.set_hatch("///")
+        b.set_edgecolor("C2")
+        if k == 0:
+            b.set_label("cannot be ruled out")
     after_sd = after_sd or {}
     for b, n in zip(bars, names, strict=True):
         label = [f"r = {correlation[n]:.2f}"] if n in correlation else []
         if after_sd.get(n) is not None:
             label.append(f"{after_sd[n]:.2f} sd after")
+        if n in caveat and n not in selected:
+            label.append("cannot be ruled out")
         if label:
             ax.annotate(", ".join(label), (b.get_width(), b.get_y() + b.get_height() / 2),
                         xytext=(4, 0), textcoords="offset points", va="center", fontsize=7)
@@ -277,8 +288,8 @@ def plot_ranking(scores: Sequence[Any], correlation: dict[str, float], path: Pat
         ax.set_xlim(0, top * 40)
         ax.set_xticks([0.0] + [10.0**k for k in range(int(np.ceil(np.log10(thr))),
                                                       int(np.ceil(np.log10(top * 40))))])
-    else:
-        ax.set_xlim(0, top * 1.5)
+    else:  # the 1 % line in view where no candidate reaches it
+        ax.set_xlim(0, max(top * 1.5, thr * 1.2))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path.name

@@ -61,7 +61,7 @@ def figures(d: Path, diag: Diagnosis, meas: Any, fp: Fingerprints, sigma: float,
                              for r in diag.ranking], by, d / "diagnosis_ranking.png",
                             {r["effect"]: r["rms_after_sd"] for r in diag.ranking
                              if r.get("rms_after_sd") is not None},
-                            diag.selected)
+                            diag.selected, [r["effect"] for r in diag.cannot_rule_out])
     return f1, f2, f3
 
 

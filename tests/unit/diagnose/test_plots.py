@@ -42,3 +42,23 @@ def test_the_selected_effects_bars_are_marked(tmp_path):
 
     assert blue_pixels(["e0"]) > 2000
     assert blue_pixels([]) == 0
+
+
+def test_the_candidates_that_cannot_be_ruled_out_are_hatched(tmp_path):
+    """A candidate the verdict cannot rule out gets its bar hatched in matplotlib's C2
+    (#2ca02c): hundreds of its pixels; none where there is no caveat, nor where the caveat
+    names the selected effect (its bar stays the selected colour)."""
+    import matplotlib.image as mpimg
+
+    sc = [SimpleNamespace(effect=f"e{k}", evidence=v) for k, v in enumerate([900.0, 30.0, 0.0])]
+    green = np.array([0x2C, 0xA0, 0x2C]) / 255.0
+
+    def green_pixels(caveat, selected=()):
+        name = plot_ranking(sc, {}, tmp_path / f"c{len(caveat)}{len(selected)}.png", None,
+                            selected, caveat)
+        img = mpimg.imread(tmp_path / name)[..., :3]
+        return int((np.abs(img - green) < 2.0 / 255.0).all(-1).sum())
+
+    assert green_pixels(["e0"]) > 200
+    assert green_pixels([]) == 0
+    assert green_pixels(["e0"], ["e0"]) == 0
