@@ -51,6 +51,7 @@ from solderpyro.pipeline.fe_check import (
     discretization_check,
     fe_check,
     misfit_remains,
+    misses,
     ranked,
 )
 from solderpyro.pipeline.fe_exact import (
@@ -471,7 +472,7 @@ def design_stage(setup: Setup, meas: Measurements, s: CalibrationSettings, out: 
     rounds = adaptive_design(cp, s, out, warm, refit)
     if s.discretization == "correct" and rounds.reason != "misfit":
         # the data every later stage uses: the final posterior, the FE check, the outputs
-        cp = cp.with_data(correct_discretization(cp, rounds.draws))
+        cp = cp.with_data(correct_discretization(cp, rounds.draws, rounds.best_fit))
     loop = final_design_posterior(cp, s, out, rounds)
     clock("design")
     return cp, loop, y_liu
@@ -729,28 +730,20 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
     return rep
 
 
-#: the surrogate's posterior misses the FE's best fit when its best checked draw fits worse by
-#: more than this quantile of chi2(dim) (the excess of a posterior draw over the optimum of a
-#: Gaussian posterior follows chi2(dim))
-MISSES_QUANTILE = 0.999
-
-
 def misses_best_fit(checked: dict[str, Any], best_fit: dict[str, Any], dim: int) -> bool:
     """Does the surrogate's posterior miss where the FE fits best? Its best checked draw (the
     FE check's record ``checked``: ``ok``, ``n``, ``rms_over_sigma``) misfits, or fits worse
     than the FE's own best fit (``best_fit``'s ``rms_over_sigma``, noise units) by more than
-    the :data:`MISSES_QUANTILE` point of chi2(``dim``): the draws of a posterior around the
-    FE's optimum are not that far off it. On the forms benchmark's linear modulus with a
-    second-order lag the best checked draw was 1.46 noise sd off (inside the misfit rule) and
-    the FE's best fit 1.11: chi-squares 4,775 and 2,770 on 2,240 values, against 26."""
-    from scipy.stats import chi2 as chi2_dist
-
+    the :data:`~.fe_check.MISSES_QUANTILE` point of chi2(``dim``)
+    (:func:`~.fe_check.misses`). On the forms benchmark's linear modulus with a second-order
+    lag the best checked draw was 1.46 noise sd off (inside the misfit rule) and the FE's best
+    fit 1.11: chi-squares 4,775 and 2,770 on 2,240 values, against 26."""
     if not checked.get("ok", True):
         return True
     n = int(checked["n"])
     c2_draw = float(checked["rms_over_sigma"]) ** 2 * n
     c2_fit = float(best_fit.get("rms_over_sigma", np.inf)) ** 2 * n
-    return bool(c2_draw - c2_fit > chi2_dist.ppf(MISSES_QUANTILE, dim))
+    return misses(c2_draw, c2_fit, dim)
 
 
 def unconfirmed_stage(w: RunOutputs, rep: Reported, ex: Any, ex_info: dict[str, Any]

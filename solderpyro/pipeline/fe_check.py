@@ -45,6 +45,22 @@ def misfit_remains(chi2: float, n: int, p: int) -> tuple[bool, float]:
     return bool(np.isfinite(chi2) and chi2 > q), q
 
 
+#: a posterior misses a best fit when its best draw fits worse by more than this quantile of
+#: chi2(dim) (the excess of a posterior draw over the optimum of a Gaussian posterior follows
+#: chi2(dim))
+MISSES_QUANTILE = 0.999
+
+
+def misses(c2_draw: float, c2_fit: float, dim: int) -> bool:
+    """Does a posterior whose best draw has chi-square ``c2_draw`` miss a best fit at
+    ``c2_fit`` (both residuals over the noise sd) in ``dim`` parameters: is the draw worse by
+    more than the :data:`MISSES_QUANTILE` point of chi2(dim)? The draws of a posterior
+    around that fit are not that far off it."""
+    from scipy.stats import chi2 as chi2_dist
+
+    return bool(c2_draw - c2_fit > chi2_dist.ppf(MISSES_QUANTILE, dim))
+
+
 def ranked(V: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``(b,)`` indices of the FE outputs ``V (b, n_obs)`` from the best fit of ``y
     (n_obs,)`` (lowest sum of squared residuals) to the worst, rows with a NaN (not converged)

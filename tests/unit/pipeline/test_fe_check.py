@@ -108,3 +108,23 @@ def test_a_misfit_remains_beyond_the_99_percent_point_of_chi2_n_minus_p():
     text = remaining_misfit((2613.0 / n) ** 0.5, n, p)
     assert "misfit remains" in text and "2228 dof" in text and "diagnose" in text
     assert remaining_misfit(1.0, n, p) == "" and remaining_misfit(None, n, p) == ""
+
+
+def test_the_discretization_error_is_estimated_where_the_fe_fits_best():
+    """At the best checked draw, unless the checked draws miss the design's own FE best fit
+    (worse by more than chi2(dim)'s 99.9 % point, 26.1 for 8): then at that fit (its values in
+    the order asked); a fit 20 better, an incomplete or a missing one leave the draw; no
+    finite draw and no fit: nowhere."""
+    import numpy as np
+
+    from solderpyro.pipeline.adaptive import correction_point
+
+    c2 = np.array([50_935.0, np.inf, 48_000.0])
+    fit = {"x": {"s0": 23.2, "QR": 13_000.0, "k_E": 0.02}, "chi2": 3_026.6}
+    at = correction_point(c2, fit, ("s0", "QR"), 8)
+    assert isinstance(at, np.ndarray) and at.tolist() == [23.2, 13_000.0]
+    assert correction_point(c2, {**fit, "chi2": 47_980.0}, ("s0", "QR"), 8) == 2
+    assert correction_point(c2, {**fit, "chi2": 47_970.0}, ("s0", "QR"), 8) is not None
+    assert correction_point(c2, fit, ("s0", "xi"), 8) == 2  # the fit lacks xi
+    assert correction_point(c2, None, ("s0",), 8) == 2
+    assert correction_point(np.array([np.inf]), None, ("s0",), 8) is None
