@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 ANAND_NAMES: tuple[str, ...] = ("s0", "QR", "A", "xi", "m", "h0", "s_hat", "n", "a")
@@ -106,6 +107,13 @@ class Box:
     @property
     def dim(self) -> int:
         return len(self.names)
+
+    def row(self, point: Mapping[str, float] | None) -> np.ndarray | None:
+        """``(dim,)`` the values of ``point`` (name -> value, physical units; other names
+        ignored) in the box's order, or None where it lacks one of the box's names."""
+        if not point or not all(nm in point for nm in self.names):
+            return None
+        return np.array([float(point[nm]) for nm in self.names])
 
     @property
     def n_theta(self) -> int:

@@ -19,7 +19,6 @@ from __future__ import annotations
 import csv
 import json
 import logging
-from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,7 @@ from solderpyro.design.loop import (
     design_rounds,
     final_posterior,
 )
+from solderpyro.params import Box
 from solderpyro.pipeline.fe_check import misses
 from solderpyro.pipeline.posterior import as_draws, sample_posterior
 from solderpyro.pipeline.problem import CalibrationProblem, ObservedData
@@ -117,12 +117,12 @@ def final_design_posterior(cp: CalibrationProblem, s: CalibrationSettings, out: 
                            on_round=lambda r: save_design(r, cp.gp_box.names, out))
 
 
-def correction_point(checked_c2: np.ndarray, best_fit: dict[str, Any] | None,
-                     names: Sequence[str], dim: int) -> int | np.ndarray | None:
+def correction_point(checked_c2: np.ndarray, best_fit: dict[str, Any] | None, box: Box,
+                     dim: int) -> int | np.ndarray | None:
     """Where the discretization error is estimated: the best checked draw (its index into
     ``checked_c2``, the draws' chi-squares), or the design's own FE best fit (``best_fit``:
-    the loop's record, ``"x"`` name -> value and ``"chi2"``; returned as ``(len(names),)``
-    physical values in the order ``names``) where the draws miss it
+    the loop's record, ``"x"`` name -> value and ``"chi2"``; returned as ``(box.dim,)``
+    physical values in ``box``'s order) where the draws miss it
     (:func:`~.fe_check.misses` in the ``dim`` calibrated parameters: a posterior around the
     fit lies on the same ridge, where the error is the same); None where neither is finite.
 
@@ -133,10 +133,10 @@ def correction_point(checked_c2: np.ndarray, best_fit: dict[str, Any] | None,
     noise sd off, 1.67 against the measured data.
     """
     c2 = np.where(np.isfinite(checked_c2), np.asarray(checked_c2, float), np.inf)
-    x = (best_fit or {}).get("x") or {}
+    x = box.row((best_fit or {}).get("x"))
     bf_c2 = float((best_fit or {}).get("chi2", np.inf))
-    if all(nm in x for nm in names) and np.isfinite(bf_c2) and misses(c2.min(), bf_c2, dim):
-        return np.array([float(x[nm]) for nm in names])
+    if x is not None and np.isfinite(bf_c2) and misses(c2.min(), bf_c2, dim):
+        return x
     return int(np.argmin(c2)) if np.isfinite(c2).any() else None
 
 
@@ -158,7 +158,7 @@ def correct_discretization(cp: CalibrationProblem, d: Draws,
     if d.checked is None:
         return cp.data
     th, V, c2 = d.checked
-    at = correction_point(np.asarray(c2, float), best_fit, cp.gp_box.names, cp.space.dim)
+    at = correction_point(np.asarray(c2, float), best_fit, cp.gp_box, cp.space.dim)
     if at is None:
         log.warning("discretization: no checked draw converged; the data are not corrected")
         return cp.data
@@ -210,10 +210,10 @@ def refit_design(cp: CalibrationProblem, point: dict[str, float] | None, have: t
     from solderpyro.pipeline.fe_exact import fe_best_fit
 
     space = cp.space
-    if not point or m < 1 or not all(nm in point for nm in space.names):
+    row = space.row(point)
+    if point is None or row is None or m < 1:
         return None
-    x0 = np.array([[min(max(point[nm], lo), hi) for nm, lo, hi in zip(
-        space.names, space.lower, space.upper, strict=True)]])
+    x0 = np.clip(row, space.lower, space.upper)[None]
     y = cp.y.detach().cpu().numpy()
     sig = float(cp.priors.sigma_known or point.get("sigma") or 0.0)
     if not sig > 0:

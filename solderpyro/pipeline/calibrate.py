@@ -553,9 +553,10 @@ def misfit_stage(cp: CalibrationProblem, s: CalibrationSettings, out: Path, loop
     """
     trust = _misfit_trust((loop.best_fit or {}).get("rms_over_sigma", float("nan")),
                           "so the design stopped refining its surrogate")
-    if not (loop.best_fit and loop.best_fit.get("x")):
+    x = cp.space.row((loop.best_fit or {}).get("x"))
+    if x is None:
         return None, Reported(rep.rows, rep.bands, rep.problems, trust)
-    fit, bands = _best_fit_stage(cp, s, loop.best_fit, noise_sd)
+    fit, bands = _best_fit_stage(cp, s, x, noise_sd)
     n_y = int(cp.y.numel())
     loop.best_fit.update({
         "x": dict(zip(cp.space.names, map(float, fit.x), strict=True)),
@@ -630,10 +631,11 @@ def chains_caveat(rows: list[dict]) -> str:
     return ""
 
 
-def _best_fit_stage(cp: CalibrationProblem, s: CalibrationSettings, best: dict[str, Any],
+def _best_fit_stage(cp: CalibrationProblem, s: CalibrationSettings, x: np.ndarray,
                     noise_sd: float) -> tuple[Any, Bands]:
-    """A model whose own FE best fit misfits: that best fit, with its misfit-scaled Laplace
-    spread (:func:`~.fe_exact.best_fit_posterior`), and the FE's predictive at
+    """A model whose own FE best fit misfits: that best fit, refined from ``x`` (``(dim,)``
+    physical units, ``cp.space``'s order), with its misfit-scaled Laplace spread
+    (:func:`~.fe_exact.best_fit_posterior`), and the FE's predictive at
     ``BEST_FIT_BAND_RUNS`` of its draws (one batched solve through the store)."""
     from solderpyro.exact.coords import sampling_coords
     from solderpyro.pipeline.fe_exact import BestFitOptions, best_fit_posterior
@@ -641,7 +643,6 @@ def _best_fit_stage(cp: CalibrationProblem, s: CalibrationSettings, best: dict[s
     sg = s.surrogate
     coords = sampling_coords(cp.space, cp.setup.space.defaults, "auto", sg.inputs_T_C,
                              sg.inputs_rate)
-    x = np.array([best["x"][nm] for nm in cp.space.names])
     y = cp.y.detach().cpu().numpy()
     fit = best_fit_posterior(cp.observed, coords, x, y, noise_sd,
                              BestFitOptions(PREDICTIVE_DRAWS, s.seed))
@@ -764,14 +765,12 @@ def unconfirmed_stage(w: RunOutputs, rep: Reported, ex: Any, ex_info: dict[str, 
         the outputs with the fit (their ``fit``) and what to report.
     """
     cp, s = w.cp, w.settings
-    names = list(cp.space.names)
     x = np.asarray(ex_info["best_fit"]["x"], float)
     ssr = np.asarray(ex.result.extra["ssr"], float)
     ssr = np.where(np.isfinite(ssr), ssr, np.inf)
     if len(ssr) and ssr.min() < ex_info["best_fit"].get("ssr_um2", np.inf):
         x = np.asarray(ex.samples[int(np.argmin(ssr))], float)
-    fit, bands = _best_fit_stage(cp, s, {"x": dict(zip(names, map(float, x), strict=True))},
-                                 w.checked.noise_sd)
+    fit, bands = _best_fit_stage(cp, s, x, w.checked.noise_sd)
     write_summary(rep.rows, w.out / "summary_surrogate.csv", SUMMARY)
     n = int(cp.y.numel())
     rms = float(np.sqrt(fit.chi2 / n))
@@ -812,10 +811,9 @@ def run_fe_exact(cp: CalibrationProblem, s: CalibrationSettings, post: Any,
     ex_s, pr, y, sg = s.exact, cp.priors, cp.y, s.surrogate
     draws = checked.draws
     starts = draws[checked.pick][ranked(checked.V, y.numpy())[:2]]
-    x_fit = (design_fit or {}).get("x") or {}
-    if all(nm in x_fit for nm in cp.space.names):
-        starts = np.vstack([starts, np.clip([x_fit[nm] for nm in cp.space.names],
-                                            cp.space.lower, cp.space.upper)])
+    x_fit = cp.space.row((design_fit or {}).get("x"))
+    if x_fit is not None:
+        starts = np.vstack([starts, np.clip(x_fit, cp.space.lower, cp.space.upper)])
     coords = sampling_coords(cp.space, cp.setup.space.defaults, "auto", sg.inputs_T_C,
                              sg.inputs_rate)
     return fe_exact(cp.observed, coords, y, pr, draws, starts, ExactRun(

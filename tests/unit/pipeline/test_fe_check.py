@@ -117,14 +117,18 @@ def test_the_discretization_error_is_estimated_where_the_fe_fits_best():
     finite draw and no fit: nowhere."""
     import numpy as np
 
+    from solderpyro.params import Box
     from solderpyro.pipeline.adaptive import correction_point
+
+    def box(*names):
+        return Box(names, (0.0,) * len(names), (1e5,) * len(names))
 
     c2 = np.array([50_935.0, np.inf, 48_000.0])
     fit = {"x": {"s0": 23.2, "QR": 13_000.0, "k_E": 0.02}, "chi2": 3_026.6}
-    at = correction_point(c2, fit, ("s0", "QR"), 8)
+    at = correction_point(c2, fit, box("s0", "QR"), 8)
     assert isinstance(at, np.ndarray) and at.tolist() == [23.2, 13_000.0]
-    assert correction_point(c2, {**fit, "chi2": 47_980.0}, ("s0", "QR"), 8) == 2
-    assert correction_point(c2, {**fit, "chi2": 47_970.0}, ("s0", "QR"), 8) is not None
-    assert correction_point(c2, fit, ("s0", "xi"), 8) == 2  # the fit lacks xi
-    assert correction_point(c2, None, ("s0",), 8) == 2
-    assert correction_point(np.array([np.inf]), None, ("s0",), 8) is None
+    assert correction_point(c2, {**fit, "chi2": 47_980.0}, box("s0", "QR"), 8) == 2
+    assert correction_point(c2, {**fit, "chi2": 47_970.0}, box("s0", "QR"), 8) is not None
+    assert correction_point(c2, fit, box("s0", "xi"), 8) == 2  # the fit lacks xi
+    assert correction_point(c2, None, box("s0"), 8) == 2
+    assert correction_point(np.array([np.inf]), None, box("s0"), 8) is None
