@@ -171,6 +171,8 @@ def case_record(case: Path, data: Path) -> dict:
             c = json.loads(cmp.read_text())
             r["compare_rms_um"] = [round(c["before"]["rms_um"], 4),
                                    round(c["after"]["rms_um"], 4)]
+        r["intervals"] = ("admitting" if (w / "intervals_admitting.csv").exists()
+                          else "reported")
         r["covered"] = f"{sum(cov.values())}/{len(cov)}"
         r["missed"] = [k for k, v in cov.items() if not v]
         r["truths"] = list(cov)

@@ -197,6 +197,66 @@ def with_intervals(rows: Sequence[dict], theta: np.ndarray, box: Box,
     return out
 
 
+def with_monte_carlo_error(rows: Sequence[dict], theta: np.ndarray, weights: np.ndarray,
+                           box: Box, level: float = LEVEL) -> list[dict]:
+    """Summary rows whose interval ends, read off importance-weighted draws, are moved outward
+    by their Monte Carlo standard error.
+
+    An importance sampler's interval end rests on the few effective samples in its tail: at a
+    Kish ESS of 50, about one effective sample lies beyond a 2.5 % point. The end's Monte Carlo
+    standard error is estimated as ArviZ's ``mcse(method="quantile")`` does (Vehtari et al.
+    2021, the end's probability ``p`` moved by the binomial error ``d = sqrt(p (1 - p) / ESS)``
+    of the empirical CDF there): half the spread between the weighted quantiles at ``p - d``
+    and ``p + d``. Each end the draws estimate (not a face of the box) is moved out by that
+    much, within the box; the reported interval then holds the exact ``level`` interval's end
+    with probability about 84 % per side rather than 50 %. At an ESS of 1,000 the move is
+    about a tenth of what it is at 50. Why: the forms benchmark's moderate residual stress
+    (FE-exact posterior, ESS 52) reported Q/R, xi and m 0.6-1.3 % inside of their true values.
+
+    Args:
+        rows: summary rows with ``lo95``, ``hi95``, ``interval`` (:func:`with_intervals`
+            with the same ``weights``).
+        theta: ``(n, dim)`` the weighted draws in the box's column order, physical units.
+        weights: ``(n,)`` their normalized importance weights (their Kish ESS is used).
+        box: the draws' box (names, lower, upper).
+        level: the intervals' posterior probability.
+    Returns:
+        new rows (the input rows are not changed); parameters not in the box, and intervals
+        of another kind than central or at a face, as they were.
+    """
+    theta, w = np.asarray(theta, float), np.asarray(weights, float).reshape(-1)
+    names = list(box.names)
+    if theta.ndim != 2 or theta.shape != (w.size, len(names)):
+        raise ValueError(f"with_monte_carlo_error: theta has shape {theta.shape}, weights "
+                         f"{w.shape}; expected (n, {len(names)}) for {names} and (n,)")
+    if not (np.all(w >= 0) and w.sum() > 0):
+        raise ValueError("with_monte_carlo_error: weights must be non-negative, not all zero")
+    w = w / w.sum()
+    ess = 1.0 / float(w @ w)
+    a = (1.0 - level) / 2.0
+    # the probabilities of each kind's ends: (lower end, upper end), None at a face
+    ends = {CENTRAL: (a, 1.0 - a), LOWER_FACE: (None, level), UPPER_FACE: (1.0 - level, None)}
+    out = []
+    for r in rows:
+        nm, kind = r["parameter"], r.get("interval")
+        if nm not in names or kind not in ends:
+            out.append(dict(r))
+            continue
+        k = names.index(nm)
+        lo, hi = float(r["lo95"]), float(r["hi95"])
+        moved = []
+        for p, end, sign in zip(ends[kind], (lo, hi), (-1.0, 1.0), strict=True):
+            if p is None:
+                moved.append(end)
+                continue
+            d = np.sqrt(p * (1.0 - p) / ess)
+            q_lo, q_hi = weighted_quantiles(theta[:, k], w, (max(p - d, 0.0), min(p + d, 1.0)))
+            moved.append(end + sign * 0.5 * (q_hi - q_lo))
+        out.append({**r, "lo95": max(moved[0], float(box.lower[k])),
+                    "hi95": min(moved[1], float(box.upper[k]))})
+    return out
+
+
 def likelihood_hull(rows: Sequence[dict], theta: np.ndarray, loglik: np.ndarray, box: Box
                     ) -> list[dict]:
     """Summary rows whose reported interval also holds every draw the likelihood does not

@@ -39,6 +39,10 @@ class Diagnosis:
     #: where the model fits: candidates the data do not reject that would move a constant
     #: outside its reported interval (:func:`~solderpyro.diagnose.ruleout.cannot_rule_out`)
     cannot_rule_out: list[dict] = dataclasses.field(default_factory=list)
+    #: the constants' reported intervals widened to admit each of those effects: name ->
+    #: ``[lo, hi]``, physical units (:func:`~solderpyro.diagnose.ruleout.admitting`); empty
+    #: where the data rule every effect out
+    admitting: dict[str, list[float]] = dataclasses.field(default_factory=dict)
     #: the Anand constants the FE's best fit presses against the prior box's faces
     #: (:class:`~solderpyro.diagnose.faces.Face` records)
     faces: list[dict] = dataclasses.field(default_factory=list)
@@ -50,5 +54,6 @@ class Diagnosis:
                 "check": self.check, "base": self.base, "floor": self.floor,
                 "steps": self.steps, "indistinguishable": self.indistinguishable,
                 "suggestions": self.suggestions, "separation": self.separation,
-                "cannot_rule_out": self.cannot_rule_out, "faces": self.faces,
+                "cannot_rule_out": self.cannot_rule_out, "admitting": self.admitting,
+                "faces": self.faces,
                 "denoise": self.denoise, "timing": self.timing}

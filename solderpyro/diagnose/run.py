@@ -67,7 +67,7 @@ from solderpyro.diagnose.refits import (
     linearised_steps,
     pick_draws,
 )
-from solderpyro.diagnose.ruleout import Constants, cannot_rule_out
+from solderpyro.diagnose.ruleout import Constants, admitting, cannot_rule_out
 from solderpyro.diagnose.screen import (
     MIN_IDENTIFIABLE,
     apply_ladder,
@@ -199,13 +199,14 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
         with cost.stage("cannot_rule_out"):
             intervals = reported_intervals(d)
             if intervals is not None:
+                consts = Constants(list(fej["cols"].names[:lay.n_cal]), lay.lo[:lay.n_cal],
+                                   lay.hi[:lay.n_cal], dr["theta"], intervals)
                 found = cannot_rule_out(
-                    y, V[0], J[0][:, group(fej["cols"], "theta")], sigma, lad, Constants(
-                        list(fej["cols"].names[:lay.n_cal]), lay.lo[:lay.n_cal],
-                        lay.hi[:lay.n_cal], dr["theta"], intervals),
+                    y, V[0], J[0][:, group(fej["cols"], "theta")], sigma, lad, consts,
                     {e.name: float(e.off[k]) for e in lay.fx_all.effects
                      if (k := e.size_index) is not None})
                 add_cannot_rule_out(diag, found, lay.fx_all)
+                diag.admitting = {nm: list(iv) for nm, iv in admitting(consts, found).items()}
     if diag.indistinguishable and fits is not None:
         with cost.stage("separation"):
             diag.separation = separation(setup, run_effects, candidates, fits,

@@ -385,7 +385,8 @@ def add_cannot_rule_out(diag: Diagnosis, found: list[dict], fx_all: Any) -> None
         diag.verdict += ("; but the data cannot rule out " + ", ".join(
             r["effect"] for r in found) + ", which would move " + ", ".join(
             dict.fromkeys(nm for r in found for nm in r["outside"]))
-            + " outside the reported intervals (see 'What the data cannot rule out')")
+            + " outside the reported intervals (see 'What the data cannot rule out' for the "
+            "intervals that admit them)")
         diag.suggestions.append(
             "recalibrate with " + " and with ".join(f"effects=[{r['effect']}]" for r in found)
             + " to see the constants' intervals if it is present: these data cannot tell")

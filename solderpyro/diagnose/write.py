@@ -65,6 +65,28 @@ def figures(d: Path, diag: Diagnosis, meas: Any, fp: Fingerprints, sigma: float,
     return f1, f2, f3
 
 
+def admitting_lines(d: Path, admitting: dict[str, list[float]]) -> list[str]:
+    """The intervals that admit what the data cannot rule out beside the reported ones, as
+    markdown lines; also written to ``intervals_admitting.csv`` in ``d`` (``parameter``,
+    ``lo95``, ``hi95``, ``reported_lo95``, ``reported_hi95``, physical units)."""
+    import csv
+
+    from solderpyro.diagnose.load import reported_intervals
+
+    reported = reported_intervals(d) or {}
+    with (d / "intervals_admitting.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["parameter", "lo95", "hi95", "reported_lo95", "reported_hi95"])
+        for nm, (lo, hi) in admitting.items():
+            w.writerow([nm, f"{lo:.6g}", f"{hi:.6g}", *(f"{v:.6g}" for v in reported[nm])])
+    return ["", "The 95 % intervals that hold whether or not these effects are present (each "
+            "interval stretched by what the effect would move it; `intervals_admitting.csv`):",
+            "", "| constant | reported 95 % | admitting what the data cannot rule out |",
+            "|---|---|---|"] + [
+        f"| {nm} | {reported[nm][0]:.4g} - {reported[nm][1]:.4g} | {lo:.4g} - {hi:.4g} |"
+        for nm, (lo, hi) in admitting.items()]
+
+
 def cost_lines(timing: dict[str, dict[str, float | int]]) -> list[str]:
     """The ``timing`` table of :class:`Diagnosis` as markdown lines."""
     lines = ["## Cost per stage", "",
@@ -79,13 +101,16 @@ def cost_lines(timing: dict[str, dict[str, float | int]]) -> list[str]:
 
 def write(d: Path, diag: Diagnosis, pc: PredictiveCheck, sigma: float,
           figs: tuple[str, str, str]) -> None:
-    """Write ``diagnosis.json``, ``diagnosis.md`` and ``diagnosis.html`` in ``d``.
+    """Write ``diagnosis.json``, ``diagnosis.md`` and ``diagnosis.html`` in ``d`` (and
+    ``intervals_admitting.csv`` where the data cannot rule an effect out; an earlier
+    diagnosis's is removed where they can).
 
     Args:
         diag: the diagnosis; pc: its posterior predictive check; sigma: noise sd, um;
         figs: the figure file names (:func:`figures`).
     """
     f1, f2, f3 = figs
+    (d / "intervals_admitting.csv").unlink(missing_ok=True)
     (d / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2) + "\n")
     lines = ["# solderpyro diagnosis", "", f"**Verdict:** {diag.verdict}.", "",
              f"- at the FE's best fit ({(diag.base or {}).get('start', 'the posterior draw')}"
@@ -133,6 +158,8 @@ def write(d: Path, diag: Diagnosis, pc: PredictiveCheck, sigma: float,
                  "(the constants refitted, linearised): the intervals assume they are absent.")
         lines += ["", "## What the data cannot rule out", "", intro, ""] + [
             f"- {r['text']}." for r in diag.cannot_rule_out]
+        if diag.admitting:
+            lines += admitting_lines(d, diag.admitting)
     lines += ["", "## Suggestions", ""] + ([f"- {s}" for s in diag.suggestions] or ["- none"])
     if diag.timing:
         lines += [""] + cost_lines(diag.timing)

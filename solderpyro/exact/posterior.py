@@ -38,7 +38,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from solderpyro.calibration.intervals import likelihood_hull, weighted_quantiles, with_intervals
+from solderpyro.calibration.intervals import (
+    likelihood_hull,
+    weighted_quantiles,
+    with_intervals,
+    with_monte_carlo_error,
+)
 from solderpyro.exact.amis import (
     AmisOptions,
     AMISResult,
@@ -428,6 +433,8 @@ def exact_posterior(fun: Fun, coords: UnitCoords, y: np.ndarray, q0: TMixture,
     rows.append({"parameter": "sigma", "q2.5": float(qs[0]), "median": float(qs[1]),
                  "mean": float(sig.mean()), "q97.5": float(qs[2])})
     rows = with_intervals(rows, X, coords.space, weights=w)
+    # the ends rest on the few effective samples in each tail: moved out by their MC error
+    rows = with_monte_carlo_error(rows, X, w, coords.space)
     # every sample the FE's likelihood does not reject stays inside the reported intervals
     inside = np.isfinite(res.log_w) & np.isfinite(ll)
     rows = likelihood_hull(rows, X[inside], ll[inside], coords.space)

@@ -124,6 +124,14 @@ def test_what_the_data_cannot_rule_out_is_said_where_the_model_fits(runs):
             lo, hi = reported_interval(dict(zip(head, rows[nm].split(","), strict=True)))
             assert not lo <= r["moves"][nm][1] <= hi
         assert r["text"] in md and r["effect"] in dg["verdict"]
+    # the intervals admitting them: each holds the reported one and the moved mean
+    adm = runs / "clean" / "intervals_admitting.csv"
+    assert adm.exists() == bool(dg["cannot_rule_out"]) == bool(dg["admitting"])
+    for r in dg["cannot_rule_out"]:
+        for nm in r["outside"]:
+            lo, hi = dg["admitting"][nm]
+            rlo, rhi = reported_interval(dict(zip(head, rows[nm].split(","), strict=True)))
+            assert lo <= rlo <= rhi <= hi and lo <= r["moves"][nm][1] <= hi
 
 
 def test_calibrate_with_the_effect_and_compare(runs):
