@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from diagnosis_cases import _covered, _truth  # noqa: E402
+from diagnosis_cases import _covered, _truth, caveat_runs  # noqa: E402
 
 from solderpyro.config.rundir import RUN_JSON, RunDir  # noqa: E402
 
@@ -58,11 +58,12 @@ def _run(d: Path) -> dict:
 
 
 def final_runs(rec: dict) -> list[dict]:
-    """The runs a user ends with: the recalibration with the selected effects (``with``); in
-    a tie, the recalibration with each tied effect (``with_EFFECT``, as the verdict advises);
-    else the base run."""
+    """The runs a user ends with: the recalibration with the selected effects (``with``),
+    and with them and each candidate the verdict cannot rule out beside them (``caveat_runs``,
+    as it advises); in a tie, the recalibration with each tied effect (``with_EFFECT``, as the
+    verdict advises); else the base run."""
     if rec.get("with"):
-        return [rec["with"]]
+        return [rec["with"]] + [rec[k] for k in rec.get("caveat_runs") or [] if rec.get(k)]
     tied = [rec[f"with_{e}"] for e in (rec.get("tie") or [[]])[0] if rec.get(f"with_{e}")]
     return tied or [rec["base"]]
 
@@ -158,6 +159,7 @@ def case_record(case: Path, data: Path) -> dict:
         rec["verdict"] = dg.get("verdict")
         rec["tie"] = dg.get("indistinguishable") or []
         rec["cannot_rule_out"] = [r["effect"] for r in dg.get("cannot_rule_out") or []]
+        rec["caveat_runs"] = list(caveat_runs(dg))
         rec["diagnose_seconds"] = round((dg.get("timing") or {}).get(
             "total", {}).get("seconds", 0)) or None
     rec["sigma_um"] = RunDir.read(case / "base").info.sigma_known

@@ -115,6 +115,18 @@ def _intervals(run: Path) -> dict[str, list]:
                 for r in csv.DictReader(f)}
 
 
+def caveat_runs(dg: dict) -> dict[str, list[str]]:
+    """The recalibrations a diagnosis ``dg`` (diagnosis.json) advises beside its selection:
+    run directory name -> effects, one per candidate that frees the constants the selection
+    leaves on the box's faces (a ``cannot_rule_out`` entry with ``with``)."""
+    out = {}
+    for r in dg.get("cannot_rule_out") or []:
+        if r.get("with"):
+            effs = [*r["with"], r["effect"]]
+            out["with_" + "+".join(effs)] = effs
+    return out
+
+
 def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, store: str,
              recalibrate: bool, keep_diagnosis: bool = False, with_hidden: bool = False
              ) -> dict:
@@ -148,6 +160,11 @@ def run_case(name: str, data: dict[str, str], bases: dict[str, str], work: str, 
     if recalibrate and rec["selected"]:
         # a tie after the selection is about what remains: the advice is the selection
         rec.update(_recalibrate(csv_p, base, w / "with", rec["selected"], store, truth, wall))
+        # where the selection leaves constants on the faces that another candidate frees at a
+        # fit as good, the verdict advises recalibrating with it too: a user does both
+        rec["caveat_recalibrated"] = {
+            nm: _recalibrate(csv_p, base, w / nm, effs, store, truth, wall)
+            for nm, effs in caveat_runs(dg).items()}
     elif recalibrate and rec["tie"]:
         # The verdict names no winner; a user tries each tied effect, as its advice says.
         rec["tie_recalibrated"] = {

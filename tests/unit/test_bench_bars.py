@@ -66,3 +66,36 @@ def test_a_case_counts_as_caveated_only_where_selection_and_caveat_name_every_hi
     ]
     b = bars(recs)
     assert b["caveat"] == [2, 4] and b["selected"] == [1, 5]
+
+
+def test_the_recalibration_a_caveat_advises_beside_the_selection_counts_as_a_final_run():
+    """A selection whose verdict cannot rule out a candidate that frees the faces advises
+    recalibrating with both too: a user who follows it holds both runs, so both count (the
+    selection's misses all four constants, the one with both holds them) and both take time."""
+    both = "with_lag+sf"
+    rec = {"hidden": "lag+sf", "selected": ["lag"], "tie": [], "misfit": True,
+           "sigma_um": 0.05, "diagnose_seconds": 100, "cannot_rule_out": ["sf"],
+           "caveat_runs": [both], "base": _run(60, ["s0", "m"]),
+           "with": _run(50, ["s0", "m"], ["s0", "m"], rms=0.05),
+           both: _run(70, ["s0", "m"], rms=0.049)}
+    b = bars([rec])
+    assert b["coverage_per_parameter"] == {"s0": [1, 2], "m": [1, 2]}
+    assert b["loop_s_median"] == 60 + 100 + 50 + 70
+    assert b["caveat"] == [1, 1] and b["selected"] == [0, 1]  # named by the caveat
+
+
+def test_where_a_diagnosis_gives_intervals_admitting_what_it_cannot_rule_out_they_are_scored(
+        tmp_path):
+    """A base run whose summary.csv misses the true m, and whose diagnosis's
+    intervals_admitting.csv holds it: the truth counts as covered; without the file, not."""
+    from diagnosis_cases import _covered
+
+    (tmp_path / "summary.csv").write_text(
+        "parameter,q2.5,median,mean,q97.5,lo95,hi95,interval\n"
+        "s0,10,12,12,14,10,14,central\nm,0.05,0.06,0.06,0.066,0.05,0.066,central\n")
+    truth = {"s0": 12.5, "m": 0.07}
+    assert _covered(tmp_path, truth) == {"s0": True, "m": False}
+    (tmp_path / "intervals_admitting.csv").write_text(
+        "parameter,lo95,hi95,reported_lo95,reported_hi95\n"
+        "s0,10,14,10,14\nm,0.05,0.078,0.05,0.066\n")
+    assert _covered(tmp_path, truth) == {"s0": True, "m": True}
