@@ -216,10 +216,12 @@ def figure(res: dict, path: Path) -> None:
                     label=None if name in shown else name)
             shown.add(name)
             left += v or 0.0
-        for f in finals:
+        for j, f in enumerate(finals):  # several runs a user ends with: one above another
+            y = i + 0.3 * (j - 0.5 * (len(finals) - 1))
             for k in f.get("truths", []):
-                ax2.scatter(params.index(k), i, marker="o" if k not in f["missed"] else "x",
-                            color="#1a9850" if k not in f["missed"] else "#d73027", s=40)
+                ax2.scatter(params.index(k), y, marker="o" if k not in f["missed"] else "x",
+                            color="#1a9850" if k not in f["missed"] else "#d73027",
+                            s=40 if len(finals) == 1 else 22)
         cro = r.get("cannot_rule_out") or []
         sel = ("+".join(r.get("selected") or []) or ("tie" if r.get("tie") else "none")) + (
             f"; caveat: {cro[0]}" + (f" +{len(cro) - 1}" if len(cro) > 1 else "")
@@ -236,7 +238,8 @@ def figure(res: dict, path: Path) -> None:
     ax2.set_xlim(-0.5, len(params) - 0.5)
     b = res["bars"]
     ax2.set_title(f"truth inside the reported 95 % interval (o) or not (x): "
-                  f"{b['coverage'][0]} of {b['coverage'][1]}\n(Anand constants "
+                  f"{b['coverage'][0]} of {b['coverage'][1]}\n(several runs a user ends "
+                  f"with: one row each; Anand constants "
                   f"{b['coverage_constants'][0]} of {b['coverage_constants'][1]})", fontsize=9)
     ax.set_title(f"selected {b['selected'][0]} of {b['selected'][1]} (of the others, the "
                  f"caveat names it: {b['caveat'][0]} of {b['caveat'][1]});\nclean flagged "
@@ -270,7 +273,7 @@ def table(res: dict) -> str:
         ls = " + ".join(str(round(v)) if v is not None else "-" for _, v in parts)
         out.append(f"| {r['case']} | {sel} | {', '.join(rms) or '-'} | "
                    f"{', '.join(miss) or 'none'} (of {tot}) | {ls} = "
-                   f"{round(sum(v or 0 for _, v in parts))} | {r.get('commit')}, "
+                   f"{round(sum(v or 0 for _, v in parts))} | {(r.get('commit') or '-')[:7]}, "
                    f"{r.get('threads') or 1}, {r.get('load_1min')} |")
     return "\n".join(out)
 

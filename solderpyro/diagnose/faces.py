@@ -50,7 +50,7 @@ class Face:
 
     def text(self) -> str:
         """``"s0 = 25 MPa (upper bound 25)"``."""
-        u = f" {self.unit}" if self.unit else ""
+        u = f" {self.unit}" if self.unit not in ("", "-") else ""  # "-": dimensionless
         return f"{self.name} = {self.value:.4g}{u} ({self.side} bound {self.bound:.4g})"
 
     def to_json(self) -> dict[str, str | float]:

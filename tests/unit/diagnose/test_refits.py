@@ -216,3 +216,10 @@ def test_global_refits_whose_scouted_starts_all_converged_go_on(toy, monkeypatch
                            scout_fe=CheapToyFE())
     for r, g in zip(ref, got, strict=True):
         assert g.chi2 == pytest.approx(r.chi2, abs=4 * LM_TOL)
+
+
+def test_a_face_says_its_unit_and_a_dimensionless_constant_none():
+    from solderpyro.diagnose.faces import Face
+
+    assert Face("s0", "upper", 25.0, 25.0, "MPa").text() == "s0 = 25 MPa (upper bound 25)"
+    assert Face("xi", "lower", 1.0, 1.0, "-").text() == "xi = 1 (lower bound 1)"
