@@ -38,6 +38,8 @@ class Columns:
     owner: list[str]  # "theta" or the effect's name
     step: np.ndarray  # physical step per column
     central: np.ndarray  # bool per column
+    lower: np.ndarray  # each column's box (physical units): no step leaves it
+    upper: np.ndarray
 
 
 def fd_design(box_names: list[str], box_lo: list[float], box_hi: list[float],
@@ -46,6 +48,7 @@ def fd_design(box_names: list[str], box_lo: list[float], box_hi: list[float],
     then each candidate's parameters (``cands``: name -> bound effect); each steps ``rel`` of
     its box width, central except one-sided where "off" minus the step leaves the box."""
     names, owner, step, central = [], [], [], []
+    lower, upper = list(map(float, box_lo)), list(map(float, box_hi))
     for nm, lo, hi in zip(box_names, box_lo, box_hi, strict=True):
         names.append(nm)
         owner.append("theta")
@@ -60,7 +63,10 @@ def fd_design(box_names: list[str], box_lo: list[float], box_hi: list[float],
             owner.append(ename)
             step.append(rel * (hi - lo))
             central.append(off - rel * (hi - lo) >= lo)  # one-sided at the box edge
-    return Columns(names, owner, np.array(step), np.array(central))
+            lower.append(lo)
+            upper.append(hi)
+    return Columns(names, owner, np.array(step), np.array(central), np.array(lower),
+                   np.array(upper))
 
 
 def fe_jacobians(lay: Layout, theta: np.ndarray, fe: SpecimenModels | None = None,
@@ -97,7 +103,7 @@ def fe_jacobians(lay: Layout, theta: np.ndarray, fe: SpecimenModels | None = Non
     cols = fd_design(list(cal.names), list(cal.lower), list(cal.upper), cands, rel)
     n_cal = cal.dim
     off = np.array([v for e in cands.values() for v in e.off], float)
-    rows = _fd_rows(theta, off, cols)
+    rows, span = fd_rows(theta, off, cols)
     ladder, lad_rows = _ladder_rows(np.concatenate([theta[0], off]), cands, cols, n_cal)
     P = torch.tensor(np.array(rows + lad_rows), dtype=torch.float64)
     n_lad = sum(len(v) for v in ladder.values())
@@ -109,7 +115,7 @@ def fe_jacobians(lay: Layout, theta: np.ndarray, fe: SpecimenModels | None = Non
     if not bool(res.ok.all()):
         bad = [r for r in res.reasons if r]
         raise RuntimeError(f"{len(bad)} FE runs of the diagnosis failed: {bad[:2]}")
-    Vb, J = _fd_jacobians(V[:len(rows)], len(theta), cols)
+    Vb, J = fd_jacobians(V[:len(rows)], span, cols)
     VL, i = {}, len(rows)
     for ename, vals in ladder.items():
         VL[ename] = (vals, V[i:i + len(vals)])
@@ -119,20 +125,26 @@ def fe_jacobians(lay: Layout, theta: np.ndarray, fe: SpecimenModels | None = Non
             "times": tuple(float(t) for t in res.times)}
 
 
-def _fd_rows(theta: np.ndarray, off: np.ndarray, cols: Columns) -> list[np.ndarray]:
+def fd_rows(theta: np.ndarray, off: np.ndarray, cols: Columns
+             ) -> tuple[list[np.ndarray], np.ndarray]:
     """FE rows per draw of ``theta (K, n_cal)``: the base (candidates at ``off``), then per
-    column the forward step and, where central, the backward one."""
-    rows = []
-    for th in theta:
+    column the forward step and, where central, the backward one, each stopped at the
+    column's box (a draw at a bound: an effect's parameter outside its box is no model, e.g.
+    a lag's split above 0.5). Returns the rows and ``(K, n_col)`` the distance each column's
+    difference spans (physical units)."""
+    rows, span = [], np.empty((len(theta), len(cols.names)))
+    for k, th in enumerate(theta):
         base = np.concatenate([th, off])
         rows.append(base)
         for c in range(len(cols.names)):
-            e = np.zeros_like(base)
-            e[c] = cols.step[c]
-            rows.append(base + e)
+            plus, minus = base.copy(), base.copy()
+            plus[c] = min(base[c] + cols.step[c], cols.upper[c])
+            rows.append(plus)
             if cols.central[c]:
-                rows.append(base - e)
-    return rows
+                minus[c] = max(base[c] - cols.step[c], cols.lower[c])
+                rows.append(minus)
+            span[k, c] = plus[c] - minus[c]
+    return rows, span
 
 
 def _ladder_rows(base0: np.ndarray, cands: dict[str, Any], cols: Columns, n_cal: int
@@ -156,8 +168,11 @@ def _ladder_rows(base0: np.ndarray, cands: dict[str, Any], cols: Columns, n_cal:
     return ladder, rows
 
 
-def _fd_jacobians(V: np.ndarray, K: int, cols: Columns) -> tuple[np.ndarray, np.ndarray]:
-    """``(V (K, ...), J (K, ..., n_col))`` from the FE at the rows of :func:`_fd_rows`."""
+def fd_jacobians(V: np.ndarray, span: np.ndarray, cols: Columns
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``(V (K, ...), J (K, ..., n_col))`` from the FE at the rows of :func:`fd_rows` and
+    the distances ``span (K, n_col)`` their differences cover."""
+    K = len(span)
     Vb = np.empty((K, *V.shape[1:]))
     J = np.empty((K, *V.shape[1:], len(cols.names)))
     i = 0
@@ -168,10 +183,10 @@ def _fd_jacobians(V: np.ndarray, K: int, cols: Columns) -> tuple[np.ndarray, np.
             plus = V[i]
             i += 1
             if cols.central[c]:
-                J[k, ..., c] = (plus - V[i]) / (2 * cols.step[c])
+                J[k, ..., c] = (plus - V[i]) / span[k, c]
                 i += 1
             else:
-                J[k, ..., c] = (plus - Vb[k]) / cols.step[c]
+                J[k, ..., c] = (plus - Vb[k]) / span[k, c]
     return Vb, J
 
 
