@@ -40,10 +40,12 @@ The rules, as the diagnosis states them:
   faces, the constants may still be compensating something: the other flagged candidates are
   refitted with the chosen ones, and each that fits as well (within :data:`APART_CHI2`) while
   moving :data:`MIN_PRESSED` or more of those constants off the faces is named
-  (:func:`mark_freeing`), never added: the data cannot tell whether it is present. On moderate
-  residual stress plus a second-order lag, the lag alone fitted at 0.99 noise sd with xi, s0,
-  Q/R at or near their bounds; with the residual stress on too the fit was as good and s0,
-  Q/R moved well inside the box.
+  (:func:`mark_freeing`): the data cannot tell whether it is present. Where the best of them
+  is also flagged (its likelihood ratio rejects at the targeted level, the base's own misfit
+  rule, with nothing flagged tied with it), the data do tell, and it is added
+  (:func:`freeing_added`): on moderate residual stress plus a second-order lag, the lag alone
+  fitted at 0.99 noise sd with s0, Q/R and xi on the faces, and the residual stress with it
+  lowered the chi-square by 77 on 2 dof with the three inside the box.
 * **Explained or not.** The selected effects explain the misfit when the RMS they leave is at
   most :data:`EXPLAINED_SD` noise sd (above the baseline floor). Otherwise the verdict says the
   model misses something none of the candidates describes, and names none.
@@ -435,11 +437,30 @@ def forward_steps(first: list[Refit], refit_next: Any, n: int, n_params: int, si
                            len(others)))
         if not misfit and faces_of is not None:  # explained: name what frees the faces
             steps[-1] = mark_freeing(steps[-1], cur, pressed, faces_of)
+            chosen = freeing_added(steps[-1], chosen)
             break
         before = len(chosen)
         chosen, tie = forward_step(steps[-1], chosen)
         added = len(chosen) > before
     return steps, chosen, tie
+
+
+def freeing_added(judged: list[Judged], chosen: tuple[str, ...]) -> tuple[str, ...]:
+    """``chosen`` plus the candidate of ``judged`` (a step after them, :func:`mark_freeing`
+    applied) that the data ask for beside them: the best flagged refit (its likelihood ratio
+    rejects at the targeted level and clears the floor, the base's own misfit rule), no other
+    flagged within :data:`APART_CHI2` of it, and it moves the constants the chosen effects
+    leave on the faces off them. Otherwise ``chosen`` unchanged: a freeing candidate that only
+    fits as well is named, not added (:func:`~solderpyro.diagnose.verdict.still_freeing`).
+
+    Why: moderate residual stress beside a second-order lag (interior constants): the lag
+    alone fitted at 0.99 noise sd with s0, Q/R and xi on the faces, and the residual stress
+    refitted with it lowered the chi-square by 77 on 2 dof with the three inside the box; it
+    was named as not ruled out, and only a diagnosis of the lag's recalibration selected it."""
+    best = ties(rank(judged))
+    if len(best) == 1 and any(j.refit.name == best[0] and j.frees for j in judged):
+        return (*chosen, best[0])
+    return chosen
 
 
 def share_text(v: float | None) -> str:

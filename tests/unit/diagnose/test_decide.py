@@ -2,6 +2,8 @@
 is an exact least-squares fit: a failed refit is never ranked, the floor is what the module says
 it is, forward steps find two effects, a model-form misfit is called unexplained."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -311,6 +313,42 @@ def test_constants_left_on_the_faces_after_the_chosen_effect_name_the_candidate_
         y0 = JT @ np.array([0.9, 1.5]) + 1.0 * SIG["a"]
         first0, (steps0, chosen0, _) = run(y0, faces_of)
         assert faces_of(first0[0]) == () and chosen0 == ("a",) and len(steps0) == 1
+    finally:
+        del SIG["e"]
+
+
+def test_a_freeing_candidate_the_data_ask_for_is_added_not_only_named():
+    """The same toy with e at 0.2 instead of 0.16: a alone still fits within the noise
+    (chi2 55 on 397 dof, no misfit remains) with both constants on the faces, but e refitted
+    with a lowers the chi-square by 55 on 1 dof, far past the targeted test (the base's own
+    misfit rule) and frees both: e is added, and the verdict selects a and e, naming nothing
+    as not ruled out. At 0.16 (the test above) it only fits as well: named, not added."""
+    from solderpyro.diagnose.decide import freeing_added
+
+    SIG["e"] = 1.0 + X + 0.02 * X**2
+    try:
+        sigma, upper = 0.2, np.array([1.1, 2.0])
+
+        def faces_of(r):
+            return tuple(nm for nm, v, h in zip(("offset", "slope"), r.x[:2], upper,
+                                                strict=True) if v >= 0.95 * h)
+
+        y = JT @ np.array([0.95, 1.85]) + 1.0 * SIG["a"] + 0.2 * SIG["e"]
+        base = _boxed(y, sigma, (), np.inf, upper)
+        first = [_boxed(y, sigma, (c,), base.chi2, upper) for c in ("a", "e")]
+
+        def nxt(cur, chosen, others):
+            return [_boxed(y, sigma, (*chosen, c), cur.chi2, upper) for c in others]
+
+        assert faces_of(first[0]) == ("offset", "slope") and not remains(first[0].chi2, N, 3)
+        steps, chosen, tie = forward_steps(first, nxt, N, 2, sigma, Floor(), 2, faces_of)
+        assert chosen == ("a", "e") and tie == []
+        e = next(j for j in steps[1] if j.refit.name == "e")
+        assert e.flagged and e.frees == ("offset", "slope")
+        assert np.allclose(e.refit.x[:2], [0.95, 1.85], atol=1e-6)  # back at the truth
+        assert freeing_added([replace(e, frees=())], ("a",)) == ("a",)  # not freeing: not added
+        dg, _ = _verdict(y, sigma, ("a", "e"), steps, chosen, tie, base.chi2)
+        assert dg.selected == ["a", "e"] and dg.cannot_rule_out == []
     finally:
         del SIG["e"]
 
