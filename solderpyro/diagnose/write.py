@@ -65,26 +65,29 @@ def figures(d: Path, diag: Diagnosis, meas: Any, fp: Fingerprints, sigma: float,
     return f1, f2, f3
 
 
-def admitting_lines(d: Path, admitting: dict[str, list[float]]) -> list[str]:
-    """The intervals that admit what the data cannot rule out beside the reported ones, as
-    markdown lines; also written to ``intervals_admitting.csv`` in ``d`` (``parameter``,
-    ``lo95``, ``hi95``, ``reported_lo95``, ``reported_hi95``, physical units)."""
-    import csv
-
-    from solderpyro.diagnose.load import reported_intervals
-
-    reported = reported_intervals(d) or {}
-    with (d / "intervals_admitting.csv").open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["parameter", "lo95", "hi95", "reported_lo95", "reported_hi95"])
-        for nm, (lo, hi) in admitting.items():
-            w.writerow([nm, f"{lo:.6g}", f"{hi:.6g}", *(f"{v:.6g}" for v in reported[nm])])
+def admitting_lines(admitting: dict[str, list[float]],
+                    reported: dict[str, tuple[float, float]]) -> list[str]:
+    """The intervals that admit what the data cannot rule out beside the ``reported`` ones
+    (name -> 95 % interval, physical units), as markdown lines."""
     return ["", "The 95 % intervals that hold whether or not these effects are present (each "
             "interval stretched by what the effect would move it; `intervals_admitting.csv`):",
             "", "| constant | reported 95 % | admitting what the data cannot rule out |",
             "|---|---|---|"] + [
         f"| {nm} | {reported[nm][0]:.4g} - {reported[nm][1]:.4g} | {lo:.4g} - {hi:.4g} |"
         for nm, (lo, hi) in admitting.items()]
+
+
+def write_admitting(d: Path, admitting: dict[str, list[float]],
+                    reported: dict[str, tuple[float, float]]) -> None:
+    """``intervals_admitting.csv`` in ``d``: ``parameter``, ``lo95``, ``hi95``,
+    ``reported_lo95``, ``reported_hi95`` (physical units)."""
+    import csv
+
+    with (d / "intervals_admitting.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["parameter", "lo95", "hi95", "reported_lo95", "reported_hi95"])
+        for nm, (lo, hi) in admitting.items():
+            w.writerow([nm, f"{lo:.6g}", f"{hi:.6g}", *(f"{v:.6g}" for v in reported[nm])])
 
 
 def cost_lines(timing: dict[str, dict[str, float | int]]) -> list[str]:
@@ -159,7 +162,11 @@ def write(d: Path, diag: Diagnosis, pc: PredictiveCheck, sigma: float,
         lines += ["", "## What the data cannot rule out", "", intro, ""] + [
             f"- {r['text']}." for r in diag.cannot_rule_out]
         if diag.admitting:
-            lines += admitting_lines(d, diag.admitting)
+            from solderpyro.diagnose.load import reported_intervals
+
+            reported = reported_intervals(d) or {}
+            write_admitting(d, diag.admitting, reported)
+            lines += admitting_lines(diag.admitting, reported)
     lines += ["", "## Suggestions", ""] + ([f"- {s}" for s in diag.suggestions] or ["- none"])
     if diag.timing:
         lines += [""] + cost_lines(diag.timing)
