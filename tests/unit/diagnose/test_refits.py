@@ -223,3 +223,59 @@ def test_a_face_says_its_unit_and_a_dimensionless_constant_none():
 
     assert Face("s0", "upper", 25.0, 25.0, "MPa").text() == "s0 = 25 MPa (upper bound 25)"
     assert Face("xi", "lower", 1.0, 1.0, "-").text() == "xi = 1 (lower bound 1)"
+
+
+TOP = 1.6
+
+
+def nested_toy_model(rows: np.ndarray) -> np.ndarray:
+    """``rows (N, 4)`` = (a, b, first p, right q) -> ``(N, 40)``: the right effect's
+    signature ``q (TOP - b) x^3`` vanishes where ``b`` sits on its upper face; the first
+    effect's (a fast cosine) does not."""
+    a, b, p, q = (rows[:, k, None] for k in range(4))
+    return a * X + b * X**2 + p * 0.05 * np.cos(14.0 * X) + q * (TOP - b) * X**3
+
+
+class NestedToyFE(ToyFE):
+    def runs(self, P: torch.Tensor, times, field, fx, keep=None) -> SimpleNamespace:
+        V = torch.as_tensor(nested_toy_model(P.numpy()))[:, None, :]
+        return SimpleNamespace(V=V, ok=torch.ones(len(P), dtype=torch.bool), times=(0.0,),
+                               names=self.names)
+
+
+def test_a_next_candidate_trapped_at_the_faces_is_refitted_from_the_literature_constants():
+    """Two hidden effects. The base fit and the first one's refit press both constants against
+    their upper faces (the second effect's ``3 (TOP - b) x^3`` absorbed by ``a x + b x^2``),
+    where the second's signature vanishes: refitted only from the first's fit
+    it stays there (chi-square unchanged, far above the noise). From the literature constants
+    as well, the forward steps add it, at the noise level, the constants off the faces."""
+    space = Box(("a", "b"), (0.5, 0.5), (TOP, TOP))
+    setup = SimpleNamespace(space=space, anand={"a": 1.2, "b": 1.2})
+    lay = Layout(setup, (), ("first", "right"), (0.0,), False, None, 2,
+                 np.array([0.5, 0.5, -4.0, 0.0]), np.array([TOP, TOP, 4.0, 12.0]),
+                 np.zeros(2), np.array(["first", "right"], dtype=object), ("a", "b", "p", "q"))
+    y = (nested_toy_model(np.array([[1.0, 1.0, 1.0, 3.0]]))[0]
+         + SIGMA * np.random.default_rng(3).standard_normal(len(X)))
+    meas, fe = ToyData(y), NestedToyFE()
+    n = len(meas)
+    base = base_fit(lay, fe, meas, SIGMA, {"posterior median": np.array([1.2, 1.2])})
+    assert len(on_faces(base["x"][:2], space)) == 2
+    scores = [SimpleNamespace(effect="first", statistic=50.0, dof=1, lr=None, lr_value=None),
+              SimpleNamespace(effect="right", statistic=0.0, dof=1, lr=None, lr_value=None)]
+    local = first_refits(lay, fe, meas, SIGMA, base, scores, scores)
+    by = {r.name: r for r in local}
+    assert len(on_faces(by["first"].x[:2], space)) == 2
+    # from the first effect's fit the right one cannot move: its refit from there is trapped
+    trapped = refit_candidates(lay, fe, meas, SIGMA, by["first"].x, by["first"].chi2,
+                               ("first",), {"right": by["first"].x.copy()})[0]
+    assert trapped.chi2 > 100 * n
+    steps, chosen, tie = forward(lay, fe, meas, SIGMA, local, Floor())
+    assert chosen == ("first", "right") and tie == []
+    assert settled(steps, chosen, tie, n, SIGMA, Floor())
+    got = next(j.refit for j in steps[1] if j.refit.name == "right")
+    # at the noise level: within 4 sd of its expectation n - 4 (sd sqrt(2 (n - 4)))
+    assert got.chi2 < (n - 4) + 4 * np.sqrt(2 * (n - 4))
+    assert on_faces(got.x[:2], space) == []
+    # within 5 of their Gauss-Newton sd at the truth (0.005, 0.016, 0.010, 0.062)
+    assert np.all(np.abs(got.x - [1.0, 1.0, 1.0, 3.0]) < 5 * np.array([0.0053, 0.0163,
+                                                                       0.0097, 0.062]))
