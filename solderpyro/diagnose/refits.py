@@ -317,9 +317,7 @@ def starts(setup: Any, theta: np.ndarray, idx: np.ndarray, fe_ok: bool
     out = {"posterior median": theta[idx[0]]}
     if fe_ok:
         return out
-    lit = np.median(theta, 0)
-    lit[:setup.space.dim] = [setup.anand[nm] for nm in setup.space.names]
-    out["literature constants"] = lit
+    out["literature constants"] = literature_start(setup, np.median(theta, 0))
     z = (theta - np.median(theta, 0)) / (theta.std(0) + 1e-300)
     out["farthest posterior draw"] = theta[int(np.argmax((z**2).sum(1)))]
     return out
@@ -395,7 +393,7 @@ def forward(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float, first: lis
             # from a fit that presses the faces a next candidate's signature can vanish (where
             # the solder barely creeps, a residual stress barely shows): each is also refitted
             # from the literature constants, and the better fit kept
-            lit_starts = {c: literature_start(lay, x) for c, x in st.items()}
+            lit_starts = {c: literature_start(lay.setup, x) for c, x in st.items()}
             again = refit_candidates(lay, fe, meas, sigma, cur.x, cur.chi2, chosen,
                                      lit_starts, cheap)
             nxt = [b if b.ok and (not a.ok or b.chi2 < a.chi2) else a
@@ -412,12 +410,12 @@ def forward(lay: Layout, fe: SpecimenModels, meas: Any, sigma: float, first: lis
                          len(lay.candidates), faces_of)
 
 
-def literature_start(lay: Layout, x: np.ndarray) -> np.ndarray:
-    """``x (n_col,)`` with the Anand constants at the literature values (``setup.anand``), every
-    other column as it is."""
-    space = lay.setup.space
+def literature_start(setup: Any, x: np.ndarray) -> np.ndarray:
+    """A copy of row ``x`` (any length from ``setup.space.dim`` on, physical units) with the
+    Anand constants at the literature values (``setup.anand``), every other column as it is."""
+    space = setup.space
     out = np.asarray(x, float).copy()
-    out[:space.dim] = [lay.setup.anand[nm] for nm in space.names]
+    out[:space.dim] = [setup.anand[nm] for nm in space.names]
     return out
 
 
@@ -448,7 +446,7 @@ def spread_starts(lay: Layout, base_x: np.ndarray, k: int = SPREAD_STARTS, seed:
     space = lay.setup.space
     d = space.dim
     out: dict[str, np.ndarray] = {}
-    out["literature constants"] = literature_start(lay, base_x[:lay.n_cal])
+    out["literature constants"] = literature_start(lay.setup, base_x[:lay.n_cal])
     if k > 0:
         u = 0.15 + 0.7 * qmc.LatinHypercube(d=d, seed=seed).random(k)
         phys = space.from_unit(torch.as_tensor(u, dtype=torch.float64)).numpy()
