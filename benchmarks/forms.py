@@ -15,8 +15,10 @@ form                      differs from the library's effect by
                           split = 1/2 (its default is one lag, split = 0)
 ``lag_third_order``       three first-order lags in series, each tau/3: outside the library's
                           family (at most two stages)
-``cte_quadratic``         alpha(T) = alpha25 (1 + c (T - 25) + (c (T - 25))^2 / 2) (the
-                          library: linear in T)
+``cte_quadratic``         alpha(T) = alpha25 (1 + c (T - 25) + (c (T - 25))^2 / 2). The
+                          library's family runs from the exponential through the linear law
+                          (its default) to the square root: the exponential agrees with this
+                          to second order in c (T - 25) and differs at the third
 ``stress_free_slow``      stress free at 150 degC, cooled before the cycle by Newton's law
                           (fastest at first) at a mean 1 K/min (the library: a constant rate)
 ``stress_free_moderate``  the same from 100 degC at a mean 2 K/min
@@ -154,7 +156,7 @@ class LagCascade(SizeOnly, ThermalLag):
 
 
 @dataclass(frozen=True)
-class CteQuadratic(CteTemperature):
+class CteQuadratic(SizeOnly, CteTemperature):
     """``alpha(T) = alpha25 (1 + c u + (c u)^2 / 2)``, ``u = T - T0``: the thermal strain is
     its integral from the stress-free temperature."""
 

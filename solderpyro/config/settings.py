@@ -21,7 +21,8 @@ DesignSettings = LoopSettings
 
 EXACT_MODES = ("auto", "on", "off")
 #: the profile-likelihood intervals: auto computes them only where the FE-exact posterior is
-#: not reliable (then they are the FE's own intervals)
+#: not reliable (then they are the FE's own intervals, and the reported ones are widened to
+#: hold them)
 PROFILE_CI_MODES = ("auto", "on", "off")
 DISCRETIZATION_MODES = ("correct", "check")
 

@@ -24,7 +24,13 @@ import numpy as np
 import torch
 
 from solderpyro.calibration import predict_observation_model
-from solderpyro.calibration.intervals import MODEL_FORM, likelihood_hull, with_intervals
+from solderpyro.calibration.intervals import (
+    MODEL_FORM,
+    PROFILE,
+    likelihood_hull,
+    profile_hull,
+    with_intervals,
+)
 from solderpyro.calibration.mcmc import WarmStart, format_summary, thin_index, write_summary
 from solderpyro.calibration.predictive import Bands
 from solderpyro.config.compose import Setup
@@ -118,7 +124,8 @@ def unreliable_trust(costly: str, profile_ci: str) -> str:
     elif profile_ci == "off":
         profiles = "the profile intervals are not computed (calibration.exact.profile_ci=off)"
     else:
-        profiles = "the profile intervals (profile_ci.csv) are the FE's own"
+        profiles = ("the 95 % intervals are widened to hold the FE's own profile intervals "
+                    "(profile_ci.csv)")
     return ("neither posterior: the design's budget ran out with the FE disagreeing, and the "
             "FE-exact posterior's weights are not reliable; raise --budget; " + profiles)
 
@@ -892,7 +899,9 @@ def profile_stage(cp: CalibrationProblem, out: Path, rep: Reported, ex: Any,
                   ex_info: dict[str, Any]) -> Reported:
     """95 % profile-likelihood intervals of every parameter through the FE
     (:func:`~solderpyro.exact.posterior.profile_intervals`, from the FE-exact posterior ``ex``'s
-    samples): profile_ci.csv and ``ex_info["profile_ci"]``; a failure is a problem."""
+    samples): profile_ci.csv and ``ex_info["profile_ci"]``; a failure is a problem. Where
+    ``ex``'s weights are not reliable, the reported intervals are widened to hold the profile
+    intervals (:func:`~solderpyro.calibration.intervals.profile_hull`)."""
     from solderpyro.exact.posterior import profile_intervals
 
     space, y = cp.space, cp.y
@@ -920,4 +929,12 @@ def profile_stage(cp: CalibrationProblem, out: Path, rep: Reported, ex: Any,
         log.info("profile CI: %s in [%.4g, %.4g]%s", p.parameter, p.lower, p.upper,
                  " (reaches the box's bound)"
                  if p.at_lower_bound or p.at_upper_bound else "")
-    return rep
+    if ex.reliable:
+        return rep
+    rows = profile_hull(rep.rows, {p.parameter: (p.lower, p.upper) for p in pci})
+    widened = [r["parameter"] for r in rows if r.get("interval") == PROFILE]
+    if widened:
+        log.info("profile CI: the FE-exact posterior is not reliable, so the reported 95 %% "
+                 "intervals of %s are widened to hold the FE's profile intervals",
+                 ", ".join(widened))
+    return replace(rep, rows=rows)

@@ -150,12 +150,7 @@ def _warnings(d: Path, diag: dict | None, cmp: dict | None) -> list[str]:
 
 
 def _summary_rows(d: Path) -> list[list[str]]:
-    from solderpyro.calibration.intervals import (
-        CENTRAL,
-        LIKELIHOOD,
-        MODEL_FORM,
-        reported_interval,
-    )
+    from solderpyro.calibration.intervals import CENTRAL, WIDENED, reported_interval
 
     p = d / "summary.csv"
     if not p.is_file():
@@ -166,8 +161,7 @@ def _summary_rows(d: Path) -> list[list[str]]:
             lo, hi = reported_interval(r)  # the central quantiles in runs made before it
             face = r.get("interval") not in (None, "", CENTRAL)
             kind = r.get("interval")
-            note = (" (95 % widened for model-form error)" if kind == MODEL_FORM
-                    else " (95 % widened to the likelihood's range)" if kind == LIKELIHOOD
+            note = (f" (95 % {WIDENED[kind]})" if kind in WIDENED
                     else f" (95 % from its {kind})" if face else "")
             out.append([r["parameter"] + note,
                         _num(lo), _num(r["median"]), _num(hi),

@@ -20,7 +20,9 @@ from solderpyro.calibration.intervals import (
     LIKELIHOOD,
     LOWER_FACE,
     MODEL_FORM,
+    PROFILE,
     UPPER_FACE,
+    WIDENED,
 )
 from solderpyro.config.rundir import RunDir
 from solderpyro.io.measurements import Measurements
@@ -79,8 +81,7 @@ def _interval_cell(r: dict) -> str:
     if "lo95" not in r:
         return "–"
     mark = {LOWER_FACE: " (from the lower face)", UPPER_FACE: " (to the upper face)",
-            MODEL_FORM: " (widened for model-form error)",
-            LIKELIHOOD: " (widened to the likelihood's range)"}
+            **{k: f" ({v})" for k, v in WIDENED.items()}}
     return (f"[{float(r['lo95']):.4g}, {float(r['hi95']):.4g}]"
             f"{mark.get(str(r.get('interval')), '')}")
 
@@ -210,6 +211,13 @@ def write(rep: CalibrationReport) -> Path:
                   "hull of the posterior's own interval and the one a Kennedy-O'Hagan "
                   "discrepancy over (time, x, y), fitted to the residual, leaves "
                   "(model_form.json). The columns 2.5 % to 97.5 % are the posterior's own."]
+    profiled = [r["parameter"] for r in rows if r.get("interval") == PROFILE]
+    if profiled:
+        lines += ["", "The FE-exact posterior's weights are not reliable, so the 95 % intervals "
+                  "of " + ", ".join(profiled) + " are widened to hold the FE's own "
+                  "profile-likelihood intervals (profile_ci.csv): each is the hull of the "
+                  "surrogate posterior's interval and the profile's. The columns 2.5 % to "
+                  "97.5 % are the surrogate posterior's own."]
     warn = list(rep.problems)
     warn += [f"R-hat of {r['parameter']} is {float(r['r_hat']):.3f} (> 1.01): chains disagree"
              for r in rows if float(r["r_hat"]) > 1.01]

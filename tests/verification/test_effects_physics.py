@@ -229,29 +229,45 @@ def _uniform_block():
     return prob, pts, alpha
 
 
+def _alpha_integral(dT: float, c: float, n: float) -> float:
+    """``int_0^dT alpha(25 + v) / alpha25 dv`` of the CTE family, by 40-point Gauss-Legendre
+    (the integrand is analytic on the interval: exact to rounding)."""
+    x, w = np.polynomial.legendre.leggauss(40)
+    v = 0.5 * dT * (x + 1.0)
+    f = np.exp(c * v) if n == 0.0 else np.exp(np.log1p(n * c * v) / n)
+    return float(0.5 * dT * (w * f).sum())
+
+
 @pytest.mark.parametrize("effects", [("cte_temperature",),
                                      ("stress_free_temperature", "cte_temperature")])
 def test_cte_temperature_free_expansion_is_the_integral(effects):
     """A one-material block expands freely: v = eps (y - y_O) with eps the integral of
-    alpha25 (1 + c (T - 25)) from the stress-free temperature, i.e. relative to the start,
-    alpha25 [(T - 25) + c/2 (T - 25)^2] (T_sf cancels in V relative to the start). 1e-10 of
+    alpha25 (1 + n c (T - 25))^(1/n) from the stress-free temperature, i.e. relative to the
+    start, alpha25 int_0^(T-25) (1 + n c v)^(1/n) dv (T_sf cancels in V relative to the
+    start), for the linear (n = 1), exponential (0) and square-root (2) forms. 1e-10 of
     max|v| (rounding of the elastic solve: ~3e-14 of it measured)."""
     prob, pts, alpha = _uniform_block()
     solver = SpecimenSolver(prob, field_points=([f"p{i}" for i in range(len(pts))], pts),
                             effects=effects)
-    c = torch.tensor([0.0, 2e-3, -1e-3, 3e-3], dtype=F64)
-    q = c[:, None] if len(effects) == 1 else torch.stack([torch.tensor(
-        [25.0, 120.0, 60.0, 183.0], dtype=F64), torch.tensor(
-        [1800.0, 900.0, 9000.0, 3000.0], dtype=F64), c], 1)
+    c = torch.tensor([0.0, 2e-3, -1e-3, 3e-3, 3e-3, 3e-3], dtype=F64)
+    n = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0, 2.0], dtype=F64)
+    q = torch.stack([c, n], 1) if len(effects) == 1 else torch.stack([torch.tensor(
+        [25.0, 120.0, 60.0, 183.0, 150.0, 100.0], dtype=F64), torch.tensor(
+        [1800.0, 900.0, 9000.0, 3000.0, 2000.0, 5000.0], dtype=F64), c, n], 1)
     res = solver.solve(rows(q, ELASTIC), [1.0])
     assert bool(res.ok.all())
     dT = 50.0
-    eps = alpha * (dT + 0.5 * c * dT ** 2)  # (b,)
+    eps = alpha * torch.tensor([_alpha_integral(dT, ci, ni) for ci, ni in
+                                zip(c.tolist(), n.tolist(), strict=True)], dtype=F64)
+    assert eps[1].item() == pytest.approx(alpha * (dT + 0.5 * 2e-3 * dT ** 2), rel=1e-13)
     y = torch.tensor(np.concatenate([[4.5, -4.0], pts[:, 1]]), dtype=F64)
     expect = 1e3 * eps[:, None] * (y - prob.origin[1])  # (b, n_out) um
     err = (res.V[:, 0] - expect).abs().max().item()
     assert err < 1e-10 * expect.abs().max().item(), err
     assert (res.V[1, 0] - res.V[0, 0]).abs().max() > 0.1  # c changes V (here by ~0.4 um)
+    # the form moves V at the box's top c: convex above linear above concave
+    top = res.V[3:, 0, 0]
+    assert top[1] > top[0] > top[2]
 
 
 # ------------------------------------------------------------------ E(T)

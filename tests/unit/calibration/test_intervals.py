@@ -212,6 +212,35 @@ def test_the_likelihood_hull_holds_the_low_end_of_a_ridge_the_prior_volume_leave
         likelihood_hull(rows, x, ll[:-1], box)
 
 
+def test_the_profile_hull_holds_the_fes_profile_where_the_surrogates_interval_is_off():
+    """A mean a measured by n = 400 values of noise sd 1 (the truth 0): the FE's profile
+    interval is exactly the mean +- 1.96 / 20. A surrogate posterior biased by 3 of its sd
+    (0.15) misses the truth; the hull with the profile holds it, is marked ``profile`` and
+    is no narrower. A profile inside the interval, or one that adds less than
+    LIKELIHOOD_GAIN of its width, leaves the row alone; a parameter without a profile (the
+    noise sd) is unchanged."""
+    from solderpyro.calibration.intervals import LIKELIHOOD_GAIN, PROFILE, profile_hull
+
+    rng = np.random.default_rng(5)
+    y = rng.standard_normal(400)
+    half = 1.959963984540054 / 20.0
+    prof = (float(y.mean() - half), float(y.mean() + half))
+    assert prof[0] < 0.0 < prof[1]
+    sur = y.mean() + 0.15 + half * rng.standard_normal(4000) / 1.96  # biased by 3 sd
+    box = Box(("a",), (-5.0,), (5.0,))
+    rows = _rows(sur[:, None], box) + [{"parameter": "sigma", "lo95": 0.9, "hi95": 1.1,
+                                        "interval": CENTRAL}]
+    assert rows[0]["lo95"] > 0.0  # the surrogate's interval misses the truth
+    out = profile_hull(rows, {"a": prof})
+    assert out[0]["interval"] == PROFILE and out[0]["lo95"] == prof[0] < 0.0
+    assert out[0]["hi95"] == rows[0]["hi95"] and out[1] == rows[1]
+    inner = (rows[0]["lo95"] + 1e-3, rows[0]["hi95"] - 1e-3)
+    assert profile_hull(rows, {"a": inner}) == rows
+    w = rows[0]["hi95"] - rows[0]["lo95"]
+    small = (rows[0]["lo95"] - 0.5 * LIKELIHOOD_GAIN * w, rows[0]["hi95"])
+    assert profile_hull(rows, {"a": small})[0] == rows[0]
+
+
 def _normal_importance_rows(rng: np.random.Generator, n: int, scale: float
                             ) -> tuple[list[dict], np.ndarray, np.ndarray, Box]:
     """Importance samples of N(0, 1) from N(0, scale^2): rows with the weighted central

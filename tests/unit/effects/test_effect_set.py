@@ -35,7 +35,7 @@ F64 = torch.float64
 #: k_E = 3e-3, tau = 60 s they moved it by ~2e-3, below that bound); gamma_k = 100 recovers a
 #: visible part of the C_k = 500 MPa back stress
 INTERIOR = {"modulus_temperature": [1e-2, 0.6], "stress_free_temperature": [120.0, 3000.0],
-            "thermal_lag": [200.0, 0.3], "cte_temperature": [1.5e-3],
+            "thermal_lag": [200.0, 0.3], "cte_temperature": [1.5e-3, 0.5],
             "moire_rigid_motion": [0.3, -0.2, 20.0, -10.0], "kinematic_hardening": [500.0, 100.0],
             "copper_plasticity": [10.0]}
 
@@ -81,11 +81,11 @@ def test_registry_contract():
 def test_effect_set_columns_and_binding_to_times():
     fx = EffectSet(["thermal_lag", "moire_rigid_motion", "cte_temperature"]).bind([900.0, 600.0])
     assert fx.names == ("tau", "split", "moire_c_1", "moire_c_2", "moire_w_1", "moire_w_2",
-                        "c_alpha")
-    assert fx.off == (0.0,) * 7 and fx.n_params == 7
-    q = torch.arange(14.0).reshape(2, 7)
-    assert [t.shape[1] for t in fx.split(q)] == [2, 4, 1]
-    assert fx.box.units == ("s", "-", "um", "um", "urad", "urad", "1/K")
+                        "c_alpha", "n_alpha")
+    assert fx.off == (0.0,) * 7 + (1.0,) and fx.n_params == 8
+    q = torch.arange(16.0).reshape(2, 8)
+    assert [t.shape[1] for t in fx.split(q)] == [2, 4, 2]
+    assert fx.box.units == ("s", "-", "um", "um", "urad", "urad", "1/K", "-")
     with pytest.raises(ValueError, match="listed twice"):
         EffectSet(["thermal_lag", "thermal_lag"])
     with pytest.raises(ValueError, match="tau must be >= 0"):
@@ -171,10 +171,10 @@ def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
 
 #: columns checked (moire: its first offset and its last rotation) and their FD steps
 FD_COLS = {"tau": 0.03, "split": 5e-5, "k_E": 5e-7, "n_E": 1e-4, "T_sf": 0.016,
-           "cooldown": 0.3, "c_alpha": 3e-7, "moire_c_1": 2e-4,
+           "cooldown": 0.3, "c_alpha": 3e-7, "n_alpha": 1e-4, "moire_c_1": 2e-4,
            "moire_w_2": 1e-2, "C_k": 0.2, "gamma_k": 0.02}
 #: form parameters (Effect.nuisance): at the off values they change nothing, exactly
-FORM_PARAMS = ("cooldown", "n_E", "split", "gamma_k")
+FORM_PARAMS = ("cooldown", "n_E", "split", "gamma_k", "n_alpha")
 #: one-sided differences at the off value, which is the box's lower edge for these
 ONE_SIDED = ("tau", "C_k", "n_E", "split", "gamma_k")
 #: all effects but copper_plasticity, whose derivative at its off value is 0 (tested apart)
