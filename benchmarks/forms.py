@@ -20,15 +20,18 @@ form                      differs from the library's effect by
                           (its default) to the square root: the exponential agrees with this
                           to second order in c (T - 25) and differs at the third
 ``stress_free_slow``      stress free at 150 degC, cooled before the cycle by Newton's law
-                          (fastest at first) at a mean 1 K/min (the library: a constant rate)
+                          (exponential in time, fastest at first) at a mean 1 K/min (the
+                          library: a power of time, from a constant rate to three times the
+                          mean rate at first)
 ``stress_free_moderate``  the same from 100 degC at a mean 2 K/min
 ``kinematic_af``          an Armstrong-Frederick back stress with a fixed recovery gamma_k = 50
                           (saturating at C_k / 50), sized by C_k: the library's family at
                           gamma_k = 50 (its default is Prager, gamma_k = 0)
 ========================  ===================================================================
 
-Each form has one parameter, its size (:class:`SizeOnly`: the library's form parameters have
-no truth here, are not in a form's box and are not counted in the coverage).
+Each form has one parameter, its size (:class:`FixedForm`: the library's form parameters have
+no truth here, are not in a form's box and are not counted in the coverage); the residual
+stress keeps its cool-down's duration too, and fixes only the cool-down's shape.
 
 :func:`form` returns the :class:`~solderpyro.effects.Effect` instance; ``FORMS`` lists them.
 """
@@ -38,6 +41,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
@@ -51,16 +55,21 @@ from solderpyro.fem.loading import ThermalCycle
 from solderpyro.params import Box
 
 
-class SizeOnly:
-    """Mixin (listed before the library effect) for a form that keeps the library effect's
-    size parameter alone: the library's form parameters (:attr:`Effect.nuisance`) have no
+class FixedForm:
+    """Mixin (listed before the library effect) for a form that fixes the library effect's
+    form parameters :attr:`FIXED` (all of :attr:`Effect.nuisance` where None): they have no
     meaning in a form that fixes its own shape, so they leave its box, its "off" values and
     any box the config gives (:meth:`with_box` drops them). The library's :meth:`check`
     sees them at their "off" values."""
 
+    FIXED: ClassVar[tuple[str, ...] | None] = None
+
+    def _fixed(self) -> tuple[str, ...]:
+        return self.nuisance if self.FIXED is None else self.FIXED  # type: ignore[attr-defined]
+
     def _kept(self) -> list[int]:
         lib = super().default_box()  # type: ignore[misc]
-        return [i for i, nm in enumerate(lib.names) if nm not in self.nuisance]  # type: ignore[attr-defined]
+        return [i for i, nm in enumerate(lib.names) if nm not in self._fixed()]
 
     def default_box(self) -> Box:
         """The library effect's box without its form parameters."""
@@ -77,9 +86,9 @@ class SizeOnly:
     def with_box(self, bounds: Mapping[str, Sequence[float]]) -> Effect:
         """:meth:`Effect.with_box` without the library's form parameters (an unknown name
         still raises)."""
-        nuisance = self.nuisance  # type: ignore[attr-defined]
+        fixed = self._fixed()
         return super().with_box(  # type: ignore[misc]
-            {k: v for k, v in bounds.items() if k not in nuisance})
+            {k: v for k, v in bounds.items() if k not in fixed})
 
     def check(self, q: torch.Tensor) -> None:
         """The library's check, the form parameters at their "off" values."""
@@ -90,7 +99,7 @@ class SizeOnly:
 
 
 @dataclass(frozen=True)
-class ModulusLinear(SizeOnly, ModulusTemperature):
+class ModulusLinear(FixedForm, ModulusTemperature):
     """Linear softening ``E25 (1 - k_E (T - T0))``, floored at :attr:`floor` of E25."""
 
     floor: float = 0.05
@@ -102,7 +111,7 @@ class ModulusLinear(SizeOnly, ModulusTemperature):
 
 
 @dataclass(frozen=True)
-class KinematicAF(SizeOnly, KinematicHardening):
+class KinematicAF(FixedForm, KinematicHardening):
     """Armstrong-Frederick back stress with the fixed recovery :attr:`gamma_k` (saturation at
     ``C_k / gamma_k``), sized by ``C_k`` alone."""
 
@@ -143,7 +152,7 @@ def cascade_lag(cycle: ThermalCycle, t: float, tau: torch.Tensor, stages: int) -
 
 
 @dataclass(frozen=True)
-class LagCascade(SizeOnly, ThermalLag):
+class LagCascade(FixedForm, ThermalLag):
     """The specimen :attr:`stages` equal first-order lags (each ``tau / stages``) behind the
     program (:func:`cascade_lag`)."""
 
@@ -156,7 +165,7 @@ class LagCascade(SizeOnly, ThermalLag):
 
 
 @dataclass(frozen=True)
-class CteQuadratic(SizeOnly, CteTemperature):
+class CteQuadratic(FixedForm, CteTemperature):
     """``alpha(T) = alpha25 (1 + c u + (c u)^2 / 2)``, ``u = T - T0``: the thermal strain is
     its integral from the stress-free temperature."""
 
@@ -189,17 +198,23 @@ class NewtonCooling(PreHistory):
     def peak_rate(self) -> float:
         return self.a * math.exp(self.a) / math.expm1(self.a)
 
-    def fraction(self, s: torch.Tensor) -> torch.Tensor:
-        """``(b,)``, 1 at the cool-down's start (``s`` = 1), 0 at t = 0."""
+    def fraction(self, s: torch.Tensor, shape: torch.Tensor | None = None) -> torch.Tensor:
+        """``(b,)``, 1 at the cool-down's start (``s`` = 1), 0 at t = 0 (``shape``: none
+        here, the form is fixed)."""
         return torch.expm1(self.a * s) / math.expm1(self.a)
 
 
 @dataclass(frozen=True)
-class StressFreeNewton(StressFreeTemperature):
-    """The library's stress-free temperature and cool-down, the cool-down Newtonian
-    (:class:`NewtonCooling`)."""
+class StressFreeNewton(FixedForm, StressFreeTemperature):
+    """The library's stress-free temperature and cool-down duration, the cool-down Newtonian
+    (:class:`NewtonCooling`) instead of the library's shapes."""
 
+    FIXED = ("cooldown_shape",)
     form: str = "newton"  # in the run-store hash: never mistaken for the library's runs
+
+    def cooldown_shape(self, q: torch.Tensor) -> None:
+        """None: the shape is :class:`NewtonCooling`'s."""
+        return None
 
     def pre_history(self) -> PreHistory:
         ph = super().pre_history()

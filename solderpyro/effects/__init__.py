@@ -184,6 +184,15 @@ class EffectSet:
         return torch.full((q.shape[0],), 1.0 if ph is None else ph.duration_s, dtype=q.dtype,
                           device=q.device)
 
+    def cooldown_shape(self, q: torch.Tensor) -> torch.Tensor | None:
+        """Each member's cool-down shape ``(b,)``: the first effect that sets one, else None
+        (a constant rate)."""
+        for e, qe in zip(self.effects, self.split(q), strict=True):
+            p = e.cooldown_shape(qe)
+            if p is not None:
+                return p
+        return None
+
     def stress_free(self, T_ref: float, q: torch.Tensor) -> torch.Tensor:
         """Stress-free temperature ``(b,)`` degC per member."""
         T = torch.full((q.shape[0],), float(T_ref), dtype=q.dtype, device=q.device)
@@ -198,14 +207,15 @@ class EffectSet:
         For ``t < 0`` (the pre-history) the temperature goes from the member's stress-free
         temperature at ``-D`` (its :meth:`cooldown`; before that it rests there) to the
         program's start at 0, as the pre-history's
-        :meth:`~solderpyro.effects.base.PreHistory.fraction` shapes it (linearly in time); from
+        :meth:`~solderpyro.effects.base.PreHistory.fraction` shapes it (with the member's
+        :meth:`cooldown_shape`; linearly in time where none is set); from
         t = 0 on, the program ``cycle(t)`` transformed by the history hooks.
         """
         if t < 0.0:
             T0 = cycle(0.0)
             ph = self.pre_history()
             s = torch.clamp(-t / self.cooldown(q), max=1.0)
-            frac = s if ph is None else ph.fraction(s)
+            frac = s if ph is None else ph.fraction(s, self.cooldown_shape(q))
             return T0 + (self.stress_free(T_ref, q) - T0) * frac
         T = torch.full((q.shape[0],), cycle(t), dtype=q.dtype, device=q.device)
         for e, qe in zip(self.effects, self.split(q), strict=True):

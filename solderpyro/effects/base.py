@@ -10,7 +10,8 @@ seam                   hook
 temperature history    :meth:`Effect.temperature` (member temperature at a time of the cycle)
 initial state          :meth:`Effect.stress_free` + :meth:`Effect.pre_history` (a simulated
                        history before t = 0; V is then reported relative to the state at t = 0)
-                       + :meth:`Effect.cooldown` (each member's cool-down in it)
+                       + :meth:`Effect.cooldown` and :meth:`Effect.cooldown_shape` (each
+                       member's cool-down in it and how it runs)
 material law           :meth:`Effect.thermal_strain`, :meth:`Effect.modulus`,
                        :meth:`Effect.back_stress_modulus` (solder back stress),
                        :meth:`Effect.back_stress_recovery` (its dynamic recovery),
@@ -69,9 +70,10 @@ class PlasticBand:
 @dataclass(frozen=True)
 class PreHistory:
     """A history simulated before t = 0: each member cools from its stress-free temperature to
-    the program's start over its own cool-down, ending at t = 0, linearly in time (a constant
-    cooling rate; a subclass may shape the cool-down through :meth:`fraction` and
-    :attr:`peak_rate`).
+    the program's start over its own cool-down, ending at t = 0, as ``s ** p`` of the way at
+    the share ``s`` of its cool-down still to run, ``p`` its own shape (1: a constant rate;
+    > 1: fastest at first, slowing as it nears the room; a subclass may shape the cool-down
+    otherwise through :meth:`fraction` and :attr:`peak_rate`).
 
     Attributes:
         duration_s: the longest cool-down, s (the pre-history starts at ``-duration_s``; a
@@ -79,11 +81,13 @@ class PreHistory:
             cool-down starts, which changes nothing: the specimen is stress free there).
         dT: the largest ``|T_sf - T_start|``, K.
         shortest_s: the shortest cool-down, s (the fastest ramp the grid must resolve).
+        shape_max: the largest shape ``p`` a member may have (>= 1).
     """
 
     duration_s: float
     dT: float
     shortest_s: float
+    shape_max: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.shortest_s <= self.duration_s:
@@ -91,16 +95,20 @@ class PreHistory:
                              f"{self.shortest_s} and {self.duration_s}")
         if not self.dT >= 0.0:
             raise ValueError(f"PreHistory: dT must be >= 0 K, got {self.dT}")
+        if not self.shape_max >= 1.0:
+            raise ValueError(f"PreHistory: shape_max must be >= 1, got {self.shape_max}")
 
     @property
     def peak_rate(self) -> float:
-        """The cool-down's fastest rate over its mean rate (1: a constant rate)."""
-        return 1.0
+        """The cool-down's fastest rate over its mean rate: ``p`` at its start for ``s ** p``,
+        so :attr:`shape_max` (1: a constant rate)."""
+        return self.shape_max
 
-    def fraction(self, s: torch.Tensor) -> torch.Tensor:
+    def fraction(self, s: torch.Tensor, shape: torch.Tensor | None = None) -> torch.Tensor:
         """How far ``(T - T_start) / (T_sf - T_start)`` the member is, ``(b,)``, at the share
-        ``s`` ``(b,)`` of its cool-down still to run (1 at its start, 0 at t = 0): ``s``."""
-        return s
+        ``s`` ``(b,)`` in (0, 1] of its cool-down still to run (1 at its start): ``s ** shape``
+        (``s`` where ``shape`` ``(b,)`` is None)."""
+        return s if shape is None else s ** shape
 
     def grid(self, ts: TimeStepping) -> np.ndarray:
         """Step end times ``(n + 1,)`` s from ``-duration_s`` to 0, shared by the batch.
@@ -233,6 +241,11 @@ class Effect:
     def cooldown(self, q: torch.Tensor) -> torch.Tensor | None:
         """Each member's cool-down ``(b,)`` s before t = 0 (None: the pre-history's whole
         duration)."""
+        return None
+
+    def cooldown_shape(self, q: torch.Tensor) -> torch.Tensor | None:
+        """Each member's cool-down shape ``(b,)`` (dimensionless, :meth:`PreHistory.fraction`;
+        None: a constant rate)."""
         return None
 
     def thermal_strain(self, eps: torch.Tensor, alpha: float, T: torch.Tensor,

@@ -133,7 +133,7 @@ def test_stress_free_temperature_superposition_elastic_and_relaxation_with_creep
     triples; 7e-12 of max|V| measured). With creep the residual stress relaxes during the
     cycle and V changes."""
     solver = SpecimenSolver(small_problem(), effects=("stress_free_temperature",))
-    q = [[25.0, 1800.0], [100.0, 1800.0], [183.0, 1800.0]]
+    q = [[25.0, 1800.0, 1.0], [100.0, 1800.0, 1.0], [183.0, 1800.0, 1.0], [150.0, 1800.0, 3.0]]
     V = solver.solve(rows(q, ELASTIC), [600.0, 1500.0]).V
     err = (V - V[:1]).abs().max().item()
     assert err < 1e-10 * V.abs().max().item(), err
@@ -148,13 +148,40 @@ def test_a_slower_cool_down_relaxes_more_and_members_keep_their_own():
     cool-down from the same T_sf lets more of the residual stress relax before t = 0, so the
     cycle's V moves less from the stress-free baseline (T_sf = 25)."""
     solver = SpecimenSolver(small_problem(), effects=("stress_free_temperature",))
-    q = [[25.0, 1800.0], [150.0, 900.0], [150.0, 3000.0], [150.0, 9000.0]]
+    q = [[25.0, 1800.0, 1.0], [150.0, 900.0, 1.0], [150.0, 3000.0, 1.0], [150.0, 9000.0, 1.0],
+         [150.0, 3000.0, 3.0]]
     V = solver.solve(rows(q), [600.0, 1500.0]).V
-    for i in (1, 3):
+    for i in (1, 3, 4):
         alone = solver.solve(rows([q[i]]), [600.0, 1500.0]).V[0]
         assert (V[i] - alone).abs().max() < 1e-9 * V.abs().max(), i
     shift = [(V[i] - V[0]).abs().max().item() for i in (1, 2, 3)]
     assert shift[0] > shift[1] > shift[2] > 0.0, shift
+    # the shape moves V: the same T_sf and cool-down, three times the mean rate at first
+    assert (V[4] - V[2]).abs().max() > 0.01 * shift[1]
+
+
+def test_the_pre_history_runs_each_member_along_its_own_shape():
+    """Before t = 0 a member is ``s ** p`` of the way from the program's start to its T_sf at
+    the share ``s = -t / D`` of its cool-down still to run (rests at T_sf before -D; 1e-12 K):
+    p = 1 the constant rate, p = 3 three times the mean rate at first; the shared grid
+    resolves the box's fastest start (steps at most dT_max there)."""
+    from solderpyro.effects import EffectSet
+
+    fx = EffectSet(["stress_free_temperature"])
+    cyc = REFERENCE_CYCLE
+    q = torch.tensor([[150.0, 3000.0, 1.0], [150.0, 3000.0, 3.0], [100.0, 900.0, 2.0]],
+                     dtype=F64)
+    for t in (-4000.0, -3000.0, -2000.0, -450.0, -1.0):
+        T = fx.temperature(cyc, t, 25.0, q)
+        s = np.minimum(-t / q[:, 1].numpy(), 1.0)
+        expect = 25.0 + (q[:, 0].numpy() - 25.0) * s ** q[:, 2].numpy()
+        assert np.abs(T.numpy() - expect).max() < 1e-12, t
+    ph = fx.pre_history()
+    ts = small_problem().stepping
+    g = ph.grid(ts)
+    D, dT = 900.0, 158.0  # the fastest member the box allows: T_sf 183, 900 s, p = 3
+    Tg = 25.0 + dT * np.clip(-g / D, 0.0, 1.0) ** 3.0
+    assert np.abs(np.diff(Tg)).max() <= ts.dT_max * (1 + 1e-9)
 
 
 def test_the_cool_down_is_recovered_from_noise_free_data():
@@ -168,9 +195,10 @@ def test_the_cool_down_is_recovered_from_noise_free_data():
 
     solver = SpecimenSolver(small_problem(), effects=("stress_free_temperature",))
     times = [300.0, 600.0, 1000.0, 1500.0]
-    y = solver.solve(rows([[150.0, 4000.0]]), times).V[0].reshape(-1).numpy()
+    y = solver.solve(rows([[150.0, 4000.0, 1.0]]), times).V[0].reshape(-1).numpy()
 
     def fun(X):
+        X = np.column_stack([X, np.ones(len(X))])  # the constant rate
         return solver.solve(rows(X), times).V.reshape(len(X), -1).numpy()
 
     sig = 1e-3 * float(np.abs(y).max())
@@ -253,7 +281,8 @@ def test_cte_temperature_free_expansion_is_the_integral(effects):
     n = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0, 2.0], dtype=F64)
     q = torch.stack([c, n], 1) if len(effects) == 1 else torch.stack([torch.tensor(
         [25.0, 120.0, 60.0, 183.0, 150.0, 100.0], dtype=F64), torch.tensor(
-        [1800.0, 900.0, 9000.0, 3000.0, 2000.0, 5000.0], dtype=F64), c, n], 1)
+        [1800.0, 900.0, 9000.0, 3000.0, 2000.0, 5000.0], dtype=F64), torch.tensor(
+        [1.0, 2.0, 1.0, 3.0, 1.5, 1.0], dtype=F64), c, n], 1)
     res = solver.solve(rows(q, ELASTIC), [1.0])
     assert bool(res.ok.all())
     dT = 50.0

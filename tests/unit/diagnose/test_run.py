@@ -93,9 +93,9 @@ def test_candidates_at_off_are_left_out_of_a_row(tmp_path, monkeypatch):
     off = list(fx.off)
     a = [12.92, 10586.0, 2.04, 0.1]
     sf = list(off)
-    sf[2] = 120.0  # T_sf, degC
+    sf[fx.names.index("T_sf")] = 120.0  # degC
     kin = list(off)
-    kin[4] = 800.0  # C_k, MPa
+    kin[fx.names.index("C_k")] = 800.0  # MPa
     theta = torch.tensor([a + off, a + sf, a + kin, [13.5, 10400.0, 2.1, 0.12] + off],
                          dtype=torch.float64)
     theta[:, 4] = 30.0  # the kept effect (tau, s) on in every row

@@ -34,7 +34,7 @@ F64 = torch.float64
 #: (n_E, split: |dy| ~ 4e-2, 1e-1 per unit, > 3x the gradient test's "acts" bound; at
 #: k_E = 3e-3, tau = 60 s they moved it by ~2e-3, below that bound); gamma_k = 100 recovers a
 #: visible part of the C_k = 500 MPa back stress
-INTERIOR = {"modulus_temperature": [1e-2, 0.6], "stress_free_temperature": [120.0, 3000.0],
+INTERIOR = {"modulus_temperature": [1e-2, 0.6], "stress_free_temperature": [120.0, 3000.0, 2.0],
             "thermal_lag": [200.0, 0.3], "cte_temperature": [1.5e-3, 0.5],
             "moire_rigid_motion": [0.3, -0.2, 20.0, -10.0], "kinematic_hardening": [500.0, 100.0],
             "copper_plasticity": [10.0]}
@@ -171,12 +171,12 @@ def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
 
 #: columns checked (moire: its first offset and its last rotation) and their FD steps
 FD_COLS = {"tau": 0.03, "split": 5e-5, "k_E": 5e-7, "n_E": 1e-4, "T_sf": 0.016,
-           "cooldown": 0.3, "c_alpha": 3e-7, "n_alpha": 1e-4, "moire_c_1": 2e-4,
-           "moire_w_2": 1e-2, "C_k": 0.2, "gamma_k": 0.02}
+           "cooldown": 0.3, "cooldown_shape": 2e-4, "c_alpha": 3e-7, "n_alpha": 1e-4,
+           "moire_c_1": 2e-4, "moire_w_2": 1e-2, "C_k": 0.2, "gamma_k": 0.02}
 #: form parameters (Effect.nuisance): at the off values they change nothing, exactly
-FORM_PARAMS = ("cooldown", "n_E", "split", "gamma_k", "n_alpha")
+FORM_PARAMS = ("cooldown", "cooldown_shape", "n_E", "split", "gamma_k", "n_alpha")
 #: one-sided differences at the off value, which is the box's lower edge for these
-ONE_SIDED = ("tau", "C_k", "n_E", "split", "gamma_k")
+ONE_SIDED = ("tau", "C_k", "n_E", "split", "gamma_k", "cooldown_shape")
 #: all effects but copper_plasticity, whose derivative at its off value is 0 (tested apart)
 SMOOTH = tuple(k for k in CONTRACT if k != "copper_plasticity")
 
