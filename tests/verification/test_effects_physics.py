@@ -208,6 +208,31 @@ def test_the_cool_down_is_recovered_from_noise_free_data():
     assert fit.x[0] == 150.0
 
 
+def test_the_cool_down_shape_is_recovered_from_noise_free_data():
+    """The cool-down's shape is a form the data inform too: V made at T_sf = 150 degC cooled
+    over 3,000 s, fastest at first (shape 2.4), is fitted through the FE (Levenberg-Marquardt
+    on the shape, T_sf and the cool-down known, from the constant rate); the fit returns the
+    shape within 0.02 (noise-free data: the LM's stopping and finite differences limit it),
+    and the constant rate misfits them (chi-square above 1 at noise 1e-3 of max|V|)."""
+    from solderpyro.exact.fit import LMOptions, lm_fit
+
+    solver = SpecimenSolver(small_problem(), effects=("stress_free_temperature",))
+    times = [300.0, 600.0, 1000.0, 1500.0]
+    y = solver.solve(rows([[150.0, 3000.0, 2.4]]), times).V[0].reshape(-1).numpy()
+
+    def fun(X):
+        return solver.solve(rows(X), times).V.reshape(len(X), -1).numpy()
+
+    sig = 1e-3 * float(np.abs(y).max())
+    fit = lm_fit(fun, np.array([[150.0, 3000.0, 1.0]]), [25.0, 900.0, 1.0],
+                 [183.0, 9000.0, 3.0], y, sig, [np.array([2])],
+                 LMOptions(iters=25, tol=1e-6))[0]
+    print(f"shape: fit {fit.x}, chi2 {fit.history[0]:.3g} -> {fit.chi2:.3g} in {fit.iters}")
+    assert fit.history[0] > 1.0
+    assert abs(fit.x[2] - 2.4) < 0.02, fit.x
+    assert fit.x[0] == 150.0 and fit.x[1] == 3000.0
+
+
 @pytest.mark.parametrize("n_true", [1.0, 0.5])
 def test_the_softening_law_form_is_recovered_from_noise_free_data(n_true):
     """A form nuisance parameter the data inform: V made at k_E = 6e-3 /K with the linear law
@@ -240,6 +265,34 @@ def test_the_softening_law_form_is_recovered_from_noise_free_data(n_true):
     assert fit.history[0] > 1.0  # the exponential form does not fit the data
     assert abs(fit.x[1] - n_true) < 0.01, fit.x
     assert abs(fit.x[0] / 6e-3 - 1.0) < 1e-3, fit.x
+
+
+@pytest.mark.parametrize("n_true", [0.0, 1.6])
+def test_the_cte_rise_form_is_recovered_from_noise_free_data(n_true):
+    """A form nuisance parameter the data inform: V made at c_alpha = 2e-3 /K with the
+    exponential rise (n_alpha = 0, the box's edge) or a concave one (1.6) is fitted through the
+    FE (Levenberg-Marquardt on c_alpha and n_alpha together, from the library's linear form at
+    the true c_alpha); the fit returns n_alpha within 0.02 and c_alpha within 1e-3 relative.
+    Noise-free data, so only the LM's stopping and its finite differences limit it; the
+    linear start misfits them (chi-square above 1 at noise 1e-3 of max|V|)."""
+    from solderpyro.exact.fit import LMOptions, lm_fit
+
+    solver = SpecimenSolver(small_problem(), effects=("cte_temperature",))
+    times = [300.0, 600.0, 1000.0, 1500.0]
+    box = EFFECTS["cte_temperature"].params
+    y = solver.solve(rows([[2e-3, n_true]]), times).V[0].reshape(-1).numpy()
+
+    def fun(X):
+        return solver.solve(rows(X), times).V.reshape(len(X), -1).numpy()
+
+    sig = 1e-3 * float(np.abs(y).max())
+    fit = lm_fit(fun, np.array([[2e-3, 1.0]]), box.lower, box.upper, y, sig,
+                 [np.array([0, 1])], LMOptions(iters=25, tol=1e-6))[0]
+    print(f"n_alpha {n_true}: fit {fit.x}, chi2 {fit.history[0]:.3g} -> {fit.chi2:.3g} "
+          f"in {fit.iters} steps")
+    assert fit.history[0] > 1.0  # the linear form does not fit the data
+    assert abs(fit.x[1] - n_true) < 0.02, fit.x
+    assert abs(fit.x[0] / 2e-3 - 1.0) < 1e-3, fit.x
 
 
 # ------------------------------------------------------------------ CTE(T): free expansion
