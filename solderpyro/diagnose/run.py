@@ -195,6 +195,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
                                      base_chi2, lay.n_cal, floor, tuple(faces),
                                      tuple(freed)))
         record_fits(diag, steps, lay, base, fe_ok, fej["cols"].names)
+    intervals = None
     if not diag.misfit and not diag.selected and lad:
         with cost.stage("cannot_rule_out"):
             intervals = reported_intervals(d)
@@ -224,7 +225,7 @@ def diagnose(run_dir: str | Path, candidates: tuple[str, ...] | None = None, n_d
     tot = diag.timing["total"]
     log.info("diagnose: total %.1f s, %d FE runs computed, %d reused (store %s)",
              tot["seconds"], tot["fe_runs"], tot["fe_reused"], store.root)
-    write(d, diag, pc, sigma, figs)
+    write(d, diag, pc, sigma, figs, intervals)
     from solderpyro.reporting.index import write_index
 
     write_index(d)

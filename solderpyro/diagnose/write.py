@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -66,7 +67,7 @@ def figures(d: Path, diag: Diagnosis, meas: Any, fp: Fingerprints, sigma: float,
 
 
 def admitting_lines(admitting: dict[str, list[float]],
-                    reported: dict[str, tuple[float, float]]) -> list[str]:
+                    reported: Mapping[str, tuple[float, float]]) -> list[str]:
     """The intervals that admit what the data cannot rule out beside the ``reported`` ones
     (name -> 95 % interval, physical units), as markdown lines."""
     return ["", "The 95 % intervals that hold whether or not these effects are present (each "
@@ -78,7 +79,7 @@ def admitting_lines(admitting: dict[str, list[float]],
 
 
 def write_admitting(d: Path, admitting: dict[str, list[float]],
-                    reported: dict[str, tuple[float, float]]) -> None:
+                    reported: Mapping[str, tuple[float, float]]) -> None:
     """``intervals_admitting.csv`` in ``d``: ``parameter``, ``lo95``, ``hi95``,
     ``reported_lo95``, ``reported_hi95`` (physical units)."""
     import csv
@@ -103,14 +104,17 @@ def cost_lines(timing: dict[str, dict[str, float | int]]) -> list[str]:
 
 
 def write(d: Path, diag: Diagnosis, pc: PredictiveCheck, sigma: float,
-          figs: tuple[str, str, str]) -> None:
+          figs: tuple[str, str, str],
+          reported: Mapping[str, tuple[float, float]] | None = None) -> None:
     """Write ``diagnosis.json``, ``diagnosis.md`` and ``diagnosis.html`` in ``d`` (and
     ``intervals_admitting.csv`` where the data cannot rule an effect out; an earlier
     diagnosis's is removed where they can).
 
     Args:
         diag: the diagnosis; pc: its posterior predictive check; sigma: noise sd, um;
-        figs: the figure file names (:func:`figures`).
+        figs: the figure file names (:func:`figures`); reported: the run's reported 95 %
+            intervals ``{parameter: (lo, hi)}`` (summary.csv, physical units) where the
+            admitting intervals were computed from them, else None.
     """
     f1, f2, f3 = figs
     (d / "intervals_admitting.csv").unlink(missing_ok=True)
@@ -162,11 +166,8 @@ def write(d: Path, diag: Diagnosis, pc: PredictiveCheck, sigma: float,
         lines += ["", "## What the data cannot rule out", "", intro, ""] + [
             f"- {r['text']}." for r in diag.cannot_rule_out]
         if diag.admitting:
-            from solderpyro.diagnose.load import reported_intervals
-
-            reported = reported_intervals(d) or {}
-            write_admitting(d, diag.admitting, reported)
-            lines += admitting_lines(diag.admitting, reported)
+            write_admitting(d, diag.admitting, reported or {})
+            lines += admitting_lines(diag.admitting, reported or {})
     lines += ["", "## Suggestions", ""] + ([f"- {s}" for s in diag.suggestions] or ["- none"])
     if diag.timing:
         lines += [""] + cost_lines(diag.timing)
