@@ -298,13 +298,13 @@ def test_cte_temperature_free_expansion_is_the_integral(effects):
     """A one-material block expands freely: v = eps (y - y_O) with eps the integral of
     alpha25 (1 + n c (T - 25))^(1/n) from the stress-free temperature, i.e. relative to the
     start, alpha25 int_0^(T-25) (1 + n c v)^(1/n) dv (T_sf cancels in V relative to the
-    start), for the linear (n = 1), exponential (0) and square-root (2) forms. 1e-10 of
+    start), for the linear (n = 1), hyperbolic (-1) and square-root (2) forms. 1e-10 of
     max|v| (rounding of the elastic solve: ~3e-14 of it measured)."""
     prob, pts, alpha = _uniform_block()
     solver = SpecimenSolver(prob, field_points=([f"p{i}" for i in range(len(pts))], pts),
                             effects=effects)
     c = torch.tensor([0.0, 2e-3, -1e-3, 3e-3, 3e-3, 3e-3], dtype=F64)
-    n = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0, 2.0], dtype=F64)
+    n = torch.tensor([1.0, 1.0, 1.0, 1.0, -1.0, 2.0], dtype=F64)
     q = torch.stack([c, n], 1) if len(effects) == 1 else torch.stack([torch.tensor(
         [25.0, 120.0, 60.0, 183.0, 150.0, 100.0], dtype=F64), torch.tensor(
         [1800.0, 900.0, 9000.0, 3000.0, 2000.0, 5000.0], dtype=F64), torch.tensor(

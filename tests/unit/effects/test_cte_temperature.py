@@ -1,6 +1,7 @@
 """cte_temperature's hook (solderpyro.effects.cte_temperature): the baseline at c_alpha = 0,
 and the integral of alpha(T) = alpha25 (1 + n c (T - 25))^(1/n) from the stress-free
-temperature, for the linear (n = 1), exponential (0) and square-root (2) forms and between."""
+temperature, for the linear (n = 1), exponential (0), hyperbolic (-1) and square-root (2)
+forms and between."""
 
 from types import SimpleNamespace
 
@@ -37,12 +38,12 @@ def _ratio(c: float, n: float):
 
 
 def test_off_is_the_baseline_exactly_whatever_the_form():
-    for n in (0.0, 0.5, 1.0, 2.0):
+    for n in (-1.0, 0.0, 0.5, 1.0, 2.0):
         eps, a, T, Tr, q = _args([25.0, 75.0, 125.0, -40.0], 25.0, 0.0, n)
         assert EFF.off == (0.0, 1.0) and torch.equal(EFF.thermal_strain(eps, a, T, Tr, q), eps)
 
 
-@pytest.mark.parametrize("n", [0.0, 1e-7, 0.3, 1.0, 1.7, 2.0])
+@pytest.mark.parametrize("n", [-1.0, -0.99995, -0.9, -1e-7, 0.0, 1e-7, 0.3, 1.0, 1.7, 2.0])
 def test_strain_is_the_integral_of_the_rising_cte(n):
     """The strain from any T_ref to T is alpha25 times the integral of the family's ratio
     (Gauss-Legendre; the closed form's cancellation costs at most 2 eps / |c u| ~ 4e-13, so
@@ -71,7 +72,7 @@ def test_linear_and_exponential_forms_are_their_closed_forms():
         ALPHA * (np.expm1(c * 100.0) / c - 100.0), rel=1e-12)
 
 
-@pytest.mark.parametrize("n", [0.0, 1.0, 2.0])
+@pytest.mark.parametrize("n", [-1.0, 0.0, 1.0, 2.0])
 def test_every_form_has_the_slope_c_at_25_degC_and_finite_gradients_at_off(n):
     """d eps / dT = alpha(T): at 25 degC alpha25, and its T-derivative there alpha25 c for
     every form (the score test at "off" sees the same effect); d/dc at c = 0 is u^2 / 2, the
@@ -95,9 +96,13 @@ def test_every_form_has_the_slope_c_at_25_degC_and_finite_gradients_at_off(n):
 def test_bad_forms_are_named():
     with pytest.raises(ValueError, match="n_alpha"):
         EFF.check(torch.tensor([[1e-3, 2.5]], dtype=F64))
+    with pytest.raises(ValueError, match="n_alpha"):
+        EFF.check(torch.tensor([[1e-3, -1.5]], dtype=F64))
     with pytest.raises(ValueError, match="CTE would vanish"):
         EFF.check(torch.tensor([[0.01, 2.0]], dtype=F64))  # 1 + 2 * 0.01 * (-90) < 0
-    EFF.check(torch.tensor([[3e-3, 2.0], [0.0, 0.0]], dtype=F64))  # the box's corners
+    with pytest.raises(ValueError, match="CTE would vanish"):
+        EFF.check(torch.tensor([[0.01, -1.0]], dtype=F64))  # 1 - 0.01 * 158 < 0
+    EFF.check(torch.tensor([[3e-3, 2.0], [3e-3, -1.0], [0.0, 0.0]], dtype=F64))  # corners
 
 
 def test_effect_set_applies_it_per_member_to_the_law():
