@@ -212,7 +212,7 @@ class StressFreeNewton(FixedForm, StressFreeTemperature):
     FIXED = ("cooldown_shape",)
     form: str = "newton"  # in the run-store hash: never mistaken for the library's runs
 
-    def cooldown_shape(self, q: torch.Tensor) -> None:
+    def cooldown_shape(self, q: torch.Tensor) -> torch.Tensor | None:
         """None: the shape is :class:`NewtonCooling`'s."""
         return None
 

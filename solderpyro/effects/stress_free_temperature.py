@@ -87,7 +87,7 @@ class StressFreeTemperature(Effect):
         """``(b,)`` s."""
         return q[:, 1]
 
-    def cooldown_shape(self, q: torch.Tensor) -> torch.Tensor:
+    def cooldown_shape(self, q: torch.Tensor) -> torch.Tensor | None:
         """``(b,)`` (-)."""
         return q[:, 2]
 
