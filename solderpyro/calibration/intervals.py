@@ -305,14 +305,20 @@ def likelihood_hull(rows: Sequence[dict], theta: np.ndarray, loglik: np.ndarray,
         if nm not in names:
             out.append(dict(r))
             continue
-        lo, hi = float(r["lo95"]), float(r["hi95"])
         k = names.index(nm)
-        a, b = min(lo, float(keep[:, k].min())), max(hi, float(keep[:, k].max()))
-        if (lo - a) + (b - hi) >= LIKELIHOOD_GAIN * (hi - lo):
-            out.append({**r, "lo95": a, "hi95": b, "interval": LIKELIHOOD})
-        else:
-            out.append(dict(r))
+        out.append(_hull(r, float(keep[:, k].min()), float(keep[:, k].max()), LIKELIHOOD))
     return out
+
+
+def _hull(row: dict, lo: float, hi: float, kind: str) -> dict:
+    """A copy of summary row ``row`` whose reported interval is widened to hold ``[lo, hi]``
+    (the parameter's units) as kind ``kind``, where that adds at least
+    :data:`LIKELIHOOD_GAIN` of its width; else a plain copy."""
+    r_lo, r_hi = float(row["lo95"]), float(row["hi95"])
+    a, b = min(r_lo, lo), max(r_hi, hi)
+    if (r_lo - a) + (b - r_hi) >= LIKELIHOOD_GAIN * (r_hi - r_lo):
+        return {**row, "lo95": a, "hi95": b, "interval": kind}
+    return dict(row)
 
 
 def profile_hull(rows: Sequence[dict], profiles: Mapping[str, tuple[float, float]]
@@ -340,13 +346,8 @@ def profile_hull(rows: Sequence[dict], profiles: Mapping[str, tuple[float, float
         pr = profiles.get(r["parameter"])
         if pr is None or not all(np.isfinite(pr)):
             out.append(dict(r))
-            continue
-        lo, hi = float(r["lo95"]), float(r["hi95"])
-        a, b = min(lo, float(pr[0])), max(hi, float(pr[1]))
-        if (lo - a) + (b - hi) >= LIKELIHOOD_GAIN * (hi - lo):
-            out.append({**r, "lo95": a, "hi95": b, "interval": PROFILE})
         else:
-            out.append(dict(r))
+            out.append(_hull(r, float(pr[0]), float(pr[1]), PROFILE))
     return out
 
 
