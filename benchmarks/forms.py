@@ -8,9 +8,9 @@ so the library is not tested against itself.
 ========================  ===================================================================
 form                      differs from the library's effect by
 ========================  ===================================================================
-``modulus_linear``        E(T) = E25 (1 - k (T - 25)), floored at 5 % of E25. The library's
-                          family runs from the exponential (its default) to this linear law
-                          (n_E = 1, floored at 1 %): the data must move the form nuisance
+``modulus_linear``        E(T) = E25 (1 - k (T - 25)), floored at 5 % of E25: the library's
+                          family at n_E = 1, r_E = 0.05 (its default is the exponential
+                          approaching a 1 % plateau): the data must move both form nuisances
 ``lag_second_order``      two first-order lags in series, each tau/2: the library's family at
                           split = 1/2 (its default is one lag, split = 0)
 ``lag_third_order``       three first-order lags in series, each tau/3: outside the library's

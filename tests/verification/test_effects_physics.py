@@ -11,6 +11,7 @@ from scipy.integrate import solve_ivp
 
 from solderpyro.config.compose import build, compose
 from solderpyro.effects import EFFECTS, EffectSet
+from solderpyro.effects.modulus_temperature import R_MIN
 from solderpyro.effects.thermal_lag import lag
 from solderpyro.fem.loading import EXTENDED_TIMES, REFERENCE_CYCLE, ThermalCycle, TimeStepping
 from solderpyro.fem.mesh import Layer, MeshSpec
@@ -233,24 +234,39 @@ def test_the_cool_down_shape_is_recovered_from_noise_free_data():
     assert fit.x[0] == 150.0 and fit.x[1] == 3000.0
 
 
-@pytest.mark.parametrize("n_true", [1.0, 0.5])
+@pytest.mark.parametrize("n_true", [1.0, 0.5, 1.6])
 def test_the_softening_law_form_is_recovered_from_noise_free_data(n_true):
     """A form nuisance parameter the data inform: V made at k_E = 6e-3 /K with the linear law
-    (n_E = 1, the box's edge) or halfway (n_E = 0.5) is fitted through the FE
-    (Levenberg-Marquardt on k_E and n_E together, from the library's exponential form n_E = 0
-    at the true k_E); the fit returns n_E within 0.01 and k_E within 1e-3 relative. Noise-free
-    data, so only the LM's stopping and its finite differences limit it: measured n_E exact
-    (held on the bound) and 1.8e-9 at 0.5, k_E to 2e-11 and 6e-10, chi-square 4e-15 after 3-4
-    steps. The tolerance is what the fit must reach, not what it reached: on this small
-    problem k_E and n_E are correlated (0.998 between the Jacobian's columns), so n_E's sd per
-    unit of sqrt(chi-square) is ~5 (the box's width, 5 times): n_E within 0.01 needs
-    chi-square below ~4e-6, i.e. a converged fit, where the start's chi-square is 6.3 (1.2 at
-    0.5). (At noise 1e-3 of max|V| the same sd means the small problem could not tell the
-    forms apart; this checks that the form can be fitted, not how well data inform it.)"""
-    fit = _fit_noise_free("modulus_temperature", [6e-3, n_true], [6e-3, 0.0], [0, 1])
+    (n_E = 1), halfway to the exponential (0.5) or quickening (1.6) is fitted through the FE
+    (Levenberg-Marquardt on k_E and n_E together, the plateau at its default, from the
+    library's exponential form n_E = 0 at the true k_E); the fit returns n_E within 0.01 and
+    k_E within 1e-3 relative. Noise-free data, so only the LM's stopping and its finite
+    differences limit it (measured: n_E to 2e-9, k_E to 1e-9, in 3-5 steps). The tolerance is
+    what the fit must reach, not what it reached: on this small problem k_E and n_E are
+    correlated (0.998 between the Jacobian's columns), so n_E's sd per unit of
+    sqrt(chi-square) is ~5: n_E within 0.01 needs chi-square below ~4e-6, i.e. a converged
+    fit, where the start's chi-square is above 1. (At noise 1e-3 of max|V| the same sd means
+    the small problem could not tell the forms apart; this checks that the form can be
+    fitted, not how well data inform it.)"""
+    fit = _fit_noise_free("modulus_temperature", [6e-3, n_true, R_MIN], [6e-3, 0.0, R_MIN],
+                          [0, 1])
     assert fit.history[0] > 1.0  # the exponential form does not fit the data
     assert abs(fit.x[1] - n_true) < 0.01, fit.x
     assert abs(fit.x[0] / 6e-3 - 1.0) < 1e-3, fit.x
+
+
+def test_the_softening_plateau_is_recovered_from_noise_free_data():
+    """The plateau r_E, a form nuisance parameter: V made with the linear law at k_E =
+    2e-2 /K levelling off at 30 % of E25 (reached at 60 degC, held through the small cycle's
+    dwell at 75 degC) is fitted through the FE (LM on k_E and r_E, the linear form known, from
+    a plateau of 45 %, reached at 52.5 degC); the fit returns r_E within 0.01 and k_E within
+    1e-3 relative (noise-free data: the LM's stopping and finite differences limit it). Below
+    its plateau the linear law does not depend on r_E, so the start must reach its plateau
+    inside the cycle for the data to inform it."""
+    fit = _fit_noise_free("modulus_temperature", [2e-2, 1.0, 0.3], [2e-2, 1.0, 0.45], [0, 2])
+    assert fit.history[0] > 1.0  # the 45 % plateau does not fit the data
+    assert abs(fit.x[2] - 0.3) < 0.01, fit.x
+    assert abs(fit.x[0] / 2e-2 - 1.0) < 1e-3, fit.x
 
 
 @pytest.mark.parametrize("n_true", [0.0, 1.6])
@@ -330,17 +346,20 @@ def test_cte_temperature_free_expansion_is_the_integral(effects):
 def test_modulus_temperature_elastic_solution_uses_E_of_T():
     """Elastic solder, heated 25 -> 75 degC: the response depends on the current temperature
     only, so the effect's V must equal the baseline's with the solder modulus replaced by
-    E25 exp(-k (75 - 25)) (n_E = 0) or E25 (1 - k (75 - 25)) (n_E = 1, the linear law)
-    (1e-10 of max|V|: rounding of two elastic solves, ~2e-15 of it measured), and differ from
-    the baseline's with E25."""
+    E25 (r + (1 - r) exp(-k (75 - 25) / (1 - r))) (n_E = 0, the default plateau r = 1 %),
+    E25 (1 - k (75 - 25)) (n_E = 1, the linear law) or its plateau r E25 where the law falls
+    below it (k = 0.015, r = 0.5) (1e-10 of max|V|: rounding of two elastic solves), and differ
+    from the baseline's with E25."""
     prob = small_problem(cycle=ThermalCycle((0.0, 1.0), (25.0, 75.0)),
                          stepping=TimeStepping(dT_max=1e3, dwell_dt0=1.0, dt_max=1.0))
-    k = torch.tensor([[0.0, 0.0], [4e-3, 0.0], [4e-3, 1.0]], dtype=F64)  # k_E, n_E
+    k = torch.tensor([[0.0, 0.0, 0.01], [4e-3, 0.0, 0.01], [4e-3, 1.0, 0.01],
+                      [1.5e-2, 1.0, 0.5]], dtype=F64)  # k_E, n_E, r_E
     V = SpecimenSolver(prob, effects=("modulus_temperature",)).solve(rows(k, ELASTIC), [1.0]).V
     sol = prob.materials["solder"]
-    for i in range(3):
-        u = k[i, 0].item() * 50.0
-        E = sol.E * (1.0 - u if k[i, 1].item() == 1.0 else math.exp(-u))
+    for i in range(4):
+        u, r = k[i, 0].item() * 50.0, k[i, 2].item()
+        E = sol.E * (max(r, 1.0 - u) if k[i, 1].item() == 1.0
+                     else r + (1 - r) * math.exp(-u / (1 - r)))
         mats = {**prob.materials, "solder": AnandSolder(E, sol.nu, sol.alpha)}
         ref = SpecimenSolver(dataclasses.replace(prob, materials=mats)).solve(
             anand_tensor(ELASTIC, dtype=F64)[None], [1.0]).V[0]
@@ -348,6 +367,7 @@ def test_modulus_temperature_elastic_solution_uses_E_of_T():
         assert err < 1e-10 * ref.abs().max().item(), (i, err)
     assert (V[1] - V[0]).abs().max() > 1e-3  # a softer solder transmits less shear
     assert (V[2] - V[1]).abs().max() > 1e-3  # the linear law is softer still (0.80 < 0.82)
+    assert (V[3] - V[0]).abs().max() > 1e-3  # at its plateau, half as stiff
 
 
 # ------------------------------------------------------------------ Moire rigid motion

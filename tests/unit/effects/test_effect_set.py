@@ -31,11 +31,12 @@ TIMES = (600.0, 1500.0)
 F64 = torch.float64
 #: an interior point of each effect's box (and of moire's first offset and second rotation);
 #: k_E and tau large enough that their form parameters move the small problem's V measurably
-#: (n_E, split: |dy| ~ 4e-2, 1e-1 per unit, > 3x the gradient test's "acts" bound; at
+#: (n_E, r_E, split: |dy| ~ 4e-2, 1e-1 per unit, > 3x the gradient test's "acts" bound; at
 #: k_E = 3e-3, tau = 60 s they moved it by ~2e-3, below that bound); gamma_k = 100 recovers a
 #: visible part of the C_k = 500 MPa back stress
-INTERIOR = {"modulus_temperature": [1e-2, 0.6], "stress_free_temperature": [120.0, 3000.0, 2.0],
-            "thermal_lag": [200.0, 0.3], "cte_temperature": [1.5e-3, 0.5],
+INTERIOR = {"modulus_temperature": [1e-2, 0.6, 0.3],
+            "stress_free_temperature": [120.0, 3000.0, 2.0], "thermal_lag": [200.0, 0.3],
+            "cte_temperature": [1.5e-3, 0.5],
             "moire_rigid_motion": [0.3, -0.2, 20.0, -10.0], "kinematic_hardening": [500.0, 100.0],
             "copper_plasticity": [10.0]}
 
@@ -170,13 +171,13 @@ def test_batch_invariance_with_back_stress_and_yielding_copper(baseline):
 # ------------------------------------------------------------------ (c) gradients
 
 #: columns checked (moire: its first offset and its last rotation) and their FD steps
-FD_COLS = {"tau": 0.03, "split": 5e-5, "k_E": 5e-7, "n_E": 1e-4, "T_sf": 0.016,
+FD_COLS = {"tau": 0.03, "split": 5e-5, "k_E": 5e-7, "n_E": 1e-4, "r_E": 5e-5, "T_sf": 0.016,
            "cooldown": 0.3, "cooldown_shape": 2e-4, "c_alpha": 3e-7, "n_alpha": 1e-4,
            "moire_c_1": 2e-4, "moire_w_2": 1e-2, "C_k": 0.2, "gamma_k": 0.02}
 #: form parameters (Effect.nuisance): at the off values they change nothing, exactly
-FORM_PARAMS = ("cooldown", "cooldown_shape", "n_E", "split", "gamma_k", "n_alpha")
+FORM_PARAMS = ("cooldown", "cooldown_shape", "n_E", "r_E", "split", "gamma_k", "n_alpha")
 #: one-sided differences at the off value, which is the box's lower edge for these
-ONE_SIDED = ("tau", "C_k", "n_E", "split", "gamma_k", "cooldown_shape")
+ONE_SIDED = ("tau", "C_k", "n_E", "r_E", "split", "gamma_k", "cooldown_shape")
 #: all effects but copper_plasticity, whose derivative at its off value is 0 (tested apart)
 SMOOTH = tuple(k for k in CONTRACT if k != "copper_plasticity")
 
@@ -190,10 +191,10 @@ def test_effect_gradients_match_finite_differences():
     component of the Jacobian would show in it. Steps ~1e-4 of each box width: the FD
     truncation error is then < 1e-7 relative and the Newton noise (rtol 1e-10) far smaller.
     C_k = 0 is the box's lower edge as tau = 0 (C_k < 0 is rejected): one-sided there, and so
-    are the form parameters n_E, split and gamma_k, whose off value 0 is their box's lower edge
-    too; at the off row every form parameter (cooldown, n_E, split, gamma_k) must leave V bit
-    for bit unchanged and have a zero autograd derivative (its effect is off), at the interior
-    row it is checked like the others."""
+    are the form parameters n_E, r_E, split and gamma_k, whose off value is their box's lower
+    edge too; at the off row every form parameter (cooldown, n_E, r_E, split, gamma_k) must
+    leave V bit for bit unchanged and have a zero autograd derivative (its effect is off), at
+    the interior row it is checked like the others."""
     fx = EffectSet(SMOOTH).bind(TIMES)
     solver = SpecimenSolver(small_problem(), effects=fx)
     q = torch.tensor([fx.off, [v for k in SMOOTH for v in INTERIOR[k]]], dtype=F64)

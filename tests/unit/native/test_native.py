@@ -263,9 +263,9 @@ def test_solve_with_effects_matches_torch_path(monkeypatch):
     effects = ("kinematic_hardening", "modulus_temperature", "copper_plasticity")
     solver = SpecimenSolver(small_problem(), effects=effects)
     names = solver.param_names()
-    q = torch.tensor([[800.0, 60.0, 3e-3, 0.0, 400.0], [0.0, 0.0, 0.0, 0.0, 10.0],
-                      [1500.0, 150.0, 1e-3, 0.7, 12.0]],
-                     dtype=F64)  # C_k, gamma_k, k_E, n_E, sigma_y
+    q = torch.tensor([[800.0, 60.0, 3e-3, 0.0, 0.01, 400.0], [0.0, 0.0, 0.0, 0.0, 0.01, 10.0],
+                      [1500.0, 150.0, 1e-3, 0.7, 0.2, 12.0]],
+                     dtype=F64)  # C_k, gamma_k, k_E, n_E, r_E, sigma_y
     p = torch.cat([anand_tensor({}, dtype=F64)[None].expand(3, -1), q], 1)
     assert p.shape[1] == len(names)
     V = solver.solve(p, [600.0, 1500.0]).V

@@ -122,13 +122,14 @@ def test_the_die_attach_under_jedec_cycles_leaves_the_specimens_effects_out(tmp_
     named, and the hysteresis has stabilised by the third cycle (its work within 2 % of the
     second's: 0.03-0.5 % at Liu's constants, docs/assemblies.md)."""
     _run_dir(tmp_path / "run", effects=("thermal_lag", "modulus_temperature"),
-             extra_cols=((60.0, 90.0), (0.0, 0.0), (0.002, 0.004), (0.0, 0.0)), n=3)
+             extra_cols=((60.0, 90.0), (0.0, 0.0), (0.002, 0.004), (0.0, 0.0), (0.01, 0.01)),
+             n=3)
     pred = predict(tmp_path / "run", ["specimen=die_attach", "mesh=die_attach",
                                       "loading=jedec_m40_125"],
                    n_draws=3, out=tmp_path / "p", points={}, progress=False)
     assert pred.target.transfer
     assert pred.target.effects == ("modulus_temperature",)
-    assert pred.target.names == ("s0", "QR", "xi", "m", "k_E", "n_E")
+    assert pred.target.names == ("s0", "QR", "xi", "m", "k_E", "n_E", "r_E")
     assert any("thermal_lag" in n and "left out" in n for n in pred.notes)
     assert any("-40" in n and "leave the range" in n for n in pred.notes)
     assert pred.temperature["target"] == (-40.0, 125.0)
