@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -173,13 +173,21 @@ class EffectSet:
                 return ph
         return None
 
+    def _first_set(self, hook: Callable[[Effect, torch.Tensor], torch.Tensor | None],
+                   q: torch.Tensor) -> torch.Tensor | None:
+        """``hook(effect, q_effect)`` of the first effect for which it is not None, else None."""
+        for e, qe in zip(self.effects, self.split(q), strict=True):
+            v = hook(e, qe)
+            if v is not None:
+                return v
+        return None
+
     def cooldown(self, q: torch.Tensor) -> torch.Tensor:
         """Each member's cool-down ``(b,)`` s: the first effect that sets one, else the
         pre-history's whole duration."""
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            c = e.cooldown(qe)
-            if c is not None:
-                return c
+        c = self._first_set(lambda e, qe: e.cooldown(qe), q)
+        if c is not None:
+            return c
         ph = self.pre_history()
         return torch.full((q.shape[0],), 1.0 if ph is None else ph.duration_s, dtype=q.dtype,
                           device=q.device)
@@ -187,11 +195,7 @@ class EffectSet:
     def cooldown_shape(self, q: torch.Tensor) -> torch.Tensor | None:
         """Each member's cool-down shape ``(b,)``: the first effect that sets one, else None
         (a constant rate)."""
-        for e, qe in zip(self.effects, self.split(q), strict=True):
-            p = e.cooldown_shape(qe)
-            if p is not None:
-                return p
-        return None
+        return self._first_set(lambda e, qe: e.cooldown_shape(qe), q)
 
     def stress_free(self, T_ref: float, q: torch.Tensor) -> torch.Tensor:
         """Stress-free temperature ``(b,)`` degC per member."""

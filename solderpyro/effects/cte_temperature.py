@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import torch
 
 from solderpyro.effects.base import Effect
+from solderpyro.effects.power import log_power
 from solderpyro.params import Box
 
 #: the form's box: -1 hyperbolic, 0 exponential, 1 linear (the default), 2 square root
@@ -51,9 +52,6 @@ T_HOTTEST_C = 183.0
 #: ``|z|^4 / 120`` of ``z / 2``: < 2e-14 relative); above it the closed form loses at most
 #: ``2 eps / |z|``, about 4e-13 relative
 _Z_SERIES = 1e-3
-#: below this n the power is evaluated by its series about the exponential (the dropped term
-#: of ``log1p(n z) / n`` is ``n^2 z^3 / 3``, < 1e-11 relative in the box)
-_N_SERIES = 1e-6
 #: below this |(n + 1) L| the integral's ``expm1((n+1) L) / (n+1)`` is its series (the dropped
 #: term is ``(aL)^3 / 24`` of it: < 5e-14 relative)
 _A_SERIES = 1e-4
@@ -65,7 +63,7 @@ def excess_strain(u: torch.Tensor, c: torch.Tensor, n: torch.Tensor) -> torch.Te
     alpha / alpha25 adds to the constant CTE's strain, per unit alpha25.
 
     Written as ``u g(z)``, ``z = c u``: ``g = expm1((n+1) L) / ((n+1) z) - 1`` with
-    ``L = log1p(n z) / n`` (``z - n z^2 / 2`` for |n| below 1e-6, so the exponential n = 0 is
+    ``L = log1p(n z) / n`` (:func:`~solderpyro.effects.power.log_power`: the exponential n = 0
     exact; ``expm1((n+1) L) / (n+1)`` by its series near n = -1, where it is ``L``, the
     hyperbola's logarithm), and for ``|z|`` below 1e-3 its series
     ``z/2 + (1-n) z^2/6 + (1-n)(1-2n) z^3/24 + (1-n)(1-2n)(1-3n) z^4/120``; every branch's
@@ -74,9 +72,7 @@ def excess_strain(u: torch.Tensor, c: torch.Tensor, n: torch.Tensor) -> torch.Te
     z = c * u
     small = z.abs() < _Z_SERIES
     zs = torch.where(small, torch.full_like(z, _Z_SERIES), z)
-    tiny = n.abs() < _N_SERIES
-    ns = torch.where(tiny, torch.ones_like(n), n)
-    L = torch.where(tiny, zs - n * zs * zs / 2.0, torch.log1p(ns * zs) / ns)
+    L = log_power(zs, n)
     # expm1(a L) / a with a = n + 1, its series where a L is small (n = -1: the logarithm)
     a = n + 1.0
     aL = a * L

@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import torch
 
 from solderpyro.effects.base import Effect
+from solderpyro.effects.power import log_power
 from solderpyro.params import Box
 
 #: top of the default box of k_E: exponential E(125 degC) = E25 / 10 (without a plateau)
@@ -54,10 +55,6 @@ R_MIN = 0.01
 R_MAX = 0.5
 #: the curvature's box: 0 exponential, 1 linear, 2 quickening
 N_MAX = 2.0
-#: below this n_E the power is evaluated by its series about the exponential (the dropped term
-#: of the exponent is n_E^2 v^3 / 3, v <= 3.7 in the box: < 1.7e-11 relative)
-_N_SERIES = 1e-6
-
 
 def softening(u: torch.Tensor, n: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     """``E(T) / E25`` ``(b,)`` for ``u = k_E (T - 25)`` ``(b,)``, the curvature ``n = n_E``
@@ -65,19 +62,14 @@ def softening(u: torch.Tensor, n: torch.Tensor, r: torch.Tensor) -> torch.Tensor
 
     ``1 + (1 - r) (g - 1)`` with ``v = u / (1 - r)`` and ``g = (1 - n v) ** (1 / n)``, which is
     ``r + (1 - r) g`` written so that ``v = 0`` gives 1 exactly and the derivatives in ``n`` and
-    ``r`` vanish there exactly; ``g - 1`` is ``expm1(log1p(-n v) / n)`` (log1p keeps the digits
-    of a small ``n v``), and ``g = 0`` (the plateau exactly) where ``n v >= 1``. For ``n``
-    below 1e-6 the exponent is its series ``-v - n v^2 / 2``, so the exponential ``n = 0`` is
-    exact and the derivative in ``n`` is smooth through 0 (``-v^2 / 2`` times ``g``). The slope
-    at 25 degC is ``-1`` per unit ``u`` for every ``n`` and ``r``.
+    ``r`` vanish there exactly; ``g - 1`` is ``expm1`` of the power family's logarithm
+    (:func:`~solderpyro.effects.power.log_power` at ``z = -v``: the exponential ``n = 0``
+    exact, the derivative in ``n`` smooth through 0), and ``g = 0`` (the plateau exactly) where
+    ``n v >= 1``. The slope at 25 degC is ``-1`` per unit ``u`` for every ``n`` and ``r``.
     """
     v = u / (1.0 - r)
-    small = n < _N_SERIES
-    ns = torch.where(small, torch.ones_like(n), n)
-    z = -ns * v
-    reached = (z <= -1.0) & ~small  # the law has reached zero: the modulus is the plateau
-    log_g = torch.where(small, -v - n * v * v / 2.0,
-                        torch.log1p(torch.where(reached, torch.zeros_like(z), z)) / ns)
+    reached = n * v >= 1.0  # the law has reached zero: the modulus is the plateau
+    log_g = log_power(torch.where(reached, torch.zeros_like(v), -v), n)
     g_minus_1 = torch.where(reached, -torch.ones_like(v), torch.expm1(log_g))
     return 1.0 + (1.0 - r) * g_minus_1
 
