@@ -17,7 +17,7 @@
   ones reach it at a finite temperature and stay there). Its default 0.01 only keeps the
   modulus positive; a large softening that levels off inside the cycle makes the data see it
   (a linear law floored at 5 % of E25 against one floored at 1 % changes the Moire field by
-  hundreds of noise sd at k_E = 0.0115 /K).
+  20 noise sd RMS at k_E = 0.0115 /K).
 
 Whether a solder softens linearly or exponentially, and where it stops, is rarely known, and
 at a large softening the members differ by more than the data's noise (at k_E = 0.006 /K the
@@ -55,6 +55,7 @@ R_MIN = 0.01
 R_MAX = 0.5
 #: the curvature's box: 0 exponential, 1 linear, 2 quickening
 N_MAX = 2.0
+
 
 def softening(u: torch.Tensor, n: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     """``E(T) / E25`` ``(b,)`` for ``u = k_E (T - 25)`` ``(b,)``, the curvature ``n = n_E``
