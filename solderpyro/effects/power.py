@@ -14,7 +14,8 @@ from __future__ import annotations
 import torch
 
 #: below this |n| the logarithm is its series about the exponential (the dropped term is
-#: ``n^2 z^3 / 3``: < 2e-11 relative for |z| <= 3.7, the largest either effect's box reaches)
+#: ``n^2 z^3 / 3``: < 2e-11 of ``z`` for |z| <= 7.3, the modulus law's largest, k_E (T - 25)
+#: / (1 - r_E) at the top of its boxes and 183 degC)
 N_SERIES = 1e-6
 
 
