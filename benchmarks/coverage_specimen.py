@@ -64,9 +64,8 @@ def _workflow(setup, tv, y, i, a):
     out = Path(a.work) / f"ds{i:02d}"
     dflt = DesignSettings()
     start = a.start if a.start is not None else dflt.start
-    budget = a.budget if a.budget is not None else max(dflt.budget, start + dflt.check)
     s = CalibrationSettings(
-        design=DesignSettings(start=start, budget=budget),
+        design=DesignSettings(start=start, budget=a.budget),
         surrogate=SurrogateSettings(**setup.surrogate),
         sampler=SamplerSettings(chains=a.chains, warmup=a.warmup, draws=a.draws),
         exact=ExactSettings(mode=a.exact), seed=0, store=a.store, progress=False)

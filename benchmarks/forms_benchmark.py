@@ -13,7 +13,10 @@ two residual-stress forms at each set; two-effect cases; ten clean datasets (the
 in turn). Cases run in an interleaved order, so the first N of them are a fair sample of all;
 ``--cases N`` runs the next N not yet finished, ``--parallel K`` K at a time (the cores
 shared among them: one thread each on 2 cores at K = 2, both at K = 1); ``--rerun A,B``
-runs the named cases again (their earlier run directories move to ``WORK/old``). Each
+runs the named cases again (their earlier run directories move to ``WORK/old``);
+``--recalibrate A,B`` reruns only their recalibrations, from a fresh FE store, keeping the
+base calibration and diagnosis with their wall times (for a change that touches only the
+recalibration; the record says which stages it reused and from which commit). Each
 case's record is written as it ends to ``WORK/records/NAME.json`` (a rerun
 skips it, and a case stopped part way keeps the stages it finished); the bars over every
 finished case (:func:`cases_table.bars`) go to ``--out``.
@@ -23,7 +26,8 @@ from it (``--fresh``: start over). Each case records the commit it ran (``git re
 this checkout, or ``$BENCH_COMMIT`` for a snapshot without .git) and the machine's load.
 
 Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2] [--full]
-       [--rerun NAME,NAME] [--out benchmarks/results/forms_benchmark.json] [--list]
+       [--rerun NAME,NAME] [--recalibrate NAME,NAME]
+       [--out benchmarks/results/forms_benchmark.json] [--list]
        [--summary] [--table]
 (the figure: the ``--out`` path with ``.png``)
 """
@@ -124,9 +128,11 @@ def make_data(case: Case, path: Path) -> float:
     return round(time.perf_counter() - t0, 1)
 
 
-def run(case: Case, work: str) -> dict:
+def run(case: Case, work: str, reused: dict | None = None) -> dict:
     """Make the data and run the loop of one case; its record (also written to
-    ``WORK/records/NAME.json``)."""
+    ``WORK/records/NAME.json``). ``reused``: the earlier record of a case whose base
+    calibration and diagnosis are kept (``--recalibrate``): their wall times and commit go
+    into this record."""
     from diagnosis_cases import run_case
 
     w = Path(work)
@@ -140,6 +146,11 @@ def run(case: Case, work: str) -> dict:
                        keep_diagnosis=True)
     except Exception as e:  # noqa: BLE001 - the benchmark records a failed case and goes on
         rec = {"case": case.name, "error": f"{type(e).__name__}: {e}"}
+    if reused is not None and "wall_s" in rec:
+        kept = {k: v for k, v in (reused.get("wall_s") or {}).items()
+                if k in ("calibrate", "diagnose")}
+        rec["wall_s"] = {**kept, **rec["wall_s"]}
+        rec["reused"] = {"stages": sorted(kept), "commit": reused.get("commit")}
     rec.update({"anand_set": case.anand, "forms": case.forms, "seed": case.seed,
                 "data_s": made, "case_s": round(time.perf_counter() - t0, 1),
                 "commit": commit(), "load_1min": round(os.getloadavg()[0], 2),
@@ -289,6 +300,11 @@ def main() -> None:
                     help="ignore the cases already in --out (start the benchmark over)")
     ap.add_argument("--rerun", default="", metavar="NAME,NAME",
                     help="run these cases again (their run directories move to WORK/old)")
+    ap.add_argument("--recalibrate", default="", metavar="NAME,NAME",
+                    help="run these cases' recalibrations again from a fresh FE store, keeping "
+                    "their base calibration and diagnosis (and those stages' wall times and "
+                    "commit, recorded under 'reused'): for a change that touches only the "
+                    "recalibration (the earlier runs and store move to WORK/old)")
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--summary", action="store_true",
                     help="only the bars and the figure of the finished cases")
@@ -311,6 +327,25 @@ def main() -> None:
             if src.exists():
                 old.mkdir(parents=True, exist_ok=True)
                 src.rename(old / src.name)
+    recal = [nm for nm in a.recalibrate.split(",") if nm]
+    unknown = sorted(set(recal) - {c.name for c in cases})
+    if unknown:
+        raise SystemExit(f"--recalibrate: no case named {', '.join(unknown)} (--list lists them)")
+    reused = {}
+    for nm in recal:  # the base and its diagnosis stay; the rest moves aside
+        rp = work / "records" / f"{nm}.json"
+        before = (json.loads(rp.read_text()) if rp.exists() else
+                  next((r for r in keep if r["case"] == nm), None))
+        cd = work / "cases" / nm
+        if before is None or not (cd / "base" / "diagnosis.json").exists():
+            raise SystemExit(f"--recalibrate: {nm} has no finished base and diagnosis in {work}")
+        reused[nm] = before
+        old = work / "old" / time.strftime("%Y%m%d-%H%M%S") / nm
+        old.mkdir(parents=True, exist_ok=True)
+        for src in [*cd.glob("with*"), cd / "store", rp]:
+            if src.exists():
+                src.rename(old / src.name)
+    again += recal
     keep = [r for r in keep if r["case"] not in again]
     done = {p.stem for p in (work / "records").glob("*.json")} | {r["case"] for r in keep}
     todo = [c for c in cases if c.name not in done]
@@ -323,7 +358,7 @@ def main() -> None:
     # the cores shared among the cases at once (torch and the FE's thread pool read it)
     os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // max(a.parallel, 1)))
     with cf.ProcessPoolExecutor(a.parallel) as ex:
-        futs = {ex.submit(run, c, str(work)): c for c in todo}
+        futs = {ex.submit(run, c, str(work), reused.get(c.name)): c for c in todo}
         for f in cf.as_completed(futs):
             r = f.result()
             print(json.dumps({k: r.get(k) for k in ("case", "hidden", "selected", "explained",

@@ -56,9 +56,8 @@ def _settings(setup, a, refit: bool) -> CalibrationSettings:
     (``--exact``) for the 'add it' fits only."""
     dflt = DesignSettings()
     start = a.start if a.start is not None else dflt.start
-    budget = a.budget if a.budget is not None else max(dflt.budget, start + dflt.check)
     return CalibrationSettings(
-        design=DesignSettings(start=start, batch=a.q, budget=budget),
+        design=DesignSettings(start=start, batch=a.q, budget=a.budget),
         surrogate=SurrogateSettings(**setup.surrogate),
         sampler=SamplerSettings(chains=a.chains, warmup=a.warmup, draws=a.draws),
         exact=ExactSettings(mode=a.exact if refit else "off", runs=a.exact_runs,
@@ -93,7 +92,8 @@ def main() -> None:
     ap.add_argument("--effects", default="", help="hidden effects (default: all + clean)")
     ds, es = DesignSettings(), ExactSettings()
     ap.add_argument("--budget", type=int, default=None,
-                    help=f"most FE runs of each adaptive design (default {ds.budget})")
+                    help="most FE runs of each adaptive design (default: the calibration's, by "
+                         "its number of FE parameters)")
     ap.add_argument("--start", type=int, default=None,
                     help=f"Latin-hypercube runs before the first round (default {ds.start})")
     ap.add_argument("--q", type=int, default=ds.batch, help="FE runs acquired per round")

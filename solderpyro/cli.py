@@ -30,7 +30,8 @@ CONFIG_COMMANDS = ("simulate", "demo", "calibrate", "sweep", "sensitivity", "pre
 #: :class:`~solderpyro.config.settings.CalibrationSettings` (a test checks it): the settings
 #: module imports the design loop and torch, which ``--help`` does not wait for.
 HELP_DEFAULTS: dict[str, Any] = {
-    "budget": 110, "start": 30, "batch": 8, "criterion": "loglik", "optimizer": "draws",
+    "budget": None, "budget_base": 110, "budget_dims": 5, "start": 30, "batch": 8,
+    "criterion": "loglik", "optimizer": "draws",
     "exact_mode": "auto", "exact_runs": 64, "exact_rounds": 3, "exact_profile": 9,
     "chains": 4, "warmup": 500, "draws": 1500}
 
@@ -261,7 +262,7 @@ def _settings(a, setup, overrides=()):
     flag(a.optimizer, d0.design.optimizer, ds, "optimizer")
     if a.budget is not None:
         ds.budget = a.budget
-    elif a.start is not None:  # a larger start moves the default budget with it
+    elif a.start is not None and ds.budget is not None:  # a larger start moves a set budget
         ds.budget = max(ds.budget, ds.start + ds.check)
     flag(a.chains, d0.sampler.chains, sp, "chains")
     flag(a.warmup, d0.sampler.warmup, sp, "warmup")
@@ -497,7 +498,9 @@ def _add_design(p: argparse.ArgumentParser) -> None:
     """The adaptive design's and the FE-exact fallback's options (calibrate, demo)."""
     d = HELP_DEFAULTS
     p.add_argument("--budget", type=int, default=None, metavar="N",
-                   help=f"most FE runs the adaptive design makes (default {d['budget']}): a "
+                   help=f"most FE runs the adaptive design makes (default {d['budget_base']} up to "
+                   f"{d['budget_dims']} FE parameters, and one round of runs more for each "
+                   "parameter past them): a "
                    "Latin-hypercube start, then rounds of acquired runs and FE checks at "
                    "posterior draws until the FE confirms the surrogate. Each round's runs are "
                    "the posterior draws where the surrogate's code uncertainty matters most, "

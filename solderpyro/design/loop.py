@@ -51,6 +51,12 @@ from solderpyro.surrogate import GPSurrogate
 log = logging.getLogger("solderpyro")
 
 
+#: the design's FE runs by default up to :data:`BUDGET_DIMS` FE parameters
+BASE_BUDGET = 110
+#: past this many FE parameters the default budget grows by a round per parameter
+BUDGET_DIMS = 5
+
+
 @dataclass
 class LoopSettings:
     """How the adaptive design runs (all counts are FE runs).
@@ -61,7 +67,14 @@ class LoopSettings:
         check: FE runs at posterior draws per round: the FE's confirmation; they join the
             training runs of the next round (no run is wasted).
         budget: the most FE runs the loop makes (start + rounds); the loop stops before a
-            round that would exceed it.
+            round that would exceed it. None (the default): :data:`BASE_BUDGET` runs up to
+            :data:`BUDGET_DIMS` FE parameters and one round (``batch + check`` runs) more for
+            each parameter past them (:meth:`runs_allowed`). Why: on the forms benchmark a
+            recalibration with two effects (9 FE parameters: the surrogate's leave-one-out
+            error 41 % of the output's spread at 110 runs) ran its 110 runs out with the FE
+            disagreeing, and its FE-exact posterior's weights were not reliable: the FE's own
+            best fit with its Laplace spread was reported, the true tau and s0 outside; with
+            160 runs the same case's intervals held every truth (docs/design.md).
         criterion: ``"loglik"`` (:class:`~.acquisition.qIntegratedLogLikVariance`) or
             ``"variance"`` (:func:`~.acquisition.integrated_code_variance`).
         optimizer: ``"draws"`` (the best q of ``candidates`` posterior draws) or
@@ -99,7 +112,7 @@ class LoopSettings:
     start: int = 30
     batch: int = 8
     check: int = 4
-    budget: int = 110
+    budget: int | None = None
     criterion: str = "loglik"
     optimizer: str = "draws"
     mc_points: int = 256
@@ -122,7 +135,7 @@ class LoopSettings:
         for nm in ("batch", "check", "mc_points", "candidates"):
             if getattr(self, nm) < 1:
                 raise ValueError(f"design.{nm} must be >= 1, got {getattr(self, nm)}")
-        if self.budget < self.start + self.check:
+        if self.budget is not None and self.budget < self.start + self.check:
             raise ValueError(f"design.budget ({self.budget}) must be >= design.start + "
                              f"design.check ({self.start + self.check}): one round")
         if self.criterion not in CRITERIA:
@@ -142,6 +155,15 @@ class LoopSettings:
                              f"{self.misfit_check}")
         if self.localize < 0:
             raise ValueError(f"design.localize must be >= 0 (0: never), got {self.localize}")
+
+    def runs_allowed(self, dim: int) -> int:
+        """The most FE runs the design makes with ``dim`` FE parameters: ``budget`` where
+        set, else :data:`BASE_BUDGET` plus ``batch + check`` for each parameter past
+        :data:`BUDGET_DIMS` (never less than one round past the start)."""
+        if self.budget is not None:
+            return self.budget
+        grown = BASE_BUDGET + (self.batch + self.check) * max(0, dim - BUDGET_DIMS)
+        return max(grown, self.start + self.check)
 
 
 @dataclass
@@ -633,7 +655,7 @@ def _localize(p: LoopProblem, s: LoopSettings, st: _Rounds, fe_runs: Any, rec: R
         return False
     assert st.draws is not None
     box = p.box
-    room = s.budget - len(st.X) - s.check  # keep room for the next round's check
+    room = s.runs_allowed(st.X.shape[1]) - len(st.X) - s.check  # room for the next check
     cand = torch.as_tensor(np.asarray(fe_runs, float), dtype=torch.float64)
     keep = spaced_rows(box.to_unit(cand).numpy(), box.to_unit(st.X).numpy(),
                        max(0, min(s.localize, room)))
@@ -654,7 +676,7 @@ def _acquire_runs(p: LoopProblem, s: LoopSettings, st: _Rounds, y: torch.Tensor,
     """Acquire up to ``s.batch`` runs (within the budget, room kept for the next check) with
     the round's checked draws ``chk`` pending, and run the FE there; ``seed``: the
     optimizer's."""
-    room = s.budget - len(st.X) - s.check  # keep room for the next round's check
+    room = s.runs_allowed(st.X.shape[1]) - len(st.X) - s.check  # room for the next check
     if room < 1:
         return
     assert st.gp is not None and st.draws is not None
@@ -712,7 +734,8 @@ def _outcome(st: _Rounds, s: LoopSettings, n: int) -> tuple[str, str]:
                    f"{last.fe_gap:.3g} against sqrt(2n) = {tol:.3g}, varying by "
                    f"{last.fe_spread:.2g} against {s.fe_spread:g})")
     return "budget", (
-        f"the FE budget ran out ({runs} of {s.budget} runs, {r} rounds) before the "
+        f"the FE budget ran out ({runs} of {s.runs_allowed(st.X.shape[1])} runs, {r} rounds) "
+        "before the "
         f"surrogate was confirmed: {'; '.join(why)}" + (
             "" if last.code_ok else f" (code chi2 tolerance sqrt(2n) = {tol:.3g})"))
 
@@ -730,6 +753,7 @@ def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
         (:func:`final_posterior`). ``on_round`` is not called with it.
     """
     s.validate(p.box.dim)
+    budget = s.runs_allowed(p.box.dim)
     y = p.y.to(torch.float64)
     names = names or list(p.box.names)
     st = _start_runs(p, s, seed, X0, kinds)
@@ -737,7 +761,7 @@ def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
     while True:
         r += 1
         rec = _one_round(p, s, st, y, r, seed, names)
-        if rec.code_ok and rec.fe_ok or st.misfits or len(st.X) + s.check > s.budget:
+        if rec.code_ok and rec.fe_ok or st.misfits or len(st.X) + s.check > budget:
             break  # converged, misfits, or the next round's check would exceed the budget
         if on_round is not None:
             on_round(st.result("running", ""))
@@ -756,6 +780,7 @@ def final_posterior(p: LoopProblem, res: LoopResult, s: LoopSettings,
     Returns:
         the :class:`LoopResult` with the final draws, every FE run and round record.
     """
+    budget = s.runs_allowed(p.box.dim)
     gp, draws, best_fit = res.gp, res.draws, res.best_fit
     X, V, ok = res.X, res.Y, res.ok
     kind, rnd_of, rounds = list(res.kind), list(res.round), list(res.rounds)
@@ -776,7 +801,7 @@ def final_posterior(p: LoopProblem, res: LoopResult, s: LoopSettings,
         while True:  # the FE confirms the final posterior in every chain (below)
             t0 = time.perf_counter()
             chk = chain_check_indices(final, FINAL_CHECK_PER_CHAIN)
-            if len(X) + len(chk) > s.budget:
+            if len(X) + len(chk) > budget:
                 break
             th_chk = final.theta[chk]
             Vc, okc, fe_c2, sur_c2, code = fe_at_draws(p, gp, final, y, chk, code_draws=400)
@@ -803,9 +828,9 @@ def final_posterior(p: LoopProblem, res: LoopResult, s: LoopSettings,
                 break
             bad = sorted({_chain_of(final, i)
                           for i, g in zip(chk, gap, strict=True) if not g <= s.fe_tol * tol})
-            if len(X) + len(chk) > s.budget:
+            if len(X) + len(chk) > budget:
                 reason, msg = "budget", (
-                    f"the FE budget ran out ({len(X)} of {s.budget} runs) with the final "
+                    f"the FE budget ran out ({len(X)} of {budget} runs) with the final "
                     f"posterior's chain(s) {[c + 1 for c in bad]} where the FE disagrees with "
                     f"the surrogate (max |d chi2| {rec.fe_gap:.3g} against sqrt(2n) = "
                     f"{tol:.3g}): the surrogate fits there, the FE does not")

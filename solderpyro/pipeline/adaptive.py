@@ -88,18 +88,17 @@ def adaptive_design(cp: CalibrationProblem, s: CalibrationSettings, out: Path,
         round's posterior); :func:`final_design_posterior` draws the final one.
     """
     p = loop_problem(cp, s, warm)
+    ds, budget = s.design, s.design.runs_allowed(cp.gp_box.dim)
     log.info("design: %d Latin-hypercube runs over %s, then rounds of %d acquired + %d check "
-             "runs (%s criterion) up to %d FE runs", s.design.start, ", ".join(cp.gp_box.names),
-             s.design.batch, s.design.check, s.design.criterion, s.design.budget)
-    X0 = lhs(cp.gp_box, s.design.start, s.seed)
+             "runs (%s criterion) up to %d FE runs", ds.start, ", ".join(cp.gp_box.names),
+             ds.batch, ds.check, ds.criterion, budget)
+    X0 = lhs(cp.gp_box, ds.start, s.seed)
     kinds = ["start"] * len(X0)
-    near = refit_design(cp, refit, X0,
-                        min(s.design.localize, s.design.budget - s.design.start - s.design.check),
-                        s.seed)
+    near = refit_design(cp, refit, X0, min(ds.localize, budget - ds.start - ds.check), s.seed)
     if near is not None:
         X0 = torch.cat([X0, near])
         kinds += ["fe_fit"] * len(near)
-    return design_rounds(p, s.design, s.seed, X0, names=list(cp.gp_box.names),
+    return design_rounds(p, ds, s.seed, X0, names=list(cp.gp_box.names),
                          on_round=lambda r: save_design(r, cp.gp_box.names, out), kinds=kinds)
 
 

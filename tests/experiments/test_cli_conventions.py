@@ -39,10 +39,12 @@ def test_help_imports_nothing_heavy():
 
 def test_help_defaults_are_the_settings_defaults():
     from solderpyro.config.settings import CalibrationSettings
+    from solderpyro.design.loop import BASE_BUDGET, BUDGET_DIMS
 
     s = CalibrationSettings()
     assert HELP_DEFAULTS == {
-        "budget": s.design.budget, "start": s.design.start, "batch": s.design.batch,
+        "budget": s.design.budget, "budget_base": BASE_BUDGET, "budget_dims": BUDGET_DIMS,
+        "start": s.design.start, "batch": s.design.batch,
         "criterion": s.design.criterion, "optimizer": s.design.optimizer,
         "exact_mode": s.exact.mode, "exact_runs": s.exact.runs, "exact_rounds": s.exact.rounds,
         "exact_profile": s.exact.profile, "chains": s.sampler.chains,

@@ -532,6 +532,29 @@ def test_bad_settings_name_the_field():
         LoopSettings(start=30, budget=10).validate(4)
 
 
+def test_default_budget_grows_a_round_per_fe_parameter_past_five(monkeypatch):
+    """The default budget: 110 runs up to five FE parameters, one round (batch + check runs)
+    more per parameter past them; a budget that is set is kept as it is, and the loop runs
+    under (and says) the budget for its own box's dimension."""
+    from solderpyro.design.loop import BASE_BUDGET, BUDGET_DIMS
+
+    s = LoopSettings()
+    assert s.budget is None and (BASE_BUDGET, BUDGET_DIMS) == (110, 5)
+    assert [s.runs_allowed(d) for d in (4, 5, 6, 9)] == [110, 110, 122, 158]
+    assert LoopSettings(batch=4, check=2).runs_allowed(7) == 110 + 2 * 6
+    assert LoopSettings(budget=80).runs_allowed(9) == 80
+    assert LoopSettings(start=200).runs_allowed(4) == 204  # at least one round past the start
+    import solderpyro.design.loop as loop_module
+
+    monkeypatch.setattr(loop_module, "BASE_BUDGET", 20)  # a short toy run
+    toy = _toy_problem(bias=0.05)  # never converges: runs to the budget of its dimension
+    s = LoopSettings(start=4, batch=2, check=3, mc_points=100, candidates=200)
+    res = design_rounds(toy, s, seed=0)
+    allowed = s.runs_allowed(toy.box.dim)
+    assert res.reason == "budget" and f"of {allowed} runs" in res.message
+    assert allowed - (s.batch + s.check) < len(res.X) <= allowed
+
+
 def test_cli_config_overrides_reach_the_settings():
     """``solderpyro calibrate ... calibration.design.code_tol=X`` used to be accepted by the
     config and dropped by the command (the settings were built from the flags alone)."""
