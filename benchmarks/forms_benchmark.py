@@ -187,8 +187,8 @@ def summarize(work: Path, out: Path, keep: list[dict]) -> dict:
     recs = sorted((json.loads(p.read_text()) for p in (work / "records").glob("*.json")),
                   key=lambda r: r["case"]) if (work / "records").exists() else []
     rows = [{**case_record(work / "cases" / r["case"], work / "data" / f"{r['case']}.csv"),
-             **{k: r.get(k) for k in ("forms", "anand_set", "seed", "commit", "load_1min",
-                                      "threads")}}
+             **{k: r.get(k) for k in ("forms", "anand_set", "seed", "commit", "reused",
+                                      "load_1min", "threads")}}
             for r in recs if "error" not in r]
     here = {r["case"] for r in rows}
     rows = sorted(rows + [r for r in keep if r["case"] not in here], key=lambda r: r["case"])
@@ -268,7 +268,8 @@ def table(res: dict) -> str:
     from cases_table import final_runs, loop_seconds
 
     out = ["| case | selected (or the caveat) | RMS after (noise sd) | truths outside the 95 % "
-           "intervals | loop s: calibrate + diagnose + recalibrate | commit, threads, load |",
+           "intervals | loop s: calibrate + diagnose + recalibrate | commit (stages reused from), "
+           "threads, load |",
            "|---|---|---|---|---|---|"]
     for r in res["cases"]:
         fin = final_runs(r)
@@ -282,9 +283,12 @@ def table(res: dict) -> str:
         tot = sum(len(f.get("truths") or []) for f in fin)
         parts = loop_seconds(r)
         ls = " + ".join(str(round(v)) if v is not None else "-" for _, v in parts)
+        ru = r.get("reused") or {}
+        at = (r.get("commit") or "-")[:7] + (
+            f" ({' and '.join(ru['stages'])} {(ru.get('commit') or '-')[:7]})" if ru else "")
         out.append(f"| {r['case']} | {sel} | {', '.join(rms) or '-'} | "
                    f"{', '.join(miss) or 'none'} (of {tot}) | {ls} = "
-                   f"{round(sum(v or 0 for _, v in parts))} | {(r.get('commit') or '-')[:7]}, "
+                   f"{round(sum(v or 0 for _, v in parts))} | {at}, "
                    f"{r.get('threads') or 1}, {r.get('load_1min')} |")
     return "\n".join(out)
 
