@@ -74,7 +74,7 @@ class LoopSettings:
             error 41 % of the output's spread at 110 runs) ran its 110 runs out with the FE
             disagreeing, and its FE-exact posterior's weights were not reliable: the FE's own
             best fit with its Laplace spread was reported, the true tau and s0 outside; with
-            160 runs the same case's intervals held every truth (docs/design.md).
+            158 runs (this default) the same case's intervals hold every truth (docs/design.md).
         criterion: ``"loglik"`` (:class:`~.acquisition.qIntegratedLogLikVariance`) or
             ``"variance"`` (:func:`~.acquisition.integrated_code_variance`).
         optimizer: ``"draws"`` (the best q of ``candidates`` posterior draws) or
