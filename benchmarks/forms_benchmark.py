@@ -293,6 +293,14 @@ def table(res: dict) -> str:
     return "\n".join(out)
 
 
+def set_aside(paths: list[Path], old: Path) -> None:
+    """Move those of ``paths`` that exist into the folder ``old`` (made when one does)."""
+    for src in paths:
+        if src.exists():
+            old.mkdir(parents=True, exist_ok=True)
+            src.rename(old / src.name)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("work")
@@ -326,11 +334,8 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"--rerun: no case named {', '.join(unknown)} (--list lists them)")
     for nm in again:  # nothing is deleted: the earlier run moves aside
-        old = work / "old" / time.strftime("%Y%m%d-%H%M%S")
-        for src in (work / "cases" / nm, work / "records" / f"{nm}.json"):
-            if src.exists():
-                old.mkdir(parents=True, exist_ok=True)
-                src.rename(old / src.name)
+        set_aside([work / "cases" / nm, work / "records" / f"{nm}.json"],
+                  work / "old" / time.strftime("%Y%m%d-%H%M%S"))
     recal = [nm for nm in a.recalibrate.split(",") if nm]
     unknown = sorted(set(recal) - {c.name for c in cases})
     if unknown:
@@ -344,11 +349,8 @@ def main() -> None:
         if before is None or not (cd / "base" / "diagnosis.json").exists():
             raise SystemExit(f"--recalibrate: {nm} has no finished base and diagnosis in {work}")
         reused[nm] = before
-        old = work / "old" / time.strftime("%Y%m%d-%H%M%S") / nm
-        old.mkdir(parents=True, exist_ok=True)
-        for src in [*cd.glob("with*"), cd / "store", rp]:
-            if src.exists():
-                src.rename(old / src.name)
+        set_aside([*cd.glob("with*"), cd / "store", rp],
+                  work / "old" / time.strftime("%Y%m%d-%H%M%S") / nm)
     again += recal
     keep = [r for r in keep if r["case"] not in again]
     done = {p.stem for p in (work / "records").glob("*.json")} | {r["case"] for r in keep}

@@ -735,8 +735,7 @@ def _outcome(st: _Rounds, s: LoopSettings, n: int) -> tuple[str, str]:
                    f"{last.fe_spread:.2g} against {s.fe_spread:g})")
     return "budget", (
         f"the FE budget ran out ({runs} of {s.runs_allowed(st.X.shape[1])} runs, {r} rounds) "
-        "before the "
-        f"surrogate was confirmed: {'; '.join(why)}" + (
+        f"before the surrogate was confirmed: {'; '.join(why)}" + (
             "" if last.code_ok else f" (code chi2 tolerance sqrt(2n) = {tol:.3g})"))
 
 
