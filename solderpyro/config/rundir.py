@@ -135,7 +135,7 @@ class Checks:
 @dataclass
 class DesignSummary:
     """The adaptive design's record (``run.json``'s ``design``, as
-    :meth:`~solderpyro.design.loop.DesignLoop.as_dict` writes it), with typed accessors."""
+    :meth:`~solderpyro.design.loop.LoopResult.as_dict` writes it), with typed accessors."""
 
     record: dict[str, Any] = field(default_factory=dict)
 
@@ -149,6 +149,13 @@ class DesignSummary:
     def fe_runs(self) -> int | None:
         """FE runs of the design."""
         n = self.record.get("fe_runs")
+        return None if n is None else int(n)
+
+    @property
+    def budget(self) -> int | None:
+        """The most FE runs the design was allowed (the set ``--budget``, or the default's
+        for the box's dimension); None in records that do not say."""
+        n = self.record.get("budget")
         return None if n is None else int(n)
 
     @property

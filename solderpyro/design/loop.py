@@ -281,6 +281,9 @@ class LoopResult:
         rounds: the per-round records. reason: why it stopped (``"converged"``,
             ``"budget"`` or ``"misfit"``: the FE's own best fit misfits the data). message:
             that, in words. best_fit: the problem's ``misfit`` verdict where one was made.
+        budget: the most FE runs the design was allowed (:meth:`LoopSettings.runs_allowed`
+            for the box's dimension: the set budget, or the default's for that many
+            parameters).
     """
 
     gp: GPSurrogate
@@ -294,6 +297,7 @@ class LoopResult:
     reason: str
     message: str
     best_fit: dict[str, Any] | None = None
+    budget: int | None = None
 
     @property
     def converged(self) -> bool:
@@ -301,6 +305,7 @@ class LoopResult:
 
     def as_dict(self) -> dict[str, Any]:
         return {"reason": self.reason, "message": self.message, "fe_runs": int(len(self.X)),
+                "budget": self.budget,
                 **({"best_fit": self.best_fit} if self.best_fit else {}),
                 "rounds": [asdict(r) for r in self.rounds]}
 
@@ -585,10 +590,10 @@ class _Rounds:
         self.kind += [kind] * len(X)
         self.round += [r] * len(X)
 
-    def result(self, reason: str, message: str) -> LoopResult:
+    def result(self, reason: str, message: str, budget: int) -> LoopResult:
         assert self.gp is not None and self.draws is not None
         return LoopResult(self.gp, self.draws, self.X, self.V, self.ok, self.kind, self.round,
-                          self.rounds, reason, message, self.best_fit)
+                          self.rounds, reason, message, self.best_fit, budget)
 
 
 def _start_runs(p: LoopProblem, s: LoopSettings, seed: int, X0: torch.Tensor | None,
@@ -763,8 +768,8 @@ def design_rounds(p: LoopProblem, s: LoopSettings, seed: int = 0,
         if rec.code_ok and rec.fe_ok or st.misfits or len(st.X) + s.check > budget:
             break  # converged, misfits, or the next round's check would exceed the budget
         if on_round is not None:
-            on_round(st.result("running", ""))
-    return st.result(*_outcome(st, s, int(y.numel())))
+            on_round(st.result("running", "", budget))
+    return st.result(*_outcome(st, s, int(y.numel())), budget)
 
 
 def final_posterior(p: LoopProblem, res: LoopResult, s: LoopSettings,
@@ -843,7 +848,7 @@ def final_posterior(p: LoopProblem, res: LoopResult, s: LoopSettings,
             msg += (f"; the final posterior's chain(s) {[c + 1 for c in bad]} first reached "
                     "where only the surrogate fitted: the FE's runs there joined the design "
                     f"({len(X)} FE runs)")
-    res = LoopResult(gp, final, X, V, ok, kind, rnd_of, rounds, reason, msg, best_fit)
+    res = LoopResult(gp, final, X, V, ok, kind, rnd_of, rounds, reason, msg, best_fit, budget)
     if on_round is not None:
         on_round(res)
     return res

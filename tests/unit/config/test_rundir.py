@@ -34,7 +34,7 @@ def _info(**kw) -> RunInfo:
         overrides=["experiment=quick"], data="lag.csv", store="runs/store", seed=3,
         settings={"sampler": {"chains": 2, "draws": 100, "warmup": 50}, "batch": 8},
         surrogate=SurrogateRecord("matern52", True, "linear", "pca", "unit", False, False),
-        n_runs=20, design=DesignSummary({"reason": "converged", "fe_runs": 20,
+        n_runs=20, design=DesignSummary({"reason": "converged", "fe_runs": 20, "budget": 110,
                                          "best_fit": {"x": {"s0": 12.0, "QR": 9000.0}},
                                          "rounds": [{"n": 16}]}),
         checks=Checks({"ok": True, "rms_um": 0.05, "rms_over_sigma": 1.02}, {"warn": False,
@@ -83,6 +83,7 @@ def test_round_trip_equals_and_keeps_the_version_1_keys(tmp_path) -> None:
             "timing_s", "trust", "posterior", "exact", "parameters", "lower", "upper",
             "sigma_known", "effects", "times_s", "points", "note"} <= set(raw)
     assert raw["surrogate_output"] == "pca" and raw["fe_check"]["ok"] is True
+    assert back.info.design.budget == 110 and DesignSummary({}).budget is None
     dr = back.draws()
     assert dr.names == ["s0", "QR"] and dr.theta.shape == (40, 2) and dr.process.shape == (30, 6)
     meas = back.measurements(valid_points=POINTS)

@@ -535,7 +535,7 @@ def test_bad_settings_name_the_field():
 def test_default_budget_grows_a_round_per_fe_parameter_past_five(monkeypatch):
     """The default budget: 110 runs up to five FE parameters, one round (batch + check runs)
     more per parameter past them; a budget that is set is kept as it is, and the loop runs
-    under (and says) the budget for its own box's dimension."""
+    under (says, and records) the budget for its own box's dimension."""
     from solderpyro.design.loop import BASE_BUDGET, BUDGET_DIMS
 
     s = LoopSettings()
@@ -553,6 +553,8 @@ def test_default_budget_grows_a_round_per_fe_parameter_past_five(monkeypatch):
     allowed = s.runs_allowed(toy.box.dim)
     assert res.reason == "budget" and f"of {allowed} runs" in res.message
     assert allowed - (s.batch + s.check) < len(res.X) <= allowed
+    # the record (run.json's design) says the budget used, not the setting's None
+    assert res.budget == allowed == res.as_dict()["budget"]
 
 
 def test_cli_config_overrides_reach_the_settings():
