@@ -115,10 +115,11 @@ PROFILE_AUTO_MAX = 8
 PROFILE_RUNS = 450
 
 
-def unreliable_trust(costly: str, profile_ci: str) -> str:
+def unreliable_trust(costly: str, profile_ci: str, budget: int | None = None) -> str:
     """The trust line where the design's budget ran out and the FE-exact posterior's weights
     are not reliable: what to do, and what the profile intervals are (``costly``: why they
-    are not computed, :func:`too_costly_to_profile`, or ""; ``profile_ci``: the setting)."""
+    are not computed, :func:`too_costly_to_profile`, or ""; ``profile_ci``: the setting;
+    ``budget``: the FE runs the design was allowed, said with the advice where known)."""
     if costly:
         profiles = costly
     elif profile_ci == "off":
@@ -127,7 +128,8 @@ def unreliable_trust(costly: str, profile_ci: str) -> str:
         profiles = ("the 95 % intervals are widened to hold the FE's own profile intervals "
                     "(profile_ci.csv)")
     return ("neither posterior: the design's budget ran out with the FE disagreeing, and the "
-            "FE-exact posterior's weights are not reliable; raise --budget; " + profiles)
+            "FE-exact posterior's weights are not reliable; raise --budget"
+            + ("" if budget is None else f" (it was {budget} FE runs)") + "; " + profiles)
 
 
 def too_costly_to_profile(n_params: int, model_form: bool = False,
@@ -720,7 +722,7 @@ def exact_stage(w: RunOutputs, rep: Reported) -> Reported:
             log.warning("exact: %s", costly)
         rep = replace(rep, problems=[*rep.problems, msg, *([costly] if costly else [])],
                       trust=rep.trust if unconfirmed else
-                      unreliable_trust(costly, ex_s.profile_ci))
+                      unreliable_trust(costly, ex_s.profile_ci, w.loop.budget))
     w.write(rep, ex, ex_info, ex_rows)
     if ex_s.profile_ci == "off" or costly:
         return rep
@@ -789,8 +791,9 @@ def unconfirmed_stage(w: RunOutputs, rep: Reported, ex: Any, ex_info: dict[str, 
              f"{fit.scale:.1f}x: the design's budget ran out before the FE confirmed the "
              f"surrogate, the surrogate's posterior misses it "
              f"({w.checked.result['rms_over_sigma']:.2f} noise sd at its best checked draw) "
-             "and the FE-exact posterior's weights are not reliable; raise --budget for a "
-             "posterior")
+             "and the FE-exact posterior's weights are not reliable; raise --budget"
+             + ("" if w.loop.budget is None else f" (it was {w.loop.budget} FE runs)")
+             + " for a posterior")
     left = remaining_misfit(rms, n, cp.space.dim)
     if left:
         rows, why = model_form_stage(cp, rows, np.asarray(fit.x, float), w.out, s.seed)

@@ -126,6 +126,7 @@ def test_the_unreliable_trust_line_names_profile_intervals_only_where_they_are_c
     assert "profile_ci.csv" not in off and "profile_ci=off" in off
     costly = too_costly_to_profile(16)
     assert unreliable_trust(costly, "auto").endswith(costly)
+    assert "raise --budget (it was 158 FE runs)" in unreliable_trust("", "auto", 158)
 
 
 class _Sliver(UnitCoords):
