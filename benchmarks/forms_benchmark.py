@@ -244,7 +244,7 @@ def figure(res: dict, path: Path) -> None:
     ax.set_yticks(range(len(rows)), labels, fontsize=7)
     ax.invert_yaxis()
     ax.set_xlabel("loop wall time, s (on 2 cores: one or two threads per case, see the table)")
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper right")
     ax2.set_xticks(range(len(params)), params, rotation=60, fontsize=7)
     ax2.set_xlim(-0.5, len(params) - 0.5)
     b = res["bars"]
