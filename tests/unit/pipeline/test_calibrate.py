@@ -100,7 +100,7 @@ def test_where_neither_posterior_holds_the_fe_best_fit_is_reported(tmp_path):
     checked = FeChecked(0.05, np.zeros((4, 2)), np.arange(4), np.zeros((4, 200)),
                         {"ok": False, "rms_over_sigma": 3.5, "n": 200})
     w = RunOutputs(None, None, tmp_path, replace(CalibrationSettings(), seed=0), None, cp,
-                   None, None, torch.zeros(200), checked, {}, None, None)
+                   SimpleNamespace(budget=110), None, torch.zeros(200), checked, {}, None, None)
     stale = remaining_misfit(3.5, 200, 2)
     (tmp_path / "model_form.json").write_text("{}")
     surrogate_rows = [{"parameter": nm, "q2.5": 0.1, "median": 0.2, "mean": 0.2,
@@ -120,6 +120,7 @@ def test_where_neither_posterior_holds_the_fe_best_fit_is_reported(tmp_path):
     assert [r["median"] for r in out.rows[:2]] == list(w2.fit.x)
     assert all(np.isnan(r["r_hat"]) for r in out.rows)
     assert out.trust.startswith("the FE's own best fit (") and "3.50 noise sd" in out.trust
+    assert "raise --budget (it was 110 FE runs) for a posterior" in out.trust
     assert stale not in out.problems and "the design's budget ran out" in out.problems
     assert not (tmp_path / "model_form.json").exists()  # no misfit remains at ~1 noise sd
     assert (tmp_path / "summary_surrogate.csv").exists()
