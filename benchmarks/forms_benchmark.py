@@ -25,8 +25,13 @@ spans machines whose WORK does not persist: commit the results file and the next
 from it (``--fresh``: start over). Each case records the commit it ran (``git rev-parse`` of
 this checkout, or ``$BENCH_COMMIT`` for a snapshot without .git) and the machine's load.
 
+``--noise-seeds NAME:S,S`` runs one case again on data that differ only in the noise seed
+(in ``WORK/seeds``; bars, rows and figure of every such run, with the case's own row, to
+``*_seeds.json`` and ``.png`` beside ``--out``): whether a truth outside its interval is the
+case's draw of noise or a bias of its form.
+
 Usage: python benchmarks/forms_benchmark.py WORK [--cases N] [--parallel 2] [--full]
-       [--rerun NAME,NAME] [--recalibrate NAME,NAME]
+       [--rerun NAME,NAME] [--recalibrate NAME,NAME] [--noise-seeds NAME:S,S]
        [--out benchmarks/results/forms_benchmark.json] [--list]
        [--summary] [--table]
 (the figure: the ``--out`` path with ``.png``)
@@ -178,10 +183,12 @@ def earlier(out: Path) -> list[dict]:
     return json.loads(out.read_text()).get("cases", []) if out.exists() else []
 
 
-def summarize(work: Path, out: Path, keep: list[dict]) -> dict:
+def summarize(work: Path, out: Path, keep: list[dict],
+              command: str = "python benchmarks/forms_benchmark.py WORK") -> dict:
     """The bars over every finished case, with each case's row, to ``out``: the cases in
     WORK (from their run directories, as cases_table reads them) and the rows ``keep`` of
-    cases WORK does not hold (an earlier results file's)."""
+    cases WORK does not hold (an earlier results file's); ``command`` is recorded as what
+    made them."""
     from cases_table import bars, case_record
 
     recs = sorted((json.loads(p.read_text()) for p in (work / "records").glob("*.json")),
@@ -192,8 +199,7 @@ def summarize(work: Path, out: Path, keep: list[dict]) -> dict:
             for r in recs if "error" not in r]
     here = {r["case"] for r in rows}
     rows = sorted(rows + [r for r in keep if r["case"] not in here], key=lambda r: r["case"])
-    res = {"command": "python benchmarks/forms_benchmark.py WORK",
-           "bars": bars(rows), "cases": rows,
+    res = {"command": command, "bars": bars(rows), "cases": rows,
            "errors": [r for r in recs if "error" in r]}
     out.write_text(json.dumps(res, indent=1) + "\n")
     return res
@@ -301,6 +307,49 @@ def set_aside(paths: list[Path], old: Path) -> None:
             src.rename(old / src.name)
 
 
+def run_all(todo: list[Case], work: Path, parallel: int, reused: dict | None = None) -> None:
+    """Run the cases ``todo`` in WORK, ``parallel`` at once (the cores shared among them),
+    printing a line per case as it ends."""
+    # the cores shared among the cases at once (torch and the FE's thread pool read it)
+    os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // max(parallel, 1)))
+    with cf.ProcessPoolExecutor(parallel) as ex:
+        futs = {ex.submit(run, c, str(work), (reused or {}).get(c.name)): c for c in todo}
+        for f in cf.as_completed(futs):
+            r = f.result()
+            print(json.dumps({k: r.get(k) for k in ("case", "hidden", "selected", "explained",
+                                                     "error", "case_s")}), flush=True)
+
+
+def noise_seeds(spec: str, cases: list[Case], work: Path, out: Path, parallel: int) -> dict:
+    """``--noise-seeds NAME:S,S``: case NAME on data that differ from its own only in the noise
+    seed (datasets ``NAME_seedS``, run in ``WORK/seeds`` as the benchmark runs a case; those
+    already there are kept), then the bars, table rows and figure of every seed run there,
+    with NAME's own row from the results file ``out``, to ``*_seeds.json`` and ``.png``
+    beside ``out``. Returns those results."""
+    name, _, seeds = spec.partition(":")
+    base = next((c for c in cases if c.name == name), None)
+    if base is None:
+        raise SystemExit(f"--noise-seeds: no case named {name!r} (--list lists them)")
+    try:
+        values = [int(v) for v in seeds.split(",") if v]
+    except ValueError:
+        raise SystemExit(f"--noise-seeds: seeds must be integers, got {seeds!r}") from None
+    if not values or base.seed in values:
+        raise SystemExit(f"--noise-seeds: give seeds other than the case's own ({base.seed}), "
+                         f"e.g. {name}:{base.seed + 1000},{base.seed + 1001}")
+    where = work / "seeds"
+    done = {p.stem for p in (where / "records").glob("*.json")}
+    todo = [Case(f"{name}_seed{v}", base.forms, base.anand, v) for v in values]
+    run_all([c for c in todo if c.name not in done], where, parallel)
+    own = [r for r in earlier(out) if r["case"] == name]
+    stem = out.with_name(out.stem + "_seeds")
+    res = summarize(where, stem.with_suffix(".json"), own,
+                    f"python benchmarks/forms_benchmark.py WORK --noise-seeds {spec}")
+    figure(res, stem.with_suffix(".png"))
+    print(json.dumps(res["bars"]))
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("work")
@@ -317,6 +366,11 @@ def main() -> None:
                     "their base calibration and diagnosis (and those stages' wall times and "
                     "commit, recorded under 'reused'): for a change that touches only the "
                     "recalibration (the earlier runs and store move to WORK/old)")
+    ap.add_argument("--noise-seeds", default="", metavar="NAME:S,S",
+                    help="run case NAME again on data that differ from its own only in the "
+                    "noise seed, one dataset NAME_seedS per seed S (in WORK/seeds, results "
+                    "beside --out as *_seeds.json and .png, with NAME's own row from --out): "
+                    "whether a truth outside its interval is the case's noise or its form")
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--summary", action="store_true",
                     help="only the bars and the figure of the finished cases")
@@ -328,6 +382,9 @@ def main() -> None:
         return
     work = Path(a.work).resolve()
     cases = plan(a.full)
+    if a.noise_seeds:
+        noise_seeds(a.noise_seeds, cases, work, Path(a.out), a.parallel)
+        return
     keep = [] if a.fresh else earlier(Path(a.out))
     again = [nm for nm in a.rerun.split(",") if nm]
     unknown = sorted(set(again) - {c.name for c in cases})
@@ -361,14 +418,7 @@ def main() -> None:
         print(f"{len(done)} of {len(cases)} done")
         return
     todo = [] if a.summary else todo[:a.cases] if a.cases is not None else todo
-    # the cores shared among the cases at once (torch and the FE's thread pool read it)
-    os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // max(a.parallel, 1)))
-    with cf.ProcessPoolExecutor(a.parallel) as ex:
-        futs = {ex.submit(run, c, str(work), reused.get(c.name)): c for c in todo}
-        for f in cf.as_completed(futs):
-            r = f.result()
-            print(json.dumps({k: r.get(k) for k in ("case", "hidden", "selected", "explained",
-                                                     "error", "case_s")}), flush=True)
+    run_all(todo, work, a.parallel, reused)
     if (work / "records").exists() or keep:
         res = summarize(work, Path(a.out), keep)
         figure(res, Path(a.out).with_suffix(".png"))
