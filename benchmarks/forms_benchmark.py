@@ -258,10 +258,11 @@ def figure(res: dict, path: Path) -> None:
                   f"{b['coverage'][0]} of {b['coverage'][1]}\n(several runs a user ends "
                   f"with: one row each; Anand constants "
                   f"{b['coverage_constants'][0]} of {b['coverage_constants'][1]})", fontsize=9)
+    clean = (f"clean flagged {b['false_alarms'][0]} of {b['false_alarms'][1]}; "
+             if b["false_alarms"][1] else "")
     ax.set_title(f"selected {b['selected'][0]} of {b['selected'][1]} (of the others, the "
-                 f"caveat names it: {b['caveat'][0]} of {b['caveat'][1]});\nclean flagged "
-                 f"{b['false_alarms'][0]} of {b['false_alarms'][1]}; loop median "
-                 f"{b['loop_s_median']} s", fontsize=9)
+                 f"caveat names it: {b['caveat'][0]} of {b['caveat'][1]});\n{clean}loop "
+                 f"median {b['loop_s_median']} s", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110, bbox_inches="tight")  # the longest case labels whole
     plt.close(fig)
