@@ -115,6 +115,12 @@ PROFILE_AUTO_MAX = 8
 PROFILE_RUNS = 450
 
 
+def raise_budget(budget: int | None) -> str:
+    """The trust lines' advice to allow the design more FE runs, with the ``budget`` it ran
+    out at where known."""
+    return "raise --budget" + ("" if budget is None else f" (it was {budget} FE runs)")
+
+
 def unreliable_trust(costly: str, profile_ci: str, budget: int | None = None) -> str:
     """The trust line where the design's budget ran out and the FE-exact posterior's weights
     are not reliable: what to do, and what the profile intervals are (``costly``: why they
@@ -128,8 +134,8 @@ def unreliable_trust(costly: str, profile_ci: str, budget: int | None = None) ->
         profiles = ("the 95 % intervals are widened to hold the FE's own profile intervals "
                     "(profile_ci.csv)")
     return ("neither posterior: the design's budget ran out with the FE disagreeing, and the "
-            "FE-exact posterior's weights are not reliable; raise --budget"
-            + ("" if budget is None else f" (it was {budget} FE runs)") + "; " + profiles)
+            f"FE-exact posterior's weights are not reliable; {raise_budget(budget)}; "
+            + profiles)
 
 
 def too_costly_to_profile(n_params: int, model_form: bool = False,
@@ -791,9 +797,8 @@ def unconfirmed_stage(w: RunOutputs, rep: Reported, ex: Any, ex_info: dict[str, 
              f"{fit.scale:.1f}x: the design's budget ran out before the FE confirmed the "
              f"surrogate, the surrogate's posterior misses it "
              f"({w.checked.result['rms_over_sigma']:.2f} noise sd at its best checked draw) "
-             "and the FE-exact posterior's weights are not reliable; raise --budget"
-             + ("" if w.loop.budget is None else f" (it was {w.loop.budget} FE runs)")
-             + " for a posterior")
+             "and the FE-exact posterior's weights are not reliable; "
+             f"{raise_budget(w.loop.budget)} for a posterior")
     left = remaining_misfit(rms, n, cp.space.dim)
     if left:
         rows, why = model_form_stage(cp, rows, np.asarray(fit.x, float), w.out, s.seed)
