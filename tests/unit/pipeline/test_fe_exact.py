@@ -153,3 +153,61 @@ def test_a_best_fit_whose_spread_barely_reaches_inside_the_box_still_reports_int
     assert (fit.theta >= 0.0).all() and (fit.theta <= 2.0).all()
     for r in fit.rows[:2]:
         assert r["q2.5"] <= 2.0 <= r["q97.5"] and r["lo95"] <= 2.0 <= r["hi95"]
+
+
+def test_an_effects_own_parameters_are_profiled_where_the_data_leave_its_form_open():
+    """The parameters that size an effect are profiled where one of its form parameters is
+    weakly identified, and only those; none for an effect without a form parameter."""
+    from solderpyro.effects import EffectSet
+    from solderpyro.pipeline.calibrate import form_open_parameters
+
+    fx = EffectSet(["stress_free_temperature", "thermal_lag", "moire_rigid_motion"])
+    assert form_open_parameters(fx, ["cooldown_shape"]) == ["T_sf"]
+    assert form_open_parameters(fx, ["split", "cooldown", "s0"]) == ["T_sf", "tau"]
+    assert form_open_parameters(fx, ["T_sf", "s0", "QR"]) == []  # no form left open
+    assert form_open_parameters(None, ["cooldown_shape"]) == []
+
+
+def test_a_reliable_posterior_that_is_too_narrow_is_widened_to_the_profile_of_the_named_parameter():
+    """profile_stage with named parameters after a reliable FE-exact posterior: on a line
+    a + b s (200 points, sd 0.05) the profile interval of ``a`` is the least-squares
+    a-hat +- 1.96 sd; a reported interval of ``a`` a fifth as wide becomes the hull, kind
+    ``profile``, and the trust line says so; ``b``, not named, keeps its interval, and
+    profile_ci.csv holds ``a`` alone."""
+    import csv
+    import tempfile
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from solderpyro.calibration.intervals import PROFILE
+    from solderpyro.pipeline.calibrate import Reported, profile_stage
+
+    rng = np.random.default_rng(3)
+    y = 1.0 + 0.7 * S + 0.05 * rng.standard_normal(S.size)
+    A = np.stack([np.ones_like(S), S], 1)
+    xhat = np.linalg.lstsq(A, y, rcond=None)[0]
+    cov = 0.05**2 * np.linalg.inv(A.T @ A)
+    sd = np.sqrt(np.diag(cov))
+    draws = rng.multivariate_normal(xhat, cov, 256)
+    ssr = ((y - _fun(draws)) ** 2).sum(1)
+    rows = [{"parameter": nm, "q2.5": xhat[k] - 0.4 * sd[k], "q97.5": xhat[k] + 0.4 * sd[k],
+             "lo95": xhat[k] - 0.4 * sd[k], "hi95": xhat[k] + 0.4 * sd[k],
+             "interval": "central"} for k, nm in enumerate(("a", "b"))]
+    cp = SimpleNamespace(space=BOX, y=torch.as_tensor(y), observed=_fun,
+                         priors=Priors(sigma_known=0.05))
+    ex = SimpleNamespace(samples=draws, sigma=np.full(256, 0.05), reliable=True,
+                         result=SimpleNamespace(extra={"ssr": ssr}))
+    info: dict = {}
+    with tempfile.TemporaryDirectory() as d:
+        rep = profile_stage(cp, Path(d), Reported(rows, None, [], "the FE-exact posterior"),
+                            ex, info, ["a"])
+        with open(Path(d) / "profile_ci.csv") as f:
+            written = [r["parameter"] for r in csv.DictReader(f)]
+    assert written == ["a"] and [p["parameter"] for p in info["profile_ci"]] == ["a"]
+    a, b = rep.rows
+    assert a["interval"] == PROFILE and b == rows[1]
+    # the linear model's profile is a-hat +- 1.96 sd; its ends are interpolated between the
+    # grid's points of an exact parabola (0.2 % of the half-width measured; 1 % allowed)
+    np.testing.assert_allclose([a["lo95"], a["hi95"]], xhat[0] + np.array([-1.96, 1.96]) * sd[0],
+                               atol=0.02 * 1.96 * sd[0])
+    assert "the intervals of a hold the FE's profile intervals" in rep.trust
