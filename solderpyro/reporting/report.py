@@ -212,7 +212,16 @@ def write(rep: CalibrationReport) -> Path:
                   "discrepancy over (time, x, y), fitted to the residual, leaves "
                   "(model_form.json). The columns 2.5 % to 97.5 % are the posterior's own."]
     profiled = [r["parameter"] for r in rows if r.get("interval") == PROFILE]
-    if profiled:
+    if profiled and (rep.run.info.exact or {}).get("reliable"):
+        lines += ["", "The data leave the form of an effect open (one of its form parameters "
+                  "is weakly identified), and a flat prior over that form decides the "
+                  "posterior's interval of what the effect acts with, so the 95 % intervals "
+                  "of " + ", ".join(profiled) + " are widened to hold the FE's own "
+                  "profile-likelihood intervals (profile_ci.csv), every other parameter, the "
+                  "form's included, refitted: each is the hull of the FE-exact posterior's "
+                  "interval and the profile's. The columns 2.5 % to 97.5 % are the "
+                  "posterior's own."]
+    elif profiled:
         lines += ["", "The FE-exact posterior's weights are not reliable, so the 95 % intervals "
                   "of " + ", ".join(profiled) + " are widened to hold the FE's own "
                   "profile-likelihood intervals (profile_ci.csv): each is the hull of the "
