@@ -155,7 +155,9 @@ def run(case: Case, work: str, reused: dict | None = None) -> dict:
         kept = {k: v for k, v in (reused.get("wall_s") or {}).items()
                 if k in ("calibrate", "diagnose")}
         rec["wall_s"] = {**kept, **rec["wall_s"]}
-        rec["reused"] = {"stages": sorted(kept), "commit": reused.get("commit")}
+        # a record that itself reused its stages passes on where they ran
+        rec["reused"] = {"stages": sorted(kept), "commit": (reused.get("reused") or {}).get(
+            "commit", reused.get("commit"))}
     rec.update({"anand_set": case.anand, "forms": case.forms, "seed": case.seed,
                 "data_s": made, "case_s": round(time.perf_counter() - t0, 1),
                 "commit": commit(), "load_1min": round(os.getloadavg()[0], 2),

@@ -920,7 +920,7 @@ def form_open_parameters(fx: EffectSet | None, weak: Sequence[str]) -> list[str]
     Why: a flat prior over an open form's box is no physical statement, yet it decides the
     interval of the parameters the form acts with. On the forms benchmark's slow (Newton)
     cool-down from 150 degC near the box's faces the cool-down's shape spanned its box, the
-    reliable FE-exact posterior put T_sf at 94-130 degC (no sample above 135 among 256), and
+    reliable FE-exact posterior put T_sf at 97-129 degC (no sample above 135 among 256), and
     the FE's profile of T_sf, the shape and duration refitted, held 150 in 3 of 4 noise seeds
     (91.5-175.7 degC on the benchmark's own)."""
     out: list[str] = []

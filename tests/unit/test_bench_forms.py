@@ -115,3 +115,24 @@ def test_the_armstrong_frederick_form_is_the_library_at_its_fixed_recovery():
         for g in (50.0, 0.0)]  # single-member solves, as the form's (batches round apart)
     assert torch.equal(V_form[0], V_lib[0])
     assert (V_lib[0] - V_lib[1]).abs().max() > 1e-3
+
+
+def test_a_recalibration_rerun_twice_keeps_the_commit_its_reused_stages_ran_at(tmp_path,
+                                                                                 monkeypatch):
+    """forms_benchmark.run with an earlier record (``--recalibrate``) keeps that record's base
+    and diagnosis seconds and says where they ran: the earlier record's commit, or, where that
+    record reused them in turn, the commit it names."""
+    import diagnosis_cases
+    import forms_benchmark as fb
+
+    monkeypatch.setattr(fb, "make_data", lambda case, path: 0.0)
+    monkeypatch.setattr(diagnosis_cases, "run_case",
+                        lambda *a, **k: {"case": "x", "wall_s": {"recalibrate": 5.0}})
+    monkeypatch.setenv("BENCH_COMMIT", "ccc")
+    case = fb.Case("x", (), "truth", 1)
+    first = fb.run(case, str(tmp_path), {"commit": "aaa",
+                                         "wall_s": {"calibrate": 1.0, "diagnose": 2.0}})
+    assert first["commit"] == "ccc" and first["reused"]["commit"] == "aaa"
+    again = fb.run(case, str(tmp_path), first)
+    assert again["reused"] == {"stages": ["calibrate", "diagnose"], "commit": "aaa"}
+    assert again["wall_s"] == {"calibrate": 1.0, "diagnose": 2.0, "recalibrate": 5.0}
