@@ -177,11 +177,17 @@ class Effect:
         return self.params.dim
 
     @property
+    def sized(self) -> tuple[str, ...]:
+        """The names of the parameters that size the effect (every one not in
+        :attr:`nuisance`), in the box's order."""
+        return tuple(nm for nm in self.params.names if nm not in self.nuisance)
+
+    @property
     def size_index(self) -> int | None:
         """Index of the one parameter that sizes the effect (all others are :attr:`nuisance`),
         or None when several do (e.g. one per Moire image)."""
-        sized = [k for k, nm in enumerate(self.params.names) if nm not in self.nuisance]
-        return sized[0] if len(sized) == 1 else None
+        sized = self.sized
+        return list(self.params.names).index(sized[0]) if len(sized) == 1 else None
 
     def bind(self, times: Sequence[float]) -> Effect:
         """This effect for the sorted output times ``times`` (s); most effects ignore them."""

@@ -926,7 +926,7 @@ def form_open_parameters(fx: EffectSet | None, weak: Sequence[str]) -> list[str]
     out: list[str] = []
     for e in (fx.effects if fx is not None else ()):
         if set(e.nuisance) & set(weak):
-            out += [nm for nm in e.params.names if nm not in e.nuisance]
+            out += e.sized
     return out
 
 

@@ -168,15 +168,14 @@ def test_an_effects_own_parameters_are_profiled_where_the_data_leave_its_form_op
     assert form_open_parameters(None, ["cooldown_shape"]) == []
 
 
-def test_a_reliable_posterior_that_is_too_narrow_is_widened_to_the_profile_of_the_named_parameter():
+def test_a_reliable_posterior_that_is_too_narrow_is_widened_to_the_profile_of_the_named_parameter(
+        tmp_path):
     """profile_stage with named parameters after a reliable FE-exact posterior: on a line
     a + b s (200 points, sd 0.05) the profile interval of ``a`` is the least-squares
     a-hat +- 1.96 sd; a reported interval of ``a`` a fifth as wide becomes the hull, kind
     ``profile``, and the trust line says so; ``b``, not named, keeps its interval, and
     profile_ci.csv holds ``a`` alone."""
     import csv
-    import tempfile
-    from pathlib import Path
     from types import SimpleNamespace
 
     from solderpyro.calibration.intervals import PROFILE
@@ -198,11 +197,10 @@ def test_a_reliable_posterior_that_is_too_narrow_is_widened_to_the_profile_of_th
     ex = SimpleNamespace(samples=draws, sigma=np.full(256, 0.05), reliable=True,
                          result=SimpleNamespace(extra={"ssr": ssr}))
     info: dict = {}
-    with tempfile.TemporaryDirectory() as d:
-        rep = profile_stage(cp, Path(d), Reported(rows, None, [], "the FE-exact posterior"),
-                            ex, info, ["a"])
-        with open(Path(d) / "profile_ci.csv") as f:
-            written = [r["parameter"] for r in csv.DictReader(f)]
+    rep = profile_stage(cp, tmp_path, Reported(rows, None, [], "the FE-exact posterior"),
+                        ex, info, ["a"])
+    with open(tmp_path / "profile_ci.csv") as f:
+        written = [r["parameter"] for r in csv.DictReader(f)]
     assert written == ["a"] and [p["parameter"] for p in info["profile_ci"]] == ["a"]
     a, b = rep.rows
     assert a["interval"] == PROFILE and b == rows[1]
